@@ -1,0 +1,1 @@
+"""Board platforms, pin maps, synthesis and build reports. Imported as ``foc_servo.boards``."""

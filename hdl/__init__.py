@@ -1,0 +1,1 @@
+"""Gateware: one Amaranth component per block. Imported as ``foc_servo.hdl``."""

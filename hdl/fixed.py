@@ -1,0 +1,342 @@
+"""Fixed-point formats: the one place that defines them.
+
+Gateware (``foc_servo.hdl``) and the bit-true golden models (``foc_servo.sim.models``) both import
+this module, so changing a format here changes both.
+
+Three kinds of thing live here:
+
+* :class:`QFormat` — a two's-complement (or unsigned) fixed-point format ``Q(width, frac)``: a raw
+  integer ``r`` of ``width`` bits stands for ``r · 2**-frac``. Conversions from and to float.
+* :class:`BinaryAngle` — an unsigned angle of ``width`` bits, a full turn being ``2**width``. This is the
+  *only* quantity in the design where wrap-around is correct (and wanted).
+* :class:`Quantity` — a physical quantity (current, voltage, speed, ...) carried in a :class:`QFormat`,
+  with its full-scale value and unit: the conversions at the user's edge, with clear errors.
+
+And the arithmetic helpers, each in two flavours with identical semantics:
+
+========================  ==========================  =================================================
+gateware (Amaranth)       golden model (numpy)        meaning
+========================  ==========================  =================================================
+:func:`saturate`          :func:`saturate_np`         clamp to the range of a shape (never wrap)
+:func:`clamp`             :func:`clamp_np`            clamp to run-time limits ``lo``, ``hi``
+:func:`round_shift`       :func:`round_shift_np`      ``v / 2**shift``, rounded half away from zero
+:func:`sat_add`           :func:`saturate_np`         saturating add
+:func:`sat_sub`           :func:`saturate_np`         saturating subtract
+:func:`mul_round`         :func:`mul_round_np`        product, rounded, saturated
+========================  ==========================  =================================================
+
+Rounding is *half away from zero* everywhere: it is odd-symmetric (``f(-v) == -f(v)``), so a
+regulator fed a zero-mean error does not drift, and a rotation of a negated vector gives exactly the
+negated result. It costs one carry-in (``half - sign``) over plain round-half-up.
+"""
+
+import math
+import numbers
+
+import numpy as np
+from amaranth.hdl import Const, Mux, Shape, Value, signed, unsigned
+
+__all__ = [
+    "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
+    "saturate", "clamp", "round_shift", "sat_add", "sat_sub", "mul_round",
+    "saturate_np", "clamp_np", "round_shift_np", "mul_round_np", "shape_range",
+]
+
+
+def _check_int(name, value, minimum, maximum=None):
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+        raise TypeError(f"{name} must be an integer, not {value!r}")
+    if value < minimum or (maximum is not None and value > maximum):
+        upper = "" if maximum is None else f" and at most {maximum}"
+        raise ValueError(f"{name} must be at least {minimum}{upper}, not {value!r}")
+    return int(value)
+
+
+def shape_range(shape):
+    """Smallest and largest integer representable in ``shape`` (a :class:`Shape`-castable)."""
+    shape = Shape.cast(shape)
+    if shape.signed:
+        return -(1 << (shape.width - 1)), (1 << (shape.width - 1)) - 1
+    return 0, (1 << shape.width) - 1
+
+
+class QFormat:
+    """A fixed-point format: ``width`` raw bits, ``frac`` of them fractional.
+
+    ``Q(16, 15)`` is the classic Q1.15 (range [-1, 1)); ``UQ(16, 8)`` an unsigned 8.8 format.
+
+    Parameters
+    ----------
+    width : int
+        Total number of bits, sign included, 1 … 64.
+    frac : int
+        Number of fractional bits; may exceed ``width`` (a small-valued format) or be negative.
+    signed : bool
+        Two's complement (default) or unsigned.
+    """
+
+    def __init__(self, width, frac, *, signed=True):
+        self._width = _check_int("QFormat width", width, 1, 64)
+        self._frac = _check_int("QFormat frac", frac, -64, 128)
+        self._signed = bool(signed)
+
+    width = property(lambda self: self._width)
+    frac = property(lambda self: self._frac)
+    signed = property(lambda self: self._signed)
+
+    @property
+    def shape(self):
+        """The Amaranth shape of a raw value."""
+        return signed(self._width) if self._signed else unsigned(self._width)
+
+    @property
+    def min_raw(self):
+        return shape_range(self.shape)[0]
+
+    @property
+    def max_raw(self):
+        return shape_range(self.shape)[1]
+
+    @property
+    def lsb(self):
+        """Value of one raw step."""
+        return 2.0 ** -self._frac
+
+    @property
+    def min(self):
+        return self.min_raw * self.lsb
+
+    @property
+    def max(self):
+        return self.max_raw * self.lsb
+
+    def to_raw(self, value, *, saturate=False, name="value"):
+        """Round a float (or array) to the nearest raw value, half away from zero.
+
+        Out-of-range values raise :exc:`ValueError` naming ``name``, unless ``saturate`` is set.
+        """
+        v = np.asarray(value, dtype=np.float64)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite, not {value!r}")
+        scaled = v * 2.0 ** self._frac
+        raw = np.where(scaled >= 0, np.floor(scaled + 0.5), np.ceil(scaled - 0.5))
+        if saturate:
+            raw = np.clip(raw, self.min_raw, self.max_raw)
+        elif np.any(raw < self.min_raw) or np.any(raw > self.max_raw):
+            bad = float(v[(raw < self.min_raw) | (raw > self.max_raw)].flat[0])
+            raise ValueError(f"{name} {bad!r} is outside the range [{self.min!r}, {self.max!r}] "
+                             f"of {self!r}")
+        raw = raw.astype(np.int64)
+        return int(raw) if raw.ndim == 0 else raw
+
+    def from_raw(self, raw):
+        """Float value of a raw integer (or array)."""
+        out = np.asarray(raw, dtype=np.float64) * self.lsb
+        return float(out) if out.ndim == 0 else out
+
+    def __eq__(self, other):
+        return (isinstance(other, QFormat) and
+                (self._width, self._frac, self._signed) ==
+                (other._width, other._frac, other._signed))
+
+    def __hash__(self):
+        return hash((self._width, self._frac, self._signed))
+
+    def __repr__(self):
+        return f"{'Q' if self._signed else 'UQ'}({self._width}, {self._frac})"
+
+
+def Q(width, frac):
+    """Signed :class:`QFormat`."""
+    return QFormat(width, frac, signed=True)
+
+
+def UQ(width, frac):
+    """Unsigned :class:`QFormat`."""
+    return QFormat(width, frac, signed=False)
+
+
+class BinaryAngle:
+    """An angle as an unsigned ``width``-bit integer; a full turn is ``2**width``.
+
+    Wrap-around is the point: adding angles modulo ``2**width`` is exact angle arithmetic. Read as a
+    signed number the same bits are an angle in [-π, π).
+    """
+
+    def __init__(self, width):
+        self._width = _check_int("BinaryAngle width", width, 2, 62)
+
+    width = property(lambda self: self._width)
+
+    @property
+    def shape(self):
+        return unsigned(self._width)
+
+    @property
+    def turn(self):
+        """Raw value of one full turn (2π)."""
+        return 1 << self._width
+
+    @property
+    def lsb_rad(self):
+        return 2 * math.pi / self.turn
+
+    def to_raw(self, theta_rad):
+        """Nearest raw angle (ties away from zero), wrapped into [0, 2**width)."""
+        v = np.asarray(theta_rad, dtype=np.float64)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"angle must be finite, not {theta_rad!r}")
+        scaled = v / self.lsb_rad
+        raw = np.where(scaled >= 0, np.floor(scaled + 0.5), np.ceil(scaled - 0.5))
+        raw = np.mod(raw, self.turn).astype(np.int64)
+        return int(raw) if raw.ndim == 0 else raw
+
+    def to_rad(self, raw, *, signed=True):
+        """Angle in radians: in [-π, π) if ``signed`` (the bits read as two's complement), else
+        [0, 2π)."""
+        r = np.asarray(raw, dtype=np.int64) % self.turn
+        if signed:
+            r = np.where(r >= self.turn // 2, r - self.turn, r)
+        out = r * self.lsb_rad
+        return float(out) if out.ndim == 0 else out
+
+    def __eq__(self, other):
+        return isinstance(other, BinaryAngle) and self._width == other._width
+
+    def __hash__(self):
+        return hash(("angle", self._width))
+
+    def __repr__(self):
+        return f"BinaryAngle({self._width})"
+
+
+class Quantity:
+    """A physical quantity carried in a fixed-point format: the conversion at the user's edge.
+
+    ``full_scale`` (in ``unit``) is the physical value of the format's value 1.0, so
+    ``Quantity("i_q", Q(16, 15), 20.0, "A")`` maps ±20 A onto Q1.15.
+    """
+
+    def __init__(self, name, fmt, full_scale, unit):
+        if not isinstance(fmt, QFormat):
+            raise TypeError(f"Quantity format must be a QFormat, not {fmt!r}")
+        if not isinstance(full_scale, numbers.Real) or not full_scale > 0:
+            raise ValueError(f"Quantity full_scale must be a positive number, not {full_scale!r}")
+        self.name, self.fmt, self.full_scale, self.unit = str(name), fmt, float(full_scale), unit
+
+    @property
+    def min(self):
+        return self.fmt.min * self.full_scale
+
+    @property
+    def max(self):
+        return self.fmt.max * self.full_scale
+
+    def to_raw(self, value, *, saturate=False):
+        """Raw value for a physical value; out of range raises a :exc:`ValueError` that names the
+        quantity, the value, the range and the unit."""
+        v = np.asarray(value, dtype=np.float64)
+        if not saturate and (np.any(v < self.min) or np.any(v > self.max)):
+            bad = float(v[(v < self.min) | (v > self.max)].flat[0])
+            raise ValueError(f"{self.name} {bad:g} {self.unit} is outside the range "
+                             f"[{self.min:g}, {self.max:g}] {self.unit}")
+        return self.fmt.to_raw(v / self.full_scale, saturate=True, name=self.name)
+
+    def from_raw(self, raw):
+        return self.fmt.from_raw(raw) * self.full_scale
+
+    def __repr__(self):
+        return f"Quantity({self.name!r}, {self.fmt!r}, {self.full_scale:g}, {self.unit!r})"
+
+
+# --- gateware helpers ---------------------------------------------------------------------------
+
+def saturate(value, shape):
+    """``value`` clamped to the range of ``shape`` and cast to it: never wraps.
+
+    When ``value``'s own range already fits, this is only a cast (no logic).
+    """
+    value = Value.cast(value)
+    shape = Shape.cast(shape)
+    lo, hi = shape_range(shape)
+    vlo, vhi = shape_range(value.shape())
+    if vhi > hi:
+        value = Mux(value > hi, hi, value)
+    if vlo < lo:
+        value = Mux(value < lo, lo, value)
+    value = value[:shape.width]
+    return value.as_signed() if shape.signed else value.as_unsigned()
+
+
+def clamp(value, lo, hi):
+    """``value`` clamped to the run-time limits: ``hi`` if ``value > hi``, else ``lo`` if
+    ``value < lo``, else ``value``. With ``lo > hi`` the result is ``hi`` or ``lo``, as
+    :func:`clamp_np` models. The result's shape is wide enough for all three operands."""
+    value, lo, hi = Value.cast(value), Value.cast(lo), Value.cast(hi)
+    return Mux(value > hi, hi, Mux(value < lo, lo, value))
+
+
+def round_shift(value, shift):
+    """``value / 2**shift`` rounded to the nearest integer, ties away from zero (exact, no
+    saturation: the result is one bit wider than ``value >> shift``). ``shift <= 0`` shifts left."""
+    value = Value.cast(value)
+    shift = _check_int("shift", shift, -128, 128)
+    if shift <= 0:
+        return value << -shift
+    if not value.shape().signed:
+        return (value + (1 << (shift - 1))) >> shift
+    # Add half, minus one for negative values, then floor: ties go away from zero.
+    return (value + Const(1 << (shift - 1)) - value[-1]) >> shift
+
+
+def sat_add(a, b, shape):
+    """``a + b`` saturated to ``shape``."""
+    return saturate(Value.cast(a) + b, shape)
+
+
+def sat_sub(a, b, shape):
+    """``a - b`` saturated to ``shape``."""
+    return saturate(Value.cast(a) - b, shape)
+
+
+def mul_round(a, b, shift, shape):
+    """``a * b / 2**shift``, rounded half away from zero, saturated to ``shape``."""
+    return saturate(round_shift(Value.cast(a) * b, shift), shape)
+
+
+# --- numpy golden-model helpers (int64, identical semantics) ----------------------------------
+
+def _as_int(v):
+    a = np.asarray(v)
+    if a.dtype == object:
+        return a
+    return a.astype(np.int64)
+
+
+def saturate_np(value, shape):
+    """Model of :func:`saturate` (and of :func:`sat_add` / :func:`sat_sub` given ``a ± b``)."""
+    lo, hi = shape_range(shape)
+    out = np.clip(_as_int(value), lo, hi)
+    return int(out) if np.ndim(out) == 0 else out
+
+
+def clamp_np(value, lo, hi):
+    """Model of :func:`clamp`."""
+    v, lo, hi = _as_int(value), _as_int(lo), _as_int(hi)
+    out = np.where(v > hi, hi, np.where(v < lo, lo, v))
+    return int(out) if np.ndim(out) == 0 else out
+
+
+def round_shift_np(value, shift):
+    """Model of :func:`round_shift`."""
+    v = _as_int(value)
+    if shift <= 0:
+        out = v << -shift
+    else:
+        out = (v + (1 << (shift - 1)) - (v < 0)) >> shift
+    return int(out) if np.ndim(out) == 0 else out
+
+
+def mul_round_np(a, b, shift, shape):
+    """Model of :func:`mul_round`. Products must fit in int64 (|a·b| < 2**63)."""
+    return saturate_np(round_shift_np(_as_int(a) * _as_int(b), shift), shape)

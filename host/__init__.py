@@ -1,0 +1,1 @@
+"""PC side: command-line tool (and later the protocol client). Imported as ``foc_servo.host``."""

@@ -1,0 +1,1 @@
+"""Everything simulated that is not gateware. Imported as ``foc_servo.sim``."""

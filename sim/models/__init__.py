@@ -1,0 +1,1 @@
+"""Bit-true numpy golden models, one module per ``hdl`` block, same fixed-point formats."""

@@ -1,0 +1,1 @@
+"""Gateware-against-golden-model checks shared by the tests and ``foc-servo bench``."""
