@@ -35,7 +35,7 @@ def simulate(dut, testbenches=(), processes=(), *, clock_hz=50e6, name=None, vcd
         Wall-clock seconds the simulation took.
     """
     sim = Simulator(dut)
-    sim.add_clock(1 / clock_hz)
+    sim.add_clock(1 / clock_hz, if_exists=True)  # combinational designs have no clock
     for tb in testbenches:
         sim.add_testbench(tb)
     for proc in processes:

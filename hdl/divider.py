@@ -1,0 +1,209 @@
+# Ref: SPEC.md §2.3 (paper Fig. 6), M/T speed D_n = k·ΔM/ΔT: the divider.
+"""Sequential (multicycle) integer divider with stream interfaces.
+
+Restoring shift-subtract division on magnitudes, one quotient bit per clock, then a sign fix:
+the quotient is truncated toward zero and the remainder takes the dividend's sign (C99), so
+``dividend == quotient * divisor + remainder`` and ``|remainder| < |divisor|``. Division by zero
+and the one signed overflow (``min / -1``) saturate and are flagged; nothing wraps. The latency
+is the same for every operand pair, division by zero included, so the M/T speed timing is fixed.
+"""
+
+from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.lib import data, stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from .fixed import saturate, shape_range
+
+__all__ = ["Divider"]
+
+
+class Divider(wiring.Component):
+    """Sequential divider: ``quotient = trunc(dividend / divisor)``, C99 remainder.
+
+    Both operands are integers (or fixed-point values with the same number of fractional bits;
+    the quotient is then an integer and the remainder has the operands' format). Shapes below
+    write ``S(n)`` for ``signed(n)`` if ``signed`` else ``unsigned(n)``.
+
+    Parameters
+    ----------
+    width : int
+        Width of the dividend and of the quotient, in bits; at least 2.
+    divisor_width : int or None
+        Width of the divisor and of the remainder, in bits; at least 2. ``None`` means ``width``.
+    signed : bool
+        Two's-complement (default) or unsigned operands and results.
+
+    Members
+    -------
+    i : In(stream.Signature(data.StructLayout({"dividend": S(width), "divisor": S(divisor_width)})))
+        Operands. ``i.ready`` is high while the divider is idle; a transfer starts a division.
+    o : Out(stream.Signature(data.StructLayout({"quotient": S(width), "remainder": S(divisor_width),
+        "div0": unsigned(1), "ovf": unsigned(1)})))
+        Result, :attr:`latency` clocks after the transfer on ``i``. ``o.valid`` and the payload
+        are held until ``o.ready``; the divider is idle (``i.ready``) from the next clock on.
+
+        * ``quotient``: ``dividend / divisor`` truncated toward zero.
+        * ``remainder``: ``dividend - quotient * divisor``; sign of the dividend, ``|r| < |d|``.
+        * ``div0``: the divisor was zero. Then ``remainder = 0`` and ``quotient`` saturates with
+          the sign of the dividend: the largest value of ``S(width)`` if ``dividend >= 0``, else
+          the smallest (signed); all ones (unsigned). ``ovf`` is 0.
+        * ``ovf`` (signed only): ``min(S(width)) / -1``, whose quotient ``2**(width-1)`` does not
+          fit; ``quotient`` saturates to ``2**(width-1) - 1``, ``remainder = 0``.
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from the transfer on ``i`` to ``o.valid``: ``width + 1`` (one clock per quotient
+        bit, one for the sign fix), whatever the operands. A new division can be accepted two
+        clocks after ``o.valid`` at the soonest (``o.ready`` held high): one every ``width + 3``
+        clocks.
+
+    Raises
+    ------
+    TypeError
+        If ``width`` or ``divisor_width`` is not an integer of at least 2, or ``signed`` is not a
+        bool.
+    """
+
+    def __init__(self, *, width=32, divisor_width=None, signed=True):
+        if not isinstance(width, int) or isinstance(width, bool) or width < 2:
+            raise TypeError(f"Divider width must be an integer of at least 2, not {width!r}")
+        if divisor_width is None:
+            divisor_width = width
+        elif (not isinstance(divisor_width, int) or isinstance(divisor_width, bool)
+                or divisor_width < 2):
+            raise TypeError(f"Divider divisor_width must be None or an integer of at least 2, "
+                            f"not {divisor_width!r}")
+        if not isinstance(signed, bool):
+            raise TypeError(f"Divider signed must be a bool, not {signed!r}")
+        self._width = width
+        self._divisor_width = divisor_width
+        self._signed = signed
+        shape = _shape_factory(signed)
+        self._i_layout = data.StructLayout({
+            "dividend": shape(width),
+            "divisor": shape(divisor_width),
+        })
+        self._o_layout = data.StructLayout({
+            "quotient": shape(width),
+            "remainder": shape(divisor_width),
+            "div0": unsigned(1),
+            "ovf": unsigned(1),
+        })
+        super().__init__({
+            "i": In(stream.Signature(self._i_layout)),
+            "o": Out(stream.Signature(self._o_layout)),
+        })
+
+    width = property(lambda self: self._width)
+    divisor_width = property(lambda self: self._divisor_width)
+    signed = property(lambda self: self._signed)
+
+    @property
+    def latency(self):
+        return self._width + 1
+
+    @property
+    def i_layout(self):
+        """Payload layout of :attr:`i`."""
+        return self._i_layout
+
+    @property
+    def o_layout(self):
+        """Payload layout of :attr:`o`."""
+        return self._o_layout
+
+    def elaborate(self, platform):
+        m = Module()
+        w, dw = self._width, self._divisor_width
+
+        # Working registers. `quo` starts as |dividend|; each clock shifts its top bit into the
+        # partial remainder and one quotient bit in at the bottom, so after `w` clocks it holds
+        # |quotient|. Invariant `rem < dmag` (dmag != 0) keeps `rem` in `dw` bits; with dmag == 0
+        # the partial remainder is meaningless (truncated) and the output is overridden.
+        quo = Signal(w)
+        rem = Signal(dw)
+        dmag = Signal(dw)
+        neg_n = Signal()        # dividend < 0: sign of the remainder
+        neg_q = Signal()        # operand signs differ: sign of the quotient
+        div0 = Signal()
+        count = Signal(range(w))
+
+        dividend = self.i.payload.dividend
+        divisor = self.i.payload.divisor
+
+        # Restoring step: trial = 2·rem + next dividend bit (< 2·dmag, dw + 1 bits).
+        trial = Cat(quo[-1], rem)
+        diff = trial - dmag                     # negative (top bit set) iff trial < dmag
+        fits = ~diff[-1]
+
+        q_max = shape_range(self._o_layout["quotient"].shape)[1]
+        q_min = shape_range(self._o_layout["quotient"].shape)[0]
+
+        with m.FSM():
+            with m.State("IDLE"):
+                m.d.comb += self.i.ready.eq(1)
+                with m.If(self.i.valid):
+                    if self._signed:
+                        m.d.sync += [
+                            quo.eq(Mux(dividend < 0, -dividend, dividend)),
+                            dmag.eq(Mux(divisor < 0, -divisor, divisor)),
+                            neg_n.eq(dividend < 0),
+                            neg_q.eq((dividend < 0) ^ (divisor < 0)),
+                        ]
+                    else:
+                        m.d.sync += [quo.eq(dividend), dmag.eq(divisor)]
+                    m.d.sync += [
+                        rem.eq(0),
+                        div0.eq(divisor == 0),
+                        count.eq(w - 1),
+                    ]
+                    m.next = "BUSY"
+
+            with m.State("BUSY"):
+                m.d.sync += [
+                    rem.eq(Mux(fits, diff[:dw], trial[:dw])),
+                    quo.eq(Cat(fits, quo[:-1])),
+                    count.eq(count - 1),
+                ]
+                with m.If(count == 0):
+                    m.next = "FIX"
+
+            with m.State("FIX"):
+                p = self.o.payload
+                if self._signed:
+                    # |quotient| <= 2**(w-1): only +2**(w-1) (min / -1) exceeds the range.
+                    q_signed = Mux(neg_q, -quo, quo)
+                    # |remainder| < |divisor| <= 2**(dw-1): the slice cannot lose bits.
+                    r_signed = Mux(neg_n, -rem, rem)[:dw]
+                    ovf = ~neg_q & quo[-1]
+                else:
+                    q_signed = quo
+                    r_signed = rem
+                    ovf = 0
+                with m.If(div0):
+                    m.d.sync += [
+                        p.quotient.eq(Mux(neg_n, q_min, q_max) if self._signed else q_max),
+                        p.remainder.eq(0),
+                        p.div0.eq(1),
+                        p.ovf.eq(0),
+                    ]
+                with m.Else():
+                    m.d.sync += [
+                        p.quotient.eq(saturate(q_signed, self._o_layout["quotient"].shape)),
+                        p.remainder.eq(Mux(ovf, 0, r_signed)),
+                        p.div0.eq(0),
+                        p.ovf.eq(ovf),
+                    ]
+                m.next = "DONE"
+
+            with m.State("DONE"):
+                m.d.comb += self.o.valid.eq(1)
+                with m.If(self.o.ready):
+                    m.next = "IDLE"
+
+        return m
+
+
+def _shape_factory(is_signed):
+    return signed if is_signed else unsigned

@@ -1,0 +1,268 @@
+# Ref: paper eq. (7)–(9); SPEC.md §2.2 (Tustin PI, output saturation, anti-windup)
+"""Tustin (bilinear) PI regulator with output saturation and anti-windup.
+
+Per accepted sample ``n`` (paper eq. (7)–(9), with the integrator kept ``g = int_guard`` fraction
+bits finer than the output)::
+
+    E[n]  = sat_sub(ref, fb, signed(W))                                    Q1.(W-1), like ref/fb
+    P[n]  = round_shift(kp · E[n], kp_format.frac − g)                     integrator precision
+    dI[n] = round_shift(kx · (E[n] + E[n−1]), kx_format.frac − g)          integrator precision
+    I_c   = clamp(I[n−1] + dI[n], lim_lo · 2**g, lim_hi · 2**g)            (a) integrator clamp
+    U_c   = round_shift(P[n] + I_c, g)                                     output candidate
+    hold  = (U_c > lim_hi and dI[n] > 0) or (U_c < lim_lo and dI[n] < 0)   (b) conditional integr.
+    I[n]  = I[n−1] if hold else I_c
+    U     = round_shift(P[n] + I[n], g)                                    O[n] = P[n] + I[n]
+    O[n]  = saturate(clamp(U, lim_lo, lim_hi), signed(W));  sat = (U > lim_hi) or (U < lim_lo)
+
+Rounding is half away from zero (``fixed.round_shift``); nothing wraps. ``round_shift`` of a
+``b``-bit signed value by ``s`` bits needs ``r(b, s) = max(b − s + 1, 2)`` bits for ``s > 0`` and
+``b − s`` for ``s ≤ 0``; the register widths follow from it (``W = width``, ``g = int_guard``,
+``kpw``/``kxw`` the gain widths)::
+
+    E, E[n−1]        signed(W)
+    E + E[n−1]       signed(W + 1)
+    kp · E           signed(kpw + W)          (signed or unsigned gain)
+    kx · (E + E[n−1]) signed(kxw + W + 1)
+    P                signed(r(kpw + W, kp_format.frac − g))
+    dI               signed(r(kxw + W + 1, kx_format.frac − g))
+    I + dI           signed(max(W + g, width(dI)) + 1)
+    I, I_c           signed(W + g)            (always within [lim_lo, lim_hi] · 2**g, see `clamp`)
+    U_c, U           signed(r(max(width(P), W + g) + 1, g))
+"""
+
+import numbers
+
+from amaranth.hdl import Cat, Module, Mux, Signal, signed
+from amaranth.lib import data, stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from .fixed import QFormat, UQ, clamp, round_shift, saturate, sat_sub
+
+__all__ = ["PI", "pi_widths", "round_shift_width"]
+
+
+def round_shift_width(width, shift):
+    """Width of the signed result of :func:`~.fixed.round_shift` on a ``signed(width)`` value.
+
+    Exact: the rounded value of any operand fits (a positive value can round up to
+    ``2**(width-1-shift)``)."""
+    if shift <= 0:
+        return width - shift
+    return max(width - shift + 1, 2)
+
+
+class PI(wiring.Component):
+    """Tustin PI regulator with output saturation and anti-windup (module docstring: equations).
+
+    Sequential: one sample in flight at a time, ``latency`` clocks from acceptance to ``o.valid``;
+    ``i.ready`` is high while idle (and while ``clear`` is high).
+
+    Parameters
+    ----------
+    width : int
+        Width of ``ref``, ``fb``, the error, the limits and the output, all Q1.(width-1).
+    kp_format : QFormat
+        Format of the proportional gain ``kp`` (signed or unsigned); ``UQ(16, 8)`` is 0 … 255.996.
+    kx_format : QFormat
+        Format of the integral gain ``kx`` = K_i·T_s/2 of the Tustin form; ``UQ(16, 16)`` is
+        0 … 0.99998.
+    int_guard : int
+        Extra fraction bits ``g`` of the integrator (and of ``P``) below the output LSB, so that
+        small ``kx·E`` contributions accumulate instead of rounding away.
+
+    Members
+    -------
+    i : In(stream.Signature(StructLayout({"ref": signed(width), "fb": signed(width)})))
+        Reference and feedback, Q1.(width-1). ``E = sat_sub(ref, fb)`` saturates to signed(width).
+    o : Out(stream.Signature(signed(width), always_ready=True))
+        Output ``O``, Q1.(width-1), clamped to [lim_lo, lim_hi]; ``o.payload`` holds its value
+        between strobes (0 after reset and after ``clear``).
+    kp : In(kp_format.shape)
+        Proportional gain, raw ``kp_format``.
+    kx : In(kx_format.shape)
+        Integral gain, raw ``kx_format``.
+    lim_lo, lim_hi : In(signed(width))
+        Output limits, Q1.(width-1). With ``lim_lo > lim_hi`` the results follow
+        :func:`~.fixed.clamp` (``lim_hi`` above ``lim_hi``, else ``lim_lo``): defined, not useful.
+    clear : In(1)
+        While high: integrator and ``E[n−1]`` are zeroed, a computation in flight is abandoned
+        (no strobe), ``o.payload`` and ``sat`` become 0, and inputs are accepted and dropped.
+    sat : Out(1)
+        The last output was clamped to a limit; updates with ``o.valid``.
+    integrator : Out(signed(width + int_guard))
+        The integrator state ``I``, Q1.(width-1+int_guard), for observation.
+
+    ``kp`` and ``kx`` are used on the first clock after acceptance, ``lim_lo``/``lim_hi`` until
+    ``o.valid``: gains and limits must be stable from acceptance to ``o.valid`` (the register file
+    updates them only at loop boundaries, when the regulator is idle).
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from the cycle an input is accepted to the cycle ``o.valid`` is high.
+    interval : int
+        Minimum clocks between accepted inputs (``i.ready`` rises with ``o.valid``).
+
+    Raises
+    ------
+    TypeError
+        If ``width`` is not an integer of at least 4, a format is not a :class:`QFormat`, or
+        ``int_guard`` is not a non-negative integer.
+    ValueError
+        If an intermediate product would exceed 62 bits (limit of the int64 golden model).
+    """
+
+    def __init__(self, *, width=16, kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8):
+        widths = pi_widths(width, kp_format, kx_format, int_guard)
+        self._width = width
+        self._kp_format = kp_format
+        self._kx_format = kx_format
+        self._int_guard = int_guard
+        self._widths = widths
+        super().__init__({
+            "i": In(stream.Signature(data.StructLayout({
+                "ref": signed(width),
+                "fb": signed(width),
+            }))),
+            "o": Out(stream.Signature(signed(width), always_ready=True)),
+            "kp": In(kp_format.shape),
+            "kx": In(kx_format.shape),
+            "lim_lo": In(signed(width)),
+            "lim_hi": In(signed(width)),
+            "clear": In(1),
+            "sat": Out(1),
+            "integrator": Out(signed(width + int_guard)),
+        })
+
+    width = property(lambda self: self._width)
+    kp_format = property(lambda self: self._kp_format)
+    kx_format = property(lambda self: self._kx_format)
+    int_guard = property(lambda self: self._int_guard)
+    latency = property(lambda self: 6)
+    interval = property(lambda self: 6)
+
+    @property
+    def widths(self):
+        """Widths of the internal values (dict, see the module docstring for the formulas)."""
+        return dict(self._widths)
+
+    def elaborate(self, platform):
+        m = Module()
+        w, g = self._width, self._int_guard
+        wd = self._widths
+
+        e = Signal(signed(w))
+        e_prev = Signal(signed(w))
+        prod_p = Signal(signed(wd["prod_p"]))
+        prod_x = Signal(signed(wd["prod_x"]))
+        p = Signal(signed(wd["p"]))
+        di = Signal(signed(wd["di"]))
+        integ = Signal(signed(w + g))
+        i_c = Signal(signed(w + g))
+        u_c = Signal(signed(wd["u"]))
+        u_k = Signal(signed(wd["u"]))
+        lo_g = Signal(signed(w + g))
+        hi_g = Signal(signed(w + g))
+        # One valid bit per stage; stage k's registers load when stage k-1 is valid.
+        stage = [Signal(name=f"stage{k}") for k in range(1, self.latency)]
+
+        busy = Signal()
+        m.d.comb += busy.eq(Cat(*stage).any())
+        m.d.comb += [
+            self.i.ready.eq(~busy | self.clear),
+            self.integrator.eq(integ),
+            lo_g.eq(self.lim_lo << g),
+            hi_g.eq(self.lim_hi << g),
+        ]
+        accept = self.i.valid & self.i.ready & ~self.clear
+
+        m.d.sync += stage[0].eq(accept)
+        for prev, cur in zip(stage, stage[1:]):
+            m.d.sync += cur.eq(prev)
+        m.d.sync += self.o.valid.eq(stage[-1])
+
+        # Clock 0 (acceptance): saturated error.
+        with m.If(accept):
+            m.d.sync += e.eq(sat_sub(self.i.payload.ref, self.i.payload.fb, signed(w)))
+        # Clock 1: both products; E[n] becomes E[n-1] for the next sample.
+        with m.If(stage[0]):
+            m.d.sync += [
+                prod_p.eq(self.kp * e),
+                prod_x.eq(self.kx * (e + e_prev)),
+                e_prev.eq(e),
+            ]
+        # Clock 2: products rounded to integrator precision.
+        with m.If(stage[1]):
+            m.d.sync += [
+                p.eq(round_shift(prod_p, self._kp_format.frac - g)),
+                di.eq(round_shift(prod_x, self._kx_format.frac - g)),
+            ]
+        # Clock 3: integrator candidate, clamped to the output limits (a).
+        with m.If(stage[2]):
+            m.d.sync += i_c.eq(clamp(integ + di, lo_g, hi_g))
+        # Clock 4: output candidates with the new and with the kept integrator.
+        with m.If(stage[3]):
+            m.d.sync += [
+                u_c.eq(round_shift(p + i_c, g)),
+                u_k.eq(round_shift(p + integ, g)),
+            ]
+        # Clock 5: conditional integration (b), output clamp, strobe on the next clock.
+        hold = (((u_c > self.lim_hi) & (di > 0)) | ((u_c < self.lim_lo) & (di < 0)))
+        u = Mux(hold, u_k, u_c)
+        with m.If(stage[4]):
+            m.d.sync += [
+                integ.eq(Mux(hold, integ, i_c)),
+                self.o.payload.eq(saturate(clamp(u, self.lim_lo, self.lim_hi), signed(w))),
+                self.sat.eq((u > self.lim_hi) | (u < self.lim_lo)),
+            ]
+
+        with m.If(self.clear):
+            m.d.sync += [s.eq(0) for s in stage]
+            m.d.sync += [
+                self.o.valid.eq(0),
+                self.o.payload.eq(0),
+                self.sat.eq(0),
+                integ.eq(0),
+                e_prev.eq(0),
+            ]
+        return m
+
+
+def _is_int(value):
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def pi_widths(width, kp_format, kx_format, int_guard):
+    """Validate the :class:`PI` parameters and return the widths of its internal values.
+
+    Shared with the golden model, which checks every intermediate value against these widths.
+
+    Returns
+    -------
+    dict
+        ``prod_p``, ``prod_x``, ``p``, ``di``, ``integrator``, ``sum_i`` (``I + dI``) and ``u``
+        (``U_c``, ``U``), in bits, all signed; formulas in the module docstring.
+    """
+    if not _is_int(width) or width < 4:
+        raise TypeError(f"PI width must be an integer of at least 4, not {width!r}")
+    if not isinstance(kp_format, QFormat):
+        raise TypeError(f"PI kp_format must be a QFormat, not {kp_format!r}")
+    if not isinstance(kx_format, QFormat):
+        raise TypeError(f"PI kx_format must be a QFormat, not {kx_format!r}")
+    if not _is_int(int_guard) or int_guard < 0:
+        raise TypeError(f"PI int_guard must be a non-negative integer, not {int_guard!r}")
+    widths = {
+        "prod_p": kp_format.width + width,
+        "prod_x": kx_format.width + width + 1,
+        "integrator": width + int_guard,
+    }
+    widths["p"] = round_shift_width(widths["prod_p"], kp_format.frac - int_guard)
+    widths["di"] = round_shift_width(widths["prod_x"], kx_format.frac - int_guard)
+    widths["sum_i"] = max(widths["integrator"], widths["di"]) + 1
+    widths["u"] = round_shift_width(max(widths["p"], widths["integrator"]) + 1, int_guard)
+    widest = max(widths.values())
+    if widest > 62:
+        raise ValueError(f"PI parameters need a {widest}-bit intermediate value; at most 62 bits "
+                         f"are supported (width {width}, kp_format {kp_format!r}, kx_format "
+                         f"{kx_format!r}, int_guard {int_guard})")
+    return widths

@@ -1,0 +1,118 @@
+"""The ``foc-servo`` command.
+
+Every sub-command that reports figures takes ``--json`` and then prints them as one JSON object on
+the last line of its output (the keys the issues name are a public interface). Progress goes to
+stderr, so stdout stays clean for pipes.
+"""
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def _emit(figures, human_lines, as_json):
+    for line in human_lines:
+        print(line)
+    if as_json:
+        print(json.dumps(figures, sort_keys=True, default=float))
+
+
+def cmd_verilog(args):
+    from amaranth.back import verilog
+
+    from ..hdl.catalog import BLOCKS
+    names = args.block or list(BLOCKS)
+    unknown = [n for n in names if n not in BLOCKS]
+    if unknown:
+        raise SystemExit(f"foc-servo verilog: unknown block {unknown[0]!r}; "
+                         f"choose from {', '.join(BLOCKS)}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        path = out / f"{name}.v"
+        path.write_text(verilog.convert(BLOCKS[name](), name=name))
+        print(f"wrote {path}")
+
+
+def _fmt_area(area):
+    lines = [f"{'block':<10} {'iCE40 LUT4':>10} {'FF':>6} {'carry':>6} {'DSP':>4}   "
+             f"{'xc7 LUT':>8} {'FF':>6} {'CARRY4':>6} {'DSP':>4}"]
+    for name, fig in area.items():
+        i, x = fig["ice40"], fig["xc7"]
+        lines.append(f"{name:<10} {i['lut4']:>10} {i['ff']:>6} {i['carry']:>6} {i['dsp']:>4}   "
+                     f"{x['lut']:>8} {x['ff']:>6} {x['carry4']:>6} {x['dsp']:>4}")
+    return lines
+
+
+def cmd_bench(args):
+    from ..sim.bench import bench_arith
+    start = time.perf_counter()
+    fig = bench_arith(count=args.count, seed=args.seed, area=not args.no_area,
+                      progress=not args.quiet)
+    fig["wall_s"] = time.perf_counter() - start
+    d = fig["details"]
+    lines = [
+        f"arithmetic blocks against their golden models, seed {args.seed}:",
+        f"  CORDIC   {d['cordic']['vectors']:>7} rotations: max error {fig['cordic_max_err_lsb']:.3f}"
+        f" LSB, RMS {fig['cordic_rms_err_lsb']:.3f} LSB, latency {fig['cordic_latency_clk']} clk, "
+        f"throughput {fig['cordic_throughput_per_clk']:.3f} /clk, "
+        f"{fig['cordic_mismatches']} mismatches",
+        f"  PI       {d['pi']['vectors']:>7} samples:   {fig['pi_mismatches']} mismatches",
+        f"  Clarke   {d['clarke']['vectors']:>7} vectors:   {fig['clarke_mismatches']} mismatches",
+        f"  divider  {d['divider']['vectors']:>7} divisions: {fig['divider_mismatches']} mismatches, "
+        f"{fig['divider_clk']} clk per division",
+        f"  Amaranth simulator on the CORDIC alone: {fig['pysim_clk_per_s']:.0f} clk/s",
+    ]
+    if "area" in fig:
+        lines += ["area from yosys (synthesis, no place-and-route):", *_fmt_area(fig["area"])]
+    lines.append(f"wall time {fig['wall_s']:.1f} s")
+    _emit(fig, lines, args.json)
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(
+        prog="foc-servo",
+        description="FPGA vector-controlled PMSM speed servo: gateware generator, simulation, "
+                    "benchmarks.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("verilog", help="write the Verilog of each block to build/verilog/")
+    p.add_argument("--out", default="build/verilog", help="output folder (default: %(default)s)")
+    p.add_argument("--block", action="append", help="only this block (repeatable)")
+    p.set_defaults(func=cmd_verilog)
+
+    p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
+    p.add_argument("suite", nargs="?", default="arith", choices=["arith"],
+                   help="which figures (default: %(default)s)")
+    p.add_argument("--count", type=_positive_int, default=100_000,
+                   help="random vectors per block (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
+    p.add_argument("--no-area", action="store_true", help="skip the yosys area figures")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures as one JSON object on the last line")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,313 @@
+# Ref: SPEC.md §2.3 (paper Fig. 6), M/T speed D_n = k·ΔM/ΔT: the divider.
+"""Gateware :class:`~foc_servo.hdl.divider.Divider` against its golden model.
+
+Fast by construction: the simulated design is :class:`DividerBench`, ``lanes`` dividers side by
+side, each fed from a ROM holding its operands and the golden model's expected result, with a
+mismatch counter and an accept-to-done latency meter in gateware. The testbench only ticks.
+"""
+
+import numpy as np
+from amaranth.hdl import Cat, Module, Signal, unsigned
+from amaranth.lib import wiring
+from amaranth.lib.memory import Memory
+from amaranth.lib.wiring import Out
+
+from ...hdl.divider import Divider
+from ...hdl.fixed import shape_range
+from ..harness import Progress, simulate
+from ..models import divider as model
+
+__all__ = ["run", "vectors", "corner_cases", "DividerBench"]
+
+
+def _params(width=32, divisor_width=None, signed=True):
+    return {"width": width, "divisor_width": width if divisor_width is None else divisor_width,
+            "signed": signed}
+
+
+def _ranges(p):
+    dut = Divider(**p)
+    return (shape_range(dut.i_layout["dividend"].shape),
+            shape_range(dut.i_layout["divisor"].shape))
+
+
+def corner_cases(**params):
+    """Named corner cases: every pair of special dividends and divisors (zero, ±1, ±2, small odd,
+    powers of two and their neighbours, the extremes of each range).
+
+    Returns
+    -------
+    dividend, divisor : lists of int
+    """
+    p = _params(**params)
+    (nlo, nhi), (dlo, dhi) = _ranges(p)
+
+    def specials(lo, hi, w):
+        s = {0, 1, 2, 3, 7, lo, lo + 1, hi, hi - 1, 1 << (w - 2), (1 << (w - 2)) - 1}
+        if p["signed"]:
+            s |= {-1, -2, -3, -7, -(1 << (w - 2)), 1 - (1 << (w - 2))}
+        return sorted(v for v in s if lo <= v <= hi)
+
+    ns, ds = specials(nlo, nhi, p["width"]), specials(dlo, dhi, p["divisor_width"])
+    return [n for n in ns for _ in ds], [d for _ in ns for d in ds]
+
+
+def _randbits(rng, bits, size, dtype):
+    """Uniform integers in [0, 2**bits)."""
+    if dtype is not object:
+        return rng.integers(0, 1 << bits, size=size, dtype=np.int64)
+    out = np.zeros(size, dtype=object)
+    for shift in range(0, bits, 32):
+        chunk = rng.integers(0, 1 << min(32, bits - shift), size=size, dtype=np.int64)
+        out = out + (chunk.astype(object) << shift)
+    return out
+
+
+def _uniform(rng, lo, hi, size, dtype):
+    """Uniform integers in [lo, hi] (negligible modulo bias beyond 62 bits)."""
+    if dtype is not object:
+        return rng.integers(lo, hi, size=size, dtype=np.int64, endpoint=True)
+    return _randbits(rng, (hi - lo).bit_length() + 16, size, dtype) % (hi - lo + 1) + lo
+
+
+def vectors(count, *, seed=0, **params):
+    """``count`` seeded random operand pairs from a mix of distributions.
+
+    Mix: uniform over the full ranges (30 %), log-uniform magnitudes (20 %), small magnitudes
+    (10 %), powers of two ± 1 (10 %), ``|dividend| < |divisor|`` (10 %), small divisor and full
+    dividend (12 %), divisor ±1 (6 %), divisor 0 (1 %), ``min / -1`` (1 %; unsigned: ``max / 1``).
+
+    Returns
+    -------
+    dividend, divisor : arrays (int64, or object beyond 62 bits)
+    """
+    p = _params(**params)
+    (nlo, nhi), (dlo, dhi) = _ranges(p)
+    dtype = model._dtype(p["width"], p["divisor_width"])
+    rng = np.random.default_rng(seed)
+    nb = p["width"] - p["signed"]               # magnitude bits
+    db = p["divisor_width"] - p["signed"]
+
+    def signs(x):
+        if not p["signed"]:
+            return x
+        return np.where(rng.integers(0, 2, size=len(x)) == 1, -x, x).astype(dtype)
+
+    def loguniform(bits, size):
+        return _randbits(rng, bits, size, dtype) >> rng.integers(0, bits + 1, size=size)
+
+    def pow2(bits, size):
+        k = rng.integers(0, bits, size=size)
+        e = rng.integers(-1, 2, size=size)
+        return np.array([(1 << int(a)) + int(b) for a, b in zip(k, e)], dtype=dtype)
+
+    kind = rng.choice(9, size=count, p=[.30, .20, .10, .10, .10, .12, .06, .01, .01])
+    n = _uniform(rng, nlo, nhi, count, dtype)
+    d = _uniform(rng, dlo, dhi, count, dtype)
+    # 1: log-uniform magnitudes
+    n = np.where(kind == 1, signs(loguniform(nb, count)), n)
+    d = np.where(kind == 1, signs(loguniform(db, count)), d)
+    # 2: small magnitudes (< 2**8)
+    n = np.where(kind == 2, signs(loguniform(min(nb, 8), count)), n)
+    d = np.where(kind == 2, signs(loguniform(min(db, 8), count)), d)
+    # 3: powers of two ± 1
+    n = np.where(kind == 3, signs(pow2(nb, count)), n)
+    d = np.where(kind == 3, signs(pow2(db, count)), d)
+    # 4: |dividend| < |divisor|
+    dm = np.abs(signs(loguniform(db, count)))
+    dm = np.where(dm == 0, 1, dm)
+    small = _randbits(rng, nb + 2, count, dtype) % dm
+    n = np.where(kind == 4, signs(small), n)
+    d = np.where(kind == 4, signs(dm), d)
+    # 5: full dividend, small divisor
+    d = np.where(kind == 5, signs(loguniform(min(db, 8), count)), d)
+    # 6: divisor ±1
+    d = np.where(kind == 6, signs(np.ones(count, dtype=dtype)), d)
+    # 7: division by zero
+    d = np.where(kind == 7, 0, d)
+    # 8: the overflow case
+    n = np.where(kind == 8, nlo if p["signed"] else nhi, n)
+    d = np.where(kind == 8, -1 if p["signed"] else 1, d)
+    n = np.clip(n, nlo, nhi).astype(dtype)
+    d = np.clip(d, dlo, dhi).astype(dtype)
+    return n, d
+
+
+class DividerBench(wiring.Component):
+    """Simulation-only wrapper: ``len(lanes)`` dividers fed from ROMs, checked in gateware.
+
+    Each lane's ROM row packs ``dividend | divisor << w | expected o.payload << (w + dw)``. A lane
+    offers its next row while it has rows left, holds ``o.ready`` high, compares every result
+    with the expected payload, counts mismatches, latches the first mismatching row and payload,
+    and measures the clocks from each transfer on ``i`` to ``o.valid``.
+
+    Members
+    -------
+    done : Out(1)
+        Every lane has checked all of its rows.
+    """
+
+    done: Out(1)
+
+    def __init__(self, lanes, **params):
+        self._p = _params(**params)
+        self._rows = [list(rows) for rows in lanes]
+        if not self._rows or not all(self._rows):
+            raise ValueError("DividerBench lanes must be a non-empty list of non-empty row lists")
+        super().__init__()
+        self.clocks = Signal(40)
+        self.idx, self.mismatches, self.first_bad, self.first_got = [], [], [], []
+        self.lat_min, self.lat_max = [], []
+        lat_w = (self._p["width"] + 8).bit_length() + 1
+        dut = Divider(**self._p)
+        for k, rows in enumerate(self._rows):
+            self.idx.append(Signal(range(len(rows) + 1), name=f"idx{k}"))
+            self.mismatches.append(Signal(range(len(rows) + 1), name=f"mismatches{k}"))
+            self.first_bad.append(Signal(range(len(rows) + 1), name=f"first_bad{k}",
+                                         init=len(rows)))
+            self.first_got.append(Signal(dut.o_layout.size, name=f"first_got{k}"))
+            self.lat_min.append(Signal(lat_w, name=f"lat_min{k}", init=(1 << lat_w) - 1))
+            self.lat_max.append(Signal(lat_w, name=f"lat_max{k}"))
+
+    def elaborate(self, platform):
+        m = Module()
+        p = self._p
+        in_bits = p["width"] + p["divisor_width"]
+        all_done = []
+        for k, rows in enumerate(self._rows):
+            dut = Divider(**p)
+            m.submodules[f"dut{k}"] = dut
+            rom = Memory(shape=unsigned(in_bits + dut.o_layout.size), depth=len(rows), init=rows)
+            m.submodules[f"rom{k}"] = rom
+            port = rom.read_port(domain="comb")
+            idx = self.idx[k]
+            lane_done = idx == len(rows)
+            all_done.append(lane_done)
+            lat = Signal.like(self.lat_max[k], name=f"lat{k}")
+            got = dut.o.payload.as_value()
+            m.d.comb += [
+                port.addr.eq(idx),
+                dut.i.payload.eq(port.data[:in_bits]),
+                dut.i.valid.eq(~lane_done),
+                dut.o.ready.eq(1),
+            ]
+            with m.If(dut.i.valid & dut.i.ready):
+                m.d.sync += lat.eq(0)
+            with m.Else():
+                m.d.sync += lat.eq(lat + 1)
+            with m.If(dut.o.valid):
+                m.d.sync += idx.eq(idx + 1)
+                with m.If(lat < self.lat_min[k]):
+                    m.d.sync += self.lat_min[k].eq(lat)
+                with m.If(lat > self.lat_max[k]):
+                    m.d.sync += self.lat_max[k].eq(lat)
+                with m.If(got != port.data[in_bits:]):
+                    m.d.sync += self.mismatches[k].eq(self.mismatches[k] + 1)
+                    with m.If(self.mismatches[k] == 0):
+                        m.d.sync += [self.first_bad[k].eq(idx), self.first_got[k].eq(got)]
+        m.d.comb += self.done.eq(Cat(all_done).all())
+        with m.If(~self.done):
+            m.d.sync += self.clocks.eq(self.clocks + 1)
+        return m
+
+
+def _pack(n, d, q, r, z, v, p):
+    w, dw = p["width"], p["divisor_width"]
+    mw, md = (1 << w) - 1, (1 << dw) - 1
+    return [(int(a) & mw) | (int(b) & md) << w | (int(c) & mw) << (w + dw)
+            | (int(e) & md) << (2 * w + dw) | int(f) << (2 * w + 2 * dw) | int(g) << (2 * w + 2 * dw + 1)
+            for a, b, c, e, f, g in zip(n, d, q, r, z, v)]
+
+
+def _unpack_payload(bits, p):
+    w, dw = p["width"], p["divisor_width"]
+
+    def field(x, width):
+        x &= (1 << width) - 1
+        return x - (1 << width) if p["signed"] and x >> (width - 1) else x
+
+    return {"quotient": field(bits, w), "remainder": field(bits >> w, dw),
+            "div0": bits >> (w + dw) & 1, "ovf": bits >> (w + dw + 1) & 1}
+
+
+def run(count=100_000, *, seed=0, progress=False, lanes=16, **params):
+    """Simulate the divider on ``count`` seeded random divisions plus :func:`corner_cases` and
+    compare every result with :func:`foc_servo.sim.models.divider.divide`.
+
+    Parameters
+    ----------
+    count : int
+        Number of random divisions (:func:`vectors`), on top of the corner cases.
+    seed : int
+        Seed of the random stimulus.
+    progress : bool
+        Show a progress line on stderr.
+    lanes : int
+        Dividers simulated side by side (a speed knob; the results do not depend on it).
+    **params :
+        ``width``, ``divisor_width``, ``signed`` of :class:`~foc_servo.hdl.divider.Divider`.
+
+    Returns
+    -------
+    dict
+        ``mismatches``, ``vectors``, ``clocks`` (simulated), ``sim_s`` (wall seconds of
+        simulation), ``clocks_per_s``, ``clocks_per_division`` (measured clocks from the transfer
+        on ``i`` to ``o.valid``, the maximum over all divisions), ``latency_min`` (the minimum),
+        ``div0_cases``, ``ovf_cases``, ``lanes``, the parameters, and ``first_mismatch`` (None, or
+        the operands, expected and gateware payloads of the first mismatching division).
+    """
+    if not isinstance(lanes, int) or isinstance(lanes, bool) or lanes < 1:
+        raise TypeError(f"lanes must be an integer of at least 1, not {lanes!r}")
+    if not isinstance(count, int) or isinstance(count, bool) or count < 0:
+        raise TypeError(f"count must be a non-negative integer, not {count!r}")
+    p = _params(**params)
+    cn, cd = corner_cases(**p)
+    rn, rd = vectors(count, seed=seed, **p)
+    dtype = model._dtype(p["width"], p["divisor_width"])
+    n = np.concatenate([np.array(cn, dtype=dtype), rn])
+    d = np.concatenate([np.array(cd, dtype=dtype), rd])
+    q, r, z, v = model.divide(n, d, **p)
+    rows = _pack(n, d, q, r, z, v, p)
+    total = len(rows)
+    lanes = min(lanes, total)
+    bench = DividerBench([rows[k::lanes] for k in range(lanes)], **p)
+    bar = Progress(f"divider {p['width']}/{p['divisor_width']}"
+                   f"{'' if p['signed'] else 'u'}", total, enabled=progress)
+    res = {}
+
+    async def testbench(ctx):
+        chunk = 64 * (p["width"] + 3)
+        while not ctx.get(bench.done):
+            await ctx.tick().repeat(chunk)
+            bar.update(sum(ctx.get(x) for x in bench.idx))
+        res["clocks"] = ctx.get(bench.clocks)
+        res["mismatches"] = sum(ctx.get(x) for x in bench.mismatches)
+        res["lat_min"] = min(ctx.get(x) for x in bench.lat_min)
+        res["lat_max"] = max(ctx.get(x) for x in bench.lat_max)
+        bad = [(ctx.get(bench.first_bad[k]) * lanes + k, k) for k in range(lanes)
+               if ctx.get(bench.mismatches[k])]
+        if bad:
+            row, k = min(bad)
+            res["first_mismatch"] = {
+                "dividend": int(n[row]), "divisor": int(d[row]),
+                "expected": {"quotient": int(q[row]), "remainder": int(r[row]),
+                             "div0": int(z[row]), "ovf": int(v[row])},
+                "got": _unpack_payload(ctx.get(bench.first_got[k]), p),
+            }
+
+    sim_s = simulate(bench, [testbench], name=f"divider_verify_{p['width']}_{p['divisor_width']}")
+    bar.close()
+    return {
+        "mismatches": res["mismatches"],
+        "vectors": total,
+        "clocks": res["clocks"],
+        "sim_s": round(sim_s, 3),
+        "clocks_per_s": round(res["clocks"] / sim_s) if sim_s else None,
+        "clocks_per_division": res["lat_max"],
+        "latency_min": res["lat_min"],
+        "div0_cases": int(np.count_nonzero(z)),
+        "ovf_cases": int(np.count_nonzero(v)),
+        "lanes": lanes,
+        **p,
+        "first_mismatch": res.get("first_mismatch"),
+    }
