@@ -23,13 +23,25 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from amaranth.back import rtlil
+from amaranth.hdl import Const, Value
 
-__all__ = ["TARGETS", "synth_area", "convert_blocks", "synth_areas", "summarise"]
+__all__ = ["TARGETS", "ports", "synth_area", "convert_blocks", "synth_areas", "summarise"]
 
 TARGETS = {
     "ice40": "synth_ice40 -dsp -top {top}",
     "xc7": "synth_xilinx -family xc7 -flatten -noiopad -noclkbuf -top {top}",
 }
+
+
+def ports(component):
+    """The ports of a component for ``rtlil.convert`` / ``verilog.convert``.
+
+    Works around amaranth 0.5.10 (amaranth-lang/amaranth#1574): the constant ``ready`` of an
+    ``always_ready`` stream (and ``valid`` of an ``always_valid`` one) is a ``Const``, which
+    ``convert()`` refuses as a port, so constants are left out.
+    """
+    values = (Value.cast(v) for _, _, v in component.signature.flatten(component))
+    return [v for v in values if not isinstance(v, Const)]
 
 
 def _yosys_command():
@@ -78,7 +90,12 @@ def synth_area(elaboratable, target, *, name="top", keep_dir=None):
     RuntimeError
         If yosys fails; the message carries the tail of its log.
     """
-    return _synth_rtlil(rtlil.convert(elaboratable, name=name), target, name, keep_dir)
+    return _synth_rtlil(_rtlil(elaboratable, name), target, name, keep_dir)
+
+
+def _rtlil(elaboratable, name):
+    extra = {"ports": ports(elaboratable)} if hasattr(elaboratable, "signature") else {}
+    return rtlil.convert(elaboratable, name=name, **extra)
 
 
 def _synth_rtlil(text, target, name, keep_dir=None):
@@ -105,7 +122,7 @@ def _synth_rtlil(text, target, name, keep_dir=None):
 def convert_blocks(blocks):
     """RTLIL text of each block: ``blocks`` maps a name to a zero-argument factory returning a
     fresh elaboratable (an elaboratable must not be converted twice)."""
-    return {name: rtlil.convert(factory(), name=name) for name, factory in blocks.items()}
+    return {name: _rtlil(factory(), name) for name, factory in blocks.items()}
 
 
 def synth_areas(texts, targets=("ice40", "xc7"), *, jobs=2):

@@ -18,3 +18,4 @@ ARITH_BLOCKS = {
 
 #: Every block.
 BLOCKS = {**ARITH_BLOCKS}
+

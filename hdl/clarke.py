@@ -27,11 +27,13 @@ def clarke_constants(width):
     """Fixed-point constants of the Clarke transform for outputs of ``width`` bits.
 
     Returns ``(frac, k_beta, k_alpha)``: ``frac = F = width + 2``, ``k_beta = round(2**F / √3)``
-    and ``k_alpha = round(2**F / 3)``, both computed exactly in integers (neither quotient is ever
-    a tie). With ``F = width + 2`` the constants' error is below 0.25 output LSB over the whole input
-    range: ``|i_a + 2·i_b| ≤ 3·2**(width-1)`` gives at most ``3·2**(width-1) · 0.5 / 2**F = 3/16``
-    LSB for β, ``|2·i_a − i_b − i_c| ≤ 2**(width+1)`` at most ``2**(width+1) · (1/3) / 2**F = 1/6``
-    LSB for the three-phase α (``2**F mod 3`` is 1 or 2, so the rounding error of ``K3`` is 1/3).
+    and ``k_alpha = round(2**F / 3)``, both computed exactly in integers (neither quotient is
+    ever a tie). With ``F = width + 2`` the constants' error is below 0.25 output LSB over the
+    whole input range. For β, ``|i_a + 2·i_b| ≤ 3·2**(width-1)`` gives at most
+    ``3·2**(width-1) · 0.5 / 2**F = 3/16`` LSB; for the three-phase α,
+    ``|2·i_a − i_b − i_c| ≤ 2**(width+1)`` gives at most ``2**(width+1) · (1/3) / 2**F = 1/6``
+    LSB (``2**F mod 3`` is 1 or 2, so the rounding error of ``K3`` is exactly 1/3); for the
+    three-phase β, ``|i_b − i_c| ≤ 2**width`` gives at most 1/8 LSB.
     """
     frac = width + 2
     # Nearest integer to sqrt(4**F / 3): n = floor, then n + 1 if (n + 1/2)**2 < 4**F / 3.

@@ -34,6 +34,7 @@ def _emit(figures, human_lines, as_json):
 def cmd_verilog(args):
     from amaranth.back import verilog
 
+    from ..boards.area import ports
     from ..hdl.catalog import BLOCKS
     names = args.block or list(BLOCKS)
     unknown = [n for n in names if n not in BLOCKS]
@@ -44,7 +45,8 @@ def cmd_verilog(args):
     out.mkdir(parents=True, exist_ok=True)
     for name in names:
         path = out / f"{name}.v"
-        path.write_text(verilog.convert(BLOCKS[name](), name=name))
+        block = BLOCKS[name]()
+        path.write_text(verilog.convert(block, name=name, ports=ports(block)))
         print(f"wrote {path}")
 
 
