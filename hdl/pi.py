@@ -28,6 +28,24 @@ Rounding is half away from zero (``fixed.round_shift``); nothing wraps. ``round_
     I + dI           signed(max(W + g, width(dI)) + 1)
     I, I_c           signed(W + g)            (always within [lim_lo, lim_hi] · 2**g, see `clamp`)
     U_c, U           signed(r(max(width(P), W + g) + 1, g))
+
+Anti-windup: (a) keeps ``I`` inside the output limits (the paper's rule); (b) stops integrating
+while the output is pinned and ``dI`` would push it further, so ``I`` does not wind up behind a
+large ``P`` either; since ``hold`` only blocks growth towards the violated limit, the output
+leaves the limit on the first sample whose error has the other sign (as soon as
+``round(P + I)`` is back inside). ``I`` is held, not clamped, by (b), and (a) is the backstop
+(it binds e.g. with ``kp = 0``).
+
+Schedule (clock 0 = the cycle ``i`` is accepted; one register stage per clock)::
+
+    0  E                          3  I_c                        (lim_lo, lim_hi)
+    1  kp·E, kx·(E + E[n−1])      4  U_c, U with I[n−1]
+       (kp, kx; E[n−1] ← E)       5  hold, I, O, sat            (lim_lo, lim_hi)
+    2  P, dI                      6  o.valid, i.ready
+
+The unit is sequential, so one multiplier could serve both products: ``kx·(E + E[n−1])`` on clock
+1 and ``kp·E`` on clock 2 through an operand mux (``latency`` and ``interval`` + 1, one multiplier
+and a wider mux instead of two multipliers).
 """
 
 import numbers
