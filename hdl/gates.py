@@ -1,0 +1,120 @@
+# Ref: SPEC.md §4 (complementary gate outputs, programmable dead time, global enable, PWM off at
+# reset, gates off on any fault); issue 4 item 6
+"""Complementary gate drive with dead time, enable and trip.
+
+Each phase is a three-state machine on its two registered outputs: high on, low on, or both off.
+The *wanted* state is high (``pwm & enable & ~trip``), low (``~pwm & enable & ~trip``) or off. A
+change of it turns the conducting switch off at the next clock; a switch turns on only after both
+have been off, and the wanted state has stayed the same, for ``max(dead_time, 1)`` clocks (every
+change restarts that count). Hence every turn-on follows at least the dead time with both off, and
+only a ``pwm`` level that has lasted at least the dead time ever turns a switch on: a pulse
+shorter than the dead time is dropped cleanly (the opposite switch turns off, nothing turns on, and
+it turns back on a dead time after the pulse) — no runt pulse, also when enabling mid-pulse.
+"""
+
+from amaranth.hdl import Assert, Module, Mux, Signal, unsigned
+from amaranth.lib import data, wiring
+from amaranth.lib.wiring import In, Out
+
+__all__ = ["Gates", "PHASES_LAYOUT"]
+
+#: One bit per phase.
+PHASES_LAYOUT = data.StructLayout({"a": 1, "b": 1, "c": 1})
+
+
+class Gates(wiring.Component):
+    """Three complementary gate pairs from three PWM levels.
+
+    Parameters
+    ----------
+    dead_width : int
+        Width of ``dead_time``, 1 … 16 bits.
+
+    Members
+    -------
+    pwm : In(data.StructLayout({"a", "b", "c": 1}))
+        Wanted level per phase (1: high-side switch on).
+    dead_time : In(unsigned(dead_width))
+        Dead time in clocks, read every clock; 0 acts as 1.
+    enable : In(1)
+        Global gate enable; low forces all gates off.
+    trip : In(1)
+        From protection (level, latched there); high forces all gates off.
+    high, low : Out(data.StructLayout({"a", "b", "c": 1}))
+        Registered gate outputs, all 0 at reset.
+
+    Invariants (``Assert`` in the design, checked in every simulation): never ``high`` and ``low``
+    of one phase together; no gate on the clock after ``trip`` or ``~enable``.
+
+    Attributes
+    ----------
+    trip_latency : int
+        Clocks from ``trip`` (or ``~enable``) high to all gates low: 1.
+    latency : int
+        Clocks from a ``pwm`` edge to the conducting switch turning off: 1. The other switch turns
+        on ``max(dead_time, 1)`` clocks after that (``1 + max(dead_time, 1)`` after the edge).
+
+    Raises
+    ------
+    TypeError
+        ``dead_width`` of the wrong type or outside its range.
+    """
+
+    trip_latency = 1
+    latency = 1
+
+    def __init__(self, *, dead_width=8):
+        if (not isinstance(dead_width, int) or isinstance(dead_width, bool)
+                or not 1 <= dead_width <= 16):
+            raise TypeError(f"Gates dead_width must be an integer from 1 to 16, not {dead_width!r}")
+        self._dead_width = dead_width
+        super().__init__({
+            "pwm": In(PHASES_LAYOUT),
+            "dead_time": In(unsigned(dead_width)),
+            "enable": In(1),
+            "trip": In(1),
+            "high": Out(PHASES_LAYOUT),
+            "low": Out(PHASES_LAYOUT),
+        })
+
+    dead_width = property(lambda self: self._dead_width)
+
+    def elaborate(self, platform):
+        m = Module()
+        dw = self._dead_width
+        run = self.enable & ~self.trip
+        dead = Mux(self.dead_time == 0, 1, self.dead_time)
+        stopped = Signal()                      # trip or ~enable on the previous clock
+        m.d.sync += stopped.eq(~run)
+
+        for p in "abc":
+            high, low = self.high[p], self.low[p]
+            # Clocks before this one with both switches off and the wanted state unchanged,
+            # saturating at 2**dw - 1.
+            off = Signal(unsigned(dw), name=f"off_{p}")
+            want_h = run & self.pwm[p]
+            want_l = run & ~self.pwm[p]
+            prev_h = Signal(name=f"want_h_{p}")
+            prev_l = Signal(name=f"want_l_{p}")
+            m.d.sync += [prev_h.eq(want_h), prev_l.eq(want_l)]
+            steady = (want_h == prev_h) & (want_l == prev_l)
+            both_off = ~high & ~low
+            with m.If(both_off & steady):
+                m.d.sync += off.eq(Mux(off == (1 << dw) - 1, off, off + 1))
+            with m.Else():
+                m.d.sync += off.eq(0)
+
+            with m.If(~run):
+                m.d.sync += [high.eq(0), low.eq(0)]
+            with m.Elif(high):
+                m.d.sync += high.eq(want_h)
+            with m.Elif(low):
+                m.d.sync += low.eq(want_l)
+            with m.Elif(steady & (off + 1 >= dead)):
+                m.d.sync += [high.eq(want_h), low.eq(want_l)]
+
+            m.d.comb += [
+                Assert(~(high & low), f"gates: phase {p} high and low on together"),
+                Assert(~stopped | both_off, f"gates: phase {p} on after trip or disable"),
+            ]
+        return m

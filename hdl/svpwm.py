@@ -1,0 +1,518 @@
+# Ref: SPEC.md §2.4 (paper Fig. 7, SVPWM with a/symmetric config bit) and §2.5 (DC-bus compensation)
+"""DC-bus compensation, space-vector modulation and the PWM timer with shadowed duties.
+
+Signal chain (one computation per PWM period)::
+
+    u_α, u_β ──► DCBusCompensation ──► SVPWM ──► PWMTimer ──► Gates (hdl/gates.py)
+                 × U_rated / U_dc        duties    shadowed      dead time, enable, trip
+                                         (counts)  compares
+
+**Modulation method.** :class:`SVPWM` uses *min–max zero-sequence injection*, which is
+mathematically identical to the textbook sector + dwell-time (T1, T2, T0/2 split) formulation; the
+golden model implements both in integers and the tests assert they agree bit for bit. With
+``A = u_α`` and ``S = u_β/√3`` (modulation indices as fractions of (2/3)·U_dc), the phase voltages,
+in units of U_dc and up to a common mode that does not matter, are ``q = (A, S, −S)``: their
+differences are the line-to-line voltages ``A − S``, ``2S``, ``A + S``. With
+``spread = max(q) − min(q)`` (the largest line-to-line voltage, equal to the textbook ``T1 + T2``)
+and ``D = max(spread, 1)``, the duty of phase ``x`` is ``1/2 + (q_x − (max + min)/2) / D``: plain
+min–max injection inside the hexagon (``spread ≤ 1``, ``D = 1``), and outside it the whole vector
+divided by ``spread``, which puts it on the hexagon's edge *along its own angle* (no phase error).
+In counts of the full scale ``scale``::
+
+    count_x = floor((scale · N_x + D) / (2·D)),   N_x = D + 2·q_x − max(q) − min(q) ∈ [0, 2·D]
+
+i.e. ``scale · N_x / (2·D)`` rounded half up, in ``[0, scale]``. Each duty is within half a count
+of the exact value for the represented command, so every duty difference (the line-to-line
+volt-seconds) is within one count of it; against the real-valued command add at most
+``scale · 2**-22`` for the rounding of ``u_β/√3`` (0.0006 count at ``scale = 2500``).
+"""
+
+import math
+
+from amaranth.hdl import Assert, Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.lib import data, stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from .divider import Divider
+from .fixed import round_shift, saturate
+
+__all__ = ["svpwm_constants", "SVPWM", "DCBusCompensation", "PWMTimer", "pwm_half_period"]
+
+
+#: Guard bits below the input LSB in the SVPWM's internal phase-voltage format.
+SVPWM_GUARD_BITS = 8
+
+
+def svpwm_constants(width):
+    """Internal constants of :class:`SVPWM` for inputs Q1.(width−1).
+
+    Returns ``(frac, k_frac, k)``: ``frac = F = width − 1 + 8``, fractional bits of ``A``, ``S``
+    and ``D`` (so ``1.0 = 2**F``); ``k = round(2**(8 + k_frac) / √3)`` with ``k_frac = width + 2``,
+    so that ``S = round_shift(u_β · k, k_frac)`` (half away from zero) is ``u_β/√3`` in that
+    format. ``k`` is exact in integers: ``isqrt`` then the nearest of the two candidates (never
+    a tie). Its error is at most ``2**(width−1) · 0.5 / 2**k_frac = 1/16`` LSB of ``S``.
+    """
+    frac = width - 1 + SVPWM_GUARD_BITS
+    k_frac = width + 2
+    e = 2 * (SVPWM_GUARD_BITS + k_frac)         # k = round(sqrt(2**e / 3))
+    n = math.isqrt((1 << e) // 3)
+    k = n + 1 if 3 * (2 * n + 1) ** 2 < (1 << (e + 2)) else n
+    return frac, k_frac, k
+
+
+def _check_width(owner, name, value, lo, hi):
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+        raise TypeError(f"{owner} {name} must be an integer from {lo} to {hi}, not {value!r}")
+    return value
+
+
+def _check_hz(owner, name, value):
+    if (not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value)
+            or value <= 0):
+        raise TypeError(f"{owner} {name} must be a positive number of Hz, not {value!r}")
+    return float(value)
+
+
+def _duty_layout(count_width):
+    return data.StructLayout({"a": unsigned(count_width), "b": unsigned(count_width),
+                              "c": unsigned(count_width)})
+
+
+def _vector_layout(width):
+    return data.StructLayout({"alpha": signed(width), "beta": signed(width)})
+
+
+class SVPWM(wiring.Component):
+    """Space-vector modulator: (u_α, u_β) → three duties in counts, with overmodulation.
+
+    Min–max zero-sequence injection (equivalent to sector + dwell times with T0 split equally
+    between 000 and 111), constant latency, one command at a time (one per PWM period). See the
+    module docstring for the arithmetic; all of it is exact integer arithmetic except ``u_β/√3``
+    (rounded half away from zero to ``F = width + 7`` fractional bits) and the final division
+    (rounded half up to a count).
+
+    Parameters
+    ----------
+    width : int
+        Width ``w`` of u_α and u_β, 8 … 24 bits: Q1.(w−1) fractions of (2/3)·U_dc (hexagon vertices
+        at 1.0, linear range up to √3/2).
+    count_width : int
+        Width ``cw`` of the scale and of the duties, 4 … 24 bits.
+
+    Members
+    -------
+    i : In(stream.Signature(data.StructLayout({"alpha": signed(w), "beta": signed(w)})))
+        Command. ``i.ready`` is high while idle; a transfer starts a computation.
+    scale : In(unsigned(cw))
+        Count of a 100 % duty (``PWMTimer.full_scale``), sampled with the command.
+    o : Out(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(cw), "overmod": 1})))
+        Duties in counts, ``0 … scale``, each ``scale · duty`` rounded half up; ``overmod`` is set
+        when the command was outside the hexagon and was scaled back along its angle. Valid
+        :attr:`latency` clocks after the transfer, held until ``o.ready``.
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from the transfer on ``i`` to ``o.valid``: ``count_width + 3`` (one per duty bit,
+        three for the arithmetic before the division), whatever the command. The block is idle
+        again the clock after ``o`` is taken: one command per ``latency + 1`` clocks (20 at
+        ``count_width = 16``; a 10 kHz period at 50 MHz is 5000 clocks, 1 MHz at 33.333 MHz 34).
+    frac : int
+        ``F``, fractional bits of the internal phase voltages (``1.0 = 2**F``).
+
+    Raises
+    ------
+    TypeError
+        A width of the wrong type or outside its range.
+    """
+
+    def __init__(self, *, width=16, count_width=16):
+        _check_width("SVPWM", "width", width, 8, 24)
+        _check_width("SVPWM", "count_width", count_width, 4, 24)
+        self._width = width
+        self._count_width = count_width
+        self._frac, self._k_frac, self._k = svpwm_constants(width)
+        out = data.StructLayout({"a": unsigned(count_width), "b": unsigned(count_width),
+                                 "c": unsigned(count_width), "overmod": 1})
+        super().__init__({
+            "i": In(stream.Signature(_vector_layout(width))),
+            "scale": In(unsigned(count_width)),
+            "o": Out(stream.Signature(out)),
+        })
+
+    width = property(lambda self: self._width)
+    count_width = property(lambda self: self._count_width)
+    frac = property(lambda self: self._frac)
+
+    @property
+    def latency(self):
+        return self._count_width + 3
+
+    def elaborate(self, platform):
+        m = Module()
+        F, cw = self._frac, self._count_width
+        one = 1 << F
+        phases = "abc"
+
+        # Stage 1: A = u_α·2**8, S = u_β/√3 (|A| ≤ 2**F, |S| < 2**F / √3 + 1).
+        a1 = Signal(signed(F + 2))
+        s1 = Signal(signed(F + 2))
+        scale = Signal(unsigned(cw))
+        # Stage 2: max, min, D = max(spread, 1) < 2**(F+1).
+        q2 = {p: Signal(signed(F + 2), name=f"q2_{p}") for p in phases}
+        mx2 = Signal(signed(F + 2))
+        mn2 = Signal(signed(F + 2))
+        d2 = Signal(unsigned(F + 1))
+        om2 = Signal()
+        # Division: remainder (< 2·D), low dividend bits shifting out / quotient bits shifting in.
+        div = Signal(unsigned(F + 2))           # 2·D
+        rem = {p: Signal(unsigned(F + 2), name=f"rem_{p}") for p in phases}
+        low = {p: Signal(unsigned(cw), name=f"low_{p}") for p in phases}
+        count = Signal(range(cw))
+
+        with m.FSM():
+            with m.State("IDLE"):
+                m.d.comb += self.i.ready.eq(1)
+                with m.If(self.i.valid):
+                    m.d.sync += [
+                        a1.eq(self.i.payload.alpha << SVPWM_GUARD_BITS),
+                        s1.eq(round_shift(self.i.payload.beta * self._k, self._k_frac)),
+                        scale.eq(self.scale),
+                    ]
+                    m.next = "EXTREMES"
+
+            with m.State("EXTREMES"):
+                q = {"a": a1, "b": s1, "c": -s1}
+                # max(q) and min(q): S and −S order themselves by the sign of S.
+                hi_bc = Mux(s1[-1], -s1, s1)
+                lo_bc = Mux(s1[-1], s1, -s1)
+                mx = Mux(a1 > hi_bc, a1, hi_bc)
+                mn = Mux(a1 < lo_bc, a1, lo_bc)
+                spread = mx - mn
+                m.d.sync += [
+                    mx2.eq(mx), mn2.eq(mn),
+                    d2.eq(Mux(spread > one, spread, one)),
+                    om2.eq(spread > one),
+                ]
+                m.d.sync += [q2[p].eq(q[p]) for p in phases]
+                m.next = "PREPARE"
+
+            with m.State("PREPARE"):
+                m.d.sync += div.eq(d2 << 1)
+                for p in phases:
+                    n_x = (d2 + (q2[p] << 1) - mx2 - mn2).as_unsigned()[:F + 2]   # ∈ [0, 2·D]
+                    x = scale * n_x + d2                        # < 2·D·2**cw
+                    m.d.sync += [rem[p].eq(x >> cw), low[p].eq(x[:cw])]
+                m.d.sync += count.eq(cw - 1)
+                m.next = "DIVIDE"
+
+            with m.State("DIVIDE"):
+                for p in phases:
+                    trial = Cat(low[p][-1], rem[p])             # 2·rem + next bit < 4·D
+                    fits = trial >= div
+                    m.d.sync += [
+                        rem[p].eq(Mux(fits, trial - div, trial)[:F + 2]),
+                        low[p].eq(Cat(fits, low[p][:-1])),
+                    ]
+                m.d.sync += count.eq(count - 1)
+                with m.If(count == 0):
+                    m.next = "DONE"
+
+            with m.State("DONE"):
+                m.d.comb += self.o.valid.eq(1)
+                for p in phases:
+                    m.d.comb += [
+                        self.o.payload[p].eq(low[p]),
+                        Assert(low[p] <= scale, "SVPWM duty above the full scale"),
+                    ]
+                m.d.comb += self.o.payload.overmod.eq(om2)
+                with m.If(self.o.ready):
+                    m.next = "IDLE"
+        return m
+
+
+class DCBusCompensation(wiring.Component):
+    """DC-bus voltage compensation: ``u · U_rated / U_dc``, saturated.
+
+    A new bus measurement on ``u_dc`` starts one division on the foundation :class:`Divider`:
+    ``gain = min(round(U_rated · 2**gf / U_dc), gain_limit)`` (half up; ``U_dc = 0`` gives the
+    limit), UQ2.gf with ``gf = 16``. The gain register starts at 1.0. Each command is multiplied
+    by the gain in force when it arrives: ``o = sat(round_shift(u · gain, gf))`` (half away from
+    zero, saturated to ``signed(out_width)``, never wrapped).
+
+    A component saturating changes the vector's angle; that only happens for commands already
+    outside the hexagon (``|u_α| > 1`` or ``|u_β| > 1``). ``out_width = width + 1`` (Q2.(w−1)) with
+    ``SVPWM(width=width + 1)`` removes even that, up to ``gain · |u| < 2``.
+
+    Parameters
+    ----------
+    width : int
+        Width ``w`` of the input commands, Q1.(w−1), 8 … 24 bits.
+    out_width : int or None
+        Width of the outputs, ``w`` (default) or ``w + 1``; same LSB as the inputs.
+    adc_width : int
+        Width of the raw bus-voltage codes ``U_dc`` and ``U_rated`` (unsigned, same units),
+        4 … 24 bits.
+    gain_limit : float
+        Largest gain, 1.0 ≤ limit < 4.0 (rounded to 2**-16): the compensation stops when the bus
+        drops below ``U_rated / gain_limit``.
+
+    Members
+    -------
+    u_rated : In(unsigned(adc_width))
+        Rated bus voltage register, sampled when a division starts.
+    u_dc : In(stream.Signature(unsigned(adc_width), always_ready=True))
+        Bus-voltage measurements. The latest one is kept if the divider is busy.
+    i : In(stream.Signature(data.StructLayout({"alpha", "beta": signed(w)})))
+    o : Out(stream.Signature(data.StructLayout({"alpha", "beta": signed(out_width)})))
+        One clock after each transfer on ``i`` (``i.ready = ~o.valid | o.ready``).
+    gain : Out(unsigned(18))
+        Gain in force, UQ2.16.
+    limited : Out(1)
+        The last gain computation hit ``gain_limit`` (bus too low, or zero).
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from a transfer on ``i`` to ``o.valid``: 1.
+    gain_latency : int
+        Clocks from a ``u_dc`` transfer (divider idle) until ``gain`` holds its result:
+        ``divider.latency + 3`` (``adc_width + 21``): one clock into the pending register, the
+        division (whose ``o.valid`` comes ``divider.latency + 1`` clocks after its input
+        transfer, as measured on the current :class:`Divider`), one into ``gain``.
+    gain_frac : int
+        16.
+    gain_limit_raw : int
+        ``gain_limit`` in UQ2.16.
+
+    Raises
+    ------
+    TypeError
+        A parameter of the wrong type or outside its basic range.
+    ValueError
+        ``out_width`` other than ``width`` or ``width + 1``; ``gain_limit`` outside [1, 4).
+    """
+
+    latency = 1
+    gain_frac = 16
+
+    def __init__(self, *, width=16, out_width=None, adc_width=16, gain_limit=2.0):
+        _check_width("DCBusCompensation", "width", width, 8, 24)
+        if out_width is None:
+            out_width = width
+        elif not isinstance(out_width, int) or isinstance(out_width, bool):
+            raise TypeError(f"DCBusCompensation out_width must be None or an integer, "
+                            f"not {out_width!r}")
+        if out_width not in (width, width + 1):
+            raise ValueError(f"DCBusCompensation out_width must be width ({width}) or "
+                             f"width + 1, not {out_width!r}")
+        _check_width("DCBusCompensation", "adc_width", adc_width, 4, 24)
+        if (not isinstance(gain_limit, (int, float)) or isinstance(gain_limit, bool)
+                or not math.isfinite(gain_limit)):
+            raise TypeError(f"DCBusCompensation gain_limit must be a number, not {gain_limit!r}")
+        limit_raw = round(gain_limit * (1 << self.gain_frac))
+        if not (1 << self.gain_frac) <= limit_raw < (4 << self.gain_frac):
+            raise ValueError(f"DCBusCompensation gain_limit must be at least 1.0 and below 4.0, "
+                             f"not {gain_limit!r}")
+        self._width = width
+        self._out_width = out_width
+        self._adc_width = adc_width
+        self._limit_raw = limit_raw
+        self._div = Divider(width=adc_width + self.gain_frac + 2, divisor_width=adc_width + 1,
+                            signed=False)
+        super().__init__({
+            "u_rated": In(unsigned(adc_width)),
+            "u_dc": In(stream.Signature(unsigned(adc_width), always_ready=True)),
+            "i": In(stream.Signature(_vector_layout(width))),
+            "o": Out(stream.Signature(_vector_layout(out_width))),
+            "gain": Out(unsigned(2 + self.gain_frac), init=1 << self.gain_frac),
+            "limited": Out(1),
+        })
+
+    width = property(lambda self: self._width)
+    out_width = property(lambda self: self._out_width)
+    adc_width = property(lambda self: self._adc_width)
+    gain_limit_raw = property(lambda self: self._limit_raw)
+
+    @property
+    def gain_latency(self):
+        return self._div.latency + 3
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.divider = div = self._div
+        gf = self.gain_frac
+
+        # Bus measurements: keep the latest until the divider takes it.
+        pending = Signal()
+        u_dc = Signal(unsigned(self._adc_width))
+        with m.If(self.u_dc.valid):
+            m.d.sync += [u_dc.eq(self.u_dc.payload), pending.eq(1)]
+        with m.Elif(div.i.valid & div.i.ready):
+            m.d.sync += pending.eq(0)
+        m.d.comb += [
+            div.i.valid.eq(pending),
+            # round(R·2**gf / U) = floor((R·2**(gf+1) + U) / (2·U))
+            div.i.payload.dividend.eq((self.u_rated << (gf + 1)) + u_dc),
+            div.i.payload.divisor.eq(u_dc << 1),
+            div.o.ready.eq(1),
+        ]
+        with m.If(div.o.valid):
+            q = div.o.payload.quotient
+            over = div.o.payload.div0 | (q > self._limit_raw)
+            m.d.sync += [
+                self.gain.eq(Mux(over, self._limit_raw, q)),
+                self.limited.eq(over),
+            ]
+
+        # Commands: one register stage.
+        m.d.comb += self.i.ready.eq(~self.o.valid | self.o.ready)
+        with m.If(self.i.ready):
+            m.d.sync += self.o.valid.eq(self.i.valid)
+            with m.If(self.i.valid):
+                for f in ("alpha", "beta"):
+                    m.d.sync += self.o.payload[f].eq(saturate(
+                        round_shift(self.i.payload[f] * self.gain, gf), signed(self._out_width)))
+        return m
+
+
+def pwm_half_period(clk_hz, pwm_hz):
+    """Half period ``N = round(clk_hz / (2·pwm_hz))`` in clocks (ties to even)."""
+    return round(clk_hz / (2 * pwm_hz))
+
+
+class PWMTimer(wiring.Component):
+    """Three-phase PWM timer with shadowed compares, symmetric or asymmetric, and ADC strobe.
+
+    Every period lasts ``2·N`` clocks, ``N = round(clk_hz / (2·pwm_hz))``, in both modes; the
+    position ``pos`` runs ``0 … 2N−1``. Phase ``x`` with active compare ``c_x`` is high:
+
+    * symmetric (centre-aligned; an up/down counter ``0 … N … 1``): for ``N − c ≤ pos < N + c``,
+      i.e. ``2·c`` clocks centred on the middle of the period (``c ∈ 0 … N``, full scale ``N``);
+    * asymmetric (edge-aligned sawtooth): for ``pos < c`` (``c ∈ 0 … 2N``, full scale ``2N``).
+
+    Compares above the full scale saturate to it. ``duty`` writes go to shadow registers at any
+    time; at the period boundary (``pos = 2N−1 → 0``) the shadowed duties and the ``symmetric``
+    bit become active together, so a write never changes the current period.
+
+    Parameters
+    ----------
+    clk_hz : float
+        System clock, Hz.
+    pwm_hz : float
+        PWM (switching) frequency, Hz; the actual one is :attr:`pwm_hz_actual`.
+    count_width : int
+        Width of the compares and of ``sample_point``, 4 … 24 bits; ``2·N`` must fit in it.
+
+    Members
+    -------
+    duty : In(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(count_width)})))
+        Compares for the next period (``duty.ready`` is always high).
+    symmetric : In(1)
+        Configuration bit (paper Fig. 7): 1 centre-aligned, 0 asymmetric; loaded at the boundary.
+    full_scale : Out(unsigned(count_width))
+        Count of a 100 % duty in the mode set on ``symmetric`` (``N`` or ``2N``): the SVPWM scale.
+    sample_custom : In(1)
+        0: ``sample`` at ``pos = N``, the centre of the period (centre of the high pulses in
+        symmetric mode); 1: at ``pos = sample_point`` (never if ``≥ 2N``).
+    sample_point : In(unsigned(count_width))
+    pwm : Out(data.StructLayout({"a", "b", "c": 1}))
+        Phase levels (from registers through comparators; :class:`Gates` registers them).
+    period_start : Out(1)
+        High during ``pos = 0``, the first clock with the new duties: the loop tick.
+    sample : Out(1)
+        One-clock ADC conversion-start strobe.
+    position : Out(range(2N))
+        ``pos``.
+
+    Attributes
+    ----------
+    half_period : int
+        ``N``.
+    period : int
+        ``2·N`` clocks.
+    pwm_hz_actual : float
+        ``clk_hz / (2·N)``.
+
+    Raises
+    ------
+    TypeError
+        A parameter of the wrong type.
+    ValueError
+        ``N < 4`` or ``2·N ≥ 2**count_width``.
+    """
+
+    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16):
+        clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
+        pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
+        _check_width("PWMTimer", "count_width", count_width, 4, 24)
+        n = pwm_half_period(clk_hz, pwm_hz)
+        if n < 4:
+            raise ValueError(f"PWMTimer pwm_hz {pwm_hz:g} Hz is too high for clk_hz {clk_hz:g} Hz: "
+                             f"the half period must be at least 4 clocks, not {n}")
+        if 2 * n >= 1 << count_width:
+            raise ValueError(f"PWMTimer pwm_hz {pwm_hz:g} Hz is too low for clk_hz {clk_hz:g} Hz "
+                             f"and count_width {count_width}: the period of {2 * n} clocks must "
+                             f"be below {1 << count_width}")
+        self._clk_hz = clk_hz
+        self._pwm_hz = pwm_hz
+        self._count_width = count_width
+        self._n = n
+        super().__init__({
+            "duty": In(stream.Signature(_duty_layout(count_width))),
+            "symmetric": In(1),
+            "full_scale": Out(unsigned(count_width)),
+            "sample_custom": In(1),
+            "sample_point": In(unsigned(count_width)),
+            "pwm": Out(data.StructLayout({"a": 1, "b": 1, "c": 1})),
+            "period_start": Out(1),
+            "sample": Out(1),
+            "position": Out(range(2 * n)),
+        })
+
+    clk_hz = property(lambda self: self._clk_hz)
+    pwm_hz = property(lambda self: self._pwm_hz)
+    count_width = property(lambda self: self._count_width)
+    half_period = property(lambda self: self._n)
+
+    @property
+    def period(self):
+        return 2 * self._n
+
+    @property
+    def pwm_hz_actual(self):
+        return self._clk_hz / (2 * self._n)
+
+    def elaborate(self, platform):
+        m = Module()
+        n = self._n
+        cw = self._count_width
+        pos = self.position
+        last = pos == 2 * n - 1
+
+        shadow = Signal(_duty_layout(cw))
+        active = Signal(_duty_layout(cw))
+        sym = Signal()                          # active mode
+
+        m.d.comb += self.duty.ready.eq(1)
+        with m.If(self.duty.valid):
+            m.d.sync += shadow.eq(self.duty.payload)
+        m.d.sync += pos.eq(Mux(last, 0, pos + 1))
+        with m.If(last):
+            # A write on the boundary clock itself still makes this period.
+            m.d.sync += [active.eq(Mux(self.duty.valid, self.duty.payload, shadow)),
+                         sym.eq(self.symmetric)]
+
+        m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
+        for p in "abc":
+            c_sym = Mux(active[p] > n, n, active[p])
+            c_asym = Mux(active[p] > 2 * n, 2 * n, active[p])
+            level_sym = (pos + c_sym >= n) & (pos < n + c_sym)
+            level_asym = pos < c_asym
+            m.d.comb += self.pwm[p].eq(Mux(sym, level_sym, level_asym))
+
+        m.d.comb += [
+            self.period_start.eq(pos == 0),
+            self.sample.eq(pos == Mux(self.sample_custom, self.sample_point, n)),
+        ]
+        return m

@@ -1,0 +1,166 @@
+# Ref: SPEC.md §4 (complementary gates, dead time, enable, trip); issue 4 item 6
+import gc
+import re
+import warnings
+
+import numpy as np
+import pytest
+from amaranth.back import verilog
+from amaranth.hdl import UnusedElaboratable
+
+from foc_servo.boards.area import ports
+from foc_servo.hdl.gates import Gates
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models.gates import check_gates, gates as gates_model
+
+
+def run_gates(stim, *, dead_width=8):
+    """Drive Gates clock by clock from ``stim`` (dict of arrays: ``pwm`` (T, 3), ``dead``,
+    ``enable``, ``trip`` (T,)); return the outputs during each clock, ``high``, ``low`` (T, 3)."""
+    dut = Gates(dead_width=dead_width)
+    t_len = len(stim["dead"])
+    high = np.zeros((t_len, 3), dtype=np.int64)
+    low = np.zeros((t_len, 3), dtype=np.int64)
+
+    async def testbench(ctx):
+        for t in range(t_len):
+            p = stim["pwm"][t]
+            ctx.set(dut.pwm, {"a": int(p[0]), "b": int(p[1]), "c": int(p[2])})
+            ctx.set(dut.dead_time, int(stim["dead"][t]))
+            ctx.set(dut.enable, int(stim["enable"][t]))
+            ctx.set(dut.trip, int(stim["trip"][t]))
+            h, lo = ctx.get(dut.high), ctx.get(dut.low)
+            high[t] = [h.a, h.b, h.c]
+            low[t] = [lo.a, lo.b, lo.c]
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="test_gates")
+    return high, low
+
+
+def constant(t_len, pwm=(0, 0, 0), dead=3, enable=1, trip=0):
+    return {"pwm": np.tile(np.array(pwm), (t_len, 1)), "dead": np.full(t_len, dead),
+            "enable": np.full(t_len, enable), "trip": np.full(t_len, trip)}
+
+
+@pytest.mark.parametrize("value", [0, 17, 8.0, True])
+def test_gates_parameter_validation(value):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # the half-built object
+        with pytest.raises(TypeError, match=re.escape(
+                f"Gates dead_width must be an integer from 1 to 16, not {value!r}") + "$"):
+            Gates(dead_width=value)
+        gc.collect()
+
+
+def test_gates_convert_to_verilog():
+    dut = Gates()
+    assert "module" in verilog.convert(dut, ports=ports(dut))
+
+
+def test_gates_all_off_at_reset_then_dead_time_before_first_turn_on():
+    stim = constant(12, pwm=(1, 0, 1), dead=5)
+    high, low = run_gates(stim)
+    # Clock 0: reset state, and the wanted state appears (a change: the count starts at 1).
+    # Both off for clocks 0 … 5, the wanted side on from clock 1 + 5.
+    assert not high[:6].any() and not low[:6].any()
+    np.testing.assert_array_equal(high[6:], np.tile([1, 0, 1], (6, 1)))
+    np.testing.assert_array_equal(low[6:], np.tile([0, 1, 0], (6, 1)))
+
+
+def test_gates_edge_timing_cycle_by_cycle():
+    dead = 4
+    stim = constant(40, pwm=(0, 0, 0), dead=dead)
+    stim["pwm"][15:30, 0] = 1                       # phase a: a pulse of 15 clocks
+    high, low = run_gates(stim)
+    # Low side on after reset; the rising pwm edge at 15 turns it off at 16, the high side on
+    # dead clocks later (20); the falling edge at 30 turns the high side off at 31, low on at 35.
+    np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(16 + dead, 31))
+    assert low[16 - 1, 0] and not low[16:16 + dead + 11, 0].any() and low[35:, 0].all()
+    assert high[:, 1:].sum() == 0
+    assert check_gates(high, low, stim["dead"], stim["pwm"]) == {
+        "overlap": 0, "short_dead": 0, "runts": 0}
+
+
+@pytest.mark.parametrize("dead", [1, 6, 20])
+def test_gates_pulse_shorter_than_dead_time_is_dropped(dead):
+    t0 = 2 * dead + 5                               # low side on by then
+    stim = constant(t0 + 3 * dead + 10, dead=dead)
+    stim["pwm"][t0:t0 + dead - 1, 0] = 1            # high pulse one clock short of the dead time
+    stim["pwm"][t0:t0 + dead, 1] = 1                # exactly the dead time
+    stim["pwm"][t0:t0 + dead + 1, 2] = 1            # one clock longer
+    high, low = run_gates(stim)
+    assert low[t0].all()
+    assert not high[:, 0].any() and not high[:, 1].any()        # dropped: no runt
+    # A pulse of L clocks gives L − dead clocks on the high side.
+    np.testing.assert_array_equal(np.flatnonzero(high[:, 2]), [t0 + dead + 1])
+    # The low side of the dropped pulse turns back on after a full dead time, never overlapping.
+    assert low[-1].all()
+    assert check_gates(high, low, stim["dead"], stim["pwm"]) == {
+        "overlap": 0, "short_dead": 0, "runts": 0}
+
+
+def test_gates_trip_and_enable_force_all_off_within_one_clock():
+    stim = constant(60, pwm=(1, 0, 1), dead=2)
+    stim["trip"][20:23] = 1
+    stim["enable"][40:45] = 0
+    stim["pwm"][41:52, 1] = 1                       # pwm changes while disabled
+    high, low = run_gates(stim)
+    assert Gates.trip_latency == 1
+    assert (high[19] | low[19]).all()
+    assert not high[21:24].any() and not low[21:24].any()      # off the clock after trip
+    assert not high[41:46].any() and not low[41:46].any()
+    # Back on only after the dead time: trip released at 23, first turn-on at 23 + 1 + 2.
+    assert not (high[24:26] | low[24:26]).any() and (high[26] | low[26]).all()
+    assert (high[48] | low[48]).all() and not (high[47] | low[47]).any()
+    assert check_gates(high, low, stim["dead"], stim["pwm"]) == {
+        "overlap": 0, "short_dead": 0, "runts": 0}
+
+
+def test_gates_zero_dead_time_acts_as_one_clock():
+    stim = constant(20, dead=0)
+    stim["pwm"][8:14, 0] = 1
+    high, low = run_gates(stim)
+    np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(10, 15))
+    assert not low[9, 0] and not low[15, 0] and low[16, 0]
+
+
+def test_gates_random_sequences_against_model_and_rules():
+    rng = np.random.default_rng(7)
+    t_len = 4000
+    pwm = np.zeros((t_len, 3), dtype=np.int64)
+    for k in range(3):                              # runs of random length 1 … 25
+        t, level = 0, 0
+        while t < t_len:
+            n = int(rng.integers(1, 26))
+            pwm[t:t + n, k] = level
+            t, level = t + n, 1 - level
+    dead = np.repeat(rng.integers(0, 16, t_len // 200), 200)
+    enable = np.ones(t_len, dtype=np.int64)
+    for s in rng.integers(0, t_len - 40, 8):
+        enable[s:s + int(rng.integers(1, 40))] = 0
+    trip = np.zeros(t_len, dtype=np.int64)
+    for s in rng.integers(0, t_len - 10, 12):
+        trip[s:s + int(rng.integers(1, 6))] = 1
+    stim = {"pwm": pwm, "dead": dead, "enable": enable, "trip": trip}
+    high, low = run_gates(stim)
+    exp_h, exp_l = gates_model(pwm, dead, enable, trip)
+    np.testing.assert_array_equal(high, exp_h)
+    np.testing.assert_array_equal(low, exp_l)
+    assert check_gates(high, low, dead, pwm) == {"overlap": 0, "short_dead": 0, "runts": 0}
+    assert high.sum() > 1000 and low.sum() > 1000       # the stimulus did switch
+
+
+def test_gates_checker_catches_rule_breaks():
+    pwm = np.zeros((10, 3), dtype=np.int64)
+    high = np.zeros((10, 3), dtype=np.int64)
+    low = np.zeros((10, 3), dtype=np.int64)
+    low[:4, 0] = 1
+    high[5:, 0] = 1                                 # 1 clock off, dead time 3: short dead time
+    pwm[4:, 0] = 1
+    high[6, 1] = low[6, 1] = 1                      # overlap (and two turn-ons without dead time)
+    pwm[4:6, 2] = 1
+    high[6, 2] = 1                                  # follows a 2-clock pwm pulse: a runt
+    r = check_gates(high, low, np.full(10, 3), pwm)
+    # Runts: a (pwm high for 1 clock), b (pwm low), c.
+    assert r == {"overlap": 1, "short_dead": 1, "runts": 3}

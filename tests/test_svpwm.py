@@ -1,0 +1,403 @@
+# Ref: SPEC.md §2.4 (paper Fig. 7, SVPWM), §2.5 (DC-bus compensation)
+import gc
+import math
+import re
+import warnings
+
+import numpy as np
+import pytest
+from amaranth.back import verilog
+from amaranth.hdl import Fragment, UnusedElaboratable
+
+import foc_servo.sim.verify.svpwm as verify_svpwm
+from foc_servo.boards.area import ports
+from foc_servo.hdl.svpwm import (SVPWM, DCBusCompensation, PWMTimer, pwm_half_period,
+                                 svpwm_constants)
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models import svpwm as model
+
+FS = 1 << 15
+
+
+# --- parameter validation -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("cls, kwargs, exc, message", [
+    (SVPWM, {"width": 7}, TypeError, "SVPWM width must be an integer from 8 to 24, not 7"),
+    (SVPWM, {"width": 16.0}, TypeError, "SVPWM width must be an integer from 8 to 24, not 16.0"),
+    (SVPWM, {"count_width": 3}, TypeError,
+     "SVPWM count_width must be an integer from 4 to 24, not 3"),
+    (DCBusCompensation, {"width": 25}, TypeError,
+     "DCBusCompensation width must be an integer from 8 to 24, not 25"),
+    (DCBusCompensation, {"out_width": 18}, ValueError,
+     "DCBusCompensation out_width must be width (16) or width + 1, not 18"),
+    (DCBusCompensation, {"out_width": "17"}, TypeError,
+     "DCBusCompensation out_width must be None or an integer, not '17'"),
+    (DCBusCompensation, {"adc_width": True}, TypeError,
+     "DCBusCompensation adc_width must be an integer from 4 to 24, not True"),
+    (DCBusCompensation, {"gain_limit": 4.0}, ValueError,
+     "DCBusCompensation gain_limit must be at least 1.0 and below 4.0, not 4.0"),
+    (DCBusCompensation, {"gain_limit": 0.5}, ValueError,
+     "DCBusCompensation gain_limit must be at least 1.0 and below 4.0, not 0.5"),
+    (DCBusCompensation, {"gain_limit": None}, TypeError,
+     "DCBusCompensation gain_limit must be a number, not None"),
+    (PWMTimer, {"clk_hz": 0}, TypeError,
+     "PWMTimer clk_hz must be a positive number of Hz, not 0"),
+    (PWMTimer, {"pwm_hz": "10k"}, TypeError,
+     "PWMTimer pwm_hz must be a positive number of Hz, not '10k'"),
+    (PWMTimer, {"pwm_hz": 10e6}, ValueError,
+     "PWMTimer pwm_hz 1e+07 Hz is too high for clk_hz 5e+07 Hz: the half period must be at "
+     "least 4 clocks, not 2"),
+    (PWMTimer, {"pwm_hz": 300.0}, ValueError,
+     "PWMTimer pwm_hz 300 Hz is too low for clk_hz 5e+07 Hz and count_width 16: the period of "
+     "166666 clocks must be below 65536"),
+    (PWMTimer, {"count_width": 30}, TypeError,
+     "PWMTimer count_width must be an integer from 4 to 24, not 30"),
+])
+def test_svpwm_parameter_validation(cls, kwargs, exc, message):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # the half-built object
+        with pytest.raises(exc, match=f"^{re.escape(message)}$"):
+            cls(**kwargs)
+        gc.collect()
+
+
+def test_svpwm_blocks_convert_to_verilog():
+    for dut in (SVPWM(), DCBusCompensation(out_width=17), PWMTimer(clk_hz=33.333e6, pwm_hz=100e3)):
+        assert "module" in verilog.convert(dut, ports=ports(dut))
+
+
+# --- the model: min–max injection == textbook sectors and dwell times ---------------------------
+
+def test_svpwm_constants_match_model():
+    for width in (8, 12, 16, 20, 24):
+        assert svpwm_constants(width) == model.svpwm_constants(width)
+        frac, k_frac, k = svpwm_constants(width)
+        assert abs(k - 2 ** (8 + k_frac) / math.sqrt(3)) <= 0.5
+
+
+def test_svpwm_minmax_equals_sector_dwell_time_formulation():
+    rng = np.random.default_rng(11)
+    n = 200_000
+    alpha = rng.integers(-FS, FS, n)
+    beta = rng.integers(-FS, FS, n)
+    # Sector boundaries exactly: on the axes and the 30°/60° lines.
+    t = rng.integers(-FS // 2, FS // 2, 2000)
+    alpha = np.concatenate([alpha, t, 0 * t, t, -t, [0]])
+    beta = np.concatenate([beta, 0 * t, t, np.rint(t * math.sqrt(3)).astype(np.int64),
+                           np.rint(t * math.sqrt(3)).astype(np.int64), [0]])
+    scale = rng.integers(1, 1 << 16, alpha.size)
+    mm = model.svpwm(alpha, beta, scale)
+    sec = model.svpwm_sector(alpha, beta, scale)
+    for k in ("a", "b", "c", "overmod"):
+        np.testing.assert_array_equal(mm[k], sec[k])
+    assert np.all(sec["t1"] >= 0) and np.all(sec["t2"] >= 0)
+    assert set(np.unique(sec["sector"])) == {1, 2, 3, 4, 5, 6}
+    # Against the real-valued duties: each within half a count plus the u_β/√3 rounding.
+    ideal, over = model.svpwm_ideal(alpha, beta)
+    for i, k in enumerate("abc"):
+        assert np.max(np.abs(mm[k] - ideal[i] * scale)) <= 0.5 + scale.max() * 2.0 ** -22
+    np.testing.assert_array_equal(mm["overmod"] == 1, over)
+
+
+def test_svpwm_overmodulation_keeps_the_angle():
+    # 5 % to 40 % outside the hexagon, at angles where that fits the Q1.15 input range (close to
+    # the α axis the hexagon's vertex is at the range's end).
+    rng = np.random.default_rng(5)
+    th = np.linspace(-math.pi, math.pi, 7201)
+    r = np.sqrt(3) / 2 / np.cos(np.mod(th, np.pi / 3) - np.pi / 6) * rng.uniform(1.05, 1.4, th.size)
+    ok = (np.abs(r * np.cos(th)) < 1) & (np.abs(r * np.sin(th)) < 1)
+    th, r = th[ok], r[ok]
+    assert th.size > 3000
+    alpha = np.rint(r * np.cos(th) * FS).astype(np.int64)
+    beta = np.rint(r * np.sin(th) * FS).astype(np.int64)
+    d = model.svpwm(alpha, beta, 2500)
+    assert np.all(d["overmod"] == 1)
+    ua, ub = model.vector_of_duties(d["a"] / 2500, d["b"] / 2500, d["c"] / 2500)
+    err = np.degrees(np.angle(np.exp(1j * (np.arctan2(ub, ua) - np.arctan2(beta, alpha)))))
+    assert np.max(np.abs(err)) <= 0.1
+    # On the hexagon: the largest line-to-line duty difference is the full scale (±1 count).
+    spread = (np.max([d["a"], d["b"], d["c"]], axis=0) - np.min([d["a"], d["b"], d["c"]], axis=0))
+    assert np.all(np.abs(spread - 2500) <= 1)
+
+
+# --- SVPWM gateware -----------------------------------------------------------------------------
+
+def svpwm_outputs(dut, commands, *, ready_delay=0):
+    """Run commands one at a time; return ([(a, b, c, overmod)], [latency in clocks])."""
+    outs, lats = [], []
+
+    async def testbench(ctx):
+        for alpha, beta, scale in commands:
+            ctx.set(dut.i.payload, {"alpha": alpha, "beta": beta})
+            ctx.set(dut.scale, scale)
+            ctx.set(dut.i.valid, 1)
+            assert ctx.get(dut.i.ready)
+            await ctx.tick()
+            ctx.set(dut.i.valid, 0)
+            ctx.set(dut.scale, 0)                   # sampled with the command only
+            clocks = 1
+            while not ctx.get(dut.o.valid):
+                assert not ctx.get(dut.i.ready)
+                await ctx.tick()
+                clocks += 1
+            lats.append(clocks)
+            for _ in range(ready_delay):            # held until taken
+                await ctx.tick()
+                assert ctx.get(dut.o.valid)
+            p = ctx.get(dut.o.payload)
+            outs.append((p.a, p.b, p.c, p.overmod))
+            ctx.set(dut.o.ready, 1)
+            await ctx.tick()
+            ctx.set(dut.o.ready, 0)
+            assert not ctx.get(dut.o.valid) and ctx.get(dut.i.ready)
+
+    simulate(dut, [testbench], name="test_svpwm")
+    return outs, lats
+
+
+def test_svpwm_named_corners_and_latency_cycle_by_cycle():
+    dut = SVPWM()
+    r3 = math.sqrt(3) / 2
+    named = {
+        "zero": (0, 0, 2500, (1250, 1250, 1250, 0)),
+        "zero_odd_scale": (0, 0, 2501, (1251, 1251, 1251, 0)),     # 1250.5 rounds half up
+        "vertex_v1": (FS - 1, 0, 2500, None),
+        "vertex_v4": (-FS, 0, 2500, (0, 2500, 2500, 0)),
+        "edge_midpoint_90deg": (0, round(r3 * FS), 2500, None),
+        "corner_min_min": (-FS, -FS, 2500, None),
+        "corner_max_max": (FS - 1, FS - 1, 65535, None),
+        "scale_one": (1000, -2000, 1, None),
+        "max_scale": (12345, -23456, 65535, None),
+    }
+    cmds = [(a, b, s) for a, b, s, _ in named.values()]
+    outs, lats = svpwm_outputs(dut, cmds, ready_delay=2)
+    assert lats == [dut.latency] * len(cmds)
+    exp = model.svpwm(*(np.array(x) for x in zip(*cmds)))
+    for (name, (a, b, s, fixed)), got, k in zip(named.items(), outs, range(len(cmds))):
+        assert got == (exp["a"][k], exp["b"][k], exp["c"][k], exp["overmod"][k]), name
+        if fixed is not None:
+            assert got == fixed, name
+    # V1 vertex (just inside): phase A all on, B and C off; the 90° edge: A at half, B on, C off.
+    assert outs[2] == (2500, 0, 0, 0)
+    assert outs[4][1] >= 2499 and outs[4][2] <= 1
+    assert outs[5][3] == 1 and outs[6][3] == 1            # outside the hexagon
+
+
+def test_svpwm_random_commands_against_model_via_run():
+    r = verify_svpwm._run_svpwm(1500, seed=3, progress=False, width=16, count_width=16,
+                                scale=2500)
+    assert r["mismatches"] == 0
+    assert r["sector_mismatches"] == 0
+    assert r["overmod_vectors"] > 300
+    assert r["overmod_angle_err_deg"] <= 0.1
+    assert r["line_err_counts"] <= 1 + 2500 * 2.0 ** -21
+
+
+def test_svpwm_bench_detects_a_wrong_duty(monkeypatch):
+    real = model.svpwm
+
+    def off_by_one(alpha, beta, scale, **kw):
+        out = real(alpha, beta, scale, **kw)
+        out["b"] = out["b"].copy()
+        out["b"][5] += 1
+        return out
+
+    monkeypatch.setattr(verify_svpwm.model, "svpwm", off_by_one)
+    r = verify_svpwm._run_svpwm(20, seed=0, progress=False, width=16, count_width=16, scale=2500)
+    assert r["mismatches"] == 1 and r["first_mismatch"] == 5
+
+
+# --- DC-bus compensation ------------------------------------------------------------------------
+
+def test_dcbus_gain_latency_and_latest_measurement_wins():
+    dut = DCBusCompensation()
+    seen = {}
+
+    async def testbench(ctx):
+        assert ctx.get(dut.gain) == 1 << 16                 # 1.0 at reset
+        ctx.set(dut.u_rated, 30000)
+        ctx.set(dut.u_dc.payload, 20000)
+        ctx.set(dut.u_dc.valid, 1)
+        await ctx.tick()
+        ctx.set(dut.u_dc.valid, 0)
+        for k in range(1, dut.gain_latency):
+            assert ctx.get(dut.gain) == 1 << 16, k
+            await ctx.tick()
+            if k == 5:                                      # two more while busy: last one wins
+                ctx.set(dut.u_dc.payload, 1234)
+                ctx.set(dut.u_dc.valid, 1)
+            if k == 6:
+                ctx.set(dut.u_dc.payload, 15000)
+            if k == 7:
+                ctx.set(dut.u_dc.valid, 0)
+        seen["first"] = (ctx.get(dut.gain), ctx.get(dut.limited))
+        await ctx.tick().repeat(dut.gain_latency + 2)
+        seen["second"] = (ctx.get(dut.gain), ctx.get(dut.limited))
+        ctx.set(dut.u_dc.payload, 0)                        # division by zero → the limit
+        ctx.set(dut.u_dc.valid, 1)
+        await ctx.tick()
+        ctx.set(dut.u_dc.valid, 0)
+        await ctx.tick().repeat(dut.gain_latency)
+        seen["zero"] = (ctx.get(dut.gain), ctx.get(dut.limited))
+
+    simulate(dut, [testbench], name="test_dcbus_latency")
+    assert seen["first"] == (round(30000 / 20000 * 65536), 0)
+    assert seen["second"] == (round(30000 / 15000 * 65536), 0)     # exactly the limit 2.0
+    assert seen["zero"] == (dut.gain_limit_raw, 1)
+    g, lim = model.dcbus_gain(30000, 1234, gain_limit_raw=dut.gain_limit_raw)
+    assert lim == 1 and g == 2 << 16
+
+
+def test_dcbus_commands_scaled_saturated_latency_one():
+    dut = DCBusCompensation(out_width=17)
+    cmds = [(FS - 1, -FS), (1000, -1000), (1, -1), (0, 3)]
+    got = []
+
+    async def testbench(ctx):
+        ctx.set(dut.u_rated, 4000)
+        ctx.set(dut.u_dc.payload, 2500)                 # gain 1.6
+        ctx.set(dut.u_dc.valid, 1)
+        await ctx.tick()
+        ctx.set(dut.u_dc.valid, 0)
+        await ctx.tick().repeat(dut.gain_latency)
+        ctx.set(dut.o.ready, 1)
+        for a, b in cmds:
+            ctx.set(dut.i.payload, {"alpha": a, "beta": b})
+            ctx.set(dut.i.valid, 1)
+            assert not ctx.get(dut.o.valid) or ctx.get(dut.i.ready)
+            await ctx.tick()
+            assert ctx.get(dut.o.valid)
+            p = ctx.get(dut.o.payload)
+            got.append((p.alpha, p.beta))
+        ctx.set(dut.i.valid, 0)
+        ctx.set(dut.o.ready, 0)                         # not taken: held, input refused
+        await ctx.tick()
+        assert ctx.get(dut.o.valid) and not ctx.get(dut.i.ready)
+        assert (ctx.get(dut.o.payload.alpha), ctx.get(dut.o.payload.beta)) == got[-1]
+        ctx.set(dut.o.ready, 1)
+        await ctx.tick()
+        assert not ctx.get(dut.o.valid)
+
+    simulate(dut, [testbench], name="test_dcbus_commands")
+    gain = round(1.6 * 65536)
+    exp = model.dcbus_apply(np.array(cmds), gain, out_width=17)
+    assert got == [tuple(x) for x in exp]
+    assert got[0][0] > FS and got[0][1] < -FS                    # Q2.15: no saturation
+    exp16 = model.dcbus_apply(np.array(cmds), gain, out_width=16)
+    assert tuple(exp16[0]) == (FS - 1, -FS)                         # Q1.15 saturates
+
+
+# --- PWM timer ----------------------------------------------------------------------------------
+
+def record_timer(dut, clocks, actions):
+    """Record (pwm a, b, c, period_start, sample, position) per clock; ``actions`` maps a clock
+    number to a list of (signal, value) set at that clock."""
+    rec = []
+
+    async def testbench(ctx):
+        for t in range(clocks):
+            for sig, val in actions.get(t, ()):
+                ctx.set(sig, val)
+            p = ctx.get(dut.pwm)
+            rec.append((p.a, p.b, p.c, ctx.get(dut.period_start), ctx.get(dut.sample),
+                        ctx.get(dut.position)))
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="test_pwm_timer")
+    return np.array(rec)
+
+
+def test_pwm_timer_mid_period_duty_writes_wait_for_the_boundary():
+    dut = PWMTimer(clk_hz=1e6, pwm_hz=50e3)                # N = 10, period 20 clocks
+    n, per = dut.half_period, dut.period
+    assert (n, per, dut.pwm_hz_actual) == (10, 20, 50e3)
+    duty = dut.duty
+    actions = {
+        0: [(dut.symmetric, 1), (duty.payload, {"a": 3, "b": 10, "c": 0}), (duty.valid, 1)],
+        1: [(duty.valid, 0)],
+        # Mid-period writes in period 1 (pos 5 and 13): only the last one counts, from period 2.
+        25: [(duty.payload, {"a": 7, "b": 1, "c": 4}), (duty.valid, 1)],
+        26: [(duty.valid, 0)],
+        33: [(duty.payload, {"a": 5, "b": 2, "c": 25}), (duty.valid, 1)],
+        34: [(duty.valid, 0)],
+        41: [(dut.symmetric, 0)],                           # mode change: from period 3 on
+        # A write on the boundary clock itself (pos 19 of period 2) makes period 3.
+        59: [(duty.payload, {"a": 40, "b": 0, "c": 13}), (duty.valid, 1)],
+        60: [(duty.valid, 0)],
+    }
+    rec = record_timer(dut, 4 * per + 1, actions)
+    lv = rec[:, :3].astype(bool)
+    np.testing.assert_array_equal(rec[:, 5], np.arange(4 * per + 1) % per)
+    np.testing.assert_array_equal(np.flatnonzero(rec[:, 3]), [0, 20, 40, 60, 80])
+    np.testing.assert_array_equal(np.flatnonzero(rec[:, 4]), [10, 30, 50, 70])
+    expect = [((0, 0, 0), False), ((3, 10, 0), True), ((5, 2, 25), True), ((40, 0, 13), False)]
+    for k, (comp, sym) in enumerate(expect):
+        for ph in range(3):
+            np.testing.assert_array_equal(lv[k * per:(k + 1) * per, ph],
+                                          model.pwm_levels(comp[ph], n, sym), err_msg=f"{k},{ph}")
+    # Symmetric: centred pulse of 2·c clocks; c = 25 > N saturates to always on.
+    assert lv[40:60, 2].all() and lv[40:60, 0].sum() == 10
+    # Asymmetric: edge-aligned, c = 40 > 2N saturates.
+    assert lv[60:80, 0].all() and lv[60:80, 2].sum() == 13 and lv[60:73, 2].all()
+
+
+def test_pwm_timer_sample_point_and_full_scale():
+    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10
+    actions = {0: [(dut.sample_custom, 1), (dut.sample_point, 3)],
+               25: [(dut.sample_point, 19)], 45: [(dut.sample_point, 20)]}   # 20 ≥ 2N: never
+    rec = record_timer(dut, 60, actions)
+    np.testing.assert_array_equal(np.flatnonzero(rec[:, 4]), [3, 23, 39])
+
+    seen = []
+
+    async def testbench(ctx):
+        for sym in (1, 0):
+            ctx.set(dut.symmetric, sym)
+            seen.append(ctx.get(dut.full_scale))
+
+    simulate(dut, [testbench], name="test_pwm_full_scale")
+    assert seen == [10, 20]
+
+
+def test_pwm_timer_100khz_and_33mhz_periods():
+    for clk, pwm, n in ((50e6, 100e3, 250), (33.333e6, 100e3, 167), (33.333e6, 10e3, 1667),
+                        (50e6, 10e3, 2500)):
+        dut = PWMTimer(clk_hz=clk, pwm_hz=pwm)
+        Fragment.get(dut, None)                             # elaborates
+        assert dut.half_period == n == pwm_half_period(clk, pwm)
+        assert abs(dut.pwm_hz_actual - pwm) / pwm < 0.5 / n
+    # One period at 33.333 MHz / 100 kHz, symmetric: pulse centred, 2·c clocks.
+    dut = PWMTimer(clk_hz=33.333e6, pwm_hz=100e3)
+    per = dut.period
+    actions = {0: [(dut.symmetric, 1), (dut.duty.payload, {"a": 100, "b": 1, "c": 166}),
+                   (dut.duty.valid, 1)],
+               1: [(dut.duty.valid, 0)]}
+    rec = record_timer(dut, 2 * per, actions)
+    for ph, c in enumerate((100, 1, 166)):
+        np.testing.assert_array_equal(rec[per:, ph].astype(bool),
+                                      model.pwm_levels(c, dut.half_period, True))
+
+
+# --- the whole chain, default run ---------------------------------------------------------------
+
+def test_svpwm_timer_gates_system_default_run():
+    r = verify_svpwm.run(1000, seed=1, system_periods=150, dcbus_cases=20)
+    assert r["mismatches"] == 0
+    for key in ("svpwm_mismatches", "svpwm_sector_mismatches", "timer_mismatches",
+                "deadtime_violations", "runt_pulses", "stop_violations", "dcbus_mismatches"):
+        assert r[key] == 0, key
+    assert r["overmod_angle_err_deg"] <= 0.1
+    assert r["volt_seconds_err_counts"] <= 1 + 2.0 ** -10
+    assert 1 <= r["trip_latency_clk"] <= 1
+    assert set(r["system"]) == {"50MHz_500kHz", "50MHz_100kHz", "33.333MHz_100kHz",
+                                "33.333MHz_1000kHz", "50MHz_10kHz"}
+
+
+@pytest.mark.slow
+def test_svpwm_100k_commands_and_long_pwm_run():
+    r = verify_svpwm.run(100_000, seed=0)
+    assert r["mismatches"] == 0
+    assert r["svpwm_vectors"] > 100_000
+    assert r["overmod_angle_err_deg"] <= 0.1
+    assert r["volt_seconds_err_counts"] <= 1 + 2.0 ** -10
+    assert r["trip_latency_clk"] == 1
