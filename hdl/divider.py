@@ -14,7 +14,30 @@ from amaranth.lib.wiring import In, Out
 
 from .fixed import saturate, shape_range
 
-__all__ = ["Divider"]
+__all__ = ["Divider", "divider_params"]
+
+
+def divider_params(*, width=32, divisor_width=None, signed=True):
+    """Validate the parameters of :class:`Divider` (its golden model and verification use this
+    too) and return them as a dict, ``divisor_width`` resolved.
+
+    Raises
+    ------
+    TypeError
+        If ``width`` or ``divisor_width`` is not an integer of at least 2, or ``signed`` is not a
+        bool.
+    """
+    if not isinstance(width, int) or isinstance(width, bool) or width < 2:
+        raise TypeError(f"Divider width must be an integer of at least 2, not {width!r}")
+    if divisor_width is None:
+        divisor_width = width
+    elif (not isinstance(divisor_width, int) or isinstance(divisor_width, bool)
+            or divisor_width < 2):
+        raise TypeError(f"Divider divisor_width must be None or an integer of at least 2, "
+                        f"not {divisor_width!r}")
+    if not isinstance(signed, bool):
+        raise TypeError(f"Divider signed must be a bool, not {signed!r}")
+    return {"width": width, "divisor_width": divisor_width, "signed": signed}
 
 
 class Divider(wiring.Component):
@@ -54,9 +77,9 @@ class Divider(wiring.Component):
     ----------
     latency : int
         Clocks from the transfer on ``i`` to ``o.valid``: ``width + 1`` (one clock per quotient
-        bit, one for the sign fix), whatever the operands. A new division can be accepted two
-        clocks after ``o.valid`` at the soonest (``o.ready`` held high): one every ``width + 3``
-        clocks.
+        bit, one for the sign fix), whatever the operands. With ``o.ready`` held high and
+        operands always offered, one division every ``latency + 2 = width + 3`` clocks (one
+        clock for the transfer on ``o``, one idle clock with ``i.ready`` high).
 
     Raises
     ------
@@ -66,16 +89,8 @@ class Divider(wiring.Component):
     """
 
     def __init__(self, *, width=32, divisor_width=None, signed=True):
-        if not isinstance(width, int) or isinstance(width, bool) or width < 2:
-            raise TypeError(f"Divider width must be an integer of at least 2, not {width!r}")
-        if divisor_width is None:
-            divisor_width = width
-        elif (not isinstance(divisor_width, int) or isinstance(divisor_width, bool)
-                or divisor_width < 2):
-            raise TypeError(f"Divider divisor_width must be None or an integer of at least 2, "
-                            f"not {divisor_width!r}")
-        if not isinstance(signed, bool):
-            raise TypeError(f"Divider signed must be a bool, not {signed!r}")
+        params = divider_params(width=width, divisor_width=divisor_width, signed=signed)
+        width, divisor_width, signed = params["width"], params["divisor_width"], params["signed"]
         self._width = width
         self._divisor_width = divisor_width
         self._signed = signed
@@ -116,88 +131,94 @@ class Divider(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         w, dw = self._width, self._divisor_width
+        q_shape = self._o_layout["quotient"].shape
+        q_min, q_max = shape_range(q_shape)
 
-        # Working registers. `quo` starts as |dividend|; each clock shifts its top bit into the
-        # partial remainder and one quotient bit in at the bottom, so after `w` clocks it holds
-        # |quotient|. Invariant `rem < dmag` (dmag != 0) keeps `rem` in `dw` bits; with dmag == 0
-        # the partial remainder is meaningless (truncated) and the output is overridden.
-        quo = Signal(w)
-        rem = Signal(dw)
-        dmag = Signal(dw)
-        neg_n = Signal()        # dividend < 0: sign of the remainder
-        neg_q = Signal()        # operand signs differ: sign of the quotient
-        div0 = Signal()
-        count = Signal(range(w))
+        count = Signal(range(w))         # quotient bits still to compute, minus one
+        # Working register `acc` = Cat(quo, rem). `quo` starts as |dividend|; each clock shifts its
+        # top bit into the partial remainder `rem` and one quotient bit in at the bottom, so after
+        # `w` clocks `quo` = |quotient| and `rem` = |remainder|. Invariant `rem < dmag` keeps `rem`
+        # in `dw` bits; with dmag == 0 the partial remainder is meaningless (its top bits are
+        # dropped) and the output is overridden.
+        acc = Signal(w + dw)
+        quo, rem = acc[:w], acc[w:]
+        # What else the division needs, latched at the start.
+        op = Signal(data.StructLayout({
+            "dmag": dw,         # |divisor|
+            "neg_n": 1,         # dividend < 0: sign of the remainder
+            "neg_q": 1,         # operand signs differ: sign of the quotient
+            "div0": 1,          # divisor == 0
+        }))
 
         dividend = self.i.payload.dividend
         divisor = self.i.payload.divisor
 
         # Restoring step: trial = 2·rem + next dividend bit (< 2·dmag, dw + 1 bits).
-        trial = Cat(quo[-1], rem)
-        diff = trial - dmag                     # negative (top bit set) iff trial < dmag
+        trial = acc[w - 1:]
+        diff = trial - op.dmag                  # unsigned dw + 2 bits: top bit set iff trial < dmag
         fits = ~diff[-1]
-
-        q_max = shape_range(self._o_layout["quotient"].shape)[1]
-        q_min = shape_range(self._o_layout["quotient"].shape)[0]
 
         with m.FSM():
             with m.State("IDLE"):
                 m.d.comb += self.i.ready.eq(1)
                 with m.If(self.i.valid):
                     if self._signed:
+                        n_neg, d_neg = dividend < 0, divisor < 0
                         m.d.sync += [
-                            quo.eq(Mux(dividend < 0, -dividend, dividend)),
-                            dmag.eq(Mux(divisor < 0, -divisor, divisor)),
-                            neg_n.eq(dividend < 0),
-                            neg_q.eq((dividend < 0) ^ (divisor < 0)),
+                            # -min(S(w)) = 2**(w-1) fits the unsigned w-bit magnitude; same for dw.
+                            acc.eq(Mux(n_neg, -dividend, dividend)[:w]),
+                            op.dmag.eq(Mux(d_neg, -divisor, divisor)),
+                            op.neg_n.eq(n_neg),
+                            op.neg_q.eq(n_neg ^ d_neg),
                         ]
                     else:
-                        m.d.sync += [quo.eq(dividend), dmag.eq(divisor)]
+                        m.d.sync += [
+                            acc.eq(dividend),
+                            op.dmag.eq(divisor),
+                            op.neg_n.eq(0),
+                            op.neg_q.eq(0),
+                        ]
                     m.d.sync += [
-                        rem.eq(0),
-                        div0.eq(divisor == 0),
+                        op.div0.eq(divisor == 0),
                         count.eq(w - 1),
                     ]
                     m.next = "BUSY"
 
-            with m.State("BUSY"):
+            with m.State("BUSY"):               # one quotient bit per clock, MSB first
                 m.d.sync += [
-                    rem.eq(Mux(fits, diff[:dw], trial[:dw])),
-                    quo.eq(Cat(fits, quo[:-1])),
+                    acc.eq(Cat(fits, quo[:-1], Mux(fits, diff, trial)[:dw])),
                     count.eq(count - 1),
                 ]
                 with m.If(count == 0):
                     m.next = "FIX"
 
-            with m.State("FIX"):
+            with m.State("FIX"):                # signs, saturation, flags
                 p = self.o.payload
                 if self._signed:
                     # |quotient| <= 2**(w-1): only +2**(w-1) (min / -1) exceeds the range.
-                    q_signed = Mux(neg_q, -quo, quo)
+                    quotient = saturate(Mux(op.neg_q, -quo, quo), q_shape)
                     # |remainder| < |divisor| <= 2**(dw-1): the slice cannot lose bits.
-                    r_signed = Mux(neg_n, -rem, rem)[:dw]
-                    ovf = ~neg_q & quo[-1]
+                    remainder = Mux(op.neg_n, -rem, rem)[:dw]
+                    ovf = ~op.neg_q & quo[-1]
                 else:
-                    q_signed = quo
-                    r_signed = rem
-                    ovf = 0
-                with m.If(div0):
+                    quotient, remainder, ovf = quo, rem, 0
+                with m.If(op.div0):
                     m.d.sync += [
-                        p.quotient.eq(Mux(neg_n, q_min, q_max) if self._signed else q_max),
+                        p.quotient.eq(Mux(op.neg_n, q_min, q_max)),
                         p.remainder.eq(0),
                         p.div0.eq(1),
                         p.ovf.eq(0),
                     ]
                 with m.Else():
                     m.d.sync += [
-                        p.quotient.eq(saturate(q_signed, self._o_layout["quotient"].shape)),
-                        p.remainder.eq(Mux(ovf, 0, r_signed)),
+                        p.quotient.eq(quotient),
+                        p.remainder.eq(Mux(ovf, 0, remainder)),
                         p.div0.eq(0),
                         p.ovf.eq(ovf),
                     ]
                 m.next = "DONE"
 
-            with m.State("DONE"):
+            with m.State("DONE"):               # hold the result until it is taken
                 m.d.comb += self.o.valid.eq(1)
                 with m.If(self.o.ready):
                     m.next = "IDLE"

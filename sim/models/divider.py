@@ -9,6 +9,7 @@ model divides magnitudes and fixes the signs, as the hardware does).
 import numpy as np
 from amaranth.hdl import signed, unsigned
 
+from ...hdl.divider import divider_params
 from ...hdl.fixed import saturate_np, shape_range
 
 __all__ = ["divide", "latency"]
@@ -26,7 +27,8 @@ def _operand(name, value, shape, dtype):
     lo, hi = shape_range(shape)
     if np.any(v < lo) or np.any(v > hi):
         bad = v[(v < lo) | (v > hi)].flat[0]
-        raise ValueError(f"Divider {name} {int(bad)} is outside the range [{lo}, {hi}] of {shape!r}")
+        raise ValueError(f"Divider {name} {int(bad)} is outside the range [{lo}, {hi}] "
+                         f"of {shape!r}")
     return v
 
 
@@ -49,11 +51,13 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
 
     Raises
     ------
+    TypeError
+        If a parameter is invalid (as for :class:`Divider`) or an operand is not an integer.
     ValueError
         If an operand is outside its range.
     """
-    if divisor_width is None:
-        divisor_width = width
+    p = divider_params(width=width, divisor_width=divisor_width, signed=signed)
+    width, divisor_width, signed = p["width"], p["divisor_width"], p["signed"]
     shape = _shape(signed)
     q_shape = shape(width)
     dtype = _dtype(width, divisor_width)
