@@ -1,0 +1,304 @@
+# Ref: SPEC.md §2.3 (encoder A/B/Z + Hall, ×4 position counter); §4 (synchronisers, glitch filters)
+"""Bit-true, clock-by-clock golden model of :mod:`foc_servo.hdl.encoder`.
+
+The blocks are stateful, so the models are small classes with a ``tick(...)`` method that takes
+the inputs seen during one clock and returns the outputs after the clock edge (every output of
+the gateware is a register or a function of registers only). The stateless pieces are vectorised
+numpy functions: :func:`theta_exact` (the exact angle formula the drift check compares with),
+:func:`hall_sector`, :func:`hall_code`.
+
+:func:`front_end` runs :class:`EncoderFrontEndModel` over per-clock input arrays.
+"""
+
+import numpy as np
+
+from ...hdl.encoder import (ANGLE, CPR_WIDTH, DIVIDER_WAIT, HALL_CODES, angle_constants,
+                            hall_centres, quadrature_phase)
+
+__all__ = [
+    "theta_exact", "hall_sector", "hall_code", "GlitchFilterModel", "QuadratureDecoderModel",
+    "HallSensorModel", "EncoderFrontEndModel", "front_end", "OUTPUTS",
+]
+
+#: Outputs of :class:`EncoderFrontEndModel` (the gateware member names).
+OUTPUTS = ("count", "e", "theta", "step", "up", "a_rise", "illegal", "index", "aligned", "busy",
+           "config_error", "hall_sector", "hall_valid", "hall_fault", "ready")
+
+_CODE_TO_SECTOR = np.full(8, -1, dtype=np.int64)
+for _k, _c in enumerate(HALL_CODES):
+    _CODE_TO_SECTOR[_c] = _k
+
+
+def theta_exact(e, cpr):
+    """Exact electrical angle ``floor(e·2**16 / cpr)`` of an electrical position ``e`` in
+    [0, cpr) (int64 arrays or integers)."""
+    out = (np.asarray(e, dtype=np.int64) << ANGLE.width) // np.asarray(cpr, dtype=np.int64)
+    return int(out) if np.ndim(out) == 0 else out
+
+
+def hall_sector(code):
+    """Sector 0 … 5 of Hall codes (bit 0 = H_a), −1 for the invalid codes 000 and 111."""
+    out = _CODE_TO_SECTOR[np.asarray(code, dtype=np.int64) & 7]
+    return int(out) if np.ndim(out) == 0 else out
+
+
+def hall_code(theta):
+    """Ideal Hall code at electrical angles ``theta`` (raw binary angles of 16 bits): sector
+    ``floor(theta·6 / 2**16)``."""
+    sector = (np.asarray(theta, dtype=np.int64) % ANGLE.turn) * 6 >> ANGLE.width
+    out = np.asarray(HALL_CODES, dtype=np.int64)[sector]
+    return int(out) if np.ndim(out) == 0 else out
+
+
+class GlitchFilterModel:
+    """Model of :class:`~foc_servo.hdl.encoder.GlitchFilter` (``width`` bits packed in an
+    integer)."""
+
+    def __init__(self, width=1):
+        self.width = width
+        self.o = 0
+        self.cnt = [0] * width
+
+    def tick(self, i, length):
+        o = self.o
+        for k in range(self.width):
+            ik, ok = (i >> k) & 1, (o >> k) & 1
+            if ik == ok:
+                self.cnt[k] = 0
+            elif self.cnt[k] + 1 >= length:
+                self.o ^= 1 << k
+                self.cnt[k] = 0
+            else:
+                self.cnt[k] += 1
+        return self.o
+
+
+class HallSensorModel:
+    """Model of :class:`~foc_servo.hdl.encoder.HallSensor`."""
+
+    def __init__(self):
+        self.centres = hall_centres(ANGLE.width)
+        self.sector = 0
+        self.theta = self.centres[0]
+        self.valid = 0
+        self.fault = 0
+
+    def tick(self, h, offset, hold=0):
+        self.fault = int(not hold and h in (0, 7))
+        k = int(_CODE_TO_SECTOR[h])
+        if k >= 0:
+            self.sector = k
+            self.theta = (self.centres[k] + offset) % ANGLE.turn
+            self.valid = 1
+
+
+class QuadratureDecoderModel:
+    """Model of :class:`~foc_servo.hdl.encoder.QuadratureDecoder`, configuration sequencer and
+    divider timing included."""
+
+    IDLE, START_P, WAIT_P, START_Z, WAIT_Z = range(5)
+
+    def __init__(self, *, z_gate=None, lines=5000, pole_pairs=4, z_offset=0):
+        self.z_gate = z_gate
+        self.lines_q, self.pp_q, self.z_q = lines, pole_pairs, z_offset
+        self.qp, self.rp, self.qz, self.rz, self.valid = angle_constants(lines, pole_pairs,
+                                                                         z_offset)
+        self.cpr = 4 * lines
+        self.lines_p = self.pp_p = self.z_p = self.qp_p = self.rp_p = 0
+        self.state = self.IDLE
+        self.clock = 0
+        self.div_done = None            # clock at which the decoder takes the divider's result
+        self.div_result = (0, 0)
+        self.a_prev = self.b_prev = self.zc_prev = 0
+        self.count = self.em = self.thm = self.rm = 0
+        self.step = self.up = self.a_rise = self.illegal = self.index = self.aligned = 0
+
+    @property
+    def busy(self):
+        return int(self.state != self.IDLE)
+
+    @property
+    def config_error(self):
+        return int(not self.valid)
+
+    @property
+    def e(self):
+        s = self.em + self.z_q
+        return (s - self.cpr if s >= self.cpr else s) & ((1 << CPR_WIDTH) - 1)
+
+    @property
+    def theta(self):
+        return (self.thm + self.qz + (self.rm + self.rz >= self.cpr)) % ANGLE.turn
+
+    def _divide(self, numerator):
+        """Start a division of ``numerator·2**16`` by the pending cpr (as the gateware does)."""
+        cpr_p = 4 * self.lines_p
+        q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
+        if cpr_p == 0:
+            self.div_result = (q_mask, 0)
+        else:
+            q, r = divmod(numerator << ANGLE.width, cpr_p)
+            self.div_result = (q & q_mask, r & r_mask)
+        self.div_done = self.clock + 1 + DIVIDER_WAIT
+
+    def tick(self, a, b, z, *, hold=0, lines=5000, pole_pairs=4, z_offset=0, realign=0):
+        cpr_mask = (1 << CPR_WIDTH) - 1
+        # Configuration sequencer.
+        commit = False
+        div_valid = self.div_done == self.clock
+        next_state = self.state
+        if self.state == self.IDLE:
+            if (lines, pole_pairs, z_offset) != (self.lines_q, self.pp_q, self.z_q):
+                self.lines_p, self.pp_p, self.z_p = lines, pole_pairs, z_offset
+                next_state = self.START_P
+        elif self.state == self.START_P:
+            self._divide(self.pp_p)
+            next_state = self.WAIT_P
+        elif self.state == self.WAIT_P:
+            if div_valid:
+                self.qp_p, self.rp_p = self.div_result
+                next_state = self.START_Z
+        elif self.state == self.START_Z:
+            self._divide(self.z_p)
+            next_state = self.WAIT_Z
+        elif self.state == self.WAIT_Z:
+            if div_valid:
+                commit = True
+                next_state = self.IDLE
+
+        # Quadrature decoding (from the registers before this edge).
+        delta = (quadrature_phase(a, b) - quadrature_phase(self.a_prev, self.b_prev)) % 4
+        fwd = not hold and delta == 1
+        bwd = not hold and delta == 3
+        zc = z if self.z_gate is None else int(z and ((a << 1) | b) == self.z_gate)
+        index = not hold and zc and not self.zc_prev
+        step, a_rise = int(fwd or bwd), int((fwd or bwd) and a and not self.a_prev)
+        illegal = int(not hold and delta == 2)
+
+        count, em, thm, rm, aligned = self.count, self.em, self.thm, self.rm, self.aligned
+        cpr = self.cpr
+        if self.valid and fwd:
+            count = 0 if self.count == cpr - 1 else (self.count + 1) & cpr_mask
+            e_up = self.em + self.pp_q
+            em = (e_up - cpr if e_up >= cpr else e_up) & cpr_mask
+            r_up = self.rm + self.rp
+            carry = int(r_up >= cpr)
+            rm = (r_up - cpr if carry else r_up) & cpr_mask
+            thm = (self.thm + self.qp + carry) % ANGLE.turn
+        elif self.valid and bwd:
+            count = (cpr - 1 if self.count == 0 else self.count - 1) & cpr_mask
+            e_dn = self.em - self.pp_q
+            em = (e_dn + cpr if e_dn < 0 else e_dn) & cpr_mask
+            r_dn = self.rm - self.rp
+            borrow = int(r_dn < 0)
+            rm = (r_dn + cpr if borrow else r_dn) & cpr_mask
+            thm = (self.thm - self.qp - borrow) % ANGLE.turn
+        if self.valid and index and (not self.aligned or realign):
+            aligned, count, em, thm, rm = 1, 0, 0, 0, 0
+        elif realign:
+            aligned = 0
+        if commit:
+            cpr_p = 4 * self.lines_p
+            new_valid = (self.lines_p != 0 and self.pp_p != 0 and self.pp_p < cpr_p
+                         and self.z_p < cpr_p)
+            if (self.lines_p != self.lines_q or self.pp_p != self.pp_q or not new_valid):
+                aligned, count, em, thm, rm = 0, 0, 0, 0, 0
+            self.lines_q, self.pp_q, self.z_q, self.cpr = (self.lines_p, self.pp_p, self.z_p,
+                                                           cpr_p & cpr_mask)
+            self.qp, self.rp = self.qp_p, self.rp_p
+            self.qz, self.rz = self.div_result
+            self.valid = bool(new_valid)
+
+        self.count, self.em, self.thm, self.rm, self.aligned = count, em, thm, rm, aligned
+        self.step, self.a_rise, self.illegal, self.index = step, a_rise, illegal, int(index)
+        if step:
+            self.up = int(fwd)
+        self.a_prev, self.b_prev, self.zc_prev = a, b, zc
+        self.state = next_state
+        self.clock += 1
+
+
+class EncoderFrontEndModel:
+    """Model of :class:`~foc_servo.hdl.encoder.EncoderFrontEnd`."""
+
+    SYNC_STAGES = 2
+
+    def __init__(self, *, max_length=255, z_gate=None):
+        self.max_length = max_length
+        self.sync = [0] * self.SYNC_STAGES
+        self.filter = GlitchFilterModel(6)
+        self.decoder = QuadratureDecoderModel(z_gate=z_gate)
+        self.hall = HallSensorModel()
+        self.settle = 0
+        self.ready = 0
+
+    def tick(self, pins, *, length=0, lines=5000, pole_pairs=4, z_offset=0, hall_offset=0,
+             realign=0):
+        """One clock. ``pins`` packs A, B, Z, H_a, H_b, H_c in bits 0 … 5."""
+        hold = not self.ready
+        flt = self.filter.o
+        self.decoder.tick(flt & 1, (flt >> 1) & 1, (flt >> 2) & 1, hold=hold, lines=lines,
+                          pole_pairs=pole_pairs, z_offset=z_offset, realign=realign)
+        self.hall.tick(flt >> 3, hall_offset, hold=hold)
+        self.filter.tick(self.sync[-1], length)
+        self.sync = [pins] + self.sync[:-1]
+        if not self.ready:
+            if self.settle + 1 >= length + 4:
+                self.ready = 1
+            self.settle += 1
+
+    def outputs(self):
+        d, h = self.decoder, self.hall
+        return {
+            "count": d.count, "e": d.e, "theta": d.theta if d.aligned else h.theta,
+            "step": d.step, "up": d.up, "a_rise": d.a_rise, "illegal": d.illegal,
+            "index": d.index, "aligned": d.aligned, "busy": d.busy,
+            "config_error": d.config_error, "hall_sector": h.sector, "hall_valid": h.valid,
+            "hall_fault": h.fault, "ready": self.ready,
+        }
+
+
+_CONFIG = ("length", "lines", "pole_pairs", "z_offset", "hall_offset", "realign")
+
+
+def front_end(pins, *, max_length=255, z_gate=None, **config):
+    """Run :class:`EncoderFrontEndModel` over ``n`` clocks.
+
+    Parameters
+    ----------
+    pins : int array (n,)
+        A, B, Z, H_a, H_b, H_c in bits 0 … 5, one entry per clock.
+    **config : int or int array (n,)
+        ``length``, ``lines``, ``pole_pairs``, ``z_offset``, ``hall_offset``, ``realign``: a
+        constant or one value per clock (defaults as the gateware's).
+
+    Returns
+    -------
+    dict of int64 arrays (n + 1,)
+        Every output of :data:`OUTPUTS`; entry 0 is the reset state, entry ``t + 1`` the value
+        after clock edge ``t``.
+    """
+    unknown = set(config) - set(_CONFIG)
+    if unknown:
+        raise TypeError(f"front_end got unknown configuration {sorted(unknown)!r}")
+    pins = np.asarray(pins, dtype=np.int64)
+    n = pins.size
+    defaults = {"length": 0, "lines": 5000, "pole_pairs": 4, "z_offset": 0, "hall_offset": 0,
+                "realign": 0}
+    cols = {}
+    for key in _CONFIG:
+        v = np.asarray(config.get(key, defaults[key]), dtype=np.int64)
+        cols[key] = (np.broadcast_to(v, (n,)) if v.ndim == 0 else v).tolist()
+    model = EncoderFrontEndModel(max_length=max_length, z_gate=z_gate)
+    out = {k: np.empty(n + 1, dtype=np.int64) for k in OUTPUTS}
+    first = model.outputs()
+    for k in OUTPUTS:
+        out[k][0] = first[k]
+    pin_list = pins.tolist()
+    arrays = [out[k] for k in OUTPUTS]
+    for t in range(n):
+        model.tick(pin_list[t], **{key: cols[key][t] for key in _CONFIG})
+        o = model.outputs()
+        for arr, k in zip(arrays, OUTPUTS):
+            arr[t + 1] = o[k]
+    return out

@@ -1,0 +1,415 @@
+# Ref: SPEC.md §2.3 (encoder A/B/Z + Hall, ×4 position counter); §4 (synchronisers, glitch filters)
+import numpy as np
+import pytest
+from amaranth.back import verilog
+from amaranth.hdl import Cat
+
+import foc_servo.hdl.encoder as hdl_encoder
+import foc_servo.sim.verify.encoder as verify_encoder
+from foc_servo.hdl.encoder import (HALL_CODES, EncoderFrontEnd, GlitchFilter, HallSensor,
+                                   QuadratureDecoder, angle_constants, hall_centres)
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models import encoder as model
+
+AB = ((0, 0), (1, 0), (1, 1), (0, 1))       # quadrature state of phase 0 … 3
+
+
+def pins(a=0, b=0, z=0, hall=HALL_CODES[0]):
+    return a | (b << 1) | (z << 2) | (hall << 3)
+
+
+def run_front_end(dut, pin_words, **config):
+    """Drive an EncoderFrontEnd one clock per entry of ``pin_words`` (config constant) and return
+    the outputs before the first edge and after each one, as the model's ``front_end`` does."""
+    names = model.OUTPUTS
+    rec = {k: [] for k in names}
+
+    async def testbench(ctx):
+        for key, value in config.items():
+            ctx.set(getattr(dut, key), value)
+        for word in list(pin_words) + [pin_words[-1]]:
+            for k in names:
+                rec[k].append(ctx.get(getattr(dut, k)))
+            ctx.set(Cat(dut.a, dut.b, dut.z, dut.hall), int(word))
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="test_encoder")
+    return {k: np.array(v[:len(pin_words) + 1], dtype=np.int64) for k, v in rec.items()}
+
+
+def walk_pins(steps, *, dwell=1, start=0, z_at=None, hall=HALL_CODES[0]):
+    """Pin words of a walk of ±1/0 ``steps``, ``dwell`` clocks per state; Z high at position
+    ``z_at``."""
+    pos, out = start, []
+    for s in [0] + list(steps):
+        pos += s
+        a, b = AB[pos % 4]
+        out.extend([pins(a, b, int(z_at is not None and pos == z_at), hall)] * dwell)
+    return out
+
+
+# --- parameters -----------------------------------------------------------------------------
+
+def test_glitch_filter_parameter_validation():
+    with pytest.raises(TypeError, match=r"^GlitchFilter width must be an integer from 1 to 64, "
+                                        r"not 0$"):
+        GlitchFilter(width=0)
+    with pytest.raises(TypeError, match=r"^GlitchFilter max_length must be an integer from 1 to "
+                                        r"65535, not 'x'$"):
+        GlitchFilter(max_length="x")
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd max_length must be an integer from 1 "
+                                        r"to 65535, not True$"):
+        EncoderFrontEnd(max_length=True)
+
+
+def test_quadrature_z_gate_validation():
+    with pytest.raises(TypeError, match=r"^QuadratureDecoder z_gate must be None or an integer "
+                                        r"from 0 to 3, not 4$"):
+        QuadratureDecoder(z_gate=4)
+    with pytest.raises(TypeError, match=r"^QuadratureDecoder z_gate must be None or an integer "
+                                        r"from 0 to 3, not '1'$"):
+        EncoderFrontEnd(z_gate="1")
+
+
+# --- glitch filter --------------------------------------------------------------------------
+
+def test_glitch_filter_every_length_and_width_cycle_by_cycle():
+    """Lengths 0 … 8, pulses of 1 … length + 3 clocks of both polarities: the output matches
+    the model on every clock, a pulse is passed iff it lasts ≥ max(length, 1) clocks, and then
+    exactly max(length, 1) clocks after it starts."""
+    dut = GlitchFilter(width=2, max_length=8)
+    errors = []
+
+    async def testbench(ctx):
+        ref = model.GlitchFilterModel(2)
+        for length in range(9):
+            ctx.set(dut.length, length)
+            for pol in (0, 1):
+                for w in range(1, length + 4):
+                    base = 0b11 if pol else 0b00
+                    # The lead-in lets the output settle on `base` (from 0 at reset).
+                    wave = [base] * (length + 3) + [base ^ 0b01] * w + [base] * (length + 3)
+                    seen_at = None
+                    for t, word in enumerate(wave):
+                        ctx.set(dut.i, word)
+                        await ctx.tick()
+                        want = ref.tick(word, length)
+                        got = ctx.get(dut.o)
+                        if got != want:
+                            errors.append(("model", length, w, t, got, want))
+                        if seen_at is None and t >= length + 3 and (got ^ base) & 1:
+                            seen_at = t
+                    start = length + 3
+                    if w >= max(length, 1):
+                        if seen_at != start + max(length, 1) - 1:
+                            errors.append(("latency", length, w, seen_at))
+                    elif seen_at is not None:
+                        errors.append(("short pulse passed", length, w, seen_at))
+
+    simulate(dut, [testbench], name="test_glitch_filter")
+    assert errors == []
+
+
+def test_glitch_filter_random_with_length_changes_vs_model():
+    rng = np.random.default_rng(3)
+    n = 3000
+    words = (rng.random(n) < 0.5).astype(int) * 5 + (rng.random(n) < 0.2).astype(int) * 2
+    lengths = np.repeat(rng.integers(0, 8, n // 100), 100)
+    dut = GlitchFilter(width=3, max_length=7)
+    got = []
+
+    async def testbench(ctx):
+        for word, length in zip(words.tolist(), lengths.tolist()):
+            ctx.set(dut.i, word)
+            ctx.set(dut.length, length)
+            await ctx.tick()
+            got.append(ctx.get(dut.o))
+
+    simulate(dut, [testbench], name="test_glitch_filter_random")
+    ref = model.GlitchFilterModel(3)
+    want = [ref.tick(w, ln) for w, ln in zip(words.tolist(), lengths.tolist())]
+    assert got == want
+    assert len(set(got)) == 4         # every output combination occurred
+
+
+def test_glitch_filter_targets_through_front_end():
+    """Pulses on A, B, Z and a Hall input at lengths 0 … 6 and 20: never a short one counted,
+    never a long one missed, exact threshold at max(length, 1)."""
+    r = verify_encoder.run_events(lengths=[0, 1, 2, 3, 4, 6, 20], seed=5)
+    assert r["glitch_pulses"] > 100
+    assert r["glitch_short_counted"] == 0
+    assert r["glitch_long_missed"] == 0
+    assert r["glitch_threshold_errors"] == 0
+    assert r["illegal_detected"] == r["illegal_injected"] > 0
+    assert r["hall_fault_detected"] == r["hall_fault_injected"] > 0
+    assert r["hall_fault_false"] == 0
+
+
+# --- quadrature decoder ---------------------------------------------------------------------
+
+def test_quadrature_latency_cycle_by_cycle():
+    """A pin change reaches count, step, up and a_rise exactly latency + max(length, 1) − 1
+    clocks later; the strobes last one clock."""
+    for length in (0, 1, 3):
+        dut = EncoderFrontEnd(max_length=7)
+        settle = length + 8
+        wave = [pins(0, 0)] * settle + [pins(1, 0)] * 12
+        out = run_front_end(dut, wave, length=length)
+        lat = dut.latency + max(length, 1) - 1
+        # The pin changes during clock `settle`; out[t + 1] is after edge t.
+        new = settle + lat
+        assert out["count"][new - 1] == 0 and out["count"][new] == 1
+        assert out["step"][new - 1] == 0 and out["step"][new] == 1 and out["step"][new + 1] == 0
+        assert out["a_rise"][new] == 1 and out["up"][new] == 1
+
+
+def test_quadrature_direction_a_rise_and_wrap_at_cpr():
+    """lines = 3 (cpr 12): 30 counts forward then 30 back; count wraps at exactly 12; a_rise
+    once per line in each direction; up follows the direction."""
+    dut = EncoderFrontEnd()
+    steps = [1] * 30 + [-1] * 30
+    wave = [pins()] * 100 + walk_pins(steps, dwell=2)      # lines = 3 committed in the lead-in
+    wave += [wave[-1]] * 8
+    out = run_front_end(dut, wave, lines=3)
+    want = model.front_end(wave, lines=3)
+    for k in model.OUTPUTS:
+        np.testing.assert_array_equal(out[k], want[k], err_msg=k)
+    counts = out["count"][out["step"] == 1]
+    assert counts.max() == 11
+    np.testing.assert_array_equal(counts[:14], [(k + 1) % 12 for k in range(14)])
+    np.testing.assert_array_equal(counts[30:34], [5, 4, 3, 2])   # 30 mod 12 = 6, going back
+    ups = out["up"][out["step"] == 1]
+    assert ups[:30].all() and not ups[30:].any()
+    # A rises on reaching positions 1, 5, …, 29 going forward and 26, 22, …, 2 going back.
+    assert out["a_rise"].sum() == 8 + 7
+
+
+def test_quadrature_illegal_transition_strobe_without_count():
+    dut = EncoderFrontEnd()
+    wave = [pins(0, 0)] * 10 + [pins(1, 1)] * 3 + [pins(0, 1)] * 3 + [pins(1, 0)] * 8
+    out = run_front_end(dut, wave)
+    assert out["illegal"].sum() == 2 and out["step"].sum() == 1   # 00→11 and 01→10 illegal
+    assert out["count"][-1] == 1                 # 11 → 01 is one count forward
+    np.testing.assert_array_equal(out["illegal"], model.front_end(wave)["illegal"])
+
+
+# --- index ----------------------------------------------------------------------------------
+
+def test_index_first_z_aligns_and_loads_offset():
+    """The first Z sets aligned, clears count and loads e with z_offset; theta switches from the
+    Hall centre to floor(e·2**16 / cpr); a second Z only strobes index."""
+    dut = EncoderFrontEnd()
+    z_offset = 7777
+    steps = [1] * 10 + [-1] * 8 + [1] * 10
+    wave = [pins()] * 100 + walk_pins(steps, dwell=2, start=-4, z_at=0)
+    wave += [wave[-1]] * 8
+    out = run_front_end(dut, wave, z_offset=z_offset, hall_offset=1000)
+    want = model.front_end(wave, z_offset=z_offset, hall_offset=1000)
+    for k in model.OUTPUTS:
+        np.testing.assert_array_equal(out[k], want[k], err_msg=k)
+    first = int(np.argmax(out["aligned"]))
+    assert out["index"][first] == 1 and out["count"][first] == 0 and out["e"][first] == z_offset
+    assert out["theta"][first - 1] == (hall_centres()[0] + 1000) % 65536
+    assert out["theta"][first] == (z_offset << 16) // 20000
+    # Later index events (passing Z again going back and forth) do not realign.
+    assert out["index"].sum() >= 2
+    e = out["e"][first:]
+    cnt = out["count"][first:]
+    np.testing.assert_array_equal(e, (4 * cnt + z_offset) % 20000)
+
+
+def test_index_gated_marks_same_state_in_both_directions():
+    """With z_gate, Z (two counts wide) is only taken in the gated state: aligning from either
+    side gives count 0 at the same A/B state."""
+    gate = 2                                     # (A, B) = (1, 0): phase 1
+    for direction in (1, -1):
+        dut = EncoderFrontEnd(z_gate=gate)
+        start = -6 if direction == 1 else 6
+        pos, wave = start, [pins()] * 10
+        for _ in range(12):
+            a, b = AB[pos % 4]
+            wave += [pins(a, b, int(pos in (0, 1)))] * 2
+            pos += direction
+        wave += [wave[-1]] * 8
+        out = run_front_end(dut, wave)
+        np.testing.assert_array_equal(out["aligned"],
+                                      model.front_end(wave, z_gate=gate)["aligned"])
+        first = int(np.argmax(out["aligned"]))
+        assert out["count"][first] == 0
+        # The count afterwards is the position relative to phase 1 (position 1).
+        last = out["count"][-1]
+        want = (pos - direction - 1) % 20000
+        assert last == want, (direction, last, want)
+
+
+def test_index_realign_and_config_change_drop_alignment():
+    """realign: the next Z realigns; a new z_offset applies at once (still aligned); a new line
+    count or pole-pair count clears the alignment after config_latency clocks."""
+    dut = EncoderFrontEnd()
+    rec = []
+
+    async def testbench(ctx):
+        word = Cat(dut.a, dut.b, dut.z, dut.hall)
+
+        async def tick(k=1):
+            for _ in range(k):
+                await ctx.tick()
+                rec.append({n: ctx.get(getattr(dut, n)) for n in ("aligned", "e", "count",
+                                                                  "busy", "theta")})
+
+        ctx.set(word, pins())
+        await tick(10)
+        ctx.set(word, pins(z=1))
+        await tick(6)
+        ctx.set(word, pins(1, 0))
+        await tick(6)
+        assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 1 and rec[-1]["e"] == 4
+        ctx.set(dut.z_offset, 100)
+        await tick(1)
+        assert rec[-1]["busy"] == 1
+        await tick(dut.config_latency - 2)
+        assert rec[-1]["e"] == 4 and rec[-1]["busy"] == 1
+        await tick(1)
+        assert rec[-1]["e"] == 104 and rec[-1]["aligned"] == 1 and rec[-1]["busy"] == 0
+        assert rec[-1]["theta"] == (104 << 16) // 20000
+        ctx.set(dut.realign, 1)
+        await tick(1)
+        ctx.set(dut.realign, 0)
+        assert rec[-1]["aligned"] == 0
+        ctx.set(word, pins(1, 0, 1))
+        await tick(6)
+        assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 0 and rec[-1]["e"] == 100
+        ctx.set(dut.lines, 1024)
+        await tick(dut.config_latency)
+        assert rec[-1]["aligned"] == 0 and rec[-1]["busy"] == 0 and rec[-1]["count"] == 0
+        ctx.set(dut.lines, 1)                   # cpr 4 ≤ pole_pairs: invalid
+        await tick(dut.config_latency)
+        assert ctx.get(dut.config_error) == 1
+        ctx.set(word, pins(1, 0, 0))
+        await tick(4)
+        ctx.set(word, pins(1, 0, 1))
+        await tick(6)
+        assert rec[-1]["aligned"] == 0          # never aligns while the config is invalid
+
+    simulate(dut, [testbench], name="test_encoder_realign")
+
+
+def test_angle_constants_match_divmod():
+    assert angle_constants(5000, 4, 0) == (13, 2144, 0, 0, True)
+    qp, rp, qz, rz, ok = angle_constants(997, 7, 3000)
+    assert divmod(7 << 16, 3988) == (qp, rp) and divmod(3000 << 16, 3988) == (qz, rz) and ok
+    assert angle_constants(3, 12, 0)[4] is False        # pole_pairs ≥ cpr
+    assert angle_constants(0, 1, 0)[:2] == (0xFFFF, 0)   # the divider's division by zero
+
+
+# --- Hall -----------------------------------------------------------------------------------
+
+def test_hall_sector_order_centres_and_fault():
+    dut = HallSensor()
+    got = {}
+
+    async def testbench(ctx):
+        ctx.set(dut.offset, 65000)
+        for code in range(8):
+            ctx.set(dut.h, code)
+            await ctx.tick()
+            got[code] = (ctx.get(dut.sector), ctx.get(dut.theta), ctx.get(dut.fault),
+                         ctx.get(dut.valid))
+
+    simulate(dut, [testbench], name="test_hall")
+    centres = hall_centres()
+    assert centres == (5461, 16384, 27307, 38229, 49152, 60075)
+    for k, code in enumerate(HALL_CODES):
+        assert got[code] == (k, (centres[k] + 65000) % 65536, 0, 1)
+    assert got[0][2] == 1 and got[7][2] == 1
+    assert got[7][:2] == got[6][:2]              # 111 holds the last valid sector (6 → 4)
+    # The ideal code of each sector's angles is its code, 000 and 111 never occur.
+    theta = np.arange(0, 65536, 7)
+    np.testing.assert_array_equal(model.hall_sector(model.hall_code(theta)), theta * 6 >> 16)
+
+
+def test_hall_angle_before_first_index_then_encoder():
+    dut = EncoderFrontEnd()
+    hall = HALL_CODES[3]
+    wave = [pins(hall=hall)] * 100 + [pins(z=1, hall=hall)] * 6
+    out = run_front_end(dut, wave, z_offset=5000)
+    before = out["theta"][~out["aligned"].astype(bool)][-1]
+    after = out["theta"][-1]
+    assert out["hall_sector"][-1] == 3 and before == hall_centres()[3]
+    assert out["aligned"][-1] == 1 and after == (5000 << 16) // 20000
+
+
+# --- electrical angle -----------------------------------------------------------------------
+
+def test_angle_no_drift_forward_back_random_walk():
+    r = verify_encoder.run_drift(6000)
+    assert r["checked"] > 3 * 6000
+    assert (r["angle_drift_counts"], r["theta_errors"], r["count_errors"]) == (0, 0, 0)
+
+
+def test_angle_no_drift_odd_lines_and_pole_pairs():
+    r = verify_encoder.run_drift(3000, lines=997, pole_pairs=13, z_offset=3987)
+    assert (r["angle_drift_counts"], r["theta_errors"], r["count_errors"]) == (0, 0, 0)
+
+
+def test_angle_no_drift_checker_detects_a_wrong_increment(monkeypatch):
+    """The drift check can fail: with the step quotient Qp off by one the checker sees it."""
+    real = hdl_encoder.angle_constants
+
+    def skewed(lines, pole_pairs, z_offset):
+        qp, *rest = real(lines, pole_pairs, z_offset)
+        return (qp + 1, *rest)
+
+    monkeypatch.setattr(hdl_encoder, "angle_constants", skewed)
+    # The default configuration: the skewed reset constants are never recomputed.
+    r = verify_encoder.run_drift(500, z_offset=0)
+    assert r["theta_errors"] > 0
+
+
+def test_angle_no_drift_model_against_exact_formula():
+    """The golden model's Bresenham angle equals floor(e·2**16/cpr) over a long random walk."""
+    rng = np.random.default_rng(11)
+    for lines, pp, z in ((5000, 4, 0), (7, 13, 5), (65535, 255, 262139)):
+        dec = model.QuadratureDecoderModel(lines=lines, pole_pairs=pp, z_offset=z)
+        cpr = 4 * lines
+        dec.tick(0, 0, 1, lines=lines, pole_pairs=pp, z_offset=z)     # align at position 0
+        pos = 0
+        steps = rng.choice([-1, 1, 1], size=20000) * np.repeat(rng.choice([-1, 1], 200), 100)
+        for s in steps.tolist():
+            pos += s
+            a, b = AB[pos % 4]
+            dec.tick(a, b, 0, lines=lines, pole_pairs=pp, z_offset=z)
+            e = (pp * pos + z) % cpr
+            assert (dec.count, dec.e, dec.theta) == (pos % cpr, e, model.theta_exact(e, cpr))
+
+
+# --- whole front end against the model ------------------------------------------------------
+
+@pytest.mark.parametrize("z_gate", [None, 0])
+def test_front_end_random_pins_vs_model(z_gate):
+    r = verify_encoder.run_random(3000, seed=2, z_gate=z_gate)
+    assert r["mismatches"] == 0 and r["vectors"] == 3001
+    assert r["illegal_strobes"] == r["illegal_strobes_model"] > 0
+    assert r["index_strobes_model"] > 0
+
+
+def test_front_end_converts_to_verilog():
+    text = verilog.convert(EncoderFrontEnd(z_gate=3), name="encoder")
+    assert "module encoder" in text
+
+
+@pytest.mark.slow
+def test_front_end_100k_random_vectors_and_targets():
+    r = verify_encoder.run(100_000, seed=0)
+    assert r["mismatches"] == 0
+    assert r["angle_drift_counts"] == 0
+    assert r["glitch_short_counted"] == 0 and r["glitch_long_missed"] == 0
+    assert r["illegal_detected"] == r["illegal_injected"]
+    assert r["hall_fault_detected"] == r["hall_fault_injected"]
+
+
+@pytest.mark.slow
+def test_angle_no_drift_million_counts():
+    r = verify_encoder.run_drift(1_000_000)
+    assert (r["angle_drift_counts"], r["theta_errors"], r["count_errors"]) == (0, 0, 0)
+    assert r["checked"] >= 3_000_000
