@@ -1,0 +1,322 @@
+# Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
+"""M/T speed measurement: edges counted over a window that starts and ends on an edge.
+
+MC counts encoder edges (signed by direction), TC runs free at f_TCLK, T latches TC at every
+counted edge. At each speed-update strobe the window closes on the last counted edge:
+``ΔM`` = edges since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges,
+and the foundation :class:`~foc_servo.hdl.divider.Divider` computes ``D_n = k·ΔM/ΔT``.
+
+Window rules (the golden model :mod:`foc_servo.sim.models.mt_speed` reproduces them clock for
+clock):
+
+* **No edge in an update period**: the window stays open (its reference edge is kept) and the
+  output is the last measurement *bounded* by the one-edge limit ``k/elapsed`` (elapsed = TCLK
+  ticks since the reference edge): the next edge has not come yet, so the speed cannot exceed one
+  edge per elapsed time. A motor that stops thus reads a speed decaying as ``1/t`` to 0, never a
+  stale value; at constant speed the bound never bites (beyond the ±1 tick quantisation of T).
+* **No edge within the TC span** (``2**tc_width`` ticks since the reference edge): the reference
+  expires, the output is 0 with ``stopped`` set until a new window (two edges, the first becoming
+  the reference) has been measured.
+* **Direction reversal inside a window**: edges count +1/−1 by direction, so ``ΔM`` is the net
+  displacement and ``D_n`` the mean speed over the window (a net-zero window reads exactly 0).
+  This is exact when the strobe marks the crossing of one fixed count position in either
+  direction (×4: every quadrature state change; "a_rising": the A-rising position, i.e. A↑ moving
+  forward and A↓ moving backward). A decoder that strobes A↑ in time in both directions counts a
+  position half a line away after a reversal: ΔM is then off by one edge in the window of the
+  reversal.
+"""
+
+import enum
+
+from amaranth.hdl import Module, Mux, Signal, signed, unsigned
+from amaranth.lib import data, stream, wiring
+from amaranth.lib import enum as lib_enum
+from amaranth.lib.wiring import In, Out
+
+from .divider import Divider
+from .fixed import saturate
+
+__all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
+
+
+#: One counted encoder edge: ``step`` is a 1-clock strobe, ``neg`` its direction (1 = count −1).
+EDGE_LAYOUT = data.StructLayout({"step": 1, "neg": 1})
+
+
+class EdgeMode(enum.Enum):
+    """Which encoder edges the ``edge`` strobe carries (sets the edges counted per line)."""
+    A_RISING = "a_rising"   # one edge per line: the A-rising position
+    X4 = "x4"               # four edges per line: every quadrature state change
+
+    @property
+    def edges_per_line(self):
+        return 1 if self is EdgeMode.A_RISING else 4
+
+
+class WindowMode(lib_enum.Enum, shape=2):
+    """What an update computes (see the module docstring)."""
+    STOPPED = 0     # no valid reference or no measurement since the last expiry: 0, stopped
+    BOUND = 1       # window open, no new edge: last measurement bounded by k/elapsed
+    FRESH = 2       # window closed on a new edge: k·ΔM/ΔT
+
+
+def output_layout(out_width):
+    """Payload layout of :attr:`MTSpeed.o`."""
+    return data.StructLayout({
+        "speed": signed(out_width),
+        "stopped": 1,
+        "fresh": 1,
+    })
+
+
+def _check_int(name, value, lo, hi):
+    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+        raise TypeError(f"MTSpeed {name} must be an integer from {lo} to {hi}, not {value!r}")
+    return value
+
+
+def _check_hz(name, value):
+    if (not isinstance(value, (int, float)) or isinstance(value, bool)
+            or not value > 0 or value == float("inf")):
+        raise TypeError(f"MTSpeed {name} must be a positive finite number of hertz, not {value!r}")
+    return float(value)
+
+
+class MTSpeed(wiring.Component):
+    """M/T speed measurement (paper Fig. 6) with the foundation divider.
+
+    Parameters
+    ----------
+    clk_hz : float
+        System clock frequency, Hz.
+    tclk_hz : float or None
+        Requested TC frequency f_TCLK, Hz, at most ``clk_hz``; ``None`` = ``clk_hz`` (best
+        resolution). TC advances once every ``tclk_ratio = round(clk_hz / tclk_hz)`` clocks, so the
+        **actual** f_TCLK is ``clk_hz / tclk_ratio`` (attribute :attr:`tclk_hz`): exact when
+        ``tclk_hz`` divides ``clk_hz`` (50 MHz / 1 MHz), rounded otherwise (33.333 MHz / 1 MHz
+        → ratio 33, 1.0101 MHz). Compute ``k`` from :attr:`tclk_hz`, not from the request.
+    tc_width : int
+        Width of TC and of the T latches (the paper: 16), 8 … 48. The TC span
+        ``2**tc_width / f_TCLK`` is the longest measurable edge interval.
+    out_width : int
+        Width of the speed output, 8 … 48: Q1.(out_width−1) of the full-scale speed N_M set by
+        ``k``, saturated symmetrically to ±(2**(out_width−1) − 1).
+    edge_mode : str
+        ``"a_rising"`` (one counted edge per line, the default) or ``"x4"`` (four); only changes
+        :attr:`edges_per_line`, i.e. the ``k`` to program (the ``edge`` port is the same).
+    k_width : int or None
+        Width of the ``k`` register, 2 … 64; ``None`` = ``out_width + 16`` (full-scale edge
+        period up to 2**17 TCLK ticks).
+    m_width : int
+        Width of the window edge count ΔM, 2 … 32 (saturating; far above any edge count per
+        update period).
+
+    Members
+    -------
+    edge : In(EDGE_LAYOUT)
+        ``step``: 1-clock strobe per counted edge (at most one per clock); ``neg``: its direction,
+        1 = backward (ΔM −1). T latches the TC value of the clock of the strobe.
+    update : In(1)
+        Speed-update strobe (the PWM ``period_start``). Accepted when no computation is in flight
+        (updates at least :attr:`latency` clocks apart are all accepted; one arriving earlier is
+        ignored: its window stays open and the next accepted update measures it).
+    k : In(unsigned(k_width))
+        Scale factor, an integer: ``D_n = k·ΔM/ΔT`` in Q1.(out_width−1) of N_M;
+        ``k = 60·2**(out_width−1)·f_TCLK / (lines·edges_per_line·N_M)`` (see
+        :func:`foc_servo.sim.models.mt_speed.k_for`). Sampled one clock after the accepted update.
+    o : Out(stream.Signature(output_layout(out_width), always_ready=True))
+        One 1-clock ``valid`` strobe :attr:`latency` clocks after each accepted update; payload
+        held until the next. ``speed``: signed Q1.(out_width−1) of N_M, truncated toward zero,
+        symmetric saturation (division by ΔT = 0, more edges than one per TC tick, saturates with
+        the sign of ΔM). ``stopped``: no edge within the TC span (or no measurement yet since
+        reset); ``speed`` is then 0. ``fresh``: the window closed on a new edge this update
+        (``speed = k·ΔM/ΔT``); 0 = bounded previous measurement or stopped.
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
+        ``o.valid`` high in clock ``u + latency``): 2 (snapshot, product) + the divider's
+        ``latency + 1`` (its ``o.valid`` follows the transfer clock by that) + 1 (output
+        register) = ``k_width + m_width + 5``.
+    tclk_ratio : int
+        System clocks per TC tick.
+    tclk_hz : float
+        Actual f_TCLK.
+    tc_span_s : float
+        ``2**tc_width / tclk_hz``: no edge within this time reads as stopped.
+    edges_per_line : int
+        1 (``"a_rising"``) or 4 (``"x4"``).
+
+    Raises
+    ------
+    TypeError
+        If a parameter has the wrong type or is out of its range.
+    ValueError
+        If ``tclk_hz`` exceeds ``clk_hz`` or ``edge_mode`` is not one of the two modes.
+    """
+
+    def __init__(self, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=16,
+                 edge_mode="a_rising", k_width=None, m_width=16):
+        clk_hz = _check_hz("clk_hz", clk_hz)
+        tclk_hz = clk_hz if tclk_hz is None else _check_hz("tclk_hz", tclk_hz)
+        if tclk_hz > clk_hz:
+            raise ValueError(f"MTSpeed tclk_hz must be at most clk_hz {clk_hz!r}, not {tclk_hz!r}")
+        self._tc_width = _check_int("tc_width", tc_width, 8, 48)
+        self._out_width = _check_int("out_width", out_width, 8, 48)
+        if k_width is None:
+            k_width = out_width + 16
+        self._k_width = _check_int("k_width", k_width, 2, 64)
+        self._m_width = _check_int("m_width", m_width, 2, 32)
+        try:
+            self._edge_mode = EdgeMode(edge_mode)
+        except ValueError:
+            raise ValueError(f"MTSpeed edge_mode must be 'a_rising' or 'x4', not {edge_mode!r}") \
+                from None
+        self._clk_hz = clk_hz
+        self._tclk_ratio = max(1, round(clk_hz / tclk_hz))
+        super().__init__({
+            "edge": In(EDGE_LAYOUT),
+            "update": In(1),
+            "k": In(unsigned(self._k_width)),
+            "o": Out(stream.Signature(output_layout(self._out_width), always_ready=True)),
+        })
+
+    clk_hz = property(lambda self: self._clk_hz)
+    tc_width = property(lambda self: self._tc_width)
+    out_width = property(lambda self: self._out_width)
+    k_width = property(lambda self: self._k_width)
+    m_width = property(lambda self: self._m_width)
+    edge_mode = property(lambda self: self._edge_mode.value)
+    edges_per_line = property(lambda self: self._edge_mode.edges_per_line)
+    tclk_ratio = property(lambda self: self._tclk_ratio)
+    tclk_hz = property(lambda self: self._clk_hz / self._tclk_ratio)
+    tc_span_s = property(lambda self: (1 << self._tc_width) / self.tclk_hz)
+
+    @property
+    def divider_latency(self):
+        """:attr:`Divider.latency` of the divider built in :meth:`elaborate` (``width + 1``;
+        not built here, so that an unelaborated MTSpeed leaves no unused divider behind; the
+        tests measure :attr:`latency` cycle by cycle)."""
+        return self._k_width + self._m_width + 1
+
+    @property
+    def latency(self):
+        return self.divider_latency + 4
+
+    def _make_divider(self):
+        return Divider(width=self._k_width + self._m_width, divisor_width=self._tc_width + 1,
+                       signed=True)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.divider = div = self._make_divider()
+        w, ow, mw = self._tc_width, self._out_width, self._m_width
+        r = self._tclk_ratio
+        s_max = (1 << (ow - 1)) - 1
+
+        # --- TC: free-running at clk/r. Its wrap is modular time (differences are taken mod
+        # 2**w), made safe by the expiry below.
+        tick = Signal()
+        if r == 1:
+            m.d.comb += tick.eq(1)
+        else:
+            pre = Signal(range(r))
+            with m.If(pre == r - 1):
+                m.d.sync += pre.eq(0)
+                m.d.comb += tick.eq(1)
+            with m.Else():
+                m.d.sync += pre.eq(pre + 1)
+        tc = Signal(w)
+        with m.If(tick):
+            m.d.sync += tc.eq(tc + 1)
+
+        # --- Window state. Invariant: pending == 0 implies m_acc == 0; have_ref == 0 implies
+        # pending == 0.
+        m_acc = Signal(signed(mw))      # net edges since the reference edge (saturating)
+        t_last = Signal(w)              # T of the last counted edge
+        t_ref = Signal(w)               # T of the reference edge (the previous window's last)
+        pending = Signal()              # edges counted since the reference
+        have_ref = Signal()             # a reference edge younger than the TC span exists
+        prev = Signal(signed(ow))       # last fresh measurement
+        prev_valid = Signal()           # a measurement since reset / the last expiry
+        busy = Signal()                 # a computation is in flight
+
+        step, neg = self.edge.step, self.edge.neg
+        m_e = Signal(signed(mw))        # the state including this clock's edge
+        tl_e = Signal(w)
+        pend_e = Signal()
+        m.d.comb += [m_e.eq(m_acc), tl_e.eq(t_last), pend_e.eq(pending)]
+        with m.If(step):
+            m.d.comb += [
+                m_e.eq(saturate(m_acc + Mux(neg, -1, 1), signed(mw))),
+                tl_e.eq(tc),
+                pend_e.eq(1),
+            ]
+        # After this clock TC equals t_ref again: a whole span since the reference edge.
+        expire = have_ref & tick & ((tc + 1)[:w] == t_ref)
+        start = self.update & ~busy
+
+        with m.If(~have_ref):
+            with m.If(step):                    # the first edge becomes the reference
+                m.d.sync += [t_ref.eq(tc), t_last.eq(tc), have_ref.eq(1)]
+        with m.Elif(start & pend_e):            # close the window on its last edge
+            m.d.sync += [t_ref.eq(tl_e), t_last.eq(tl_e), m_acc.eq(0), pending.eq(0)]
+        with m.Elif(expire):
+            m.d.sync += prev_valid.eq(0)
+            with m.If(pend_e):                  # (update period > span) re-anchor on the last edge
+                m.d.sync += [t_ref.eq(tl_e), t_last.eq(tl_e), m_acc.eq(0), pending.eq(0)]
+            with m.Else():
+                m.d.sync += have_ref.eq(0)
+        with m.Else():
+            m.d.sync += [m_acc.eq(m_e), t_last.eq(tl_e), pending.eq(pend_e)]
+
+        # --- Computation: snapshot at the update, product, divide, select.
+        mode = Signal(WindowMode)
+        snap_dm = Signal(signed(mw))
+        snap_dt = Signal(w)
+        with m.If(start):
+            m.d.sync += busy.eq(1)
+            with m.If(have_ref & pend_e):
+                m.d.sync += [mode.eq(WindowMode.FRESH), snap_dm.eq(m_e),
+                             snap_dt.eq(tl_e - t_ref)]
+            with m.Elif(have_ref & prev_valid):
+                m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_dt.eq(tc - t_ref)]
+            with m.Else():
+                m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_dt.eq(1)]
+
+        s1 = Signal()
+        s2 = Signal()
+        prod = Signal(signed(self._k_width + mw))      # |k·ΔM| < 2**(k_width + mw - 1)
+        m.d.sync += [s1.eq(start), s2.eq(s1)]
+        with m.If(s1):
+            m.d.sync += prod.eq(self.k * snap_dm)
+        m.d.comb += [
+            div.i.valid.eq(s2),                         # the divider is idle: one at a time
+            div.i.payload.dividend.eq(prod),
+            div.i.payload.divisor.eq(snap_dt),
+            div.o.ready.eq(1),
+        ]
+
+        q = div.o.payload.quotient
+        q_sat = Signal(signed(ow))
+        m.d.comb += q_sat.eq(Mux(q > s_max, s_max, Mux(q < -s_max, -s_max, q)))
+        prev_mag = Signal(unsigned(ow - 1))
+        m.d.comb += prev_mag.eq(Mux(prev < 0, -prev, prev))
+        bound = Signal(unsigned(ow - 1))                # q >= 0 in BOUND mode (k >= 0, ΔT >= 0)
+        m.d.comb += bound.eq(Mux(q_sat < prev_mag, q_sat, prev_mag))
+        p = self.o.payload
+        m.d.sync += self.o.valid.eq(div.o.valid)
+        with m.If(div.o.valid):
+            m.d.sync += busy.eq(0)
+            with m.Switch(mode):
+                with m.Case(WindowMode.FRESH):
+                    speed = Mux(snap_dm == 0, 0, q_sat)  # 0/0 (net-zero window, ΔT = 0) is 0
+                    m.d.sync += [p.speed.eq(speed), p.stopped.eq(0), p.fresh.eq(1),
+                                 prev.eq(speed), prev_valid.eq(1)]
+                with m.Case(WindowMode.BOUND):
+                    m.d.sync += [p.speed.eq(Mux(prev < 0, -bound, bound)), p.stopped.eq(0),
+                                 p.fresh.eq(0)]
+                with m.Default():
+                    m.d.sync += [p.speed.eq(0), p.stopped.eq(1), p.fresh.eq(0)]
+        return m

@@ -1,0 +1,273 @@
+# amaranth: UnusedElaboratable=no
+# Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
+import re
+
+import numpy as np
+import pytest
+from amaranth.back import verilog
+
+import foc_servo.sim.verify.mt_speed as verify
+from foc_servo.boards.area import ports
+from foc_servo.hdl.mt_speed import MTSpeed
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models import mt_speed as model
+
+FIELDS = ("cycle", "speed", "stopped", "fresh")
+
+
+def both(dut, edges, neg, ups, *, k, end_cycle):
+    """Gateware and model outputs for the same strobes; asserts they are identical."""
+    got = verify.run_gateware(dut, edges, neg, ups, k=k, end_cycle=end_cycle)
+    want = model.simulate(edges, neg, ups, k=k, params=model.MTParams.of(dut),
+                          end_cycle=end_cycle)
+    assert got["received"] == len(want["cycle"])
+    for f in FIELDS:
+        np.testing.assert_array_equal(got[f], want[f], err_msg=f)
+    return want
+
+
+# --- parameters --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, exc, msg", [
+    ({"clk_hz": 0}, TypeError, "MTSpeed clk_hz must be a positive finite number of hertz, not 0"),
+    ({"clk_hz": "50e6"}, TypeError, "MTSpeed clk_hz must be a positive finite number of hertz, "
+                                    "not '50e6'"),
+    ({"tclk_hz": -1.0}, TypeError, "MTSpeed tclk_hz must be a positive finite number of hertz, "
+                                   "not -1.0"),
+    ({"clk_hz": 1e6, "tclk_hz": 2e6}, ValueError,
+     "MTSpeed tclk_hz must be at most clk_hz 1000000.0, not 2000000.0"),
+    ({"tc_width": 7}, TypeError, "MTSpeed tc_width must be an integer from 8 to 48, not 7"),
+    ({"tc_width": True}, TypeError, "MTSpeed tc_width must be an integer from 8 to 48, not True"),
+    ({"out_width": 49}, TypeError, "MTSpeed out_width must be an integer from 8 to 48, not 49"),
+    ({"k_width": 1}, TypeError, "MTSpeed k_width must be an integer from 2 to 64, not 1"),
+    ({"m_width": 33}, TypeError, "MTSpeed m_width must be an integer from 2 to 32, not 33"),
+    ({"edge_mode": "x2"}, ValueError, "MTSpeed edge_mode must be 'a_rising' or 'x4', not 'x2'"),
+])
+def test_mt_validation(kwargs, exc, msg):
+    with pytest.raises(exc, match=f"^{re.escape(msg)}$"):
+        MTSpeed(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, msg", [
+    ({"edge_mode": "x2"}, "edge_mode must be 'a_rising' or 'x4', not 'x2'"),
+    ({"lines": 0}, "lines must be positive, not 0"),
+    ({"tclk_hz": 1.0}, "k for 5000 lines, f_TCLK 1 Hz, 6000 r/min rounds to 0: raise f_TCLK or "
+                       "out_width"),
+    ({"tclk_hz": 50e6, "k_width": 16}, "k 3276800 for 5000 lines, f_TCLK 5e+07 Hz, 6000 r/min "
+                                       "does not fit k_width 16 bits"),
+])
+def test_mt_validation_k_for(kwargs, msg):
+    with pytest.raises(ValueError, match=f"^{re.escape(msg)}$"):
+        model.k_for(**{"lines": 5000, "tclk_hz": 1e6, "full_scale_rpm": 6000, **kwargs})
+
+
+def test_mt_k_for_values():
+    # 60·2**15·f_TCLK / (lines·edges_per_line·N_M)
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000) == 65536
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, edge_mode="x4") == 16384
+    assert model.k_for(lines=5000, tclk_hz=50e6, full_scale_rpm=6000) == 3276800
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=5000) == 78643     # 78643.2
+
+
+def test_mt_tclk_ratio_exact_and_rounded():
+    dut = MTSpeed(clk_hz=50e6, tclk_hz=1e6)
+    assert (dut.tclk_ratio, dut.tclk_hz) == (50, 1e6)
+    assert dut.tc_span_s == 2 ** 32 / 1e6
+    dut = MTSpeed(clk_hz=33.333e6, tclk_hz=1e6, tc_width=16)       # rounded: documented
+    assert dut.tclk_ratio == 33 and dut.tclk_hz == 33.333e6 / 33
+    dut = MTSpeed(edge_mode="x4")
+    assert (dut.tclk_ratio, dut.edges_per_line, dut.k_width) == (1, 4, 32)
+    assert dut.latency == dut.k_width + dut.m_width + 5 == model.MTParams.of(dut).latency
+
+
+def test_mt_verilog_converts():
+    # The constant o.ready of the always-ready output is left out (amaranth-lang/amaranth#1574).
+    dut = MTSpeed(clk_hz=33.333e6, tclk_hz=1e6, tc_width=16)
+    text = verilog.convert(dut, name="mt_speed", ports=ports(dut))
+    assert "module mt_speed" in text and "o__payload" in text
+
+
+# --- cycle by cycle ----------------------------------------------------------------------------
+
+def test_mt_latency_cycle_by_cycle():
+    """o.valid exactly `latency` clocks after an accepted update; an update while busy is
+    ignored (its window stays open); the payload is k·ΔM/ΔT of the edges' TC values."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=10, out_width=16, k_width=16, m_width=8)
+    lat = dut.latency
+    k = 1000
+    u1 = 60
+    u_early = u1 + lat - 1              # busy in that clock: ignored
+    u2 = u1 + lat                       # accepted
+    edges = {10: 0, 30: 0, 50: 0, 70: 1}     # cycle: neg
+    ups = {u1, u_early, u2}
+    trace = []
+
+    async def testbench(ctx):
+        ctx.set(dut.k, k)
+        for c in range(u2 + lat + 3):
+            ctx.set(dut.edge, {"step": int(c in edges), "neg": edges.get(c, 0)})
+            ctx.set(dut.update, int(c in ups))
+            valid = ctx.get(dut.o.valid)
+            p = ctx.get(dut.o.payload)
+            trace.append((valid, p.speed, p.stopped, p.fresh))
+            await ctx.tick()
+
+    simulate(dut, [testbench], clock_hz=dut.clk_hz, name="mt_latency")
+    valid_at = [c for c, t in enumerate(trace) if t[0]]
+    assert valid_at == [u1 + lat, u2 + lat]
+    # Window 1: reference edge at TC 10, edges at 30 and 50: ΔM = 2, ΔT = 40.
+    assert trace[u1 + lat][1:] == (k * 2 // 40, 0, 1)
+    # Window 2 (update u2; u_early was ignored): edge at 70 backward: ΔM = -1, ΔT = 20.
+    assert trace[u2 + lat][1:] == (-(k // 20), 0, 1)
+    # Payload held between strobes.
+    assert all(t[1:] == trace[u1 + lat][1:] for t in trace[u1 + lat:u2 + lat])
+    want = model.simulate(sorted(edges), [edges[c] for c in sorted(edges)], sorted(ups), k=k,
+                          params=model.MTParams.of(dut))
+    assert want["cycle"].tolist() == valid_at
+
+
+# --- gateware against model --------------------------------------------------------------------
+
+@pytest.mark.parametrize("edge_mode", ["a_rising", "x4"])
+def test_mt_matches_model_high_speed(edge_mode):
+    """Full-size instance (50 MHz, f_TCLK = 50 MHz, 32-bit TC), 5000-line encoder at
+    1 000 … 10 000 r/min both ways, 100 kHz updates; steady outputs within the M/T bound."""
+    dut = MTSpeed(edge_mode=edge_mode)
+    fs_rpm = 12000
+    k = model.k_for(5000, dut.tclk_hz, fs_rpm, edge_mode=edge_mode, k_width=dut.k_width)
+    segs = [(80e-6, 10000.0), (60e-6, -6000.0), (80e-6, -1234.5)]
+    end = int(sum(d for d, _ in segs) * dut.clk_hz)
+    edges, neg = model.ideal_encoder_edges(segs, clk_hz=dut.clk_hz, lines=5000,
+                                           edge_mode=edge_mode, phase=0.3)
+    ups = np.arange(500, end, 500)
+    out = both(dut, edges, neg, ups, k=k, end_cycle=end)
+    assert out["fresh"].sum() >= 15
+    # Outputs whose window lies inside one segment: error ≤ 1 LSB + ΔT quantisation.
+    bounds = np.cumsum([0] + [d * dut.clk_hz for d, _ in segs])
+    for (d, rpm), t0, t1 in zip(segs, bounds, bounds[1:]):
+        start = out["t_end"] - out["dt"]                    # window's first edge (ratio 1)
+        sel = (out["fresh"] == 1) & (start > t0 + 1) & (out["t_end"] < t1)
+        assert sel.any()
+        rpm_out = out["speed"][sel] * fs_rpm / 2 ** 15
+        tol = fs_rpm / 2 ** 15 + abs(rpm) / (out["dt"][sel] - 1)
+        assert np.all(np.abs(rpm_out - rpm) <= tol)
+
+
+def test_mt_matches_model_low_speed_scaled_clock():
+    """Low speeds with the clock scaled down 50× (1 MHz clock = f_TCLK, 10 kHz updates,
+    5000 lines, 12-bit TC: span 4.1 ms): windows open over several updates (bounded outputs),
+    edge intervals beyond the span (stopped), restart."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=12)
+    fs_rpm = 100
+    k = model.k_for(5000, dut.tclk_hz, fs_rpm, k_width=dut.k_width)
+    segs = [(2e-3, 30.0), (3e-3, 15.0), (9e-3, 2.0), (2.5e-3, -40.0), (1.5e-3, 0.0), (2e-3, -25.0)]
+    end = int(sum(d for d, _ in segs) * dut.clk_hz)
+    edges, neg = model.ideal_encoder_edges(segs, clk_hz=dut.clk_hz, lines=5000, phase=0.5)
+    ups = np.arange(100, end, 100)
+    out = both(dut, edges, neg, ups, k=k, end_cycle=end)
+    bound = (out["fresh"] == 0) & (out["stopped"] == 0)
+    assert out["fresh"].sum() >= 8 and bound.sum() >= 50 and out["stopped"].sum() >= 20
+    assert np.any(out["speed"] < 0) and np.any(out["speed"] > 0)
+
+
+def test_mt_reversal():
+    """ΔM counts net edges: a window with a reversal reads the mean speed over it, a net-zero
+    window exactly 0; the direction gives the sign."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=12, k_width=16, m_width=8)
+    k = 6000
+    ev = [(100, 0), (200, 0), (300, 0), (400, 0),       # window 1 (ref 100): +3 in 300
+          (500, 0), (600, 1), (700, 1),                 # window 2: +1 -1 -1 in 300
+          (800, 0),                                     # window 3: +1 in 100
+          (900, 0), (950, 1)]                           # window 4: +1 -1 in 150
+    ups = [450, 750, 850, 1000, 1100]
+    edges, neg = zip(*ev)
+    out = both(dut, edges, neg, ups, k=k, end_cycle=1200)
+    assert out["speed"].tolist() == [k * 3 // 300, -(k // 300), k // 100, 0, 0]
+    assert out["fresh"].tolist() == [1, 1, 1, 1, 0]
+    assert out["dm"].tolist()[:4] == [3, -1, 1, 0]
+
+
+def test_mt_reversal_random_profile_x4():
+    """Random profile with reversals, stops and steps on a ×4, prescaled (f_TCLK = clk/3)
+    instance; gateware == model."""
+    dut = MTSpeed(clk_hz=1.5e6, tclk_hz=0.5e6, tc_width=9, out_width=12, edge_mode="x4",
+                  k_width=16, m_width=6)
+    rng = np.random.default_rng(7)
+    k = model.k_for(100, dut.tclk_hz, 8000, out_width=12, edge_mode="x4", k_width=16)
+    end = 12_000
+    segs = verify.random_profile(rng, end / dut.clk_hz, max_rpm=8000, tc_span_s=dut.tc_span_s)
+    edges, neg = model.ideal_encoder_edges(segs, clk_hz=dut.clk_hz, lines=100, edge_mode="x4")
+    assert neg.any() and not neg.all()
+    ups = np.cumsum(rng.integers(dut.latency - 3, 3 * dut.latency, size=end // dut.latency))
+    both(dut, edges, neg, ups[ups < end], k=k, end_cycle=end)
+
+
+def test_mt_stopped_reports_zero_and_flag():
+    """After the last edge: bounded outputs decaying as k/elapsed (never above the last
+    measurement, never stale); from the first update after the TC span: 0 with `stopped`; after
+    a restart: stopped until a full window is measured."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=10, k_width=20, m_width=8)      # span 1024 clocks
+    k = 100_000
+    run_edges = list(range(100, 1100, 100))                # 10 edges, last at 1000
+    restart = [3000, 3100, 3200]
+    edges = run_edges + restart
+    ups = list(range(50, 4000, 50))
+    out = both(dut, edges, [0] * len(edges), ups, k=k, end_cycle=4200)
+    upd, spd, stp, frs = out["update"], out["speed"], out["stopped"], out["fresh"]
+    # Before the second edge: no measurement yet.
+    assert np.all(stp[upd < 200] == 1) and np.all(spd[upd < 200] == 0)
+    last_fresh = k * 1 // 100
+    assert spd[(upd > 200) & (upd <= 1000)].tolist() == \
+        [last_fresh] * int(((upd > 200) & (upd <= 1000)).sum())
+    after = (upd > 1000) & (upd < 1000 + 1024)
+    elapsed = upd[after] - 1000
+    np.testing.assert_array_equal(spd[after], np.minimum(last_fresh, k // elapsed))
+    assert np.all(np.diff(spd[after]) <= 0) and spd[after][-1] < last_fresh
+    assert np.all((stp[after] == 0) & (frs[after] == 0))
+    gone = (upd >= 1000 + 1024) & (upd < 3100)         # the edge at 3000 is only a reference
+    assert gone.sum() > 10 and np.all((stp[gone] == 1) & (spd[gone] == 0))
+    back = (upd >= 3100) & (upd <= 3300)
+    assert np.all((stp[back] == 0) & (spd[back] == k // 100)) and frs[back][0] == 1
+
+
+def test_mt_random_vs_model():
+    res = verify.run(700, seed=3, table=False)
+    assert res["mismatches"] == 0
+    assert res["vectors"] > 550 and res["updates"] > res["vectors"]     # some updates too early
+    assert min(res["fresh"], res["bound"], res["stopped"]) > 40
+
+
+@pytest.mark.slow
+def test_mt_100k_vs_model():
+    res = verify.run(100_000, seed=1, table=False)
+    assert res["mismatches"] == 0 and res["vectors"] > 90_000
+
+
+# --- the issue's targets (golden model engine) ------------------------------------------------
+
+def test_mt_ideal_encoder_edges():
+    """Constant speed: evenly spaced strobes at the right rate; a back-and-forth inside one
+    clock interval makes no strobe; reversals flip `neg`."""
+    c, n = model.ideal_encoder_edges([(1e-3, 600.0)], clk_hz=1e6, lines=100, phase=0.5)
+    assert len(c) == 1 and c[0] == 500 and not n.any()     # 600 r/min, 100 lines: 1 per ms
+    c, n = model.ideal_encoder_edges([(10e-3, 600.0), (10e-3, -600.0)], clk_hz=1e6,
+                                     lines=100, edge_mode="x4", phase=0.0)
+    assert len(c) == 80 and n.sum() == 40 and np.all(np.diff(c) > 0)
+    with pytest.raises(ValueError, match="^two encoder edges in one clock"):
+        model.ideal_encoder_edges([(1e-5, 1e6)], clk_hz=1e6, lines=5000)
+
+
+def test_mt_error_table_targets():
+    """5000 lines, 10 kHz update, 50 MHz clock, constant speed, both directions: ≤ 0.05 % over
+    10 … 10 000 r/min and ≤ 1 % over 0.2 … 10 r/min with f_TCLK = 50 MHz; lowest resolvable
+    speed with the paper's 1 MHz / 16-bit TC ≈ 0.18 r/min (paper: 0.2)."""
+    grid = verify.speed_grid()
+    assert grid[0] == 0.2 and grid[-1] == 10000 and len(grid) > 40
+    rows = verify.error_table(grid[::5] + [10.0, 10000.0], phases=(0.0, 0.61))
+    hi = max(r["err_pct_sysclk"] for r in rows if r["rpm"] >= 10)
+    lo = max(r["err_pct_sysclk"] for r in rows if r["rpm"] <= 10)
+    assert hi <= 0.05 and lo <= 1.0
+    assert max(r["err_pct_1mhz"] for r in rows if r["rpm"] <= 10) <= 1.0
+    rpm_min = verify.min_resolvable_rpm(tol_rpm=4e-3, phases=(0.3,))
+    assert 60e6 / (5000 * 2 ** 16) <= rpm_min <= 0.2
+    assert verify.error_run(0.9 * 60e6 / (5000 * 2 ** 16), config="1mhz") == 100.0   # stopped
