@@ -1,12 +1,18 @@
 """The blocks with their default parameters: what ``foc-servo verilog`` writes and what
 ``foc-servo bench`` synthesises. Add a block here and both commands pick it up."""
 
+from .adc import AdcInterface
 from .clarke import Clarke
 from .cordic import Cordic
 from .divider import Divider
+from .encoder import EncoderFrontEnd
+from .gates import Gates
+from .mt_speed import MTSpeed
 from .pi import PI
+from .protect import Protection
+from .svpwm import SVPWM, DCBusCompensation, PWMTimer
 
-__all__ = ["ARITH_BLOCKS", "BLOCKS"]
+__all__ = ["ARITH_BLOCKS", "IO_BLOCKS", "BLOCKS"]
 
 #: The foundation's arithmetic blocks, name -> factory of a fresh instance (defaults).
 ARITH_BLOCKS = {
@@ -16,6 +22,17 @@ ARITH_BLOCKS = {
     "divider": lambda: Divider(),
 }
 
-#: Every block.
-BLOCKS = {**ARITH_BLOCKS}
+#: The motor-side blocks (issue 4), name -> factory of a fresh instance (defaults).
+IO_BLOCKS = {
+    "encoder": lambda: EncoderFrontEnd(),
+    "mt_speed": lambda: MTSpeed(),
+    "dcbus": lambda: DCBusCompensation(),
+    "svpwm": lambda: SVPWM(),
+    "pwm_timer": lambda: PWMTimer(),
+    "gates": lambda: Gates(),
+    "adc": lambda: AdcInterface(),
+    "protect": lambda: Protection(),
+}
 
+#: Every block.
+BLOCKS = {**ARITH_BLOCKS, **IO_BLOCKS}

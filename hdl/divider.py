@@ -76,10 +76,11 @@ class Divider(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from the transfer on ``i`` to ``o.valid``: ``width + 1`` (one clock per quotient
-        bit, one for the sign fix), whatever the operands. With ``o.ready`` held high and
-        operands always offered, one division every ``latency + 2 = width + 3`` clocks (one
-        clock for the transfer on ``o``, one idle clock with ``i.ready`` high).
+        ``width + 2``, whatever the operands: with the transfer on ``i`` (``i.valid`` and
+        ``i.ready`` high) in clock ``t``, ``o.valid`` is high from clock ``t + latency`` (the
+        project's latency convention): one clock per quotient bit, one for the sign fix, one
+        for the output register. With ``o.ready`` held high and operands always offered, one
+        division every ``latency + 1 = width + 3`` clocks.
 
     Raises
     ------
@@ -116,7 +117,7 @@ class Divider(wiring.Component):
 
     @property
     def latency(self):
-        return self._width + 1
+        return self._width + 2
 
     @property
     def i_layout(self):

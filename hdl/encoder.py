@@ -101,8 +101,8 @@ def _divider_latency():
 
 
 #: Clocks from the start of each of the decoder's divisions to taking its result (the divider's
-#: latency + 2: the result is held until taken, so a divider up to 2 clocks slower still works).
-DIVIDER_WAIT = _divider_latency() + 2
+#: latency + 1: the result is held until taken, so a divider up to 1 clock slower still works).
+DIVIDER_WAIT = _divider_latency() + 1
 
 
 class GlitchFilter(wiring.Component):

@@ -137,8 +137,7 @@ class MTSpeed(wiring.Component):
     latency : int
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
         ``o.valid`` high in clock ``u + latency``): 2 (snapshot, product) + the divider's
-        ``latency + 1`` (its ``o.valid`` follows the transfer clock by that) + 1 (output
-        register) = ``k_width + m_width + 5``.
+        ``latency`` + 1 (output register) = ``k_width + m_width + 5``.
     tclk_ratio : int
         System clocks per TC tick.
     tclk_hz : float
@@ -156,7 +155,7 @@ class MTSpeed(wiring.Component):
         If ``tclk_hz`` exceeds ``clk_hz`` or ``edge_mode`` is not one of the two modes.
     """
 
-    def __init__(self, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=16,
+    def __init__(self, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=32,
                  edge_mode="a_rising", k_width=None, m_width=16):
         clk_hz = _check_hz("clk_hz", clk_hz)
         tclk_hz = clk_hz if tclk_hz is None else _check_hz("tclk_hz", tclk_hz)
@@ -195,14 +194,14 @@ class MTSpeed(wiring.Component):
 
     @property
     def divider_latency(self):
-        """:attr:`Divider.latency` of the divider built in :meth:`elaborate` (``width + 1``;
+        """:attr:`Divider.latency` of the divider built in :meth:`elaborate` (``width + 2``;
         not built here, so that an unelaborated MTSpeed leaves no unused divider behind; the
         tests measure :attr:`latency` cycle by cycle)."""
-        return self._k_width + self._m_width + 1
+        return self._k_width + self._m_width + 2
 
     @property
     def latency(self):
-        return self.divider_latency + 4
+        return self.divider_latency + 3
 
     def _make_divider(self):
         return Divider(width=self._k_width + self._m_width, divisor_width=self._tc_width + 1,

@@ -277,9 +277,8 @@ class DCBusCompensation(wiring.Component):
         Clocks from a transfer on ``i`` to ``o.valid``: 1.
     gain_latency : int
         Clocks from a ``u_dc`` transfer (divider idle) until ``gain`` holds its result:
-        ``divider.latency + 3`` (``adc_width + 21``): one clock into the pending register, the
-        division (whose ``o.valid`` comes ``divider.latency + 1`` clocks after its input
-        transfer, as measured on the current :class:`Divider`), one into ``gain``.
+        ``divider.latency + 2``: one clock into the pending register, the division, one into
+        ``gain``.
     gain_frac : int
         16.
     gain_limit_raw : int
@@ -336,7 +335,7 @@ class DCBusCompensation(wiring.Component):
 
     @property
     def gain_latency(self):
-        return self._div.latency + 3
+        return self._div.latency + 2
 
     def elaborate(self, platform):
         m = Module()

@@ -98,7 +98,7 @@ def test_divider_model_and_verify_validate_like_the_gateware():
 
 def test_divider_interface_shapes():
     dut = Divider(width=40, divisor_width=24)
-    assert dut.latency == 41 == model.latency(40)
+    assert dut.latency == 42 == model.latency(40)
     assert dut.i.payload.dividend.shape().width == 40
     assert dut.i.payload.divisor.shape().width == 24
     assert dut.o.payload.quotient.shape().signed
@@ -204,7 +204,7 @@ def test_divider_latency(params, operands):
         assert ctx.get(dut.i.ready) and not ctx.get(dut.o.valid)
         await ctx.tick()                                # the transfer on i
         ctx.set(dut.i.payload, {"dividend": 3, "divisor": 1})   # must not be taken
-        for _ in range(dut.latency + 3):
+        for _ in range(dut.latency + 2):
             trace.append((ctx.get(dut.i.ready), ctx.get(dut.o.valid)))
             await ctx.tick()
         assert _fields(ctx.get(dut.o.payload)) == _expected([(n, d)], width=dut.width,
@@ -216,13 +216,13 @@ def test_divider_latency(params, operands):
         assert ctx.get(dut.i.ready) and not ctx.get(dut.o.valid)
 
     simulate(dut, [testbench], name="divider_latency")
-    # trace[k]: (i.ready, o.valid) k clocks after the transfer.
-    assert trace == [(0, 0)] * dut.latency + [(0, 1)] * 3
+    # trace[k]: (i.ready, o.valid) k + 1 clocks after the clock of the transfer.
+    assert trace == [(0, 0)] * (dut.latency - 1) + [(0, 1)] * 3
 
 
 def test_divider_backpressure():
     """o.ready low: the result and o.valid stay put and i.ready stays low (new operands wait);
-    back-to-back divisions then proceed one per latency + 2 clocks."""
+    back-to-back divisions then proceed one per latency + 1 clocks."""
     dut = Divider()
     seen = []
 
@@ -232,7 +232,7 @@ def test_divider_backpressure():
         ctx.set(dut.i.valid, 1)
         await ctx.tick()
         ctx.set(dut.i.payload, {"dividend": 99, "divisor": 10})     # waits
-        await ctx.tick().repeat(dut.latency)
+        await ctx.tick().repeat(dut.latency - 1)
         first = _fields(ctx.get(dut.o.payload))
         assert first == (-142, -6, 0, 0)
         for _ in range(50):                             # stalled consumer
@@ -250,12 +250,12 @@ def test_divider_backpressure():
             await ctx.tick()
 
     simulate(dut, [testbench], name="divider_backpressure")
-    assert seen == [(dut.latency, (9, 9, 0, 0))]
+    assert seen == [(dut.latency - 1, (9, 9, 0, 0))]
 
     pairs = [(k * 1234567 - 5, (k % 13) - 6) for k in range(40)]
     results, clocks = _run_hw(dut, pairs)                  # back-to-back, consumer always ready
     assert results == _expected(pairs)
-    assert clocks <= len(pairs) * (dut.latency + 2) + 2
+    assert clocks <= len(pairs) * (dut.latency + 1) + 2
 
 
 @pytest.mark.parametrize("ready_prob,valid_prob", [(0.3, 1.0), (1.0, 0.3), (0.5, 0.5)])

@@ -1,3 +1,4 @@
+# amaranth: UnusedElaboratable=no
 # Ref: SPEC.md §2.3 (encoder A/B/Z + Hall, ×4 position counter); §4 (synchronisers, glitch filters)
 import numpy as np
 import pytest

@@ -51,9 +51,9 @@ def test_mt_validation(kwargs, exc, msg):
 @pytest.mark.parametrize("kwargs, msg", [
     ({"edge_mode": "x2"}, "edge_mode must be 'a_rising' or 'x4', not 'x2'"),
     ({"lines": 0}, "lines must be positive, not 0"),
-    ({"tclk_hz": 1.0}, "k for 5000 lines, f_TCLK 1 Hz, 6000 r/min rounds to 0: raise f_TCLK or "
+    ({"tclk_hz": 1.0, "out_width": 16}, "k for 5000 lines, f_TCLK 1 Hz, 6000 r/min rounds to 0: raise f_TCLK or "
                        "out_width"),
-    ({"tclk_hz": 50e6, "k_width": 16}, "k 3276800 for 5000 lines, f_TCLK 5e+07 Hz, 6000 r/min "
+    ({"tclk_hz": 50e6, "out_width": 16, "k_width": 16}, "k 3276800 for 5000 lines, f_TCLK 5e+07 Hz, 6000 r/min "
                                        "does not fit k_width 16 bits"),
 ])
 def test_mt_validation_k_for(kwargs, msg):
@@ -62,11 +62,15 @@ def test_mt_validation_k_for(kwargs, msg):
 
 
 def test_mt_k_for_values():
-    # 60·2**15·f_TCLK / (lines·edges_per_line·N_M)
-    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000) == 65536
-    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, edge_mode="x4") == 16384
-    assert model.k_for(lines=5000, tclk_hz=50e6, full_scale_rpm=6000) == 3276800
-    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=5000) == 78643     # 78643.2
+    # 60·2**15·f_TCLK / (lines·edges_per_line·N_M) for a Q1.15 output
+    q15 = {"out_width": 16}
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, **q15) == 65536
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, edge_mode="x4",
+                       **q15) == 16384
+    assert model.k_for(lines=5000, tclk_hz=50e6, full_scale_rpm=6000, **q15) == 3276800
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=5000, **q15) == 78643  # 78643.2
+    # the default Q1.31 output: 2**16 times as large
+    assert model.k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000) == 65536 << 16
 
 
 def test_mt_tclk_ratio_exact_and_rounded():
@@ -76,7 +80,7 @@ def test_mt_tclk_ratio_exact_and_rounded():
     dut = MTSpeed(clk_hz=33.333e6, tclk_hz=1e6, tc_width=16)       # rounded: documented
     assert dut.tclk_ratio == 33 and dut.tclk_hz == 33.333e6 / 33
     dut = MTSpeed(edge_mode="x4")
-    assert (dut.tclk_ratio, dut.edges_per_line, dut.k_width) == (1, 4, 32)
+    assert (dut.tclk_ratio, dut.edges_per_line, dut.k_width) == (1, 4, 48)
     assert dut.latency == dut.k_width + dut.m_width + 5 == model.MTParams.of(dut).latency
 
 
@@ -148,8 +152,9 @@ def test_mt_matches_model_high_speed(edge_mode):
         start = out["t_end"] - out["dt"]                    # window's first edge (ratio 1)
         sel = (out["fresh"] == 1) & (start > t0 + 1) & (out["t_end"] < t1)
         assert sel.any()
-        rpm_out = out["speed"][sel] * fs_rpm / 2 ** 15
-        tol = fs_rpm / 2 ** 15 + abs(rpm) / (out["dt"][sel] - 1)
+        lsb_rpm = fs_rpm / 2 ** (dut.out_width - 1)
+        rpm_out = out["speed"][sel] * lsb_rpm
+        tol = lsb_rpm + abs(rpm) / (out["dt"][sel] - 1)
         assert np.all(np.abs(rpm_out - rpm) <= tol)
 
 

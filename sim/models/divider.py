@@ -89,7 +89,7 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
 
 def latency(width):
     """Clocks from accepting the operands to a valid result (see :attr:`Divider.latency`)."""
-    return width + 1
+    return width + 2
 
 
 def _shape(is_signed):

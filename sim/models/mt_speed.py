@@ -24,7 +24,7 @@ __all__ = ["MTParams", "k_for", "simulate", "ideal_encoder_edges", "STOPPED", "B
 STOPPED, BOUND, FRESH = 0, 1, 2     # WindowMode values
 
 
-def k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, *, out_width=16, edge_mode="a_rising",
+def k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, *, out_width=32, edge_mode="a_rising",
           k_width=None):
     """The ``k`` register value: ``round(60·2**(out_width−1)·f_TCLK / (P·N_M))``.
 
@@ -69,7 +69,7 @@ class MTParams:
         return cls(dut.tclk_ratio, dut.tc_width, dut.out_width, dut.k_width, dut.m_width)
 
     @classmethod
-    def config(cls, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=16, k_width=None,
+    def config(cls, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=32, k_width=None,
                m_width=16):
         """The parameters of ``MTSpeed(**same arguments)`` without building it (no checks)."""
         ratio = 1 if tclk_hz is None else max(1, round(clk_hz / tclk_hz))
@@ -86,7 +86,7 @@ class MTParams:
 
     @property
     def latency(self):
-        return self.divider_latency + 4
+        return self.divider_latency + 3
 
 
 def _trunc_div(n, d, width):
@@ -174,7 +174,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
         if start:
             busy = True
             up_cycle = c
-            out_cycle = c + 3 + lat_div   # divider o.valid: transfer (c + 2) + latency + 1
+            out_cycle = c + 2 + lat_div   # divider o.valid: transfer (c + 2) + latency
             if have_ref and pend_e:
                 mode, snap_dm, snap_dt, snap_t = FRESH, m_e, (tl_e - t_ref) & wmask, tl_e
             elif have_ref and prev_valid:

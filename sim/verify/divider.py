@@ -198,7 +198,7 @@ class DividerBench(wiring.Component):
                 dut.o.ready.eq(1),
             ]
             with m.If(dut.i.valid & dut.i.ready):
-                m.d.sync += st.t_accept.eq(self.clocks + 1)
+                m.d.sync += st.t_accept.eq(self.clocks)
             with m.If(dut.o.valid):
                 m.d.sync += [
                     st.idx.eq(st.idx + 1),
