@@ -60,15 +60,10 @@ def _fmt_area(area):
     return lines
 
 
-def cmd_bench(args):
-    from ..sim.bench import bench_arith
-    start = time.perf_counter()
-    fig = bench_arith(count=args.count, seed=args.seed, area=not args.no_area,
-                      progress=not args.quiet)
-    fig["wall_s"] = time.perf_counter() - start
+def _arith_lines(fig):
     d = fig["details"]
-    lines = [
-        f"arithmetic blocks against their golden models, seed {args.seed}:",
+    return [
+        "arithmetic blocks against their golden models:",
         f"  CORDIC   {d['cordic']['vectors']:>7} rotations: max error {fig['cordic_max_err_lsb']:.3f}"
         f" LSB, RMS {fig['cordic_rms_err_lsb']:.3f} LSB, latency {fig['cordic_latency_clk']} clk, "
         f"throughput {fig['cordic_throughput_per_clk']:.3f} /clk, "
@@ -79,8 +74,57 @@ def cmd_bench(args):
         f"{fig['divider_clk']} clk per division",
         f"  Amaranth simulator on the CORDIC alone: {fig['pysim_clk_per_s']:.0f} clk/s",
     ]
+
+
+def _io_lines(fig):
+    from ..sim.verify.mt_speed import table_text
+    mt = fig["details"]["mt_speed"]
+    lines = [
+        "motor-side blocks:",
+        f"  M/T speed gateware vs model: {fig['mt_mismatches']} mismatches over {mt['vectors']} "
+        f"outputs",
+        *("  " + line for line in table_text(mt)),
+        f"  M/T worst 10…10000 r/min {fig['mt_err_pct_10_10000']:.4f} %, 0.2…10 r/min "
+        f"{fig['mt_err_pct_0p2_10']:.4f} %; lowest resolvable at 1 MHz / 16-bit TC: "
+        f"{fig['mt_min_rpm_1mhz_16bit']:g} r/min",
+        f"  electrical angle drift after {fig['angle_drift_counts_per_phase']} counts forward, back "
+        f"and random walk: {fig['angle_drift_counts']} counts",
+        f"  glitch filter: {fig['glitch_short_counted']} short pulses counted, "
+        f"{fig['glitch_long_missed']} long pulses missed",
+        f"  SVPWM {fig['svpwm_commands']} commands: {fig['svpwm_mismatches']} mismatches, "
+        f"volt-seconds error {fig['volt_seconds_err_counts']:.3f} counts, overmodulation angle "
+        f"error {fig['overmod_angle_err_deg']:.4f}°",
+        f"  dead time: {fig['deadtime_violations']} violations",
+        f"  fault → gates off: max {fig['fault_latency_clk_max']} clk "
+        f"({', '.join(f'{k} {v}' for k, v in fig['fault_latency_clk'].items())})",
+        f"  protection {fig['protect_mismatches']} mismatches, ADC {fig['adc_mismatches']} "
+        f"mismatches",
+    ]
+    return lines
+
+
+def cmd_bench(args):
+    from ..sim.bench import bench_arith, bench_io
+    start = time.perf_counter()
+    suites = ["arith", "io"] if args.suite == "all" else [args.suite]
+    fig, lines = {}, []
+    for suite in suites:
+        if suite == "arith":
+            part = bench_arith(count=args.count or 100_000, seed=args.seed,
+                               area=not args.no_area, progress=not args.quiet)
+            lines += _arith_lines(part)
+        else:
+            part = bench_io(count=args.count or 10_000, seed=args.seed,
+                            drift_counts=args.drift_counts, area=not args.no_area,
+                            progress=not args.quiet)
+            lines += _io_lines(part)
+        for key in ("area", "details", "vectors"):
+            if key in part:
+                fig.setdefault(key, {}).update(part.pop(key))
+        fig.update(part)
     if "area" in fig:
         lines += ["area from yosys (synthesis, no place-and-route):", *_fmt_area(fig["area"])]
+    fig["wall_s"] = time.perf_counter() - start
     lines.append(f"wall time {fig['wall_s']:.1f} s")
     _emit(fig, lines, args.json)
 
@@ -98,10 +142,13 @@ def build_parser():
     p.set_defaults(func=cmd_verilog)
 
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
-    p.add_argument("suite", nargs="?", default="arith", choices=["arith"],
-                   help="which figures (default: %(default)s)")
-    p.add_argument("--count", type=_positive_int, default=100_000,
-                   help="random vectors per block (default: %(default)s)")
+    p.add_argument("suite", nargs="?", default="all", choices=["all", "arith", "io"],
+                   help="which figures: arith (foundation blocks), io (motor-side blocks), all "
+                        "(default: %(default)s)")
+    p.add_argument("--count", type=_positive_int, default=None,
+                   help="random vectors per block (default: 100 000 for arith, 10 000 for io)")
+    p.add_argument("--drift-counts", type=_positive_int, default=1_000_000,
+                   help="encoder counts per phase of the angle-drift run (default: %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
     p.add_argument("--no-area", action="store_true", help="skip the yosys area figures")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

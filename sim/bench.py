@@ -94,7 +94,7 @@ def bench_io(*, count=10_000, seed=1, drift_counts=1_000_000, area=True, progres
     latency, glitch filter, ADC round trip; with ``area``, yosys cell counts."""
     common = {"seed": seed}
     jobs = {
-        "mt_speed": ("mt_speed", "bench", {}),
+        "mt_speed": ("mt_speed", "run", {"count": count, **common}),
         "encoder": ("encoder", "run", {"count": count, "drift_counts": drift_counts, **common}),
         "svpwm": ("svpwm", "run", {"count": count, **common}),
         "protect": ("protect", "run", {"count": count, **common}),
@@ -107,6 +107,9 @@ def bench_io(*, count=10_000, seed=1, drift_counts=1_000_000, area=True, progres
     figures = {
         "mt_err_pct_10_10000": mt["mt_err_pct_10_10000"],
         "mt_err_pct_0p2_10": mt["mt_err_pct_0p2_10"],
+        "mt_err_pct_10_10000_1mhz_16bit": mt["mt_err_pct_10_10000_1mhz"],
+        "mt_err_pct_0p2_10_1mhz_16bit": mt["mt_err_pct_0p2_10_1mhz"],
+        "mt_mismatches": mt["mismatches"],
         "mt_min_rpm_1mhz_16bit": mt["mt_min_rpm_1mhz_16bit"],
         "angle_drift_counts": enc["angle_drift_counts"],
         "angle_drift_counts_per_phase": drift_counts,
