@@ -179,6 +179,13 @@ class _Config(enum.Enum, shape=3):
     WAIT_Z = 4
 
 
+def _check_z_gate(owner, z_gate):
+    if z_gate is not None and (not isinstance(z_gate, int) or isinstance(z_gate, bool)
+                               or not 0 <= z_gate <= 3):
+        raise TypeError(f"{owner} z_gate must be None or an integer from 0 to 3, not {z_gate!r}")
+    return z_gate
+
+
 class QuadratureDecoder(wiring.Component):
     """×4 quadrature decoder with Z index, position counter and exact electrical position.
 
@@ -264,11 +271,7 @@ class QuadratureDecoder(wiring.Component):
     latency = 1
 
     def __init__(self, *, z_gate=None):
-        if z_gate is not None and (not isinstance(z_gate, int) or isinstance(z_gate, bool)
-                                   or not 0 <= z_gate <= 3):
-            raise TypeError(f"QuadratureDecoder z_gate must be None or an integer from 0 to 3, "
-                            f"not {z_gate!r}")
-        self._z_gate = z_gate
+        self._z_gate = _check_z_gate("QuadratureDecoder", z_gate)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hold": In(1),
             "lines": In(LINES_WIDTH, init=5000),
@@ -545,6 +548,7 @@ class EncoderFrontEnd(wiring.Component):
 
     def __init__(self, *, max_length=255, z_gate=None):
         self._max_length = _check_int("EncoderFrontEnd", "max_length", max_length, 1, 65535)
+        _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
         self._decoder = QuadratureDecoder(z_gate=z_gate)
         self._filter = GlitchFilter(width=6, max_length=max_length)
         self._hall = HallSensor()

@@ -67,7 +67,7 @@ def test_quadrature_z_gate_validation():
     with pytest.raises(TypeError, match=r"^QuadratureDecoder z_gate must be None or an integer "
                                         r"from 0 to 3, not 4$"):
         QuadratureDecoder(z_gate=4)
-    with pytest.raises(TypeError, match=r"^QuadratureDecoder z_gate must be None or an integer "
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd z_gate must be None or an integer "
                                         r"from 0 to 3, not '1'$"):
         EncoderFrontEnd(z_gate="1")
 

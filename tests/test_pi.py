@@ -1,3 +1,4 @@
+# amaranth: UnusedElaboratable=no
 # Ref: paper eq. (7)–(9); SPEC.md §2.2
 import re
 
