@@ -36,7 +36,7 @@ The same block serves Park (feed −θ) and inverse Park (feed +θ). The arithme
 import math
 import numbers
 
-from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 

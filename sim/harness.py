@@ -9,9 +9,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from amaranth.sim import Simulator
 
-__all__ = ["simulate", "Progress"]
+__all__ = ["simulate", "Progress", "pack_words"]
 
 
 def simulate(dut, testbenches=(), processes=(), *, clock_hz=50e6, name=None, vcd=None):
@@ -77,3 +78,18 @@ class Progress:
             self.update(self.total)
             self.stream.write("\n")
             self.stream.flush()
+
+
+def pack_words(layout, columns, n):
+    """Pack integer columns (``{field name: array of n}``) into ``n`` raw words of a
+    :class:`~amaranth.lib.data.StructLayout` — the ``init=`` of a stimulus or expected-result ROM.
+    Fields missing from ``columns`` are 0; values are truncated to their field (two's complement
+    for signed fields)."""
+    words = [0] * n
+    for name, field in layout:
+        if name not in columns:
+            continue
+        mask = (1 << field.width) - 1
+        vals = (np.asarray(columns[name], dtype=np.int64) & mask).tolist()
+        words = [w | (v << field.offset) for w, v in zip(words, vals)]
+    return words

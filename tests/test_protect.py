@@ -1,6 +1,5 @@
 # amaranth: UnusedElaboratable=no
 # Ref: issue 4 item 8 (protection and fault latch)
-import re
 
 import numpy as np
 import pytest

@@ -13,7 +13,7 @@ from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import Out
 
-from ...hdl.adc import CHANNELS, AdcInterface
+from ...hdl.adc import AdcInterface
 from ..adc_part import AdcPartModel
 from ..harness import Progress, simulate
 from ..models.adc import schedule_np

@@ -14,7 +14,7 @@ from amaranth.lib.wiring import Out
 
 from ...hdl.clarke import Clarke
 from ...hdl.fixed import Q, shape_range
-from ..harness import Progress, simulate
+from ..harness import Progress, pack_words, simulate
 from ..models.clarke import clarke as clarke_model
 
 __all__ = ["run", "stimulus"]
@@ -97,17 +97,6 @@ def stimulus(count, *, seed=0, width=16, adc_shape=signed(16), gain_format=Q(18,
     return {k: np.concatenate(v).astype(np.int64) for k, v in vec.items()}
 
 
-def _pack(layout, columns, n):
-    """Pack integer columns (dict name → array, ``n`` long) into raw words of ``layout``."""
-    words = [0] * n
-    for name, field in layout:
-        if name not in columns:
-            continue
-        mask = (1 << field.width) - 1
-        off = field.offset
-        vals = (np.asarray(columns[name], dtype=np.int64) & mask).tolist()
-        words = [w | (v << off) for w, v in zip(words, vals)]
-    return words
 
 
 class _ClarkeBench(wiring.Component):
@@ -202,8 +191,8 @@ def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_pha
     })
     dut = Clarke(width=width, adc_shape=adc, gain_format=gain_format, three_phase=three_phase)
     out_layout = dut.o.payload.shape()
-    bench = _ClarkeBench(dut, _pack(stim_layout, cols, slots), stim_layout,
-                         _pack(out_layout, exp, n))
+    bench = _ClarkeBench(dut, pack_words(stim_layout, cols, slots), stim_layout,
+                         pack_words(out_layout, exp, n))
     clocks = slots + dut.latency + 1
     result = {}
     label = f"clarke {'three' if three_phase else 'two'}-phase"

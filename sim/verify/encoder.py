@@ -26,7 +26,7 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import Out
 
 from ...hdl.encoder import ANGLE, HALL_CODES, EncoderFrontEnd, QuadratureDecoder
-from ..harness import Progress, simulate
+from ..harness import Progress, pack_words, simulate
 from ..models import encoder as model
 
 __all__ = ["run", "run_random", "run_drift", "run_events", "stimulus"]
@@ -127,14 +127,6 @@ def stimulus(count, *, seed=0, max_length=255):
     return {k: np.concatenate([p[k] for p in parts])[:count] for k in parts[0]}
 
 
-def _pack(layout, columns, n):
-    words = [0] * n
-    for name, field in layout:
-        mask = (1 << field.width) - 1
-        vals = (np.asarray(columns[name], dtype=np.int64) & mask).tolist()
-        off = field.offset
-        words = [w | (v << off) for w, v in zip(words, vals)]
-    return words
 
 
 _STIM = ("pins", "length", "lines", "pole_pairs", "z_offset", "hall_offset", "realign")
@@ -205,8 +197,8 @@ def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=
         "hall_offset": dut.hall_offset.shape(), "realign": 1,
     })
     exp_layout = data.StructLayout({k: getattr(dut, k).shape() for k in model.OUTPUTS})
-    bench = _RandomBench(dut, _pack(stim_layout, vec, n), stim_layout,
-                         _pack(exp_layout, exp, n + 1), exp_layout)
+    bench = _RandomBench(dut, pack_words(stim_layout, vec, n), stim_layout,
+                         pack_words(exp_layout, exp, n + 1), exp_layout)
     clocks = n + 2
     result = {}
     prog = Progress("encoder random", clocks, enabled=progress)

@@ -15,7 +15,7 @@ from amaranth.lib.wiring import Out
 
 from ...hdl.fixed import shape_range
 from ...hdl.protect import FAULT_LAYOUT, FAULTS, Protection
-from ..harness import Progress, simulate
+from ..harness import Progress, pack_words, simulate
 from ..models.protect import INPUTS, protect_np
 
 __all__ = ["run", "stimulus", "measure_latency"]
@@ -125,13 +125,6 @@ def _in_layout(dut):
     })
 
 
-def _pack(layout, columns, n):
-    words = [0] * n
-    for name, field in layout:
-        mask = (1 << field.width) - 1
-        vals = (np.asarray(columns[name], dtype=np.int64) & mask).tolist()
-        words = [w | (v << field.offset) for w, v in zip(words, vals)]
-    return words
 
 
 class _ProtectBench(wiring.Component):
@@ -280,7 +273,8 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
     cols = stimulus(count, seed=seed, **params)
     exp = protect_np(cols)
     layout = _in_layout(dut)
-    bench = _ProtectBench(dut, _pack(layout, cols, count), layout, _pack(_OUT_LAYOUT, exp, count))
+    bench = _ProtectBench(dut, pack_words(layout, cols, count), layout,
+                          pack_words(_OUT_LAYOUT, exp, count))
     result = {}
     prog = Progress("protect", count, enabled=progress)
 

@@ -23,21 +23,12 @@ from amaranth.lib.wiring import Out
 
 from ...hdl.gates import Gates
 from ...hdl.svpwm import SVPWM, DCBusCompensation, PWMTimer, pwm_half_period
-from ..harness import Progress, simulate
+from ..harness import Progress, pack_words, simulate
 from ..models import svpwm as model
 
 __all__ = ["run", "svpwm_stimulus"]
 
 
-def _pack(layout, columns, n):
-    words = [0] * n
-    for name, field in layout:
-        if name not in columns:
-            continue
-        mask = (1 << field.width) - 1
-        vals = (np.asarray(columns[name], dtype=np.int64) & mask).tolist()
-        words = [w | (v << field.offset) for w, v in zip(words, vals)]
-    return words
 
 
 def svpwm_stimulus(count, *, seed=0, width=16, count_width=16, scale=2500):
@@ -150,8 +141,8 @@ def _run_svpwm(count, *, seed, progress, width, count_width, scale):
     exp = model.svpwm(vec["alpha"], vec["beta"], vec["scale"], width=width)
     dut = SVPWM(width=width, count_width=count_width)
     stim_layout = data.StructLayout({"alpha": width, "beta": width, "scale": count_width})
-    bench = _SVPWMBench(dut, _pack(stim_layout, vec, n), stim_layout,
-                        _pack(dut.o.payload.shape(), exp, n))
+    bench = _SVPWMBench(dut, pack_words(stim_layout, vec, n), stim_layout,
+                        pack_words(dut.o.payload.shape(), exp, n))
     clocks = n * (dut.latency + 1) + 2
     prog = Progress("svpwm duties", clocks, enabled=progress)
     result = {}
@@ -287,7 +278,7 @@ class PWMSystemBench(wiring.Component):
 
     def set_entries(self, entries):
         """Load the per-period stimulus (dict of arrays, see :func:`pwm_entries`)."""
-        self._words = _pack(self.entry_layout, entries, len(entries["raw"]))
+        self._words = pack_words(self.entry_layout, entries, len(entries["raw"]))
 
     def elaborate(self, platform):
         m = Module()
