@@ -1,0 +1,293 @@
+# Ref: issue 5 item 3 (trace buffer for the paper's Fig. 8/9 from real hardware)
+"""Trace buffer ("scope"): chosen signals captured at loop rate into block RAM.
+
+``channels`` channels, each selecting one of the named ``sources`` by its ``sel`` register,
+record one sample per ``decim + 1`` strobes of ``strobe`` (the loop rate) into a circular buffer
+of ``depth`` samples per channel (one :class:`~amaranth.lib.memory.Memory` of ``depth`` words of
+``channels × width`` bits: 4 × 1024 × 16 bit = 64 Kbit by default, the paper's RAM).
+
+**Sample word.** Each source is MSB-aligned to ``width`` bits: a wider source keeps its top
+``width`` bits (truncated, i.e. floored: the Q format's scale is kept, its LSBs dropped), a
+narrower one is padded with zeros below. A Q1.31 speed thus reads as Q1.15 of N_FS, a Q1.15
+current as itself, a BinaryAngle(16) as itself. The bits are stored raw; the reader knows from
+the source whether they are signed.
+
+**Capture** (``state``: :class:`ScopeState`)::
+
+    arm ─► PRE: samples go into the ring; once `pretrigger` of them are in (pre_full), a trigger
+           event (force, or trigger with trig_src = EXTERNAL) is accepted; earlier ones are ignored
+        ─► POST: the first sample taken at or after the trigger clock is the trigger sample; with
+           it, depth − pretrigger samples are taken
+        ─► IDLE, done = 1: the ring holds exactly `pretrigger` samples before the trigger sample,
+           the trigger sample and the samples after it (depth in all).
+
+``arm`` (a strobe) restarts a capture at any time; the clock of ``arm`` takes no sample; it
+latches ``sel``, ``decim``, ``pretrigger`` and ``trig_src`` for the whole capture and restarts the
+decimation (the first strobe after ``arm`` is sampled). ``force`` (host strobe) triggers whatever
+``trig_src`` says.
+
+**Read-back** (the register file maps it as a window): ``rd_addr = channel · depth + index``,
+``index`` 0 being the oldest sample of the capture (index ``pretrigger`` is the trigger sample);
+``rd_data`` holds the sample one clock later (1-clock latency, as a synchronous block-RAM read).
+The index is translated by the write pointer (``(index + wr_ptr) mod depth``), so the capture
+reads back in time order without the host knowing where the ring starts. A channel number
+≥ ``channels`` reads 0. Reading while a capture runs returns the ring as it stands.
+"""
+
+from collections.abc import Mapping
+
+from amaranth.hdl import Module, Mux, Shape, Signal, Value, signed, unsigned
+from amaranth.lib import data, enum, wiring
+from amaranth.lib.memory import Memory
+from amaranth.lib.wiring import In, Out
+from amaranth.utils import ceil_log2
+
+__all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES"]
+
+#: Default source list (select code = position): the top drives these members of ``src``.
+DEFAULT_SOURCES = {
+    "speed": signed(32),        # Q1.31 of N_FS (M/T)
+    "speed_ref": signed(32),    # Q1.31 of N_FS
+    "i_d": signed(16),          # Q1.15 of I_FS
+    "i_q": signed(16),
+    "i_d_ref": signed(16),
+    "i_q_ref": signed(16),
+    "i_alpha": signed(16),
+    "i_beta": signed(16),
+    "u_d": signed(16),          # Q1.15 of (2/3)·U_dc
+    "u_q": signed(16),
+    "u_alpha": signed(16),
+    "u_beta": signed(16),
+    "theta": unsigned(16),      # BinaryAngle(16)
+    "u_dc": signed(16),         # ADC code
+}
+
+
+class ScopeState(enum.Enum, shape=2):
+    """Capture state."""
+    IDLE = 0        # not capturing (``done`` tells whether the ring holds a capture)
+    PRE = 1         # armed, filling the pre-trigger part / waiting for a trigger
+    POST = 2        # triggered, taking the post-trigger samples
+
+
+class TriggerSource(enum.Enum, shape=1):
+    """What triggers a capture besides the host's ``force`` strobe."""
+    HOST = 0        # ``force`` only
+    EXTERNAL = 1    # the ``trigger`` input (e.g. the Servo's reference step) or ``force``
+
+
+def _is_int(value):
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_scope(sources, channels, depth, width, decim_width):
+    """Validate the :class:`Scope` parameters; returns the sources as a dict of shapes."""
+    ok = isinstance(sources, Mapping) and len(sources) > 0
+    shapes = {}
+    if ok:
+        for name, shape in sources.items():
+            try:
+                shape = Shape.cast(shape)
+            except TypeError:
+                ok = False
+                break
+            if not (isinstance(name, str) and name.isidentifier()) or not 1 <= shape.width <= 64:
+                ok = False
+                break
+            shapes[name] = shape
+    if not ok:
+        raise TypeError(f"Scope sources must be a non-empty dict of names to shapes of 1 to 64 "
+                        f"bits, not {sources!r}")
+    if not _is_int(channels) or not 1 <= channels <= 16:
+        raise TypeError(f"Scope channels must be an integer from 1 to 16, not {channels!r}")
+    if (not _is_int(depth) or not 16 <= depth <= 65536) or depth & (depth - 1):
+        raise TypeError(f"Scope depth must be a power of two from 16 to 65536, not {depth!r}")
+    if not _is_int(width) or not 1 <= width <= 32:
+        raise TypeError(f"Scope width must be an integer from 1 to 32, not {width!r}")
+    if not _is_int(decim_width) or not 1 <= decim_width <= 32:
+        raise TypeError(f"Scope decim_width must be an integer from 1 to 32, "
+                        f"not {decim_width!r}")
+    return shapes
+
+
+class Scope(wiring.Component):
+    """Trace buffer with pre-trigger, decimation and a read-back window (module docstring).
+
+    Parameters
+    ----------
+    sources : dict of str → shape
+        The signals a channel can select, in select-code order (:data:`DEFAULT_SOURCES`).
+    channels : int
+        Number of channels, 1 … 16.
+    depth : int
+        Samples per channel, a power of two, 16 … 65536.
+    width : int
+        Bits per sample, 1 … 32.
+    decim_width : int
+        Width of ``decim``, 1 … 32.
+
+    Members
+    -------
+    src : In(StructLayout(sources))
+        The source signals, one field per name.
+    sel : In(ArrayLayout(unsigned(sel_width), channels))
+        Source code of each channel (latched at ``arm``); a code ≥ ``len(sources)`` records 0.
+    strobe : In(1)
+        Loop-rate sample strobe.
+    decim : In(unsigned(decim_width))
+        One sample per ``decim + 1`` strobes (latched at ``arm``).
+    pretrigger : In(unsigned(log2(depth)))
+        Samples kept before the trigger sample, 0 … depth − 1 (latched at ``arm``).
+    trig_src : In(TriggerSource)
+        Latched at ``arm``.
+    arm, force, trigger : In(1)
+        Strobes: start a capture; host trigger; external trigger event (e.g.
+        :attr:`Servo.ref_step`).
+    state : Out(ScopeState)
+    done : Out(1)
+        A capture is complete (cleared by ``arm``).
+    pre_full : Out(1)
+        In PRE with the pre-trigger part full: a trigger now is accepted.
+    rd_addr : In(unsigned(addr_width))
+        ``channel · depth + index`` (``addr_width = ceil_log2(channels) + log2(depth)``).
+    rd_data : Out(unsigned(width))
+        The sample at ``rd_addr`` of the previous clock.
+
+    Attributes
+    ----------
+    read_latency : int
+        1: ``rd_data`` shows the sample addressed in the previous clock.
+    source_names : tuple of str
+        Names in select-code order.
+    sel_width, addr_width, memory_bits : int
+    """
+
+    def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
+                 decim_width=16):
+        shapes = check_scope(sources, channels, depth, width, decim_width)
+        self._sources = shapes
+        self._channels = channels
+        self._depth = depth
+        self._width = width
+        self._decim_width = decim_width
+        self._abits = depth.bit_length() - 1
+        self._sel_width = max(ceil_log2(len(shapes)), 1)
+        self._cbits = ceil_log2(channels)
+        super().__init__({
+            "src": In(data.StructLayout(shapes)),
+            "sel": In(data.ArrayLayout(unsigned(self._sel_width), channels)),
+            "strobe": In(1),
+            "decim": In(unsigned(decim_width)),
+            "pretrigger": In(unsigned(self._abits)),
+            "trig_src": In(TriggerSource),
+            "arm": In(1),
+            "force": In(1),
+            "trigger": In(1),
+            "state": Out(ScopeState),
+            "done": Out(1),
+            "pre_full": Out(1),
+            "rd_addr": In(unsigned(self._cbits + self._abits)),
+            "rd_data": Out(unsigned(width)),
+        })
+
+    sources = property(lambda self: dict(self._sources))
+    source_names = property(lambda self: tuple(self._sources))
+    channels = property(lambda self: self._channels)
+    depth = property(lambda self: self._depth)
+    width = property(lambda self: self._width)
+    decim_width = property(lambda self: self._decim_width)
+    sel_width = property(lambda self: self._sel_width)
+    addr_width = property(lambda self: self._cbits + self._abits)
+    memory_bits = property(lambda self: self._channels * self._depth * self._width)
+    read_latency = property(lambda self: 1)
+
+    def _aligned(self, name):
+        """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
+        value = Value.cast(self.src[name]).as_unsigned()
+        sw, w = len(value), self._width
+        return value[sw - w:] if sw >= w else value << (w - sw)
+
+    def elaborate(self, platform):
+        m = Module()
+        n, depth, ab = self._channels, self._depth, self._abits
+        layout = data.ArrayLayout(unsigned(self._width), n)
+        m.submodules.mem = mem = Memory(shape=layout, depth=depth, init=[])
+        wr = mem.write_port()
+        rd = mem.read_port()
+
+        sel = Signal.like(self.sel)
+        decim = Signal.like(self.decim)
+        pre = Signal.like(self.pretrigger)
+        trig_src = Signal(TriggerSource)
+        state = Signal(ScopeState)
+        done = Signal()
+        wr_ptr = Signal(unsigned(ab))
+        filled = Signal(unsigned(ab))
+        post_left = Signal(unsigned(ab + 1))
+        dcount = Signal.like(self.decim)
+
+        capturing = state != ScopeState.IDLE
+        take = Signal()
+        full = Signal()
+        event = Signal()
+        m.d.comb += [
+            take.eq(self.strobe & capturing & (dcount == 0) & ~self.arm),
+            full.eq(filled >= pre),
+            event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
+            self.state.eq(state),
+            self.done.eq(done),
+            self.pre_full.eq((state == ScopeState.PRE) & full),
+        ]
+
+        # Sample word: each channel's selected source.
+        names = self.source_names
+        for c in range(n):
+            with m.Switch(sel[c]):
+                for code, name in enumerate(names):
+                    with m.Case(code):
+                        m.d.comb += wr.data[c].eq(self._aligned(name))
+        m.d.comb += [wr.addr.eq(wr_ptr), wr.en.eq(take)]
+
+        with m.If(self.arm):
+            m.d.sync += [
+                state.eq(ScopeState.PRE),
+                done.eq(0),
+                filled.eq(0),
+                dcount.eq(0),
+                sel.eq(self.sel),
+                decim.eq(self.decim),
+                pre.eq(self.pretrigger),
+                trig_src.eq(self.trig_src),
+            ]
+        with m.Else():
+            with m.If(self.strobe & capturing):
+                m.d.sync += dcount.eq(Mux(dcount >= decim, 0, dcount + 1))
+            with m.If(take):
+                m.d.sync += wr_ptr.eq(wr_ptr + 1)
+            with m.If(state == ScopeState.PRE):
+                left = depth - pre - take
+                with m.If(event & full):
+                    with m.If(left == 0):
+                        m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
+                    with m.Else():
+                        m.d.sync += [state.eq(ScopeState.POST), post_left.eq(left)]
+                with m.Elif(take & (filled != depth - 1)):
+                    m.d.sync += filled.eq(filled + 1)
+            with m.Elif(state == ScopeState.POST):
+                with m.If(take):
+                    m.d.sync += post_left.eq(post_left - 1)
+                    with m.If(post_left == 1):
+                        m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
+
+        # Read-back window: index translated by the write pointer, channel picked after the RAM.
+        m.d.comb += rd.addr.eq(self.rd_addr[:ab] + wr_ptr)
+        if self._cbits == 0:
+            m.d.comb += self.rd_data.eq(rd.data[0])
+        else:
+            channel_q = Signal(unsigned(self._cbits))
+            m.d.sync += channel_q.eq(self.rd_addr[ab:])
+            with m.Switch(channel_q):
+                for c in range(n):
+                    with m.Case(c):
+                        m.d.comb += self.rd_data.eq(rd.data[c])
+        return m

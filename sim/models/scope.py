@@ -1,0 +1,115 @@
+# Ref: issue 5 item 3 (trace buffer)
+"""Clock-by-clock golden model of :class:`~foc_servo.hdl.scope.Scope` (behaviour in
+``hdl/scope.py``): capture state machine, decimation, ring buffer and read-back window."""
+
+import numpy as np
+
+from ...hdl.scope import DEFAULT_SOURCES, ScopeState, TriggerSource, check_scope
+
+__all__ = ["ScopeModel", "align_sample"]
+
+
+def align_sample(raw, shape, width):
+    """Source value ``raw`` (an integer of ``shape``) MSB-aligned to ``width`` raw bits."""
+    bits = int(raw) & ((1 << shape.width) - 1)
+    if shape.width >= width:
+        return bits >> (shape.width - width)
+    return bits << (width - shape.width)
+
+
+class ScopeModel:
+    """Model of :class:`~foc_servo.hdl.scope.Scope` (same parameters and validation).
+
+    Attributes
+    ----------
+    mem : numpy.ndarray
+        The ring, ``(depth, channels)`` raw samples.
+    state, done, wr_ptr, filled, post_left : int
+        The registers of the same names.
+    """
+
+    def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
+                 decim_width=16):
+        self.sources = check_scope(sources, channels, depth, width, decim_width)
+        self.names = tuple(self.sources)
+        self.channels, self.depth, self.width = channels, depth, width
+        self.abits = depth.bit_length() - 1
+        self.mem = np.zeros((depth, channels), dtype=np.int64)
+        self.state = ScopeState.IDLE.value
+        self.done = 0
+        self.wr_ptr = self.filled = self.post_left = self.dcount = 0
+        self.sel = [0] * channels
+        self.decim = self.pre = 0
+        self.trig_src = TriggerSource.HOST.value
+        self.rd_data = 0
+        self.captures = self.triggers_ignored = 0
+
+    def sample_word(self, src):
+        """The samples each channel would record for the source values ``src`` (dict)."""
+        out = []
+        for c in range(self.channels):
+            code = self.sel[c]
+            if code < len(self.names):
+                name = self.names[code]
+                out.append(align_sample(src[name], self.sources[name], self.width))
+            else:
+                out.append(0)
+        return out
+
+    def read(self, index, channel):
+        """The sample ``index`` (0 = oldest) of ``channel`` as the window shows it now."""
+        if channel >= self.channels:
+            return 0
+        return int(self.mem[(index + self.wr_ptr) % self.depth, channel])
+
+    def clock(self, inp):
+        """``inp``: dict with ``src`` (dict of raw source values), ``sel`` (list), ``strobe``,
+        ``decim``, ``pretrigger``, ``trig_src``, ``arm``, ``force``, ``trigger``, ``rd_addr`` for
+        the current clock → dict ``state``, ``done``, ``pre_full``, ``rd_data`` seen in it;
+        advance one clock."""
+        idle = ScopeState.IDLE.value
+        pre_s, post_s = ScopeState.PRE.value, ScopeState.POST.value
+        full = self.filled >= self.pre
+        out = {"state": self.state, "done": self.done,
+               "pre_full": int(self.state == pre_s and full), "rd_data": self.rd_data}
+
+        # Read port: RAM word and channel registered; reads the ring before this clock's write.
+        addr = inp["rd_addr"]
+        channel = addr >> self.abits
+        phys = ((addr & (self.depth - 1)) + self.wr_ptr) % self.depth
+        self.rd_data = int(self.mem[phys, channel]) if channel < self.channels else 0
+
+        capturing = self.state != idle
+        take = bool(inp["strobe"] and capturing and self.dcount == 0 and not inp["arm"])
+        if inp["arm"]:
+            self.state, self.done, self.filled, self.dcount = pre_s, 0, 0, 0
+            self.sel = list(inp["sel"])
+            self.decim, self.pre = inp["decim"], inp["pretrigger"]
+            self.trig_src = inp["trig_src"]
+            return out
+        event = bool(inp["force"] or
+                     (inp["trigger"] and self.trig_src == TriggerSource.EXTERNAL.value))
+        if inp["strobe"] and capturing:
+            self.dcount = 0 if self.dcount >= self.decim else self.dcount + 1
+        if take:
+            self.mem[self.wr_ptr] = self.sample_word(inp["src"])
+            self.wr_ptr = (self.wr_ptr + 1) % self.depth
+        if self.state == pre_s:
+            if event and full:
+                left = self.depth - self.pre - take
+                if left == 0:
+                    self.state, self.done = idle, 1
+                    self.captures += 1
+                else:
+                    self.state, self.post_left = post_s, left
+            else:
+                if event:
+                    self.triggers_ignored += 1
+                if take and self.filled != self.depth - 1:
+                    self.filled += 1
+        elif self.state == post_s and take:
+            self.post_left -= 1
+            if self.post_left == 0:
+                self.state, self.done = idle, 1
+                self.captures += 1
+        return out

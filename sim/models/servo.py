@@ -1,0 +1,175 @@
+# Ref: paper eq. (7)–(9) (speed PI), SPEC.md §2, §2.5, §4 (operating modes)
+"""Bit-true, clock-by-clock golden models of :class:`~foc_servo.hdl.servo.SpeedLoop` and
+:class:`~foc_servo.hdl.servo.Servo` (equations and mode table in ``hdl/servo.py``).
+
+Both are stateful and sequential, so they step one clock at a time: :meth:`~ServoModel.clock`
+takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
+the combinational paths from the inputs), then advances the state to clock ``t + 1``. The speed
+PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the PI's timing (a run accepted in clock
+``t`` shows at its output in ``t + 6``, busy until then) around it.
+"""
+
+from amaranth.hdl import signed
+
+from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np
+from ...hdl.servo import ANGLE, IQ_WIDTH, AngleSource, Mode, check_speed_loop
+from .pi import PIModel
+
+__all__ = ["SpeedLoopModel", "ServoModel", "SERVO_INPUTS"]
+
+PI_LATENCY = 6
+
+#: Inputs of :meth:`ServoModel.clock` (the :class:`Servo` members of the same names;
+#: ``speed_valid``/``speed`` are ``speed.valid`` / ``speed.payload.speed``).
+SERVO_INPUTS = ("loop", "mode", "trip", "ol_src", "ol_theta", "ol_freq", "ud_set", "uq_set",
+                "id_set", "iq_set", "theta_meas", "speed_valid", "speed", "speed_ref",
+                "speed_kp", "speed_kx", "iq_lim_lo", "iq_lim_hi", "speed_rate_div")
+
+
+class SpeedLoopModel:
+    """Clock-by-clock model of :class:`~foc_servo.hdl.servo.SpeedLoop` (same parameters and
+    validation).
+
+    Attributes
+    ----------
+    o_valid, o_payload, sat : int
+        The registered outputs in the current clock.
+    pi : PIModel
+        The speed PI (``pi.last`` describes the last run).
+    """
+
+    def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
+                 int_guard=16, div_width=8):
+        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width)
+        self.speed_width, self.width = speed_width, width
+        self.pi = PIModel(width=width, kp_format=kp_format, kx_format=kx_format,
+                          int_guard=int_guard)
+        self._shift_in = speed_width - width
+        self._shift_out = width - IQ_WIDTH
+        self.t = 0
+        self.count = 0
+        self.pending = None                 # (due clock, PI out, PI sat)
+        self.o_valid = self.o_payload = self.sat = 0
+        self.runs = self.dropped = 0
+
+    @property
+    def busy(self):
+        """A run is in flight (the PI is not ready) in the current clock."""
+        return self.pending is not None and self.pending[0] > self.t
+
+    def _to_pi(self, value):
+        return saturate_np(round_shift_np(value, self._shift_in), signed(self.width))
+
+    def clock(self, valid, speed, speed_ref, kp, kx, lim_lo, lim_hi, rate_div, clear):
+        """Inputs of the current clock → ``(o_valid, o_payload, sat)`` seen in it; advance."""
+        out = (self.o_valid, self.o_payload, self.sat)
+        self.o_valid = 0
+        if clear:
+            self.pending = None
+            self.pi.clear()
+            self.count = 0
+            self.o_payload = self.sat = 0
+        else:
+            if self.pending is not None and self.pending[0] == self.t:
+                _, pi_out, pi_sat = self.pending
+                self.pending = None
+                self.o_valid = 1
+                self.o_payload = saturate_np(round_shift_np(pi_out, self._shift_out),
+                                             signed(IQ_WIDTH))
+                self.sat = pi_sat
+            if valid:
+                if self.count == 0:
+                    if self.busy:
+                        self.dropped += 1
+                    else:
+                        s = self._shift_out
+                        pi_out, pi_sat = self.pi.step(self._to_pi(speed_ref), self._to_pi(speed),
+                                                      kp, kx, lim_lo << s, lim_hi << s)
+                        self.pending = (self.t + PI_LATENCY, pi_out, pi_sat)
+                        self.runs += 1
+                self.count = 0 if self.count >= rate_div else self.count + 1
+        self.t += 1
+        return out
+
+
+class ServoModel:
+    """Clock-by-clock model of :class:`~foc_servo.hdl.servo.Servo` (same parameters and
+    validation).
+
+    Attributes
+    ----------
+    active : int
+        The registered active mode (before the ``trip`` override).
+    acc : int
+        Phase accumulator, BinaryAngle(phase_width).
+    speed_loop : SpeedLoopModel
+    """
+
+    def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
+                 int_guard=16, div_width=8, phase_width=32):
+        self.speed_loop = SpeedLoopModel(speed_width=speed_width, width=width,
+                                         kp_format=kp_format, kx_format=kx_format,
+                                         int_guard=int_guard, div_width=div_width)
+        if (not isinstance(phase_width, int) or isinstance(phase_width, bool)
+                or not 16 <= phase_width <= 48):
+            raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
+                            f"not {phase_width!r}")
+        self.phase_width = phase_width
+        self.active = Mode.DISABLED.value
+        self.acc = 0
+        self.last_refs = (0, 0, 0, 0, 0, 0)
+
+    def clock(self, inp):
+        """``inp``: dict of :data:`SERVO_INPUTS` (raw integers) for the current clock → dict of
+        the outputs seen in it (raw integers, members of :class:`Servo`); advance one clock."""
+        pw, aw = self.phase_width, ANGLE.width
+        eff = Mode.DISABLED.value if inp["trip"] else self.active
+        is_ol, is_cur, is_speed = (eff == Mode.OPEN_LOOP.value, eff == Mode.CURRENT.value,
+                                   eff == Mode.SPEED.value)
+        sl_valid, sl_out, sl_sat = self.speed_loop.clock(
+            inp["speed_valid"], inp["speed"], inp["speed_ref"], inp["speed_kp"],
+            inp["speed_kx"], inp["iq_lim_lo"], inp["iq_lim_hi"], inp["speed_rate_div"],
+            not is_speed)
+
+        theta = inp["theta_meas"]
+        if is_ol:
+            if inp["ol_src"] == AngleSource.ROTATING.value:
+                theta = self.acc >> (pw - aw)
+            elif inp["ol_src"] != AngleSource.MEASURED.value:
+                theta = inp["ol_theta"]
+        iq_ref = id_ref = 0
+        if is_cur:
+            iq_ref = clamp_np(inp["iq_set"], inp["iq_lim_lo"], inp["iq_lim_hi"])
+            id_ref = inp["id_set"]
+        elif is_speed:
+            iq_ref, id_ref = sl_out, inp["id_set"]
+        refs = (inp["mode"], inp["speed_ref"], inp["id_set"], inp["iq_set"], inp["ud_set"],
+                inp["uq_set"])
+        out = {
+            "enable": int(eff != Mode.DISABLED.value),
+            "ol_enable": int(is_ol),
+            "ol_ud": inp["ud_set"] if is_ol else 0,
+            "ol_uq": inp["uq_set"] if is_ol else 0,
+            "theta": theta,
+            "iq_ref": iq_ref,
+            "id_ref": id_ref,
+            "current_clear": int(not (is_cur or is_speed)),
+            "speed_clear": int(not is_speed),
+            "active": eff,
+            "ref_step": int(bool(inp["loop"]) and refs != self.last_refs),
+            "speed_sat": sl_sat,
+            "speed_valid": sl_valid,
+        }
+
+        # Next state.
+        if not (is_ol and inp["ol_src"] == AngleSource.ROTATING.value):
+            self.acc = inp["ol_theta"] << (pw - aw)
+        elif inp["loop"]:
+            self.acc = (self.acc + inp["ol_freq"]) % (1 << pw)
+        if inp["trip"]:
+            self.active = Mode.DISABLED.value
+        elif inp["loop"]:
+            self.active = inp["mode"]
+        if inp["loop"]:
+            self.last_refs = refs
+        return out

@@ -1,0 +1,183 @@
+# amaranth: UnusedElaboratable=no
+# Ref: issue 5 item 3 (trace buffer)
+import pytest
+from amaranth.back import verilog
+from amaranth.hdl import signed, unsigned
+
+from foc_servo.hdl.scope import DEFAULT_SOURCES, Scope, ScopeState, TriggerSource
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models.scope import ScopeModel, align_sample
+from foc_servo.sim.verify.servo import Packed, run_scope
+
+IDLE, PRE, POST = (s.value for s in ScopeState)
+HOST, EXTERNAL = (s.value for s in TriggerSource)
+SOURCES = {"ramp": signed(16), "wide": signed(32), "narrow": unsigned(8)}
+
+
+def idle_inputs(**kw):
+    d = dict(src={"ramp": 0, "wide": 0, "narrow": 0}, sel=[0, 1, 2], strobe=0, decim=0,
+             pretrigger=0, trig_src=HOST, arm=0, force=0, trigger=0, rd_addr=0)
+    d.update(kw)
+    return d
+
+
+def scope_clocks(seq, **params):
+    """Drive :class:`Scope` with one input dict per clock; return its outputs per clock, checked
+    clock by clock against :class:`ScopeModel`; also returns the model."""
+    dut = Scope(**params)
+    model = ScopeModel(**params)
+    want = [model.clock(i) for i in seq]
+    signals = {f"src.{n}": dut.src[n] for n in dut.source_names}
+    signals.update({f"sel.{c}": dut.sel[c] for c in range(dut.channels)})
+    signals.update({n: getattr(dut, n) for n in ("strobe", "decim", "pretrigger", "trig_src",
+                                                 "arm", "force", "trigger", "rd_addr")})
+    bench = Packed(dut, signals, {n: getattr(dut, n) for n in want[0]})
+    got = []
+
+    def flat(i):
+        d = {k: v for k, v in i.items() if k not in ("src", "sel")}
+        d.update({f"src.{k}": v for k, v in i["src"].items()})
+        d.update({f"sel.{c}": v for c, v in enumerate(i["sel"])})
+        return d
+
+    async def testbench(ctx):
+        for i in seq:
+            ctx.set(bench.stim, bench.pack_inputs(flat(i)))
+            got.append(bench.unpack_outputs(ctx.get(bench.resp)))
+            await ctx.tick()
+
+    simulate(bench, [testbench], name="scope_clocks")
+    for t, (g, w) in enumerate(zip(got, want)):
+        assert g == w, f"clock {t}: gateware {g} model {w}"
+    return got, model
+
+
+def capture(n_clocks, *, pretrigger, trigger_at, depth=16, decim=0, strobe_every=1,
+            trig_src=HOST, use_trigger=False, read=True):
+    """Arm at clock 0 and sample ``ramp`` = clock number (wide = −clock·2^16, narrow = clock
+    mod 256) on every ``strobe_every``-th clock; trigger at ``trigger_at``; then read back the
+    three channels in order. Returns (outputs, model, read-back samples per channel)."""
+    seq = []
+    for t in range(n_clocks):
+        seq.append(idle_inputs(
+            src={"ramp": t, "wide": -t << 16, "narrow": t & 0xFF},
+            strobe=int(t % strobe_every == 0), arm=int(t == 0), pretrigger=pretrigger,
+            decim=decim, trig_src=trig_src,
+            force=int(t == trigger_at and not use_trigger),
+            trigger=int(t == trigger_at and use_trigger)))
+    n_read = 3 * depth if read else 0
+    for k in range(n_read + 1):
+        seq.append(idle_inputs(rd_addr=k % (4 * depth)))
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=depth)
+    data = [g["rd_data"] for g in got[n_clocks + 1:]]
+    return got, model, [data[c * depth:(c + 1) * depth] for c in range(3)]
+
+
+@pytest.mark.parametrize("cls", [Scope, ScopeModel])
+@pytest.mark.parametrize("kwargs, msg", [
+    (dict(sources={}), r"^Scope sources must be a non-empty dict of names to shapes of 1 to 64 "
+                       r"bits, not \{\}$"),
+    (dict(sources={"x": "y"}), r"^Scope sources must be a non-empty dict of names to shapes "),
+    (dict(sources={"a b": 16}), r"^Scope sources must be a non-empty dict of names to shapes "),
+    (dict(sources={"x": 65}), r"^Scope sources must be a non-empty dict of names to shapes "),
+    (dict(channels=0), r"^Scope channels must be an integer from 1 to 16, not 0$"),
+    (dict(channels=17), r"^Scope channels must be an integer from 1 to 16, not 17$"),
+    (dict(depth=1000), r"^Scope depth must be a power of two from 16 to 65536, not 1000$"),
+    (dict(depth=8), r"^Scope depth must be a power of two from 16 to 65536, not 8$"),
+    (dict(depth=1024.0), r"^Scope depth must be a power of two from 16 to 65536, not 1024\.0$"),
+    (dict(width=33), r"^Scope width must be an integer from 1 to 32, not 33$"),
+    (dict(decim_width=0), r"^Scope decim_width must be an integer from 1 to 32, not 0$"),
+])
+def test_scope_parameter_validation(cls, kwargs, msg):
+    with pytest.raises(TypeError, match=msg):
+        cls(**kwargs)
+
+
+def test_scope_interface_and_verilog():
+    dut = Scope()
+    assert dut.source_names == tuple(DEFAULT_SOURCES) and dut.sel_width == 4
+    assert dut.addr_width == 2 + 10 and dut.memory_bits == 64 * 1024 and dut.read_latency == 1
+    text = verilog.convert(dut, name="scope")
+    assert "module scope" in text
+    assert "module scope" in verilog.convert(Scope(channels=1, depth=16), name="scope")
+
+
+def test_scope_msb_alignment():
+    assert align_sample(-1, signed(32), 16) == 0xFFFF
+    assert align_sample(0x12345678, signed(32), 16) == 0x1234
+    assert align_sample(0xAB, unsigned(8), 16) == 0xAB00
+    assert align_sample(-2, signed(16), 16) == 0xFFFE
+
+
+def test_scope_pretrigger_and_wraparound():
+    # depth 16, 5 pre-trigger samples; the ring wraps several times before the trigger.
+    got, model, ch = capture(80, pretrigger=5, trigger_at=50)
+    assert model.captures == 1 and got[80]["done"] == 1 and got[80]["state"] == IDLE
+    assert ch[0] == list(range(45, 61))                  # trigger sample (clock 50) at index 5
+    assert ch[1] == [align_sample(-t << 16, signed(32), 16) for t in range(45, 61)]
+    assert ch[2] == [(t & 0xFF) << 8 for t in range(45, 61)]
+    states = [g["state"] for g in got[:80]]
+    assert states[0] == IDLE and set(states[1:51]) == {PRE} and set(states[51:61]) == {POST}
+    assert states[61:] == [IDLE] * 19
+
+
+@pytest.mark.parametrize("pretrigger", [0, 15])
+def test_scope_pretrigger_extremes(pretrigger):
+    got, model, ch = capture(60, pretrigger=pretrigger, trigger_at=30)
+    assert ch[0] == list(range(30 - pretrigger, 30 - pretrigger + 16))
+
+
+def test_scope_ignores_triggers_before_pretrigger_is_full():
+    # Arm at 0 takes no sample; samples from clock 1: 8 pre-trigger samples are in at clock 9.
+    got, model, ch = capture(40, pretrigger=8, trigger_at=5)
+    assert model.triggers_ignored == 1 and model.captures == 0
+    assert all(g["state"] == PRE for g in got[1:40])
+    assert [g["pre_full"] for g in got[1:12]] == [0] * 8 + [1] * 3
+
+
+def test_scope_external_trigger_and_decimation():
+    # trig_src EXTERNAL: the trigger input; decim 2 with a strobe every other clock: one sample
+    # per 6 clocks, the first strobe after arm sampled.
+    got, model, ch = capture(200, pretrigger=3, trigger_at=100, decim=2, strobe_every=2,
+                             trig_src=EXTERNAL, use_trigger=True)
+    samples = list(range(2, 200, 6))
+    k = next(i for i, t in enumerate(samples) if t >= 100)        # first sample after trigger
+    assert ch[0] == samples[k - 3:k + 13]
+    # The same trigger input with trig_src HOST does nothing.
+    got, model, _ = capture(120, pretrigger=3, trigger_at=100, use_trigger=True, read=False)
+    assert model.captures == 0 and got[-1]["state"] == PRE
+
+
+def test_scope_read_latency_cycle_by_cycle():
+    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=1, arm=int(t == 0),
+                       pretrigger=2, force=int(t == 20)) for t in range(40)]
+    addrs = [7, 3, 3, 16 + 2, 0, 48 + 5, 9]               # channel 1 at index 2; channel 3: none
+    seq += [idle_inputs(rd_addr=a) for a in addrs] + [idle_inputs()]
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
+    assert model.captures == 1
+    data = [g["rd_data"] for g in got[40:]]
+    # Clock 40 + k shows the address of clock 40 + k − 1: 18 + index for channel 0 (ramp).
+    assert data[1:] == [18 + 7, 18 + 3, 18 + 3, 0, 18, 0, 18 + 9]
+
+
+def test_scope_rearm_restarts_capture():
+    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=1, arm=int(t in (0, 10)),
+                       pretrigger=2, force=int(t == 30)) for t in range(60)]
+    seq += [idle_inputs(rd_addr=k) for k in range(17)]
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
+    assert got[10]["state"] == PRE and got[11]["state"] == PRE and got[11]["done"] == 0
+    assert [g["rd_data"] for g in got[61:77]] == list(range(28, 44))
+
+
+def test_scope_random_sequences_vs_model():
+    result = run_scope(4000, seed=5, depth=32, channels=3)
+    assert result["mismatches"] == 0, result["first_mismatch"]
+    assert result["captures"] > 10 and result["wraps"] > 10
+    assert result["pretrigger_zero_captures"] + result["pretrigger_max_captures"] > 0
+
+
+@pytest.mark.slow
+def test_scope_100k_clocks_vs_model():
+    result = run_scope(100_000)
+    assert result["mismatches"] == 0, result["first_mismatch"]
+    assert result["captures"] > 10 and result["wraps"] > 10
