@@ -1,0 +1,234 @@
+# Ref: issue 5 item 1 (register file, shadowing); hdl/bus.py (register bus)
+"""Gateware :class:`~foc_servo.hdl.regs.RegisterFile` against its model, clock by clock.
+
+Seeded random bus traffic (reads and writes of every kind of register, bad addresses, read-only
+writes, scope-window reads, back-to-back and spaced accesses), host frames (``lock`` high over 1 …
+8 accesses), random ``commit`` strobes and changing status inputs. Every clock the whole
+output state — ``ack``, ``status``, ``r_data``, every strobe and every active register value — is
+compared with :class:`~foc_servo.sim.models.regs.RegisterFileModel`. To keep Python out of the
+way, a simulation-only wrapper packs all inputs into one signal and all outputs into another (one
+``ctx.set`` and one ``ctx.get`` per clock); the window is backed by a real memory.
+"""
+
+import random
+
+from amaranth.hdl import Cat, Elaboratable, Module, Signal
+from amaranth.lib.memory import Memory
+
+from ...hdl.bus import Status
+from ...hdl.regmap import REGMAP, Access
+from ...hdl.regs import RegisterFile
+from ..harness import Progress, simulate
+from ..models.regs import RegisterFileModel
+
+__all__ = ["run", "window_word", "Bench"]
+
+
+def window_word(offset):
+    """Content of the stand-in memory behind a window at word ``offset``."""
+    return (offset * 0x9E3779B1 + 0x5BD1E995) & 0xFFFFFFFF
+
+
+def _bits(port):
+    return port.as_value() if hasattr(port, "as_value") else port
+
+
+class Bench(Elaboratable):
+    """Simulation-only wrapper: ``stim`` drives every input, ``outs`` packs every output.
+
+    ``stim`` = Cat(addr, we, w_data, stb, lock, commit, *ro registers); ``outs`` = Cat(ack,
+    status, r_data, *strobes, *rw registers), in :attr:`stim_fields` / :attr:`out_fields` order
+    (name, offset, width).
+    """
+
+    def __init__(self, regmap=REGMAP):
+        self.regmap = regmap
+        self.dut = RegisterFile(regmap)
+        ro = [r for r in regmap if r.access is Access.RO]
+        self.stim_fields = self._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
+                                         ("lock", 1), ("commit", 1),
+                                         *((r.name, r.width) for r in ro)])
+        self.out_fields = self._fields([("ack", 1), ("status", 2), ("r_data", 32),
+                                        *((r.name, 1) for r in regmap
+                                          if r.access is Access.STROBE),
+                                        *((r.name, r.width) for r in regmap
+                                          if r.access is Access.RW)])
+        self.stim = Signal(sum(w for _, _, w in self.stim_fields))
+        self.outs = Signal(sum(w for _, _, w in self.out_fields))
+
+    @staticmethod
+    def _fields(pairs):
+        out, off = [], 0
+        for name, width in pairs:
+            out.append((name, off, width))
+            off += width
+        return out
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.dut = dut = self.dut
+        bus = dut.bus
+        sinks = [bus.addr, bus.we, bus.w_data, bus.stb, bus.lock, dut.commit]
+        sinks += [_bits(getattr(dut, name)) for name, _, _ in self.stim_fields[6:]]
+        m.d.comb += Cat(*sinks).eq(self.stim)
+        m.d.comb += self.outs.eq(Cat(bus.ack, bus.status, bus.r_data,
+                                     *(_bits(getattr(dut, name))
+                                       for name, _, _ in self.out_fields[3:])))
+        for w in self.regmap.windows:
+            mem = Memory(shape=32, depth=w.size, init=[window_word(a) for a in range(w.size)])
+            m.submodules[f"{w.name}_mem"] = mem
+            rd = mem.read_port()
+            m.d.comb += [rd.addr.eq(getattr(dut, f"{w.name}_rd_addr")),
+                         getattr(dut, f"{w.name}_rd_data").eq(rd.data)]
+        return m
+
+    @staticmethod
+    def pack(fields, values):
+        word = 0
+        for name, off, width in fields:
+            v = values.get(name)
+            if v:
+                word |= (v & ((1 << width) - 1)) << off
+        return word
+
+    def unpack(self, fields, word):
+        return {name: (word >> off) & ((1 << width) - 1) for name, off, width in fields}
+
+
+def _accesses(regmap, count, rng):
+    """``count`` random accesses ``(addr, we, w_data)``; first a read of every register word."""
+    words = regmap.words()
+    used = {a for a, _, _ in words}
+    for w in regmap.windows:
+        used |= set(range(w.addr, w.addr + w.size))
+    near = sorted({a + d for a, _, _ in words for d in (-1, 1)} - used)
+    near = [a for a in near if 0 <= a < 1 << 16]
+    rw = [(a, r, k) for a, r, k in words if r.access is Access.RW]
+
+    def data():
+        kind = rng.random()
+        if kind < 0.4:
+            return rng.getrandbits(32)
+        if kind < 0.6:
+            return rng.choice((0, 1, 0xFFFFFFFF, 0x7FFFFFFF, 0x80000000, 0xFFFF, 0x8000))
+        return rng.getrandbits(rng.randint(1, 20)) * rng.choice((1, -1)) & 0xFFFFFFFF
+
+    out = [(a, 0, 0) for a, _, _ in words]
+    while len(out) < count + len(words):
+        kind = rng.random()
+        if kind < 0.45:
+            addr = rng.choice(words)[0]
+        elif kind < 0.65:
+            addr = rng.choice(rw)[0]
+        elif kind < 0.75 and regmap.windows:
+            w = rng.choice(regmap.windows)
+            addr = w.addr + rng.randrange(w.size)
+        elif kind < 0.87 and near:
+            addr = rng.choice(near)
+        else:
+            addr = rng.getrandbits(16)
+        out.append((addr, int(rng.random() < 0.5), data()))
+    return out[:count + len(words)] if count else out
+
+
+def _cycles(regmap, accesses, rng):
+    """Per-clock input dicts (without ro) for ``accesses``: frames of 1 … 8 accesses under
+    ``lock``, 0 … 3 idle clocks between accesses (30 %), ``commit`` at random."""
+    i = 0
+    while i < len(accesses):
+        n = rng.randint(1, 8)
+        frame = accesses[i:i + n]
+        i += n
+        framed = rng.random() < 0.7
+        for j, (addr, we, w_data) in enumerate(frame):
+            for _ in range(2):       # stb clock, ack clock (stb still high)
+                yield dict(addr=addr, we=we, w_data=w_data, stb=1, lock=int(framed),
+                           commit=int(rng.random() < 0.15))
+            gap = 0 if rng.random() < 0.7 else rng.randint(1, 3)
+            for _ in range(gap):
+                yield dict(addr=addr, we=rng.getrandbits(1), w_data=w_data, stb=0,
+                           lock=int(framed and j < len(frame) - 1),
+                           commit=int(rng.random() < 0.15))
+
+
+def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
+    """Simulate the register file on ``count`` random bus accesses (plus a read of every register
+    word first) and compare every clock with the model.
+
+    Returns
+    -------
+    dict
+        ``mismatches`` (clocks whose outputs differ), ``vectors`` (bus accesses), ``clocks``,
+        ``sim_s``, ``clk_per_s``, ``reads``, ``writes``, ``bad_address``, ``read_only``,
+        ``window_reads``, ``commits_applied``, ``commits_locked`` (commit strobes ignored under
+        ``lock``), ``strobe_pulses``, ``first_mismatch`` (None or a description).
+    """
+    rng = random.Random(seed)
+    bench = Bench(regmap)
+    model = RegisterFileModel(regmap)
+    accesses = _accesses(regmap, count, rng)
+    ro_regs = [r for r in regmap if r.access is Access.RO]
+    windows = regmap.windows
+    fig = dict(mismatches=0, vectors=len(accesses), clocks=0, reads=0, writes=0, bad_address=0,
+               read_only=0, window_reads=0, commits_applied=0, commits_locked=0,
+               strobe_pulses=0, first_mismatch=None)
+    out_fields = bench.out_fields
+    strobe_names = [n for n, _, _ in out_fields[3:] if n in model.strobes]
+    bar = Progress("regs", len(accesses), enabled=progress)
+
+    rest_fields = out_fields[3:]
+    cache = {"state": None, "word": 0}
+
+    def expected(win_data):
+        # The strobes and active values change rarely: repack them only when they do.
+        state = (tuple(model.strobes.values()), tuple(model.active.values()))
+        if state != cache["state"]:
+            cache["state"] = state
+            cache["word"] = bench.pack(rest_fields, {**model.strobes, **model.active})
+        return (cache["word"] | model.ack | model.status << 1
+                | model.r_data(win_data) << 3)
+
+    async def testbench(ctx):
+        ro = {r.name: 0 for r in ro_regs}
+        prev_addr = 0
+        done = 0
+        for cyc in _cycles(regmap, accesses, rng):
+            if rng.random() < 0.1:
+                r = rng.choice(ro_regs)
+                ro[r.name] = rng.getrandbits(r.width)
+            cyc.update(ro)
+            ctx.set(bench.stim, bench.pack(bench.stim_fields, cyc))
+            got = ctx.get(bench.outs)
+            win_data = {w.name: window_word(prev_addr & (w.size - 1)) for w in windows}
+            want = expected(win_data)
+            if got != want:
+                fig["mismatches"] += 1
+                if fig["first_mismatch"] is None:
+                    g, e = bench.unpack(out_fields, got), bench.unpack(out_fields, want)
+                    diff = {k: (g[k], e[k]) for k in g if g[k] != e[k]}
+                    fig["first_mismatch"] = f"clock {fig['clocks']}: (got, expected) {diff}"
+            if model.ack:
+                done += 1
+                if done % 1000 == 0:
+                    bar.update(done)
+            fig["strobe_pulses"] += sum(model.strobes[n] for n in strobe_names)
+            if cyc["commit"]:
+                fig["commits_locked" if cyc["lock"] else "commits_applied"] += 1
+            status = model.step(**{k: cyc[k] for k in ("stb", "addr", "we", "w_data", "lock",
+                                                       "commit")}, ro=ro)
+            if status is not None:
+                fig["writes" if cyc["we"] else "reads"] += 1
+                if status == Status.BAD_ADDRESS.value:
+                    fig["bad_address"] += 1
+                elif status == Status.READ_ONLY.value:
+                    fig["read_only"] += 1
+                elif any(model.win_hit.values()):
+                    fig["window_reads"] += 1
+            prev_addr = cyc["addr"]
+            fig["clocks"] += 1
+            await ctx.tick()
+
+    fig["sim_s"] = simulate(bench, [testbench], name="regs")
+    bar.close()
+    fig["clk_per_s"] = fig["clocks"] / fig["sim_s"] if fig["sim_s"] else 0.0
+    return fig
