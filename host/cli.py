@@ -141,6 +141,12 @@ def build_parser():
     p.add_argument("--block", action="append", help="only this block (repeatable)")
     p.set_defaults(func=cmd_verilog)
 
+    from .codegen import add_arguments as regs_arguments, cmd_regs
+    p = sub.add_parser("regs", help="regenerate docs/REGISTERS.md and include/foc_servo_regs.h "
+                                    "from the register map (--check: fail if they are stale)")
+    regs_arguments(p)
+    p.set_defaults(func=cmd_regs)
+
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
     p.add_argument("suite", nargs="?", default="all", choices=["all", "arith", "io"],
                    help="which figures: arith (foundation blocks), io (motor-side blocks), all "
