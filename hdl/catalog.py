@@ -6,13 +6,17 @@ from .clarke import Clarke
 from .cordic import Cordic
 from .divider import Divider
 from .encoder import EncoderFrontEnd
+from .foc import CurrentLoop
 from .gates import Gates
 from .mt_speed import MTSpeed
 from .pi import PI
 from .protect import Protection
+from .regs import RegisterFile
+from .scope import Scope
+from .servo import Servo
 from .svpwm import SVPWM, DCBusCompensation, PWMTimer
 
-__all__ = ["ARITH_BLOCKS", "IO_BLOCKS", "BLOCKS"]
+__all__ = ["ARITH_BLOCKS", "IO_BLOCKS", "CONTROL_BLOCKS", "BLOCKS"]
 
 #: The foundation's arithmetic blocks, name -> factory of a fresh instance (defaults).
 ARITH_BLOCKS = {
@@ -34,5 +38,13 @@ IO_BLOCKS = {
     "protect": lambda: Protection(),
 }
 
+#: The controller blocks (issue 5), name -> factory of a fresh instance (defaults).
+CONTROL_BLOCKS = {
+    "foc": lambda: CurrentLoop(),
+    "servo": lambda: Servo(),
+    "scope": lambda: Scope(),
+    "regs": lambda: RegisterFile(),
+}
+
 #: Every block.
-BLOCKS = {**ARITH_BLOCKS, **IO_BLOCKS}
+BLOCKS = {**ARITH_BLOCKS, **IO_BLOCKS, **CONTROL_BLOCKS}
