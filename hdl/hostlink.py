@@ -1,0 +1,578 @@
+# Ref: docs/PROTOCOL.md (framing, commands, status codes, resynchronisation); hdl/bus.py
+"""The host link: UART bytes → COBS frames with CRC-16 → register bus accesses → reply frames.
+
+:class:`LinkCore` speaks the protocol on byte streams (wire bytes, COBS encoded, 0x00 delimited);
+:class:`HostLink` puts :class:`~foc_servo.hdl.uart.UartRx` / :class:`~foc_servo.hdl.uart.UartTx`
+in front of it. The protocol constants come from :mod:`foc_servo.host.protocol`, the pure-Python
+golden model of the framing, so gateware and host cannot disagree on them.
+
+A request is buffered whole (header in registers, data words in a ``max_words``-deep
+:class:`~amaranth.lib.memory.Memory`) while its CRC runs; only after the frame's closing 0x00 are
+the CRC, the length, the command and every address of the burst checked against ``address_map``,
+and only then does the first bus access start, with ``bus.lock`` high until the last. A malformed
+frame therefore never writes anything, and a burst writes all its words or none.
+"""
+
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
+from amaranth.lib import stream, wiring
+from amaranth.lib.memory import Memory
+from amaranth.lib.wiring import In, Out
+
+from ..host.protocol import CRC_BYTES, REPLY_HEADER, REQUEST_HEADER, Command, ReplyStatus
+from .bus import ADDR_WIDTH, RegBusSignature, Status
+from .uart import UartRx, UartTx, uart_params
+
+__all__ = ["normalize_address_map", "hostlink_params", "crc16_byte", "LinkCore", "HostLink"]
+
+_ADDR_SPACE = 1 << ADDR_WIDTH
+
+
+def normalize_address_map(address_map):
+    """Validate an address map and merge adjacent regions of the same access.
+
+    Parameters
+    ----------
+    address_map : iterable of (int, int, bool) or None
+        ``(start, stop, writable)`` word-address regions, ``0 <= start < stop <= 0x10000``, not
+        overlapping. ``None`` means the whole address space, writable.
+
+    Returns
+    -------
+    tuple of (int, int, bool)
+        Sorted, adjacent regions of equal access merged.
+
+    Raises
+    ------
+    TypeError
+        If a region is not a ``(start, stop, writable)`` tuple of two ints and a bool.
+    ValueError
+        If a region is empty, outside 0 … 0x10000 or overlaps another.
+    """
+    if address_map is None:
+        return ((0, _ADDR_SPACE, True),)
+    regions = []
+    for region in address_map:
+        if (not isinstance(region, tuple) or len(region) != 3
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in region[:2])
+                or not isinstance(region[2], bool)):
+            raise TypeError(f"Address map region must be a (start, stop, writable) tuple of two "
+                            f"integers and a bool, not {region!r}")
+        start, stop, _ = region
+        if not 0 <= start < stop <= _ADDR_SPACE:
+            raise ValueError(f"Address map region must satisfy 0 <= start < stop <= 0x10000, "
+                             f"not {region!r}")
+        regions.append(region)
+    regions.sort()
+    merged = []
+    for start, stop, writable in regions:
+        if merged and start < merged[-1][1]:
+            raise ValueError(f"Address map regions {merged[-1]!r} and {(start, stop, writable)!r} "
+                             f"overlap")
+        if merged and start == merged[-1][1] and writable == merged[-1][2]:
+            merged[-1] = (merged[-1][0], stop, writable)
+        else:
+            merged.append((start, stop, writable))
+    return tuple(merged)
+
+
+def hostlink_params(*, max_words=64, address_map=None, counter_width=16):
+    """Validate the parameters shared by :class:`LinkCore`, :class:`HostLink` and the model.
+
+    Raises
+    ------
+    TypeError
+        If ``max_words`` is not an integer from 1 to 255 or ``counter_width`` not one from 1
+        to 32; see also :func:`normalize_address_map`.
+    """
+    if not isinstance(max_words, int) or isinstance(max_words, bool) or not 1 <= max_words <= 255:
+        raise TypeError(f"Host link max_words must be an integer from 1 to 255, not {max_words!r}")
+    if (not isinstance(counter_width, int) or isinstance(counter_width, bool)
+            or not 1 <= counter_width <= 32):
+        raise TypeError(f"Host link counter_width must be an integer from 1 to 32, "
+                        f"not {counter_width!r}")
+    return {"max_words": max_words, "address_map": normalize_address_map(address_map),
+            "counter_width": counter_width}
+
+
+def _crc_matrix():
+    """For each bit of the CRC-16/CCITT-FALSE state after one byte: the set of input bits whose
+    XOR it is (0 … 15: state, 16 … 23: data byte)."""
+    c = [{i} for i in range(16)]
+    for k in range(8):                      # data bits MSB first
+        fb = c[15] ^ {16 + 7 - k}
+        c = [set()] + c[:15]
+        for tap in (0, 5, 12):              # 0x1021
+            c[tap] = c[tap] ^ fb
+    return c
+
+
+_CRC_MATRIX = _crc_matrix()
+
+
+def crc16_byte(crc, byte):
+    """CRC-16/CCITT-FALSE state after one more byte, as a 16-bit Amaranth value (a parallel XOR
+    network, no loop)."""
+    inputs = Cat(crc, byte)
+    bits = []
+    for terms in _CRC_MATRIX:
+        acc = Const(0, 1)
+        for t in sorted(terms):
+            acc = acc ^ inputs[t]
+        bits.append(acc)
+    return Cat(*bits)
+
+
+class LinkCore(wiring.Component):
+    """Protocol engine of the host link on wire-byte streams (no UART).
+
+    Receives COBS frames delimited by 0x00, checks them, runs the bus accesses and sends one
+    reply frame (COBS, then 0x00) per nonempty frame received in the ``RECV`` state; see
+    ``docs/PROTOCOL.md`` for the reply each kind of frame gets. Bytes that arrive while the
+    link is busy (checking, accessing or replying) cannot be taken: the UART wrapper reports them
+    on ``rx_lost`` and the link then ignores everything up to the next 0x00.
+
+    Parameters
+    ----------
+    max_words : int
+        Longest burst, 1 … 255 words; also the depth of the frame buffer (32-bit words).
+    address_map : iterable of (start, stop, writable) or None
+        Word-address regions that exist (see :func:`normalize_address_map`). Every address of
+        a request is checked against it before the first access: outside all regions →
+        BAD_ADDRESS; a write to a region with ``writable=False`` → READ_ONLY. ``None``: all of
+        0 … 0xFFFF exists and is writable (the bus status still reports holes, but then a burst
+        may be cut short after some writes: give the map).
+    counter_width : int
+        Width of the status counters (they wrap).
+
+    Members
+    -------
+    i : In(stream.Signature(8))
+        Wire bytes from the host. ``i.ready`` is high in the ``RECV`` state (taking a byte per
+        clock), low while the link is busy with a frame.
+    rx_lost : In(1)
+        Strobe: a byte arrived while ``i.ready`` was low and was lost. The link skips the rest of
+        that frame (up to the next 0x00) without a reply and counts it in ``dropped``.
+    rx_error : In(1)
+        Strobe: a damaged byte (UART framing error). The frame being received gets a BAD_CRC
+        reply and counts in ``framing_errors``; while the link is busy it counts as ``rx_lost``.
+    o : Out(stream.Signature(8))
+        Wire bytes to the host.
+    bus : Out(RegBusSignature())
+        Register bus master; ``lock`` is high from the first to the last access of a frame.
+    frames_ok, crc_errors, framing_errors, rejected, dropped : Out(counter_width)
+        Frames answered OK; BAD_CRC for a CRC mismatch; BAD_CRC for a damaged frame (COBS
+        error, UART framing error); frames answered with BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or
+        READ_ONLY; frames skipped because bytes were lost. Wrap modulo ``2**counter_width``.
+
+    Attributes
+    ----------
+    max_frame : int
+        Longest decoded request, ``5 + 4·max_words + 2`` bytes; longer ones get BAD_LENGTH.
+    address_map : tuple
+        The normalised address map.
+
+    Timing: a wire byte per clock in; :meth:`access_latency` to the first access; each access
+    takes ``2 + (ack delay)`` clocks (3 with a slave that acks one clock after ``stb``); a
+    reply of ``n`` decoded bytes (``4 + 4·words + 2``) takes about ``3n + 4`` clocks when the
+    output never stalls (CRC pass, COBS scan, emission, one byte per clock each).
+    """
+
+    def __init__(self, *, max_words=64, address_map=None, counter_width=16):
+        p = hostlink_params(max_words=max_words, address_map=address_map,
+                            counter_width=counter_width)
+        self._max_words = p["max_words"]
+        self._address_map = p["address_map"]
+        self._counter_width = p["counter_width"]
+        cw = self._counter_width
+        super().__init__({
+            "i": In(stream.Signature(8)),
+            "rx_lost": In(1),
+            "rx_error": In(1),
+            "o": Out(stream.Signature(8)),
+            "bus": Out(RegBusSignature()),
+            "frames_ok": Out(cw),
+            "crc_errors": Out(cw),
+            "framing_errors": Out(cw),
+            "rejected": Out(cw),
+            "dropped": Out(cw),
+        })
+
+    max_words = property(lambda self: self._max_words)
+    address_map = property(lambda self: self._address_map)
+    counter_width = property(lambda self: self._counter_width)
+
+    @property
+    def max_frame(self):
+        return REQUEST_HEADER + 4 * self._max_words + CRC_BYTES
+
+    @staticmethod
+    def access_latency(count):
+        """Clocks from the acceptance of a request's closing 0x00 to ``bus.stb`` of its first
+        access: ``count + 3`` (a check clock, one address check per word, a buffer read)."""
+        return count + 3
+
+    def elaborate(self, platform):
+        m = Module()
+        mw = self._max_words
+        lmax = self.max_frame
+        bus = self.bus
+
+        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[])
+        wr = mem.write_port()
+        rd = mem.read_port()
+
+        # --- receive state -----------------------------------------------------------------
+        length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
+        cobs_left = Signal(8)                   # data bytes left in the current COBS block
+        cobs_ff = Signal()                      # the current block's code was 0xFF
+        started = Signal()                      # a code byte has been seen in this frame
+        bad = Signal()                          # damaged frame (COBS error, UART error)
+        skip = Signal()                         # bytes were lost: ignore up to the next 0x00
+        crc = Signal(16, init=0xFFFF)
+        hdr = [Signal(8, name=f"hdr{k}") for k in range(REQUEST_HEADER)]
+        cmd_in, seq_in, count_in = hdr[0], hdr[1], hdr[4]
+        addr_in = Cat(hdr[2], hdr[3])
+        wacc = Signal(32)                       # little-endian word assembly
+        bpos = Signal(2)
+        widx = Signal(range(mw + 1))
+
+        # --- execution and reply state -----------------------------------------------------
+        idx = Signal(range(256))                # word index of the burst
+        is_write = Signal()
+        r_cmd, r_seq, r_info = Signal(8), Signal(8), Signal(8)
+        r_status = Signal(8)
+        framing = Signal()                      # the BAD_CRC is for a damaged frame
+        nwords = Signal(range(mw + 1))          # data words in the reply
+        j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
+        p = Signal.like(j)                      # COBS block start
+        blk = Signal(range(255))                # COBS block length (non-zero bytes)
+        blk_zero = Signal()                     # the block ended at a zero byte
+        j_next = Signal.like(j)                 # j in the next clock
+
+        # Comb values used by other comb logic are expressions, not signals: pysim evaluates a
+        # fragment's comb statements from committed values, so each signal-to-signal link costs
+        # another delta cycle every clock.
+        dend = REPLY_HEADER + 4 * nwords        # index of the first CRC byte
+        rlen = dend + CRC_BYTES
+
+        # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
+        # addresses the buffer with v at once.
+        m.d.sync += j.eq(j_next)
+        jw = j.shape().width
+        doff = (j - REPLY_HEADER)[:jw]
+        jb = Mux(j < REPLY_HEADER, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
+                 Mux(j < dend, rd.data.word_select(doff[:2], 8),
+                     Mux(j == dend, crc[8:], crc[:8])))
+
+        def next_j(value):
+            value = Value.cast(value)
+            m.d.comb += [j_next.eq(value), rd.addr.eq((value - REPLY_HEADER)[2:jw])]
+
+        def reset_frame():
+            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), widx.eq(0)]
+            m.d.sync += [h.eq(0) for h in hdr]
+
+        # Address checks of word `idx`.
+        a_full = addr_in + idx                  # ADDR_WIDTH + 1 bits: no wrap
+        a_exists = Const(0, 1)
+        a_writable = Const(0, 1)
+        for start, stop, writable in self._address_map:
+            inside = (a_full >= start) & (a_full < stop)
+            a_exists = a_exists | inside
+            if writable:
+                a_writable = a_writable | inside
+
+        def counter(sig):
+            m.d.sync += sig.eq(sig + 1)
+
+        with m.If((self.rx_lost | self.rx_error) & ~self.i.ready & ~skip):
+            m.d.sync += skip.eq(1)
+            counter(self.dropped)
+
+        m.d.comb += [j_next.eq(j), rd.addr.eq(idx)]
+
+        with m.FSM(name="link"):
+            with m.State("RECV"):
+                m.d.comb += self.i.ready.eq(1)
+                with m.If(self.rx_error):
+                    m.d.sync += bad.eq(1)
+                byte = self.i.payload
+                emit = Signal()
+                dbyte = Signal(8)
+                with m.If(self.i.valid):
+                    with m.If(skip):
+                        with m.If(byte == 0):
+                            m.d.sync += skip.eq(0)
+                            reset_frame()
+                    with m.Elif(byte == 0):
+                        with m.If(~started & ~bad & ~self.rx_error):
+                            reset_frame()                       # empty frame: ignored
+                        with m.Else():
+                            with m.If(cobs_left != 0):
+                                m.d.sync += bad.eq(1)           # truncated COBS block
+                            m.next = "CHECK"
+                    with m.Elif(cobs_left == 0):                # a code byte
+                        m.d.sync += [cobs_left.eq(byte - 1), cobs_ff.eq(byte == 0xFF),
+                                     started.eq(1)]
+                        m.d.comb += [emit.eq(started & ~cobs_ff), dbyte.eq(0)]
+                    with m.Else():
+                        m.d.sync += cobs_left.eq(cobs_left - 1)
+                        m.d.comb += [emit.eq(1), dbyte.eq(byte)]
+                with m.If(emit):
+                    m.d.sync += crc.eq(crc16_byte(crc, dbyte))
+                    with m.If(length <= lmax):
+                        m.d.sync += length.eq(length + 1)
+                    with m.Switch(length):
+                        for k in range(REQUEST_HEADER):
+                            with m.Case(k):
+                                m.d.sync += hdr[k].eq(dbyte)
+                        with m.Default():
+                            m.d.sync += [wacc.eq(Cat(wacc[8:], dbyte)), bpos.eq(bpos + 1)]
+                            with m.If((bpos == 3) & (widx < mw)):
+                                m.d.comb += [wr.addr.eq(widx), wr.data.eq(Cat(wacc[8:], dbyte)),
+                                             wr.en.eq(1)]
+                                m.d.sync += widx.eq(widx + 1)
+
+            with m.State("CHECK"):
+                count_ok = (count_in != 0) & (count_in <= mw)
+                m.d.sync += [
+                    r_cmd.eq(Mux(length >= 3, cmd_in, 0)),
+                    r_seq.eq(Mux(length >= 4, seq_in, 0)),
+                    r_info.eq(0), nwords.eq(0), idx.eq(0), framing.eq(0),
+                    is_write.eq(cmd_in == Command.WRITE),
+                ]
+                m.next = "REPLY"
+
+                def status(s):
+                    m.d.sync += r_status.eq(s)
+                with m.If(bad):
+                    status(ReplyStatus.BAD_CRC)
+                    m.d.sync += [framing.eq(1), r_cmd.eq(0), r_seq.eq(0)]
+                with m.Elif((crc != 0) | (length < 2)):
+                    status(ReplyStatus.BAD_CRC)
+                    m.d.sync += [r_cmd.eq(0), r_seq.eq(0)]
+                with m.Elif(length < REQUEST_HEADER + CRC_BYTES):
+                    status(ReplyStatus.BAD_LENGTH)
+                with m.Elif((cmd_in != Command.PING) & (cmd_in != Command.READ)
+                            & (cmd_in != Command.WRITE)):
+                    status(ReplyStatus.BAD_COMMAND)
+                with m.Elif(length > lmax):
+                    status(ReplyStatus.BAD_LENGTH)
+                with m.Elif(cmd_in == Command.PING):
+                    with m.If(length == REQUEST_HEADER + CRC_BYTES):
+                        status(ReplyStatus.OK)
+                        m.d.sync += r_info.eq(mw)
+                    with m.Else():
+                        status(ReplyStatus.BAD_LENGTH)
+                with m.Elif(cmd_in == Command.READ):
+                    with m.If(count_ok & (length == REQUEST_HEADER + CRC_BYTES)):
+                        status(ReplyStatus.OK)
+                        m.next = "ACHECK"
+                    with m.Else():
+                        status(ReplyStatus.BAD_LENGTH)
+                with m.Else():
+                    with m.If(count_ok & (length == REQUEST_HEADER + CRC_BYTES + 4 * count_in)):
+                        status(ReplyStatus.OK)
+                        m.next = "ACHECK"
+                    with m.Else():
+                        status(ReplyStatus.BAD_LENGTH)
+
+            with m.State("ACHECK"):
+                with m.If(a_full[-1] | ~a_exists):
+                    m.d.sync += [r_status.eq(ReplyStatus.BAD_ADDRESS), r_info.eq(idx)]
+                    m.next = "REPLY"
+                with m.Elif(is_write & ~a_writable):
+                    m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
+                    m.next = "REPLY"
+                with m.Elif(idx == count_in - 1):
+                    m.d.sync += idx.eq(0)
+                    m.next = "SETUP"
+                with m.Else():
+                    m.d.sync += idx.eq(idx + 1)
+
+            with m.State("SETUP"):                  # the buffer read of word idx settles
+                m.d.comb += bus.lock.eq(1)
+                m.next = "ACCESS"
+
+            with m.State("ACCESS"):
+                m.d.comb += [
+                    bus.lock.eq(1),
+                    bus.stb.eq(1),
+                    bus.addr.eq(a_full[:ADDR_WIDTH]),
+                    bus.we.eq(is_write),
+                    bus.w_data.eq(rd.data),
+                ]
+                with m.If(bus.ack):
+                    with m.If(bus.status != Status.OK):     # the map and the slave disagree
+                        m.d.sync += [
+                            r_status.eq(Mux(bus.status == Status.READ_ONLY,
+                                            ReplyStatus.READ_ONLY, ReplyStatus.BAD_ADDRESS)),
+                            r_info.eq(idx),
+                        ]
+                        m.next = "REPLY"
+                    with m.Else():
+                        with m.If(~is_write):
+                            m.d.comb += [wr.addr.eq(idx), wr.data.eq(bus.r_data), wr.en.eq(1)]
+                        with m.If(idx == count_in - 1):
+                            with m.If(~is_write):
+                                m.d.sync += [nwords.eq(count_in), r_info.eq(count_in)]
+                            m.next = "REPLY"
+                        with m.Else():
+                            m.d.sync += idx.eq(idx + 1)
+                            m.next = "SETUP"
+
+            with m.State("REPLY"):
+                with m.If(r_status == ReplyStatus.OK):
+                    counter(self.frames_ok)
+                with m.Elif(r_status == ReplyStatus.BAD_CRC):
+                    with m.If(framing):
+                        counter(self.framing_errors)
+                    with m.Else():
+                        counter(self.crc_errors)
+                with m.Else():
+                    counter(self.rejected)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0)]
+                next_j(0)
+                m.next = "CRC"
+
+            # One reply byte per clock in every pass: the buffer is addressed with j_next, so
+            # `jb` is the byte at j in every clock.
+            with m.State("CRC"):                    # CRC over the reply payload
+                m.d.sync += crc.eq(crc16_byte(crc, jb))
+                with m.If(j == dend - 1):
+                    next_j(0)
+                    m.next = "SCAN"
+                with m.Else():
+                    next_j(j + 1)
+
+            with m.State("SCAN"):                   # length of the COBS block starting at p
+                with m.If(j == rlen):
+                    m.d.sync += [blk.eq(j - p), blk_zero.eq(0)]
+                    next_j(p)
+                    m.next = "CODE"
+                with m.Elif(j - p == 254):
+                    m.d.sync += [blk.eq(254), blk_zero.eq(0)]
+                    next_j(p)
+                    m.next = "CODE"
+                with m.Elif(jb == 0):
+                    m.d.sync += [blk.eq(j - p), blk_zero.eq(1)]
+                    next_j(p)
+                    m.next = "CODE"
+                with m.Else():
+                    next_j(j + 1)
+
+            with m.State("CODE"):
+                next_j(j)
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
+                with m.If(self.o.ready):
+                    with m.If(blk == 0):
+                        m.next = "NEXT"
+                    with m.Else():
+                        m.next = "DATA"
+
+            with m.State("DATA"):
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
+                with m.If(self.o.ready):
+                    next_j(j + 1)
+                    with m.If(j + 1 == p + blk):
+                        m.next = "NEXT"
+                with m.Else():
+                    next_j(j)
+
+            with m.State("NEXT"):
+                with m.If(blk_zero):
+                    m.d.sync += p.eq(p + blk + 1)
+                    next_j(p + blk + 1)
+                    m.next = "SCAN"
+                with m.Elif((blk == 254) & (p + blk != rlen)):
+                    m.d.sync += p.eq(p + blk)
+                    next_j(p + blk)
+                    m.next = "SCAN"
+                with m.Else():
+                    m.next = "END"
+
+            with m.State("END"):
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(0)]
+                with m.If(self.o.ready):
+                    reset_frame()
+                    m.next = "RECV"
+        return m
+
+
+class HostLink(wiring.Component):
+    """The host link on UART pins: :class:`UartRx` → :class:`LinkCore` → :class:`UartTx`.
+
+    Parameters
+    ----------
+    clk_hz : float
+        Clock frequency, Hz.
+    baud : float
+        UART bit rate, bit/s; at most ``clk_hz / 8``.
+    max_words, address_map, counter_width
+        See :class:`LinkCore`.
+
+    Members
+    -------
+    rx : In(1, init=1)
+        UART receive pin (asynchronous; synchronised inside).
+    tx : Out(1, init=1)
+        UART transmit pin.
+    bus : Out(RegBusSignature())
+        Register bus master.
+    frames_ok, crc_errors, framing_errors, rejected, dropped : Out(counter_width)
+        See :class:`LinkCore`; UART framing errors count in ``framing_errors`` (through the
+        frame's BAD_CRC reply), bytes lost while the link is busy in ``dropped``.
+
+    Attributes
+    ----------
+    core : LinkCore
+    max_frame : int
+        See :class:`LinkCore`.
+    """
+
+    def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
+                 counter_width=16):
+        uart_params("HostLink", clk_hz, baud)
+        hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
+        self._core = LinkCore(max_words=max_words, address_map=address_map,
+                              counter_width=counter_width)
+        self._clk_hz, self._baud = clk_hz, baud
+        cw = self._core.counter_width
+        super().__init__({
+            "rx": In(1, init=1),
+            "tx": Out(1, init=1),
+            "bus": Out(RegBusSignature()),
+            "frames_ok": Out(cw),
+            "crc_errors": Out(cw),
+            "framing_errors": Out(cw),
+            "rejected": Out(cw),
+            "dropped": Out(cw),
+        })
+
+    clk_hz = property(lambda self: self._clk_hz)
+    baud = property(lambda self: self._baud)
+    core = property(lambda self: self._core)
+    max_words = property(lambda self: self._core.max_words)
+    address_map = property(lambda self: self._core.address_map)
+    max_frame = property(lambda self: self._core.max_frame)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.uart_rx = urx = UartRx(clk_hz=self._clk_hz, baud=self._baud)
+        m.submodules.uart_tx = utx = UartTx(clk_hz=self._clk_hz, baud=self._baud)
+        m.submodules.core = core = self._core
+        m.d.comb += [
+            urx.rx.eq(self.rx),
+            self.tx.eq(utx.tx),
+            core.i.payload.eq(urx.o.payload),
+            core.i.valid.eq(urx.o.valid),
+            urx.o.ready.eq(1),
+            core.rx_lost.eq(urx.o.valid & ~core.i.ready),
+            core.rx_error.eq(urx.error),
+        ]
+        wiring.connect(m, core=core.o, uart_tx=utx.i)
+        wiring.connect(m, core=core.bus, link=wiring.flipped(self.bus))
+        for name in ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped"):
+            m.d.comb += getattr(self, name).eq(getattr(core, name))
+        return m

@@ -1,0 +1,238 @@
+# Ref: docs/PROTOCOL.md §Physical layer (UART 8N1, LSB first)
+"""UART receiver and transmitter, 8 data bits, no parity, 1 stop bit, any baud rate up to clk/8.
+
+Both time their bits with a phase accumulator of :data:`PHASE_BITS` bits that adds
+``round(baud · 2**PHASE_BITS / clk_hz)`` every clock: the average bit time is exact to
+``2**-PHASE_BITS`` relative (3 Mbaud at 50 MHz = 16.67 clocks per bit alternates 16 and 17 clocks),
+so neither end accumulates a rate error over a byte.
+"""
+
+from amaranth.hdl import Cat, Const, Module, Signal
+from amaranth.lib import stream, wiring
+from amaranth.lib.cdc import FFSynchronizer
+from amaranth.lib.wiring import In, Out
+
+__all__ = ["PHASE_BITS", "uart_params", "UartRx", "UartTx"]
+
+#: Width of the baud phase accumulators.
+PHASE_BITS = 24
+
+
+def uart_params(name, clk_hz, baud):
+    """Validate a UART's ``clk_hz`` and ``baud`` and return the phase increment.
+
+    Raises
+    ------
+    TypeError
+        If ``clk_hz`` or ``baud`` is not a positive number.
+    ValueError
+        If ``baud`` is above ``clk_hz / 8`` (fewer than 8 clocks per bit).
+    """
+    for what, value in (("clk_hz", clk_hz), ("baud", baud)):
+        if (not isinstance(value, (int, float)) or isinstance(value, bool)
+                or not value > 0 or value != value):
+            raise TypeError(f"{name} {what} must be a positive number, not {value!r}")
+    if baud * 8 > clk_hz:
+        raise ValueError(f"{name} baud must be at most clk_hz / 8 = {clk_hz / 8:g}, not {baud!r}")
+    return round(baud * 2 ** PHASE_BITS / clk_hz)
+
+
+class UartTx(wiring.Component):
+    """UART transmitter (8N1, LSB first, line idle high).
+
+    Parameters
+    ----------
+    clk_hz : float
+        Clock frequency, Hz.
+    baud : float
+        Bit rate, bit/s; at most ``clk_hz / 8``.
+
+    Members
+    -------
+    i : In(stream.Signature(8))
+        Bytes to send. ``i.ready`` is high while the transmitter is idle and in the last clock of
+        a stop bit, so back-to-back bytes leave with exactly one stop bit between them.
+    tx : Out(1, init=1)
+        Serial output (registered).
+    busy : Out(1)
+        A byte is being sent.
+
+    Attributes
+    ----------
+    increment : int
+        Phase increment per clock; the true baud rate is ``increment · clk_hz / 2**PHASE_BITS``.
+    latency : int
+        1: with a transfer on ``i`` in clock ``t`` the start bit is on ``tx`` from clock ``t + 1``.
+
+    Raises
+    ------
+    TypeError, ValueError
+        See :func:`uart_params`.
+    """
+
+    i: In(stream.Signature(8))
+    tx: Out(1, init=1)
+    busy: Out(1)
+
+    def __init__(self, *, clk_hz=50e6, baud=115200):
+        self._increment = uart_params("UartTx", clk_hz, baud)
+        self._clk_hz, self._baud = clk_hz, baud
+        super().__init__()
+
+    clk_hz = property(lambda self: self._clk_hz)
+    baud = property(lambda self: self._baud)
+    increment = property(lambda self: self._increment)
+    latency = 1
+
+    def elaborate(self, platform):
+        m = Module()
+        phase = Signal(PHASE_BITS + 1)          # top bit: carry = a bit time has passed
+        shreg = Signal(9)                       # data bits then the stop bit, shifted out LSB first
+        left = Signal(range(11))                # bits still to send after the current one
+
+        carry = phase[-1]
+        m.d.sync += phase.eq(phase[:-1] + self._increment)
+        last = self.busy & carry & (left == 0)
+        m.d.comb += self.i.ready.eq(~self.busy | last)
+
+        with m.If(self.busy & carry):
+            m.d.sync += [
+                self.tx.eq(shreg[0]),
+                shreg.eq(shreg >> 1),
+                left.eq(left - 1),
+            ]
+            with m.If(left == 0):
+                m.d.sync += [self.busy.eq(0), self.tx.eq(1)]
+        with m.If(self.i.valid & self.i.ready):
+            m.d.sync += [
+                self.tx.eq(0),                                  # start bit
+                shreg.eq(Cat(self.i.payload, Const(1, 1))),
+                left.eq(9),
+                self.busy.eq(1),
+            ]
+            with m.If(~self.busy):
+                m.d.sync += phase.eq(self._increment)           # a full bit from now
+        return m
+
+
+class UartRx(wiring.Component):
+    """UART receiver (8N1, LSB first) with a 2-flop synchroniser and 3-sample majority.
+
+    The synchronised line passes a majority-of-3 filter (glitches of one clock vanish). A falling
+    edge starts the bit timer at half a bit; each bit is sampled where the timer carries, i.e. in
+    the middle of the bit. A start bit found high in its middle is a glitch and is ignored. The
+    byte is delivered in the middle of the stop bit, and the receiver looks for the next start
+    edge from there (a sender up to ~5 % fast is followed). A stop bit found low is a framing
+    error: the byte is discarded, ``error`` pulses and the receiver waits for the line to be high
+    before it looks for a start bit again (a break does not produce a flood of bytes).
+
+    Tolerance: the sample of the stop bit lies ``9.5`` bit times after the start edge, within
+    ±1 clock (edge detection and phase quantisation, centred); the sender's own bit-time
+    quantisation adds half a clock. With ``c = clk_hz / baud`` clocks per bit the sender's rate
+    may differ by about ``±(0.5 - 1.5/c) / 9.5``: ±4.3 % at 3 Mbaud and 50 MHz (c = 16.7),
+    ±3.8 % at 3 Mbaud and 33.333 MHz (c = 11.1), ±3.3 % at c = 8, ±5.2 % at 115 200 baud.
+    ``tests/test_uart.py`` checks ±3 % at each of these.
+
+    Parameters
+    ----------
+    clk_hz : float
+        Clock frequency, Hz.
+    baud : float
+        Bit rate, bit/s; at most ``clk_hz / 8``.
+
+    Members
+    -------
+    rx : In(1, init=1)
+        Serial input (asynchronous; synchronised inside).
+    o : Out(stream.Signature(8))
+        Received bytes. The receiver cannot stall: ``o.valid`` holds the byte until ``o.ready``;
+        a byte completed while the previous one is still held replaces it and pulses
+        ``overrun``.
+    error : Out(1)
+        One-clock pulse: framing error (stop bit low); the byte is dropped.
+    overrun : Out(1)
+        One-clock pulse: a byte was lost because ``o`` was not taken in time.
+
+    Attributes
+    ----------
+    latency_bits : float
+        9.5: a byte is delivered 9.5 bit times (plus 4 clocks: synchroniser, filter, register)
+        after the falling edge of its start bit.
+
+    Raises
+    ------
+    TypeError, ValueError
+        See :func:`uart_params`.
+    """
+
+    rx: In(1, init=1)
+    o: Out(stream.Signature(8))
+    error: Out(1)
+    overrun: Out(1)
+
+    def __init__(self, *, clk_hz=50e6, baud=115200):
+        self._increment = uart_params("UartRx", clk_hz, baud)
+        self._clk_hz, self._baud = clk_hz, baud
+        super().__init__()
+
+    clk_hz = property(lambda self: self._clk_hz)
+    baud = property(lambda self: self._baud)
+    increment = property(lambda self: self._increment)
+    latency_bits = 9.5
+
+    def elaborate(self, platform):
+        m = Module()
+        synced = Signal(init=1)
+        m.submodules.sync = FFSynchronizer(self.rx, synced, init=1)
+        taps = Signal(3, init=0b111)
+        line = Signal(init=1)                   # majority of the last three synchronised samples
+        m.d.sync += [
+            taps.eq(Cat(synced, taps[:2])),
+            line.eq((taps[0] & taps[1]) | (taps[1] & taps[2]) | (taps[0] & taps[2])),
+        ]
+        line_prev = Signal(init=1)
+        m.d.sync += line_prev.eq(line)
+
+        phase = Signal(PHASE_BITS + 1)
+        carry = phase[-1]
+        shreg = Signal(8)
+        count = Signal(range(9))                # data bits received
+
+        m.d.sync += [self.error.eq(0), self.overrun.eq(0)]
+        with m.If(self.o.ready):
+            m.d.sync += self.o.valid.eq(0)
+
+        with m.FSM():
+            with m.State("IDLE"):
+                with m.If(line_prev & ~line):
+                    # Half a bit to the middle, less the clock by which the edge and the
+                    # sampling are late on average: samples land within ±1 clock of mid-bit.
+                    m.d.sync += phase.eq((1 << (PHASE_BITS - 1)) + self._increment)
+                    m.next = "START"
+            with m.State("START"):
+                m.d.sync += phase.eq(phase[:-1] + self._increment)
+                with m.If(carry):
+                    m.d.sync += count.eq(0)
+                    m.next = "IDLE"
+                    with m.If(~line):
+                        m.next = "DATA"
+            with m.State("DATA"):
+                m.d.sync += phase.eq(phase[:-1] + self._increment)
+                with m.If(carry):
+                    m.d.sync += [shreg.eq(Cat(shreg[1:], line)), count.eq(count + 1)]
+                    with m.If(count == 7):
+                        m.next = "STOP"
+            with m.State("STOP"):
+                m.d.sync += phase.eq(phase[:-1] + self._increment)
+                with m.If(carry):
+                    with m.If(line):
+                        m.d.sync += [self.o.payload.eq(shreg), self.o.valid.eq(1)]
+                        m.d.sync += self.overrun.eq(self.o.valid & ~self.o.ready)
+                        m.next = "IDLE"
+                    with m.Else():
+                        m.d.sync += self.error.eq(1)
+                        m.next = "BREAK"
+            with m.State("BREAK"):
+                with m.If(line):
+                    m.next = "IDLE"
+        return m
