@@ -106,13 +106,20 @@ def _io_lines(fig):
 def cmd_bench(args):
     from ..sim.bench import bench_arith, bench_io
     start = time.perf_counter()
-    suites = ["arith", "io"] if args.suite == "all" else [args.suite]
+    suites = ["arith", "io", "link"] if args.suite == "all" else [args.suite]
     fig, lines = {}, []
     for suite in suites:
         if suite == "arith":
             part = bench_arith(count=args.count or 100_000, seed=args.seed,
                                area=not args.no_area, progress=not args.quiet)
             lines += _arith_lines(part)
+        elif suite == "link":
+            from ..sim.verify import link
+            part = link.run(rw=1000, malformed=10_000, seed=args.seed, progress=not args.quiet)
+            lines += ["host link (simulated gateware):",
+                      *("  " + line for line in link.summary(part).splitlines())]
+            public = ("rw_mismatches", "malformed_frames", "malformed_writes", "hangs")
+            part = {k if k in public else f"link_{k}": v for k, v in part.items()}
         else:
             part = bench_io(count=args.count or 10_000, seed=args.seed,
                             drift_counts=args.drift_counts, area=not args.no_area,
@@ -148,9 +155,10 @@ def build_parser():
     p.set_defaults(func=cmd_regs)
 
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
-    p.add_argument("suite", nargs="?", default="all", choices=["all", "arith", "io"],
-                   help="which figures: arith (foundation blocks), io (motor-side blocks), all "
-                        "(default: %(default)s)")
+    p.add_argument("suite", nargs="?", default="all", choices=["all", "arith", "io", "link"],
+                   help="which figures: arith (foundation blocks), io (motor-side blocks), link "
+                        "(host link: 1 000 writes + read-backs through pyserial, 10 000 malformed "
+                        "frames), all (default: %(default)s)")
     p.add_argument("--count", type=_positive_int, default=None,
                    help="random vectors per block (default: 100 000 for arith, 10 000 for io)")
     p.add_argument("--drift-counts", type=_positive_int, default=1_000_000,

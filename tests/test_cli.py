@@ -41,3 +41,14 @@ def test_bench_rejects_bad_count(capsys):
     with pytest.raises(SystemExit):
         main(["bench", "--count", "0"])
     assert "must be at least 1, not 0" in capsys.readouterr().err
+
+
+def test_bench_link_json_keys(capsys, monkeypatch):
+    from foc_servo.sim.verify import link
+    real_run = link.run
+    monkeypatch.setattr(link, "run", lambda **kw: real_run(**{**kw, "rw": 5, "malformed": 12,
+                                                                "uart_pairs": 1}))
+    main(["bench", "link", "--quiet", "--json"])
+    figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("rw_mismatches", "malformed_frames", "malformed_writes", "hangs"):
+        assert figures[key] == (12 if key == "malformed_frames" else 0), key
