@@ -1,0 +1,431 @@
+# Ref: paper Fig. 1 (system structure), Fig. 2 (FPGA controller); SPEC.md §4; issue 5 item 6
+"""The whole servo controller between its pins: every block, wired to the register file.
+
+::
+
+    uart_rx/tx ─ HostLink ─ bus ─ RegisterFile ─ (every register ↔ its block port)
+    enc_a/b/z, hall ─ EncoderFrontEnd (own 2-flop sync + filter) ─ θ_e, count, a_rise ─ MTSpeed
+    PWMTimer ─ sample ─ AdcInterface (adc_cs_n, adc_sclk, adc_sdo) ─ CurrentLoop ─ duties ─ PWMTimer
+    PWMTimer.pwm ─ Gates (dead time, enable = Servo.enable, trip) ─ gate_h, gate_l
+    fault_n, oc_comp ─ FFSynchronizer (2 flops) ─ Protection ─ trip ─ Gates, Servo
+    Servo (modes, speed loop, open-loop angle) ─ θ, references ─ CurrentLoop; ref_step ─ Scope
+
+Timing within one PWM period (``period_start`` = ``pos`` 0):
+
+* ``period_start``: the register file commits staged writes (``commit``), the Servo copies the
+  mode and runs its open-loop accumulator (``loop``), the M/T speed window closes (``update``);
+* ``sample`` (period centre by default): the ADC converts; ``AdcInterface.latency`` clocks later
+  the current loop starts (θ, references latched), its duties load at the next period boundary.
+
+So the control parameters change only while the current loop is idle, as its inputs require,
+provided the loop finishes before the period ends (``pwm_sample_custom`` must not put the sample
+within ``AdcInterface.latency + CurrentLoop.latency`` clocks of the period end).
+
+A driver fault (``fault_n`` low) reaches the gates in :attr:`Top.fault_latency` clocks: 2 clocks
+of synchroniser, 1 in :class:`~.protect.Protection` (``present`` register, ``trip`` follows
+combinationally), 1 in :class:`~.gates.Gates` (registered outputs).
+"""
+
+import math
+import numbers
+
+from amaranth.hdl import Cat, Module, Mux, Signal, Value
+from amaranth.lib import wiring
+from amaranth.lib.cdc import FFSynchronizer
+from amaranth.lib.wiring import In, Out
+
+from .adc import AdcInterface
+from .encoder import EncoderFrontEnd
+from .foc import CurrentLoop
+from .gates import Gates
+from .hostlink import HostLink
+from .mt_speed import MTSpeed
+from .protect import FAULTS, Protection
+from .regmap import Access, Scales, build_regmap
+from .regs import RegisterFile
+from .scope import Scope
+from .servo import Servo
+from .svpwm import PWMTimer, pwm_half_period
+
+__all__ = ["Top", "regmap_address_map"]
+
+#: Width of the PWM counter, the duties and ``pwm_sample_point``.
+COUNT_WIDTH = 16
+#: Synchroniser flops on ``fault_n`` and ``oc_comp``.
+SYNC_STAGES = 2
+
+
+def _raw(port):
+    """The plain bits of a port (a data View / EnumView, or a Value)."""
+    return port.as_value() if hasattr(port, "as_value") else Value.cast(port)
+
+
+def _is_hz(value):
+    return (isinstance(value, numbers.Real) and not isinstance(value, bool)
+            and math.isfinite(value) and value > 0)
+
+
+def regmap_address_map(regmap):
+    """The host link's address map of a register map: ``rw`` and ``strobe`` words writable,
+    ``ro`` / ``const`` words and the windows read-only, every other address absent (so the link
+    rejects a bad burst before its first access: all or nothing)."""
+    regions = [(addr, addr + 1, r.access in (Access.RW, Access.STROBE))
+               for addr, r, _ in regmap.words()]
+    regions += [(w.addr, w.addr + w.size, False) for w in regmap.windows]
+    return tuple(regions)
+
+
+class Top(wiring.Component):
+    """The servo controller on its pins (module docstring).
+
+    Parameters
+    ----------
+    clk_hz : float
+        System clock, Hz (50 MHz and 33.333 MHz are the supported builds), 1 MHz … 500 MHz.
+    pwm_hz : float
+        PWM frequency (the current-loop rate), Hz; the actual one is :attr:`pwm_hz_actual`
+        (the period is a whole even number of clocks below ``2**16``).
+    baud : float
+        Host-link UART bit rate, bit/s, at most ``clk_hz / 8``.
+    scales : Scales or None
+        System scales for the identification registers and the clock-dependent reset values;
+        ``None``: :class:`~.regmap.Scales` defaults at this ``clk_hz`` and the actual PWM
+        frequency. Its ``clk_hz`` must equal ``clk_hz`` and its ``pwm_hz`` the requested or the
+        actual PWM frequency (the identification register reports the actual one).
+    dead_time_s : float or None
+        Reset value of the ``dead_time`` register, s (rounded to whole clocks, 1 … 255);
+        ``None``: the register map's default (1 µs).
+    sclk_hz : float
+        Highest ADC SCLK frequency (:class:`~.adc.AdcInterface`).
+    max_words : int
+        Longest host-link burst (:class:`~.hostlink.HostLink`).
+
+    Members
+    -------
+    uart_rx : In(1, init=1)
+        Host link receive pin (asynchronous; synchronised in the UART).
+    uart_tx : Out(1, init=1)
+        Host link transmit pin.
+    enc_a, enc_b, enc_z : In(1)
+        Encoder pins (asynchronous; synchronised and filtered in the encoder front end).
+    hall : In(3)
+        Hall pins, bit 0 = H_a (asynchronous).
+    adc_cs_n, adc_sclk : Out(1)
+        AD7380-4 chip select and serial clock (idle high).
+    adc_sdo : In(4)
+        AD7380-4 SDOA … SDOD (bit 0 = SDOA: phase a current; B: phase b; C: U_dc; D: unused).
+    gate_h, gate_l : Out(3)
+        High- and low-side gate drives, bit 0 = phase a, all low at reset.
+    fault_n : In(1, init=1)
+        Gate-driver fault, active low (asynchronous).
+    oc_comp : In(1)
+        Fast over-current comparator, active high (asynchronous).
+    led : Out(2)
+        Bit 0: trip (gates forced off); bit 1: encoder aligned by its index.
+
+    Attributes
+    ----------
+    regmap : RegMap
+        The register map built for :attr:`scales`.
+    scales : Scales
+    pwm_period : int
+        Clocks per PWM period.
+    pwm_hz_actual : float
+    fault_latency : int
+        Clocks from ``fault_n`` low at the pin (in clock ``t``) to all gates low (in clock
+        ``t + fault_latency``): 2 synchroniser flops + :attr:`Protection.latency` +
+        :attr:`Gates.trip_latency` = 4.
+    loop_latency : int
+        Clocks from the ``sample`` strobe to the duties: ADC + current loop.
+
+    Raises
+    ------
+    TypeError
+        A parameter of the wrong type.
+    ValueError
+        A frequency out of range, or parameters that do not agree.
+    """
+
+    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
+                 sclk_hz=25e6, max_words=64):
+        for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
+                            ("sclk_hz", sclk_hz)):
+            if not _is_hz(value):
+                raise TypeError(f"Top {name} must be a positive number in Hz, not {value!r}")
+        if not 1e6 <= clk_hz <= 500e6:
+            raise ValueError(f"Top clk_hz must be from 1 MHz to 500 MHz, not {clk_hz!r}")
+        n = pwm_half_period(clk_hz, pwm_hz)
+        if n < 4 or 2 * n >= 1 << COUNT_WIDTH:
+            raise ValueError(f"Top pwm_hz must give a PWM period of 8 to {(1 << COUNT_WIDTH) - 2} "
+                             f"clocks at clk_hz {clk_hz:g} Hz, not {pwm_hz!r} ({2 * n} clocks)")
+        if baud * 8 > clk_hz:
+            raise ValueError(f"Top baud must be at most clk_hz / 8 = {clk_hz / 8:g}, "
+                             f"not {baud!r}")
+        pwm_actual = clk_hz / (2 * n)
+        if scales is None:
+            scales = Scales(clk_hz=float(clk_hz), pwm_hz=pwm_actual)
+        elif not isinstance(scales, Scales):
+            raise TypeError(f"Top scales must be a Scales or None, not {scales!r}")
+        else:
+            if not math.isclose(scales.clk_hz, clk_hz, rel_tol=1e-9):
+                raise ValueError(f"Top scales.clk_hz must equal clk_hz {clk_hz:g}, "
+                                 f"not {scales.clk_hz!r}")
+            if not any(math.isclose(scales.pwm_hz, f, rel_tol=1e-9) for f in (pwm_hz, pwm_actual)):
+                raise ValueError(f"Top scales.pwm_hz must equal pwm_hz {pwm_hz:g} or the actual "
+                                 f"{pwm_actual:g}, not {scales.pwm_hz!r}")
+            scales = Scales(clk_hz=float(clk_hz), pwm_hz=pwm_actual, i_fs_a=scales.i_fs_a,
+                            u_fs_v=scales.u_fs_v, n_fs_rpm=scales.n_fs_rpm)
+        regmap = build_regmap(scales)
+        if dead_time_s is not None:
+            if (not isinstance(dead_time_s, numbers.Real) or isinstance(dead_time_s, bool)
+                    or not math.isfinite(dead_time_s)):
+                raise TypeError(f"Top dead_time_s must be a number of seconds or None, "
+                                f"not {dead_time_s!r}")
+            dead = round(dead_time_s * clk_hz)
+            if not 1 <= dead <= 255:
+                raise ValueError(f"Top dead_time_s must be 1 to 255 clocks at {clk_hz:g} Hz, "
+                                 f"not {dead_time_s!r} ({dead} clocks)")
+            regmap = regmap.with_constants({"dead_time": dead})
+        if (not isinstance(max_words, int) or isinstance(max_words, bool)
+                or not 1 <= max_words <= 255):
+            raise TypeError(f"Top max_words must be an integer from 1 to 255, not {max_words!r}")
+        self._clk_hz = float(clk_hz)
+        self._scales = scales
+        self._regmap = regmap
+
+        # Built here (after every check) so that their timing attributes are known.
+        self._regs = RegisterFile(regmap)
+        self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
+                              address_map=regmap_address_map(regmap))
+        self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
+        self._loop = CurrentLoop(count_width=COUNT_WIDTH)
+        self._encoder = EncoderFrontEnd()
+        self._mt = MTSpeed(clk_hz=clk_hz)
+        self._servo = Servo()
+        self._protect = Protection(speed_width=32)
+        self._gates = Gates()
+        self._scope = Scope()
+
+        super().__init__({
+            "uart_rx": In(1, init=1),
+            "uart_tx": Out(1, init=1),
+            "enc_a": In(1),
+            "enc_b": In(1),
+            "enc_z": In(1),
+            "hall": In(3),
+            "adc_cs_n": Out(1, init=1),
+            "adc_sclk": Out(1, init=1),
+            "adc_sdo": In(4),
+            "gate_h": Out(3),
+            "gate_l": Out(3),
+            "fault_n": In(1, init=1),
+            "oc_comp": In(1),
+            "led": Out(2),
+        })
+
+    clk_hz = property(lambda self: self._clk_hz)
+    scales = property(lambda self: self._scales)
+    regmap = property(lambda self: self._regmap)
+    pwm_period = property(lambda self: self._timer.period)
+    pwm_hz_actual = property(lambda self: self._clk_hz / self._timer.period)
+    fault_latency = property(lambda self: SYNC_STAGES + Protection.latency + Gates.trip_latency)
+    loop_latency = property(lambda self: self._adc.latency + self._loop.latency)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.regs = regs = self._regs
+        m.submodules.link = link = self._link
+        m.submodules.timer = timer = self._timer
+        m.submodules.adc = adc = self._adc
+        m.submodules.current_loop = cl = self._loop
+        m.submodules.encoder = enc = self._encoder
+        m.submodules.mt_speed = mt = self._mt
+        m.submodules.servo = servo = self._servo
+        m.submodules.protect = prot = self._protect
+        m.submodules.gates = gates = self._gates
+        m.submodules.scope = scope = self._scope
+
+        # --- pins ---------------------------------------------------------------------------
+        fault_n = Signal(init=1)
+        oc_comp = Signal()
+        m.submodules.fault_sync = FFSynchronizer(self.fault_n, fault_n, init=1,
+                                                 stages=SYNC_STAGES)
+        m.submodules.oc_sync = FFSynchronizer(self.oc_comp, oc_comp, stages=SYNC_STAGES)
+        m.d.comb += [
+            link.rx.eq(self.uart_rx),
+            self.uart_tx.eq(link.tx),
+            enc.a.eq(self.enc_a), enc.b.eq(self.enc_b), enc.z.eq(self.enc_z),
+            enc.hall.eq(self.hall),
+            self.adc_cs_n.eq(adc.cs_n),
+            self.adc_sclk.eq(adc.sclk),
+            adc.sdo.eq(self.adc_sdo),       # straight to the shift registers (see AdcInterface)
+            self.gate_h.eq(Cat(gates.high.a, gates.high.b, gates.high.c)),
+            self.gate_l.eq(Cat(gates.low.a, gates.low.b, gates.low.c)),
+            self.led.eq(Cat(prot.trip, enc.aligned)),
+        ]
+
+        # --- data path ----------------------------------------------------------------------
+        wiring.connect(m, link=link.bus, regs=regs.bus)
+        wiring.connect(m, adc=adc.o, current_loop=cl.i)
+        wiring.connect(m, current_loop=cl.o, timer=timer.duty)
+        wiring.connect(m, current_loop=cl.phase, protect=prot.i)
+        wiring.connect(m, current_loop=cl.udc, protect=prot.udc)
+        speed = mt.o.payload.speed
+        m.d.comb += [
+            # Loop boundary: staged registers, mode, open-loop angle, speed window.
+            regs.commit.eq(timer.period_start),
+            servo.loop.eq(timer.period_start),
+            mt.update.eq(timer.period_start),
+            adc.sample.eq(timer.sample),
+            cl.scale.eq(timer.full_scale),
+
+            mt.edge.step.eq(enc.a_rise),
+            mt.edge.neg.eq(~enc.up),
+            servo.speed.valid.eq(mt.o.valid),
+            servo.speed.payload.eq(mt.o.payload),
+            servo.theta_meas.eq(enc.theta),
+            servo.trip.eq(prot.trip),
+
+            cl.theta.eq(servo.theta),
+            cl.theta_lead.eq(0),            # no register yet: no delay compensation
+            cl.enable.eq(servo.enable),
+            cl.ol_enable.eq(servo.ol_enable),
+            cl.ol_ud.eq(servo.ol_ud),
+            cl.ol_uq.eq(servo.ol_uq),
+            cl.id_ref.eq(servo.id_ref),
+            cl.iq_ref.eq(servo.iq_ref),
+            cl.speed.eq(speed),
+
+            prot.fault_n.eq(fault_n),
+            prot.oc_comp.eq(oc_comp),
+            prot.speed.valid.eq(mt.o.valid),
+            prot.speed.payload.eq(speed),
+            prot.encoder_illegal.eq(enc.illegal),
+            prot.hall_invalid.eq(enc.hall_fault),
+
+            gates.pwm.eq(timer.pwm),
+            gates.enable.eq(servo.enable),
+            gates.trip.eq(prot.trip),
+
+            scope.strobe.eq(cl.done),       # one sample per current-loop computation
+            scope.trigger.eq(servo.ref_step),
+        ]
+
+        # --- registers → blocks (register name ≠ port name in places) -----------------------
+        m.d.comb += [
+            _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
+            servo.speed_ref.eq(regs.speed_ref),
+            servo.id_set.eq(regs.i_d_ref),
+            servo.iq_set.eq(regs.i_q_ref),
+            _raw(servo.ol_src).eq(_raw(regs.ol_angle_mode)),  # AngleMode ≡ AngleSource
+            servo.ud_set.eq(regs.ol_u_d),
+            servo.uq_set.eq(regs.ol_u_q),
+            servo.ol_theta.eq(regs.ol_angle),
+            servo.ol_freq.eq(regs.ol_freq),
+
+            cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
+            cl.lim_lo_d.eq(regs.pi_d_lim_lo), cl.lim_hi_d.eq(regs.pi_d_lim_hi),
+            cl.kp_q.eq(regs.pi_q_kp), cl.kx_q.eq(regs.pi_q_kx),
+            cl.lim_lo_q.eq(regs.pi_q_lim_lo), cl.lim_hi_q.eq(regs.pi_q_lim_hi),
+            cl.gain_a.eq(regs.clarke_gain_a), cl.offset_a.eq(regs.clarke_offset_a),
+            cl.gain_b.eq(regs.clarke_gain_b), cl.offset_b.eq(regs.clarke_offset_b),
+            cl.u_rated.eq(regs.u_rated),
+            cl.ff_enable.eq(regs.decouple_enable),
+            cl.ff_l.eq(regs.decouple_l),
+            cl.ff_psi.eq(regs.decouple_psi),
+
+            timer.symmetric.eq(regs.pwm_symmetric),
+            timer.sample_custom.eq(regs.pwm_sample_custom),
+            timer.sample_point.eq(regs.pwm_sample_point),
+            gates.dead_time.eq(regs.dead_time),
+
+            servo.speed_kp.eq(regs.pi_speed_kp),
+            servo.speed_kx.eq(regs.pi_speed_kx),
+            servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
+            servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
+            # speed_div: "every n periods, 0 acts as 1"; rate_div: "every rate_div + 1".
+            servo.speed_rate_div.eq(Mux(regs.speed_div == 0, 0, regs.speed_div - 1)),
+            mt.k.eq(regs.mt_k),
+
+            enc.lines.eq(regs.enc_lines),
+            enc.pole_pairs.eq(regs.enc_pole_pairs),
+            enc.z_offset.eq(regs.enc_z_offset),
+            enc.hall_offset.eq(regs.enc_hall_offset),
+            enc.length.eq(regs.enc_filter),
+            enc.realign.eq(regs.enc_realign),
+
+            prot.oc_limit.eq(regs.prot_oc_limit),
+            prot.ov_limit.eq(regs.prot_ov_limit),
+            prot.uv_limit.eq(regs.prot_uv_limit),
+            prot.uv_enable.eq(regs.prot_uv_enable),
+            prot.os_limit.eq(regs.prot_os_limit),
+            _raw(prot.mask).eq(_raw(regs.prot_mask)),      # same FAULTS bit order (checked below)
+            prot.clear.eq(regs.clear_faults),
+
+            # scope_decim: "every n ticks, 0 acts as 1"; Scope.decim: "every decim + 1".
+            scope.decim.eq(Mux(regs.scope_decim == 0, 0, regs.scope_decim - 1)),
+            # scope_pretrig is 16 bits, Scope.pretrigger log2(depth): clamp to depth − 1.
+            scope.pretrigger.eq(Mux(regs.scope_pretrig >= scope.depth, scope.depth - 1,
+                                    regs.scope_pretrig)),
+            _raw(scope.trig_src).eq(_raw(regs.scope_trig_src)),
+            scope.arm.eq(regs.scope_arm),
+            scope.force.eq(regs.scope_force),
+        ]
+        assert tuple(regs.prot_mask.shape().members) == FAULTS
+        # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must
+        # still record 0, so out-of-range codes saturate to the first unused code (not truncate,
+        # which would alias them onto real sources).
+        n_src = len(scope.source_names)
+        unused = min(n_src, (1 << scope.sel_width) - 1)
+        for c in range(scope.channels):
+            chan = getattr(regs, f"scope_chan{c}")
+            m.d.comb += scope.sel[c].eq(Mux(chan >= n_src, unused, chan))
+        # Window: 12-bit word offset = channel · 1024 + index; 16-bit samples zero-extended
+        # (the host sign-extends the signed sources).
+        m.d.comb += [
+            scope.rd_addr.eq(regs.scope_rd_addr),
+            regs.scope_rd_data.eq(scope.rd_data),
+        ]
+        src = scope.src
+        m.d.comb += [
+            src.speed.eq(speed),
+            src.speed_ref.eq(regs.speed_ref),
+            src.i_d.eq(cl.i_d), src.i_q.eq(cl.i_q),
+            src.i_d_ref.eq(servo.id_ref), src.i_q_ref.eq(servo.iq_ref),
+            src.i_alpha.eq(cl.i_alpha), src.i_beta.eq(cl.i_beta),
+            src.u_d.eq(cl.u_d), src.u_q.eq(cl.u_q),
+            src.u_alpha.eq(cl.u_alpha), src.u_beta.eq(cl.u_beta),
+            src.theta.eq(servo.theta),
+            src.u_dc.eq(adc.o.payload.udc),
+        ]
+
+        # --- status registers ---------------------------------------------------------------
+        speed_loops = Signal(32)
+        overruns = Signal(32)
+        with m.If(servo.speed_valid):
+            m.d.sync += speed_loops.eq(speed_loops + 1)     # wraps, as documented
+        with m.If(cl.overrun):
+            m.d.sync += overruns.eq(overruns + 1)           # wraps (CurrentLoop's saturates)
+        m.d.comb += [
+            _raw(regs.st_mode).eq(_raw(servo.active)),
+            regs.st_trip.eq(prot.trip),
+            _raw(regs.st_fault_present).eq(_raw(prot.present)),
+            _raw(regs.st_fault_first).eq(_raw(prot.first)),
+            _raw(regs.st_fault_seen).eq(_raw(prot.seen)),
+            regs.st_enc_aligned.eq(enc.aligned),
+            regs.st_position.eq(enc.count),
+            regs.st_theta.eq(enc.theta),
+            regs.st_speed.eq(speed),
+            regs.st_i_d.eq(cl.i_d), regs.st_i_q.eq(cl.i_q),
+            regs.st_i_alpha.eq(cl.i_alpha), regs.st_i_beta.eq(cl.i_beta),
+            regs.st_u_d.eq(cl.u_d), regs.st_u_q.eq(cl.u_q),
+            regs.st_u_alpha.eq(cl.u_alpha), regs.st_u_beta.eq(cl.u_beta),
+            regs.st_udc.eq(adc.o.payload.udc),
+            regs.st_current_loops.eq(cl.count),
+            regs.st_speed_loops.eq(speed_loops),
+            regs.st_overruns.eq(overruns),
+            _raw(regs.scope_state).eq(_raw(scope.state)),
+            _raw(regs.scope_status).eq(Cat(scope.done, scope.pre_full)),
+        ]
+        return m

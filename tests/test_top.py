@@ -1,0 +1,428 @@
+# Ref: issue 5 item 6 (the top); docs/REGISTERS.md; docs/PROTOCOL.md
+"""The whole controller on its pins: elaboration, Verilog, reset state, host link to the blocks,
+fault path latency, one current-loop pass from the ADC model.
+
+The simulations run at 100 kHz PWM (500 clocks per period at 50 MHz) and a UART at clk_hz / 8
+(80 clocks per byte) to keep pysim cheap (~1.5 k clocks/s for the whole top)."""
+
+import re
+
+import numpy as np
+import pytest
+from amaranth.back import verilog
+from amaranth.hdl import Module
+from amaranth.lib import wiring
+
+from foc_servo.hdl.regmap import Access, Mode, Scales
+from foc_servo.hdl.top import Top, _raw, regmap_address_map
+from foc_servo.hdl.uart import UartRx, UartTx
+from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, crc16, decode_reply,
+                                     encode_request, frame)
+from foc_servo.sim.adc_part import AdcPartModel
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models.clarke import clarke
+
+CLK = 50e6
+BAUD = CLK / 8
+PWM = 100e3
+HALL_OK = 0b101          # a valid Hall code (sector 0): 000 would trip the Hall fault
+
+
+class _Bench(wiring.Component):
+    """Top + a host-side UART pair on its uart pins."""
+
+    def __init__(self, top, baud):
+        self.top = top
+        self.host_tx = UartTx(clk_hz=top.clk_hz, baud=baud)
+        self.host_rx = UartRx(clk_hz=top.clk_hz, baud=baud)
+        super().__init__({})
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.top = top = self.top
+        m.submodules.host_tx = tx = self.host_tx
+        m.submodules.host_rx = rx = self.host_rx
+        m.d.comb += [top.uart_rx.eq(tx.tx), rx.rx.eq(top.uart_tx), rx.o.ready.eq(1)]
+        return m
+
+
+class _Host:
+    """Request / reply through the bench's host UART inside a testbench."""
+
+    def __init__(self, bench):
+        self.bench = bench
+        self.seq = 0
+        self.clocks = 0
+
+    async def tick(self, ctx, n=1):
+        await ctx.tick().repeat(n)
+        self.clocks += n
+
+    async def transact(self, ctx, cmd, addr, data=(), count=None, timeout=20_000):
+        tx, rx = self.bench.host_tx.i, self.bench.host_rx.o
+        self.seq = (self.seq + 1) & 0xFF
+        for byte in frame(encode_request(cmd, self.seq, addr, count, data)):
+            ctx.set(tx.payload, byte)
+            ctx.set(tx.valid, 1)
+            while True:
+                ready = ctx.get(tx.ready)
+                await self.tick(ctx)
+                if ready:
+                    break
+        ctx.set(tx.valid, 0)
+        got = bytearray()
+        for _ in range(timeout):
+            if ctx.get(rx.valid):
+                byte = ctx.get(rx.payload)
+                if byte == 0 and got:
+                    break
+                if byte:
+                    got.append(byte)
+            await self.tick(ctx)
+        else:
+            raise AssertionError(f"no reply within {timeout} clocks")
+        raw = cobs_decode(bytes(got))
+        assert crc16(raw) == 0, "reply CRC"
+        reply = decode_reply(raw[:-2])
+        assert reply.seq == self.seq
+        return reply
+
+    async def write(self, ctx, addr, *words):
+        reply = await self.transact(ctx, Command.WRITE, addr, data=words)
+        assert reply.status == ReplyStatus.OK, reply
+        return reply
+
+    async def read(self, ctx, addr, n=1):
+        reply = await self.transact(ctx, Command.READ, addr, count=n)
+        assert reply.status == ReplyStatus.OK, reply
+        return reply.data
+
+    async def next_period(self, ctx, top):
+        """Tick until just after the next ``period_start`` (the register commit)."""
+        while not ctx.get(top._timer.period_start):
+            await self.tick(ctx)
+        await self.tick(ctx)
+
+
+def _addr(top, name):
+    return top.regmap[name].addr
+
+
+def _signed(word, bits=32):
+    return word - (1 << bits) if word >> (bits - 1) else word
+
+
+# --- construction -----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, exc, msg", [
+    ({"clk_hz": "50e6"}, TypeError, r"^Top clk_hz must be a positive number in Hz, not '50e6'$"),
+    ({"pwm_hz": 0}, TypeError, r"^Top pwm_hz must be a positive number in Hz, not 0$"),
+    ({"baud": True}, TypeError, r"^Top baud must be a positive number in Hz, not True$"),
+    ({"clk_hz": 600e6}, ValueError, r"^Top clk_hz must be from 1 MHz to 500 MHz, "
+                                    r"not 600000000\.0$"),
+    ({"pwm_hz": 500}, ValueError, r"^Top pwm_hz must give a PWM period of 8 to 65534 clocks at "
+                                  r"clk_hz 5e\+07 Hz, not 500 \(100000 clocks\)$"),
+    ({"pwm_hz": 10e6}, ValueError, r"^Top pwm_hz must give a PWM period of 8 to 65534 clocks "
+                                   r"at clk_hz 5e\+07 Hz, not 10000000\.0 \(4 clocks\)$"),
+    ({"baud": 10e6}, ValueError, r"^Top baud must be at most clk_hz / 8 = 6\.25e\+06, "
+                                 r"not 10000000\.0$"),
+    ({"scales": 1}, TypeError, r"^Top scales must be a Scales or None, not 1$"),
+    ({"scales": Scales(clk_hz=33e6)}, ValueError,
+     r"^Top scales\.clk_hz must equal clk_hz 5e\+07, not 33000000\.0$"),
+    ({"scales": Scales(pwm_hz=20e3)}, ValueError,
+     r"^Top scales\.pwm_hz must equal pwm_hz 10000 or the actual 10000, not 20000\.0$"),
+    ({"dead_time_s": "1us"}, TypeError,
+     r"^Top dead_time_s must be a number of seconds or None, not '1us'$"),
+    ({"dead_time_s": 10e-6}, ValueError,
+     r"^Top dead_time_s must be 1 to 255 clocks at 5e\+07 Hz, not 1e-05 \(500 clocks\)$"),
+    ({"max_words": 0}, TypeError, r"^Top max_words must be an integer from 1 to 255, not 0$"),
+])
+def test_top_parameter_validation(kwargs, exc, msg):
+    with pytest.raises(exc, match=msg):
+        Top(**kwargs)
+
+
+def test_top_scales_and_identification_constants_at_33_333_mhz():
+    top = Top(clk_hz=33.333e6, dead_time_s=0.5e-6)
+    assert top.pwm_period == 3334
+    assert top.scales.clk_hz == 33.333e6
+    assert top.scales.pwm_hz == pytest.approx(33.333e6 / 3334)
+    assert top.regmap["id_clk_hz"].reset == 33_333_000
+    assert top.regmap["id_pwm_mhz"].reset == round(33.333e6 / 3334 * 1e3)
+    assert top.regmap["dead_time"].reset == 17
+    assert top.fault_latency == 4
+    # Scales given with the requested PWM frequency are moved to the actual one.
+    top = Top(clk_hz=33.333e6, scales=Scales(clk_hz=33.333e6, i_fs_a=5.0))
+    assert top.scales.i_fs_a == 5.0 and top.scales.pwm_hz == pytest.approx(33.333e6 / 3334)
+
+
+def test_top_address_map_matches_register_access():
+    top = Top()
+    amap = dict(((a, b), w) for a, b, w in regmap_address_map(top.regmap))
+    assert amap[(_addr(top, "mode"), _addr(top, "mode") + 1)] is True
+    assert amap[(_addr(top, "clear_faults"), _addr(top, "clear_faults") + 1)] is True
+    assert amap[(_addr(top, "st_trip"), _addr(top, "st_trip") + 1)] is False
+    assert amap[(0x0000, 0x0001)] is False                      # id_magic
+    assert amap[(0x1000, 0x2000)] is False                      # scope window
+    assert amap[(0x0206, 0x0207)] is True and amap[(0x0207, 0x0208)] is True   # mt_k, 2 words
+
+
+@pytest.mark.parametrize("clk_hz", [pytest.param(50e6, marks=pytest.mark.slow), 33.333e6])
+def test_top_elaborates_and_converts_to_verilog(clk_hz):
+    # 50 MHz is elaborated and simulated by the tests below; its Verilog runs with -m slow.
+    top = Top(clk_hz=clk_hz)
+    text = verilog.convert(top, name="foc_servo_top")
+    for pin, width in (("uart_rx", 1), ("uart_tx", 1), ("enc_a", 1), ("hall", 3),
+                       ("adc_sdo", 4), ("gate_h", 3), ("gate_l", 3), ("fault_n", 1),
+                       ("oc_comp", 1), ("led", 2)):
+        vec = "" if width == 1 else rf"\[{width - 1}:0\]\s+"
+        decl = rf"^\s*(input|output)\s+{vec}{pin};"
+        assert re.search(decl, text, re.M), pin
+
+
+def _wiring_table(top):
+    """Register → (block port, expected port value from the register value) for every rw and
+    strobe register of the map."""
+    cl, servo, timer, gates = top._loop, top._servo, top._timer, top._gates
+    mt, enc, prot, scope = top._mt, top._encoder, top._protect, top._scope
+    same = (lambda v: v)
+    minus_one = (lambda v: max(v, 1) - 1)          # "every n, 0 acts as 1" → "every x + 1"
+    table = {
+        "mode": (servo.mode, same), "speed_ref": (servo.speed_ref, same),
+        "i_d_ref": (servo.id_set, same), "i_q_ref": (servo.iq_set, same),
+        "ol_angle_mode": (servo.ol_src, same), "ol_u_d": (servo.ud_set, same),
+        "ol_u_q": (servo.uq_set, same), "ol_angle": (servo.ol_theta, same),
+        "ol_freq": (servo.ol_freq, same),
+        "pi_speed_kp": (servo.speed_kp, same), "pi_speed_kx": (servo.speed_kx, same),
+        "pi_speed_lim_lo": (servo.iq_lim_lo, same), "pi_speed_lim_hi": (servo.iq_lim_hi, same),
+        "speed_div": (servo.speed_rate_div, minus_one), "mt_k": (mt.k, same),
+        "clarke_gain_a": (cl.gain_a, same), "clarke_offset_a": (cl.offset_a, same),
+        "clarke_gain_b": (cl.gain_b, same), "clarke_offset_b": (cl.offset_b, same),
+        "u_rated": (cl.u_rated, same), "decouple_enable": (cl.ff_enable, same),
+        "decouple_l": (cl.ff_l, same), "decouple_psi": (cl.ff_psi, same),
+        "pwm_symmetric": (timer.symmetric, same), "pwm_sample_custom": (timer.sample_custom, same),
+        "pwm_sample_point": (timer.sample_point, same), "dead_time": (gates.dead_time, same),
+        "enc_lines": (enc.lines, same), "enc_pole_pairs": (enc.pole_pairs, same),
+        "enc_z_offset": (enc.z_offset, same), "enc_hall_offset": (enc.hall_offset, same),
+        "enc_filter": (enc.length, same), "enc_realign": (enc.realign, same),
+        "prot_oc_limit": (prot.oc_limit, same), "prot_ov_limit": (prot.ov_limit, same),
+        "prot_uv_limit": (prot.uv_limit, same), "prot_uv_enable": (prot.uv_enable, same),
+        "prot_os_limit": (prot.os_limit, same), "prot_mask": (prot.mask, same),
+        "clear_faults": (prot.clear, same),
+        "scope_decim": (scope.decim, minus_one),
+        "scope_pretrig": (scope.pretrigger, lambda v: min(v, scope.depth - 1)),
+        "scope_trig_src": (scope.trig_src, same), "scope_arm": (scope.arm, same),
+        "scope_force": (scope.force, same),
+    }
+    n_src = len(scope.source_names)
+    for c in range(scope.channels):
+        table[f"scope_chan{c}"] = (scope.sel[c], lambda v: min(v, n_src))
+    for p in "dq":
+        for reg, port in (("kp", "kp"), ("kx", "kx"), ("lim_lo", "lim_lo"), ("lim_hi", "lim_hi")):
+            table[f"pi_{p}_{reg}"] = (getattr(cl, f"{port}_{p}"), same)
+    return table
+
+
+def _status_sources(top):
+    """Read-only register → the signal it shows (counters kept in the top: None)."""
+    cl, servo, enc, prot, scope, mt = (top._loop, top._servo, top._encoder, top._protect,
+                                       top._scope, top._mt)
+    return {
+        "st_mode": servo.active, "st_trip": prot.trip, "st_fault_present": prot.present,
+        "st_fault_first": prot.first, "st_fault_seen": prot.seen,
+        "st_enc_aligned": enc.aligned, "st_position": enc.count, "st_theta": enc.theta,
+        "st_speed": mt.o.payload.speed, "st_i_d": cl.i_d, "st_i_q": cl.i_q,
+        "st_i_alpha": cl.i_alpha, "st_i_beta": cl.i_beta, "st_u_d": cl.u_d, "st_u_q": cl.u_q,
+        "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": top._adc.o.payload.udc,
+        "st_current_loops": cl.count, "st_speed_loops": None, "st_overruns": None,
+        "scope_state": scope.state, "scope_status": None,
+    }
+
+
+def test_top_every_rw_and_strobe_register_drives_its_block_port():
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    table = _wiring_table(top)
+    writable = {r.name for r in top.regmap if r.access in (Access.RW, Access.STROBE)}
+    assert set(table) == writable
+    rng = np.random.default_rng(5)
+    rounds = [{n: int(rng.integers(0, 1 << top.regmap[n].width)) for n in table}
+              for _ in range(3)]
+    # The conversions' corners: 0 acts as 1, clamps, out-of-range scope channel codes.
+    rounds.append({**rounds[0], "speed_div": 0, "scope_decim": 0, "scope_pretrig": 0xFFFF,
+                   "scope_chan0": 13, "scope_chan1": 14, "scope_chan2": 255, "scope_chan3": 16})
+    rounds.append({**rounds[1], "speed_div": 1, "scope_decim": 1, "scope_pretrig": 1023,
+                   "scope_chan0": 0})
+    bad = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await ctx.tick()
+        for values in rounds:
+            # The register file's outputs hold what is set here (their registers only load on
+            # a bus write or a commit): the block ports follow combinationally.
+            for name, v in values.items():
+                ctx.set(_raw(getattr(top._regs, name)), v)
+            for name, v in values.items():
+                port, f = table[name]
+                width = len(_raw(port))
+                got = ctx.get(_raw(port).as_unsigned())
+                want = f(v) & ((1 << width) - 1)
+                if got != want:
+                    bad.append((name, v, got, want))
+
+    simulate(top, [testbench], name="test_top_wiring")
+    assert not bad
+
+
+# --- simulations ------------------------------------------------------------------------------
+
+def test_top_gates_stay_low_for_a_pwm_period_after_reset():
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    on = []
+    starts = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        for t in range(top.pwm_period + 100):
+            on.append(ctx.get(top.gate_h) | ctx.get(top.gate_l))
+            if ctx.get(top._timer.period_start):
+                starts.append(t)
+            await ctx.tick()
+
+    simulate(top, [testbench], name="test_top_reset")
+    assert len(starts) >= 1                   # a whole period (and its boundary) was seen
+    assert not any(on)
+
+
+def test_top_register_writes_reach_blocks_through_the_host_link():
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    bench = _Bench(top, BAUD)
+    host = _Host(bench)
+    rm = top.regmap
+    seen = {}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        # Identification constants, one burst.
+        seen["ids"] = await host.read(ctx, 0x0000, 8)
+        # Dead time (shadowed: staged at once, active after the next period start).
+        await host.write(ctx, _addr(top, "dead_time"), 37)
+        seen["dead_staged"] = (await host.read(ctx, _addr(top, "dead_time")))[0]
+        await host.next_period(ctx, top)
+        seen["dead_port"] = ctx.get(top._gates.dead_time)
+        # Mode and the open-loop set-points in one frame (0x0010 … 0x0017).
+        await host.write(ctx, _addr(top, "mode"),
+                         Mode.OPEN_LOOP.value, 0, 0, 0, 0, 0, 1000, 0xFFFF & -2000)
+        await host.next_period(ctx, top)
+        seen["servo_mode"] = ctx.get(top._servo.mode).value
+        seen["ud_set"] = ctx.get(top._servo.ud_set)
+        seen["uq_set"] = ctx.get(top._servo.uq_set)
+        await host.next_period(ctx, top)
+        seen["st_mode"] = (await host.read(ctx, _addr(top, "st_mode")))[0]
+        # A write to a read-only register is refused by the link, before any access.
+        seen["ro"] = await host.transact(ctx, Command.WRITE, _addr(top, "st_trip"), data=[1])
+
+    simulate(bench, [testbench], name="test_top_regs")
+    ids = seen["ids"]
+    assert ids[0] == 0x464F4353
+    assert ids[2] == rm["id_map_hash"].reset
+    assert ids[3] == 50_000_000 and ids[4] == 100_000_000
+    assert tuple(ids[5:8]) == (rm["id_i_fs_ma"].reset, rm["id_u_fs_uv"].reset,
+                               rm["id_n_fs_rpm"].reset)
+    assert seen["dead_staged"] == 37 and seen["dead_port"] == 37
+    assert seen["servo_mode"] == Mode.OPEN_LOOP.value
+    assert (seen["ud_set"], seen["uq_set"]) == (1000, -2000)
+    assert seen["st_mode"] == Mode.OPEN_LOOP.value
+    assert seen["ro"].status == ReplyStatus.READ_ONLY
+
+
+def test_top_fault_n_low_forces_all_gates_off_within_fault_latency():
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    bench = _Bench(top, BAUD)
+    host = _Host(bench)
+    seen = {}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await host.write(ctx, _addr(top, "mode"), Mode.OPEN_LOOP.value)
+        await host.next_period(ctx, top)
+        # Wait for a clock with some gate on (the first duties reach the timer one period on).
+        for _ in range(4 * top.pwm_period):
+            if ctx.get(top.gate_h) | ctx.get(top.gate_l):
+                break
+            await host.tick(ctx)
+        seen["on_before"] = ctx.get(top.gate_h) | ctx.get(top.gate_l)
+        ctx.set(top.fault_n, 0)               # changes at the pin in this clock
+        trace = []
+        for _ in range(8):
+            await host.tick(ctx)
+            trace.append(ctx.get(top.gate_h) | ctx.get(top.gate_l))
+        seen["trace"] = trace
+        st = await host.read(ctx, _addr(top, "st_trip"), 4)
+        seen["trip"], seen["present"], seen["first"] = st[0], st[1], st[2]
+        seen["led"] = ctx.get(top.led)
+        # Clearing while the fault is present does nothing; after it goes away it releases.
+        await host.write(ctx, _addr(top, "clear_faults"), 1)
+        seen["trip_held"] = (await host.read(ctx, _addr(top, "st_trip")))[0]
+        ctx.set(top.fault_n, 1)
+        await host.tick(ctx, 8)
+        await host.write(ctx, _addr(top, "clear_faults"), 1)
+        seen["trip_after"] = (await host.read(ctx, _addr(top, "st_trip")))[0]
+
+    simulate(bench, [testbench], name="test_top_fault")
+    assert seen["on_before"]
+    trace = seen["trace"]
+    # Pin low in clock t: 2 synchroniser flops, Protection's register, the gates' register.
+    off_at = next(i for i, v in enumerate(trace, 1) if v == 0)
+    assert off_at == top.fault_latency == 4
+    assert not any(trace[off_at - 1:])
+    assert seen["trip"] == 1 and seen["present"] & 1 and seen["first"] == 1    # bit 0: external
+    assert seen["led"] & 1
+    assert seen["trip_held"] == 1 and seen["trip_after"] == 0
+
+
+def test_top_adc_model_drives_a_current_loop_pass_at_33_333_mhz():
+    clk = 33.333e6          # the ADC model checks the datasheet timing at this clock
+    top = Top(clk_hz=clk, pwm_hz=PWM, baud=clk / 8)
+    bench = _Bench(top, clk / 8)
+    host = _Host(bench)
+    ia, ib, udc = 1000, 300, 16000
+    model = AdcPartModel(cs_n=top.adc_cs_n, sclk=top.adc_sclk, sdo=top.adc_sdo, clk_hz=clk,
+                         source=lambda n: (ia, ib, udc, 0))
+    seen = {}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await host.tick(ctx, 3 * top.pwm_period)
+        first = await host.read(ctx, _addr(top, "st_i_d"), 9)       # st_i_d … st_udc
+        c0, t0 = (await host.read(ctx, _addr(top, "st_current_loops")))[0], host.clocks
+        await host.tick(ctx, 3 * top.pwm_period)
+        c1, t1 = (await host.read(ctx, _addr(top, "st_current_loops")))[0], host.clocks
+        seen.update(first=first, c0=c0, c1=c1, periods=(t1 - t0) / top.pwm_period)
+        seen["overruns"] = (await host.read(ctx, _addr(top, "st_overruns")))[0]
+        seen["speed_loops"] = (await host.read(ctx, _addr(top, "st_speed_loops")))[0]
+        for name, src in _status_sources(top).items():
+            if src is not None:
+                reg = ctx.get(_raw(getattr(top._regs, name)).as_unsigned())
+                if reg != ctx.get(_raw(src).as_unsigned()):
+                    seen.setdefault("status_mismatch", []).append(name)
+
+    simulate(bench, [testbench], [model.process], clock_hz=clk, name="test_top_adc")
+    i_d, i_q, i_alpha, i_beta, u_d, u_q, u_alpha, u_beta, st_udc = (
+        _signed(w) for w in seen["first"])
+    ref = clarke(np.array([ia]), np.array([ib]), gain_a=1 << 15, gain_b=1 << 15,
+                 offset_a=0, offset_b=0)
+    assert (i_alpha, i_beta) == (ref["alpha"][0], ref["beta"][0])
+    assert st_udc == udc
+    # Park is a rotation: |i_dq| = |i_αβ| to CORDIC accuracy; disabled mode: zero voltages.
+    assert abs(np.hypot(i_d, i_q) - np.hypot(i_alpha, i_beta)) < 3
+    assert (u_d, u_q) == (0, 0)
+    # One loop per PWM period.
+    assert seen["c0"] >= 3
+    assert abs((seen["c1"] - seen["c0"]) - seen["periods"]) <= 1
+    assert seen["overruns"] == 0
+    # Speed loop: runs only in SPEED mode (disabled here), so its counter stays 0.
+    assert seen["speed_loops"] == 0
+    assert "status_mismatch" not in seen
+    assert set(_status_sources(top)) == {r.name for r in top.regmap if r.access is Access.RO}
+    assert len(model.reads) >= 6
