@@ -15,6 +15,7 @@ from .regs import RegisterFile
 from .scope import Scope
 from .servo import Servo
 from .svpwm import SVPWM, DCBusCompensation, PWMTimer
+from .top import Top
 
 __all__ = ["ARITH_BLOCKS", "IO_BLOCKS", "CONTROL_BLOCKS", "BLOCKS"]
 
@@ -44,6 +45,7 @@ CONTROL_BLOCKS = {
     "servo": lambda: Servo(),
     "scope": lambda: Scope(),
     "regs": lambda: RegisterFile(),
+    "top": lambda: Top(),
 }
 
 #: Every block.
