@@ -104,15 +104,28 @@ def _io_lines(fig):
 
 
 def cmd_bench(args):
-    from ..sim.bench import bench_arith, bench_io
+    from ..sim.bench import bench_arith, bench_control, bench_io
     start = time.perf_counter()
-    suites = ["arith", "io", "link"] if args.suite == "all" else [args.suite]
+    suites = ["arith", "io", "control", "link"] if args.suite == "all" else [args.suite]
     fig, lines = {}, []
     for suite in suites:
         if suite == "arith":
             part = bench_arith(count=args.count or 100_000, seed=args.seed,
                                area=not args.no_area, progress=not args.quiet)
             lines += _arith_lines(part)
+        elif suite == "control":
+            part = bench_control(count=args.count or 2_000, seed=args.seed,
+                                 area=not args.no_area, progress=not args.quiet)
+            st = part["foc_latency_stages"]
+            lines += [
+                "controller:",
+                f"  current loop: compute latency {part['foc_latency_clk']} clk "
+                f"({' + '.join(f'{k} {v}' for k, v in st.items())}), checked on every sample "
+                f"({part['foc_latency_errors']} deviations); {part['foc_mismatches']} mismatches "
+                f"over {part['details']['foc']['vectors']} samples",
+                f"  register file {part['regs_mismatches']} mismatches, speed loop/modes/scope "
+                f"{part['servo_mismatches']} mismatches",
+            ]
         elif suite == "link":
             from ..sim.verify import link
             part = link.run(rw=1000, malformed=10_000, seed=args.seed, progress=not args.quiet)
@@ -155,12 +168,15 @@ def build_parser():
     p.set_defaults(func=cmd_regs)
 
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
-    p.add_argument("suite", nargs="?", default="all", choices=["all", "arith", "io", "link"],
-                   help="which figures: arith (foundation blocks), io (motor-side blocks), link "
+    p.add_argument("suite", nargs="?", default="all",
+                   choices=["all", "arith", "io", "control", "link"],
+                   help="which figures: arith (foundation blocks), io (motor-side blocks), control "
+                        "(current loop latency, register file, speed loop; area incl. the top), link "
                         "(host link: 1 000 writes + read-backs through pyserial, 10 000 malformed "
                         "frames), all (default: %(default)s)")
     p.add_argument("--count", type=_positive_int, default=None,
-                   help="random vectors per block (default: 100 000 for arith, 10 000 for io)")
+                   help="random vectors per block (default: 100 000 for arith, 10 000 for io, "
+                        "2 000 current-loop samples for control)")
     p.add_argument("--drift-counts", type=_positive_int, default=1_000_000,
                    help="encoder counts per phase of the angle-drift run (default: %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")

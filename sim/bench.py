@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_compl
 from ..boards.area import convert_blocks, synth_areas
 from ..hdl import catalog
 
-__all__ = ["bench_arith", "bench_io", "run_jobs"]
+__all__ = ["bench_arith", "bench_io", "bench_control", "run_jobs"]
 
 
 def _call(module, function, kwargs):
@@ -125,6 +125,37 @@ def bench_io(*, count=10_000, seed=1, drift_counts=1_000_000, area=True, progres
         "fault_latency_clk": fc["latency_clk"],
         "protect_mismatches": r["protect"]["mismatches"],
         "adc_mismatches": r["adc"]["mismatches"],
+        "details": r,
+    }
+    if areas is not None:
+        figures["area"] = areas
+    return figures
+
+
+def bench_control(*, count=2_000, seed=1, area=True, progress=True, workers=2):
+    """The controller: the current loop against its model with its compute latency checked on
+    every sample (``foc_latency_clk``, per stage in ``foc_latency_stages``), the register file,
+    the speed loop / modes / scope; with ``area``, yosys cell counts of these blocks and of the
+    whole top (several minutes)."""
+    from ..hdl.foc import CurrentLoop
+    common = {"seed": seed}
+    jobs = {
+        "foc": ("foc", "run", {"count": count, **common}),
+        "regs": ("regs", "run", {"count": 10 * count, **common}),
+        "servo": ("servo", "run", {"count": 10 * count, **common}),
+    }
+    r, areas = _with_area(catalog.CONTROL_BLOCKS, jobs, area=area, workers=workers,
+                          progress=progress)
+    foc = r["foc"]
+    loop = CurrentLoop()
+    loop._MustUse__silence = True       # only its published latencies are read
+    figures = {
+        "foc_latency_clk": foc["latency"],
+        "foc_latency_errors": foc["latency_errors"],
+        "foc_latency_stages": loop.stage_latency,
+        "foc_mismatches": foc["mismatches"],
+        "regs_mismatches": r["regs"]["mismatches"],
+        "servo_mismatches": r["servo"]["mismatches"],
         "details": r,
     }
     if areas is not None:
