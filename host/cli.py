@@ -167,6 +167,9 @@ def build_parser():
     regs_arguments(p)
     p.set_defaults(func=cmd_regs)
 
+    from .host_cli import add_host_parser
+    add_host_parser(sub)
+
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
     p.add_argument("suite", nargs="?", default="all",
                    choices=["all", "arith", "io", "control", "link"],
