@@ -664,7 +664,7 @@ def build_regmap(scales=Scales()):
         reg("speed_div", 0x0204, UQ(8, 0), RW, 1,
             "speed loop every speed_div PWM periods (0 acts as 1)", unit="periods",
             shadow="speed"),
-        reg("mt_k", 0x0206, UQ(48, 0), RW, k,
+        reg("mt_k", 0x0205, UQ(48, 0), RW, k,
             "M/T scale k = 60·2^31·f_TCLK / (lines·N_FS), f_TCLK = clk_hz", unit="",
             shadow="speed"),
         # --- encoder and Hall sensors ---

@@ -9,7 +9,7 @@
 
 #define FOC_MAGIC 0x464F4353u
 #define FOC_MAP_VERSION 0x00010000u
-#define FOC_MAP_HASH 0xE5B3DC59u
+#define FOC_MAP_HASH 0x9711AC8Cu
 
 #define FOC_ACCESS_RW 0
 #define FOC_ACCESS_RO 1
@@ -41,7 +41,7 @@
 #define FOC_ID_MAP_HASH_FRAC 0
 #define FOC_ID_MAP_HASH_SIGNED 0
 #define FOC_ID_MAP_HASH_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_MAP_HASH_RESET 0xe5b3dc59u
+#define FOC_ID_MAP_HASH_RESET 0x9711ac8cu
 
 /* id_clk_hz: system clock frequency clk_hz. uint32 [Hz] */
 #define FOC_ID_CLK_HZ_ADDR 0x0003u
@@ -411,7 +411,7 @@
 #define FOC_SPEED_DIV_RESET 0x1u
 
 /* mt_k: M/T scale k = 60·2^31·f_TCLK / (lines·N_FS), f_TCLK = clk_hz. uint48 */
-#define FOC_MT_K_ADDR 0x0206u
+#define FOC_MT_K_ADDR 0x0205u
 #define FOC_MT_K_WORDS 2u
 #define FOC_MT_K_WIDTH 48u
 #define FOC_MT_K_FRAC 0

@@ -164,7 +164,7 @@ def test_top_address_map_matches_register_access():
     assert amap[(_addr(top, "st_trip"), _addr(top, "st_trip") + 1)] is False
     assert amap[(0x0000, 0x0001)] is False                      # id_magic
     assert amap[(0x1000, 0x2000)] is False                      # scope window
-    assert amap[(0x0206, 0x0207)] is True and amap[(0x0207, 0x0208)] is True   # mt_k, 2 words
+    assert amap[(0x0205, 0x0206)] is True and amap[(0x0206, 0x0207)] is True   # mt_k, 2 words
 
 
 @pytest.mark.parametrize("clk_hz", [pytest.param(50e6, marks=pytest.mark.slow), 33.333e6])
