@@ -327,8 +327,8 @@ class Servo:
         (read-back) values (strobes with 0), so the given registers of one shadow group
         (``docs/REGISTERS.md``) go out in **one frame** and take effect together at the next
         loop boundary. Only registers separated by an address with no register (or by a
-        read-only one) need separate frames: of the shadow groups, only ``speed``
-        (``speed_div`` at 0x0204, ``mt_k`` at 0x0206) has such a gap.
+        read-only one) need separate frames; no shadow group has such a gap (a test of the
+        register map keeps it so).
 
         Returns
         -------

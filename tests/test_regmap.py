@@ -333,3 +333,19 @@ def test_regmap_matches_the_controller_blocks():
     assert ([(m.name, m.value) for m in scope.TriggerSource] ==
             [(m.name, m.value) for m in REGMAP["scope_trig_src"].enum])
     assert scp.addr_width == REGMAP.windows[0].addr_width
+
+
+def test_every_shadow_group_is_one_contiguous_burst():
+    """The host writes a shadow group in one frame (applied together); a hole or a read-only
+    word inside a group's address span would split it."""
+    from foc_servo.hdl.regmap import REGMAP
+    spans = {}
+    for reg in REGMAP:
+        if getattr(reg, "shadow", None):
+            lo, hi = spans.get(reg.shadow, (reg.addr, reg.addr))
+            spans[reg.shadow] = (min(lo, reg.addr), max(hi, reg.addr + reg.words - 1))
+    writable = {reg.addr + k for reg in REGMAP if reg.access.value in ("rw", "strobe")
+                for k in range(reg.words)}
+    for group, (lo, hi) in spans.items():
+        holes = [hex(a) for a in range(lo, hi + 1) if a not in writable]
+        assert not holes, f"shadow group {group!r} has unwritable words {holes}"
