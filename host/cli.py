@@ -14,7 +14,8 @@ from pathlib import Path
 __all__ = ["main"]
 
 
-def _positive_int(text):
+def positive_int(text):
+    """argparse type: an integer of at least 1."""
     try:
         value = int(text)
     except ValueError:
@@ -24,11 +25,13 @@ def _positive_int(text):
     return value
 
 
-def _emit(figures, human_lines, as_json):
+def emit(figures, human_lines, as_json, *, default=float, sort_keys=True):
+    """Print the human-readable lines, then (``--json``) the figures as one JSON object on the
+    last line: the rule every figure-reporting command follows."""
     for line in human_lines:
         print(line)
     if as_json:
-        print(json.dumps(figures, sort_keys=True, default=float))
+        print(json.dumps(figures, sort_keys=sort_keys, default=default))
 
 
 def cmd_verilog(args):
@@ -146,7 +149,7 @@ def cmd_bench(args):
         lines += ["area from yosys (synthesis, no place-and-route):", *_fmt_area(fig["area"])]
     fig["wall_s"] = time.perf_counter() - start
     lines.append(f"wall time {fig['wall_s']:.1f} s")
-    _emit(fig, lines, args.json)
+    emit(fig, lines, args.json)
 
 
 def build_parser():
@@ -177,10 +180,10 @@ def build_parser():
                         "(current loop latency, register file, speed loop; area incl. the top), link "
                         "(host link: 1 000 writes + read-backs through pyserial, 10 000 malformed "
                         "frames), all (default: %(default)s)")
-    p.add_argument("--count", type=_positive_int, default=None,
+    p.add_argument("--count", type=positive_int, default=None,
                    help="random vectors per block (default: 100 000 for arith, 10 000 for io, "
                         "2 000 current-loop samples for control)")
-    p.add_argument("--drift-counts", type=_positive_int, default=1_000_000,
+    p.add_argument("--drift-counts", type=positive_int, default=1_000_000,
                    help="encoder counts per phase of the angle-drift run (default: %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default: %(default)s)")
     p.add_argument("--no-area", action="store_true", help="skip the yosys area figures")

@@ -13,22 +13,14 @@ Wiring into ``foc-servo`` (host/cli.py, ``build_parser``)::
 """
 
 import argparse
-import json
 import math
 import sys
 import time
 
+from .cli import emit, positive_int as _positive_int
+
 __all__ = ["add_host_parser", "cmd_host", "main"]
 
-
-def _positive_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, not {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
-    return value
 
 
 def _nonneg_int(text):
@@ -96,10 +88,7 @@ def _cli_value(servo, name, text):
 
 
 def _emit(figures, lines, as_json):
-    for line in lines:
-        print(line)
-    if as_json:
-        print(json.dumps(figures, sort_keys=False, default=_json_default))
+    emit(figures, lines, as_json, default=_json_default, sort_keys=False)
 
 
 def _json_default(value):
