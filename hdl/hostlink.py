@@ -122,6 +122,15 @@ def crc16_byte(crc, byte):
     return Cat(*bits)
 
 
+
+#: Status counters of the link, in port order.
+COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")
+
+
+def _counter_members(width):
+    """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink."""
+    return {name: Out(width) for name in COUNTERS}
+
 class LinkCore(wiring.Component):
     """Protocol engine of the host link on wire-byte streams (no UART).
 
@@ -190,11 +199,7 @@ class LinkCore(wiring.Component):
             "rx_error": In(1),
             "o": Out(stream.Signature(8)),
             "bus": Out(RegBusSignature()),
-            "frames_ok": Out(cw),
-            "crc_errors": Out(cw),
-            "framing_errors": Out(cw),
-            "rejected": Out(cw),
-            "dropped": Out(cw),
+            **_counter_members(cw),
         })
 
     max_words = property(lambda self: self._max_words)
@@ -543,11 +548,7 @@ class HostLink(wiring.Component):
             "rx": In(1, init=1),
             "tx": Out(1, init=1),
             "bus": Out(RegBusSignature()),
-            "frames_ok": Out(cw),
-            "crc_errors": Out(cw),
-            "framing_errors": Out(cw),
-            "rejected": Out(cw),
-            "dropped": Out(cw),
+            **_counter_members(cw),
         })
 
     clk_hz = property(lambda self: self._clk_hz)
