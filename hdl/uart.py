@@ -37,7 +37,21 @@ def uart_params(name, clk_hz, baud):
     return round(baud * 2 ** PHASE_BITS / clk_hz)
 
 
-class UartTx(wiring.Component):
+class _UartBase(wiring.Component):
+    """Baud-rate parameters shared by :class:`UartTx` and :class:`UartRx` (validated by
+    :func:`uart_params`, with the subclass's name in the messages)."""
+
+    def __init__(self, *, clk_hz=50e6, baud=115200):
+        self._increment = uart_params(type(self).__name__, clk_hz, baud)
+        self._clk_hz, self._baud = clk_hz, baud
+        super().__init__()
+
+    clk_hz = property(lambda self: self._clk_hz)
+    baud = property(lambda self: self._baud)
+    increment = property(lambda self: self._increment)
+
+
+class UartTx(_UartBase):
     """UART transmitter (8N1, LSB first, line idle high).
 
     Parameters
@@ -74,14 +88,6 @@ class UartTx(wiring.Component):
     tx: Out(1, init=1)
     busy: Out(1)
 
-    def __init__(self, *, clk_hz=50e6, baud=115200):
-        self._increment = uart_params("UartTx", clk_hz, baud)
-        self._clk_hz, self._baud = clk_hz, baud
-        super().__init__()
-
-    clk_hz = property(lambda self: self._clk_hz)
-    baud = property(lambda self: self._baud)
-    increment = property(lambda self: self._increment)
     latency = 1
 
     def elaborate(self, platform):
@@ -115,7 +121,7 @@ class UartTx(wiring.Component):
         return m
 
 
-class UartRx(wiring.Component):
+class UartRx(_UartBase):
     """UART receiver (8N1, LSB first) with a 2-flop synchroniser and 3-sample majority.
 
     The synchronised line passes a majority-of-3 filter (glitches of one clock vanish). A falling
@@ -170,14 +176,6 @@ class UartRx(wiring.Component):
     error: Out(1)
     overrun: Out(1)
 
-    def __init__(self, *, clk_hz=50e6, baud=115200):
-        self._increment = uart_params("UartRx", clk_hz, baud)
-        self._clk_hz, self._baud = clk_hz, baud
-        super().__init__()
-
-    clk_hz = property(lambda self: self._clk_hz)
-    baud = property(lambda self: self._baud)
-    increment = property(lambda self: self._increment)
     latency_bits = 9.5
 
     def elaborate(self, platform):

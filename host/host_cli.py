@@ -17,20 +17,11 @@ import math
 import sys
 import time
 
-from .cli import emit, positive_int as _positive_int
+from .cli import emit, int_at_least, positive_int as _positive_int
 
 __all__ = ["add_host_parser", "cmd_host", "main"]
 
-
-
-def _nonneg_int(text):
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer, not {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be at least 0, not {value}")
-    return value
+_nonneg_int = int_at_least(0)
 
 
 def _positive_float(text):
