@@ -36,7 +36,7 @@ from ..hdl.hostlink import HostLink, LinkCore
 from ..hdl.uart import UartRx, UartTx
 from ..host.protocol import Transport
 
-__all__ = ["StandInRegisters", "StandInModel", "LinkSim"]
+__all__ = ["StandInRegisters", "StandInModel", "ByteSim", "LinkSim"]
 
 _RING = 4096
 _OUT = 40           # output bytes held between two testbench visits
@@ -208,7 +208,7 @@ class _Bench(wiring.Component):
 
 
 class _InProcess(Transport):
-    """In-process :class:`~foc_servo.host.protocol.Transport` over a :class:`LinkSim`: a read
+    """In-process :class:`~foc_servo.host.protocol.Transport` over a :class:`ByteSim`: a read
     runs the simulation until the bytes are there or the link has gone idle (then it returns
     what there is at once: nothing more can come)."""
 
@@ -229,7 +229,131 @@ class _InProcess(Transport):
         self._sim.take_output()
 
 
-class LinkSim:
+class ByteSim:
+    """A simulated byte link: the byte interface, the in-process transport and the pty bridge
+    shared by :class:`LinkSim` and the closed-loop co-simulation
+    (:class:`~foc_servo.sim.closed_loop.CoSim`).
+
+    A subclass provides :meth:`step` (simulate a little further, collecting reply bytes with
+    :meth:`_received`), :attr:`idle` (nothing in flight) and :meth:`_queue` (take host bytes).
+    """
+
+    _thread = None
+
+    def _init_bytes(self):
+        self._out = bytearray()
+        self.bytes_in = self.bytes_out = 0
+
+    def step(self):
+        raise NotImplementedError
+
+    @property
+    def idle(self):
+        raise NotImplementedError
+
+    def _queue(self, data):
+        raise NotImplementedError
+
+    def _received(self, data):
+        self._out += data
+        self.bytes_out += len(data)
+
+    # --- byte interface ---------------------------------------------------------------------
+
+    def send(self, data):
+        """Queue bytes for the link."""
+        data = bytes(data)
+        self._queue(data)
+        self.bytes_in += len(data)
+
+    def receive(self, size):
+        """Simulate until some bytes have come back or the link is idle; return up to ``size``
+        of them."""
+        while not self._out and not self.idle:
+            self.step()
+        out = bytes(self._out[:size])
+        del self._out[:size]
+        return out
+
+    @property
+    def has_output(self):
+        """Bytes have come back that nobody has taken yet."""
+        return bool(self._out)
+
+    def take_output(self):
+        """All bytes received so far (without simulating further)."""
+        out = bytes(self._out)
+        self._out.clear()
+        return out
+
+    def run_until_idle(self, max_clocks=10_000_000):
+        """Simulate until nothing is in flight; return the bytes that came back."""
+        start = self.clocks
+        while not self.idle:
+            if self.clocks - start > max_clocks:
+                raise TimeoutError(f"link still busy after {max_clocks} clocks")
+            self.step()
+        return self.take_output()
+
+    def transport(self):
+        """An in-process :class:`~foc_servo.host.protocol.Transport` (not while a pty is open)."""
+        if self._thread is not None:
+            raise RuntimeError(f"{type(self).__name__} is bridged to a pty; use the pty path")
+        return _InProcess(self)
+
+    # --- pseudo-terminal ----------------------------------------------------------------------
+
+    def open_pty(self):
+        """Bridge the simulation to a new pseudo-terminal; return its slave path, for
+        ``serial.Serial(path)``. From now on only the bridge thread touches the simulation."""
+        if self._thread is not None:
+            raise RuntimeError(f"{type(self).__name__} pty is already open")
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._bridge, name=f"{type(self).__name__}-pty",
+                                        daemon=True)
+        self._thread.start()
+        return os.ttyname(self._slave)
+
+    def _bridge(self):
+        master = self._master
+        while not self._stop.is_set():
+            busy = not self.idle
+            ready, _, _ = select.select([master], [], [], 0 if busy else 0.005)
+            if ready:
+                try:
+                    data = os.read(master, 4096)
+                except OSError:
+                    data = b""
+                if data:
+                    self.send(data)
+                    busy = True
+            if busy:
+                self.step()
+            out = self.take_output()
+            while out:
+                n = os.write(master, out)
+                out = out[n:]
+                time.sleep(0)               # let the client's thread take the GIL now
+
+    def close(self):
+        """Stop the pty bridge (if any) and close its file descriptors."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            os.close(self._master)
+            os.close(self._slave)
+            self._thread = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class LinkSim(ByteSim):
     """The host link gateware and a bus slave, simulated behind a byte transport.
 
     Parameters
@@ -288,20 +412,18 @@ class LinkSim:
                              f"not {chunk_clocks!r}")
         self._period_fs = round(1e15 / clk_hz)
         self._chunk_fs = chunk_clocks * self._period_fs
+        self._init_bytes()
         self._pending = bytearray()
-        self._out = bytearray()
         self._in_wp = 0
         self._idle = True
         self._now_fs = 0
-        self._thread = None
-        self.bytes_in = self.bytes_out = 0
         self.sim_s = 0.0
         self.bus_writes = 0
         self.counters = {}
         self._sim = Simulator(self.bench)
         self._sim.add_clock(self._period_fs / 1e15)
         self._sim.add_testbench(self._service)
-        self._step()                        # reset, first visit
+        self.step()                         # reset, first visit
 
     @property
     def clocks(self):
@@ -324,8 +446,7 @@ class LinkSim:
             n = ctx.get(b.out_n)
             if n:
                 assert n < _OUT, "LinkSim output buffer overflow: lower chunk_clocks"
-                self._out += ctx.get(b.out_buf).to_bytes(_OUT, "little")[_OUT - n:]
-                self.bytes_out += n
+                self._received(ctx.get(b.out_buf).to_bytes(_OUT, "little")[_OUT - n:])
                 ctx.set(b.out_n, 0)
             self._idle = bool(ctx.get(b.idle)) and not self._pending
             self.bus_writes = ctx.get(b.bus_writes)
@@ -333,105 +454,17 @@ class LinkSim:
                 self.counters = {n: ctx.get(getattr(self.link, n)) for n in names}
             await ctx.delay(self._chunk_fs / 1e15)
 
-    def _step(self):
+    def step(self):
+        """Simulate ``chunk_clocks`` more clocks."""
         start = time.perf_counter()
         self._now_fs += self._chunk_fs
         self._sim.run_until(self._now_fs / 1e15)
         self.sim_s += time.perf_counter() - start
-
-    # --- byte interface ---------------------------------------------------------------------
 
     @property
     def idle(self):
         """Nothing in flight: no queued input, the link waiting for a frame, lines quiet."""
         return self._idle and not self._pending
 
-    def send(self, data):
-        """Queue bytes for the link."""
-        self._pending += bytes(data)
-        self.bytes_in += len(data)
-
-    def receive(self, size):
-        """Simulate until some bytes have come back or the link is idle; return up to ``size``
-        of them."""
-        while not self._out and not self.idle:
-            self._step()
-        out = bytes(self._out[:size])
-        del self._out[:size]
-        return out
-
-    @property
-    def has_output(self):
-        """Bytes have come back that nobody has taken yet."""
-        return bool(self._out)
-
-    def take_output(self):
-        """All bytes received so far (without simulating further)."""
-        out = bytes(self._out)
-        self._out.clear()
-        return out
-
-    def run_until_idle(self, max_clocks=10_000_000):
-        """Simulate until nothing is in flight; return the bytes that came back."""
-        start = self.clocks
-        while not self.idle:
-            if self.clocks - start > max_clocks:
-                raise TimeoutError(f"link still busy after {max_clocks} clocks")
-            self._step()
-        return self.take_output()
-
-    def transport(self):
-        """An in-process :class:`~foc_servo.host.protocol.Transport` (not while a pty is open)."""
-        if self._thread is not None:
-            raise RuntimeError("LinkSim is bridged to a pty; use the pty path")
-        return _InProcess(self)
-
-    # --- pseudo-terminal ----------------------------------------------------------------------
-
-    def open_pty(self):
-        """Bridge the simulation to a new pseudo-terminal; return its slave path, for
-        ``serial.Serial(path)``. From now on only the bridge thread touches the simulation."""
-        if self._thread is not None:
-            raise RuntimeError("LinkSim pty is already open")
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._bridge, name="LinkSim-pty", daemon=True)
-        self._thread.start()
-        return os.ttyname(self._slave)
-
-    def _bridge(self):
-        master = self._master
-        while not self._stop.is_set():
-            busy = not self.idle
-            ready, _, _ = select.select([master], [], [], 0 if busy else 0.005)
-            if ready:
-                try:
-                    data = os.read(master, 4096)
-                except OSError:
-                    data = b""
-                if data:
-                    self.send(data)
-                    busy = True
-            if busy:
-                self._step()
-            out = self.take_output()
-            while out:
-                n = os.write(master, out)
-                out = out[n:]
-                time.sleep(0)               # let the client's thread take the GIL now
-
-    def close(self):
-        """Stop the pty bridge (if any) and close its file descriptors."""
-        if self._thread is not None:
-            self._stop.set()
-            self._thread.join()
-            os.close(self._master)
-            os.close(self._slave)
-            self._thread = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
+    def _queue(self, data):
+        self._pending += data
