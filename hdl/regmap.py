@@ -44,7 +44,8 @@ from amaranth.lib import data, enum
 from .fixed import Q, UQ, QFormat
 
 __all__ = [
-    "Access", "Mode", "AngleMode", "TriggerSource", "ScopeState", "FAULT_FIELDS", "SCOPE_STATUS_FIELDS",
+    "Access", "Mode", "AngleMode", "TriggerSource", "ScopeState", "FAULT_FIELDS",
+    "SCOPE_STATUS_FIELDS", "LOOP_FLAG_FIELDS", "LINK_COUNTERS", "LINK_COUNTER_WIDTH",
     "SCALE_NAMES", "Scales", "Register", "Window", "RegMap", "build_regmap", "REGMAP",
     "WORD_WIDTH", "MAGIC", "MAP_VERSION", "scale_factor", "mt_k_for",
 ]
@@ -54,8 +55,9 @@ __all__ = [
 WORD_WIDTH = 32
 #: ``id_magic``: "FOCS" in ASCII.
 MAGIC = 0x464F4353
-#: ``id_version``: major << 16 | minor of the register map; bump the major on incompatible change.
-MAP_VERSION = (1 << 16) | 0
+#: ``id_version``: major << 16 | minor of the register map; bump the major on incompatible change
+#: (2.0: ``pi_speed_kx`` UQ(24, 24) → UQ(24, 20), I_FS 20 A → 40 A; status registers, theta_lead).
+MAP_VERSION = (2 << 16) | 0
 
 #: Fault causes in bit order (bit 0 first), as ``hdl.protect.FAULTS`` (a test checks they agree).
 FAULT_FIELDS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c",
@@ -63,6 +65,13 @@ FAULT_FIELDS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c",
                 "hall")
 #: Scope status flags in bit order.
 SCOPE_STATUS_FIELDS = ("done", "pre_full")
+#: Sticky control-loop flags (``st_loop_flags``) in bit order.
+LOOP_FLAG_FIELDS = ("overmod", "sat_d", "sat_q", "dc_limited", "sat_speed")
+#: Host-link status counters in the order of ``hdl.hostlink.COUNTERS`` (a test checks they agree);
+#: registers ``st_link_<name>``.
+LINK_COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")
+#: Width of the host-link counters (they wrap): the link's ``counter_width``.
+LINK_COUNTER_WIDTH = 16
 
 
 class Access(enum.Enum):
@@ -118,7 +127,8 @@ class Scales:
     pwm_hz : float
         PWM frequency (the current-loop rate), Hz.
     i_fs_a : float
-        Current full scale ``I_FS``: the current of Q1.15 value 1.0, A.
+        Current full scale ``I_FS``: the current of Q1.15 value 1.0, A. Default 40 A: the default
+        motor's peak current is 28 A rms = 39.6 A amplitude (docs/TUNING.md), which 20 A clipped.
     u_fs_v : float
         ``U_FS``: volts per LSB of the U_dc code.
     n_fs_rpm : float
@@ -126,7 +136,7 @@ class Scales:
     """
     clk_hz: float = 50e6
     pwm_hz: float = 10e3
-    i_fs_a: float = 20.0
+    i_fs_a: float = 40.0
     u_fs_v: float = 12.5e-3
     n_fs_rpm: float = 12000.0
 
@@ -567,14 +577,14 @@ def build_regmap(scales=Scales()):
         return Register(name, addr, fmt, access, reset, desc, **kw)
 
     def pi(prefix, base, lim_fmt, lim_reset, unit_in, unit_out, out_scale,
-           kp_fmt=UQ(16, 8), kx_fmt=UQ(16, 16)):
+           kp_fmt=UQ(16, 8), kx_fmt=UQ(16, 16), kx_note=""):
         what = {"pi_d": "d-axis current", "pi_q": "q-axis current", "pi_speed": "speed"}[prefix]
         return [
             reg(f"{prefix}_kp", base, kp_fmt, RW, 0,
                 f"{what} PI proportional gain K_p (per unit: {unit_out} per {unit_in})",
                 unit="pu", shadow=prefix),
             reg(f"{prefix}_kx", base + 1, kx_fmt, RW, 0,
-                f"{what} PI integral gain K_x = K_i·T_s/2 (Tustin; per unit)",
+                f"{what} PI integral gain K_x = K_i·T_s/2 (Tustin; per unit){kx_note}",
                 unit="pu", shadow=prefix),
             reg(f"{prefix}_lim_lo", base + 2, lim_fmt, RW, -lim_reset,
                 f"{what} PI output lower limit", unit=out_scale[1], scale=out_scale[0],
@@ -596,7 +606,8 @@ def build_regmap(scales=Scales()):
         reg("id_pwm_mhz", 0x0004, UQ(32, 0), CONST, ids["id_pwm_mhz"],
             "PWM frequency pwm_hz (actual), in mHz", unit="Hz", scale="1/1000"),
         reg("id_i_fs_ma", 0x0005, UQ(32, 0), CONST, ids["id_i_fs_ma"],
-            "current full scale I_FS (Q1.15 value 1.0), in mA", unit="A", scale="1/1000"),
+            "current full scale I_FS (Q1.15 value 1.0), in mA (default 40 A: the default motor's "
+            "peak is 39.6 A)", unit="A", scale="1/1000"),
         reg("id_u_fs_uv", 0x0006, UQ(32, 0), CONST, ids["id_u_fs_uv"],
             "U_FS: DC-bus volts per LSB of the U_dc code, in µV", unit="V", scale="1/1000000"),
         reg("id_n_fs_rpm", 0x0007, UQ(32, 0), CONST, ids["id_n_fs_rpm"],
@@ -606,7 +617,8 @@ def build_regmap(scales=Scales()):
             "operating mode: disabled, open-loop voltage, current, speed", enum=Mode,
             shadow="setpoint"),
         reg("clear_faults", 0x0011, UQ(1, 0), STROBE, 0,
-            "write 1: release the trip latch and clear first/seen faults (if no cause present)"),
+            "write 1: release the trip latch and clear first/seen faults (if no cause present); "
+            "clear st_loop_flags"),
         reg("speed_ref", 0x0012, spd, RW, 0, "speed reference", unit="r/min", scale="N_FS",
             shadow="setpoint"),
         reg("i_d_ref", 0x0013, cur, RW, 0, "d-axis current reference (current mode and speed "
@@ -648,6 +660,10 @@ def build_regmap(scales=Scales()):
             shadow="decouple"),
         reg("decouple_psi", 0x0122, UQ(16, 14), RW, 0,
             "back-EMF term ω_e,FS·ψ_F / ((2/3)·U_rated)", unit="pu", shadow="decouple"),
+        reg("theta_lead", 0x0124, angle, RW, 0,
+            "inverse-Park angle advance at full-scale speed, ω_e,FS·t_lead (θ + speed/N_FS · "
+            "theta_lead; t_lead = 1/pwm_hz compensates the PWM delay; 0: off)", unit="deg",
+            scale="360", shadow="lead"),
         # --- PWM and gate drive ---
         reg("pwm_symmetric", 0x0180, UQ(1, 0), RW, 1, "SVPWM symmetric (centre-aligned) mode",
             shadow="pwm"),
@@ -659,8 +675,10 @@ def build_regmap(scales=Scales()):
         reg("dead_time", 0x0183, UQ(8, 0), RW, dead_clk, "gate dead time", unit="s",
             scale="1/clk_hz", shadow="pwm"),
         # --- speed loop ---
-        *pi("pi_speed", 0x0200, cur, 1 << 14, "N_FS", "I_FS", ("I_FS", "A"),
-            kp_fmt=UQ(24, 12), kx_fmt=UQ(24, 24)),
+        # Reset limit ±I_FS/4 (±10 A at the default 40 A); kx UQ4.20: the default motor's
+        # symmetric-optimum kx is 0.0091 … 9.10 for 50 … 500 Hz at 10 kHz (docs/TUNING.md).
+        *pi("pi_speed", 0x0200, cur, 1 << 13, "N_FS", "I_FS", ("I_FS", "A"),
+            kp_fmt=UQ(24, 12), kx_fmt=UQ(24, 20), kx_note=", 0 … 16"),
         reg("speed_div", 0x0204, UQ(8, 0), RW, 1,
             "speed loop every speed_div PWM periods (0 acts as 1)", unit="periods",
             shadow="speed"),
@@ -734,6 +752,26 @@ def build_regmap(scales=Scales()):
             "speed-loop computations since reset (wraps)", unit="counts"),
         reg("st_overruns", 0x041A, UQ(32, 0), RO, 0,
             "ADC samples arriving while the current loop was busy (wraps)", unit="counts"),
+        reg("st_adc_overruns", 0x041B, UQ(32, 0), RO, 0,
+            "ADC sample strobes dropped because a conversion was in progress (wraps)",
+            unit="counts"),
+        reg("st_loop_flags", 0x041C, UQ(len(LOOP_FLAG_FIELDS), 0), RO, 0,
+            "sticky: a loop since the last clear_faults over-modulated / saturated PI_d, PI_q / "
+            "hit the DC-bus gain limit / saturated the speed PI", fields=LOOP_FLAG_FIELDS),
+        reg("st_uv_armed", 0x041D, UQ(1, 0), RO, 0,
+            "under-voltage check armed (prot_uv_enable and a U_dc sample above prot_uv_limit)"),
+        reg("st_enc_config_error", 0x041E, UQ(1, 0), RO, 0,
+            "encoder configuration invalid (lines 0, pole pairs 0 or ≥ 4·lines, or z offset ≥ "
+            "4·lines): nothing counts"),
+        *[reg(f"st_link_{name}", 0x041F + k, UQ(LINK_COUNTER_WIDTH, 0), RO, 0, desc,
+              unit="frames")
+          for k, (name, desc) in enumerate(zip(LINK_COUNTERS, (
+              "host-link frames answered OK before this one (wraps)",
+              "host-link frames answered BAD_CRC for a CRC mismatch (wraps)",
+              "host-link frames answered BAD_CRC for a UART framing or COBS error (wraps)",
+              "host-link frames answered BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or READ_ONLY "
+              "(wraps)",
+              "host-link frames skipped without a reply: bytes arrived while busy (wraps)")))],
         # --- scope control (acts at once) ---
         *[reg(f"scope_chan{c}", 0x0500 + c, UQ(8, 0), RW, c,
               f"scope channel {c} signal select (index into the scope's signal list)")

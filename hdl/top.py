@@ -9,6 +9,7 @@
     PWMTimer.pwm ─ Gates (dead time, enable = Servo.enable, trip) ─ gate_h, gate_l
     fault_n, oc_comp ─ FFSynchronizer (2 flops) ─ Protection ─ trip ─ Gates, Servo
     Servo (modes, speed loop, open-loop angle) ─ θ, references ─ CurrentLoop; ref_step ─ Scope
+    MTSpeed speed × theta_lead register ─ LeadAngle ─ θ_lead ─ CurrentLoop (inverse Park θ + θ_lead)
 
 Timing within one PWM period (``period_start`` = ``pos`` 0):
 
@@ -21,6 +22,21 @@ So the control parameters change only while the current loop is idle, as its inp
 provided the loop finishes before the period ends (``pwm_sample_custom`` must not put the sample
 within ``AdcInterface.latency + CurrentLoop.latency`` clocks of the period end).
 
+**Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
+Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
+the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
+from the next period boundary (T/2 after a centred sample) for one period, so their mean is
+``t_lead = 1/pwm_hz`` after the sample (``host.tuning.lead_angle``). ``θ_lead`` is computed from
+each M/T result (``mt.o.valid``, after the register commit of the same period start) and is
+ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (86 at 50 MHz); a
+sample taken earlier uses the previous period's value.
+
+**Status.** Besides the blocks' own outputs, the top keeps wrapping 32-bit counters of current-
+loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
+and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
+limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
+link's 16-bit counters (``st_link_*``) count the frames before the one that reads them.
+
 A driver fault (``fault_n`` low) reaches the gates in :attr:`Top.fault_latency` clocks: 2 clocks
 of synchroniser, 1 in :class:`~.protect.Protection` (``present`` register, ``trip`` follows
 combinationally), 1 in :class:`~.gates.Gates` (registered outputs).
@@ -28,26 +44,28 @@ combinationally), 1 in :class:`~.gates.Gates` (registered outputs).
 
 import math
 import numbers
+from collections.abc import Mapping
 
-from amaranth.hdl import Cat, Module, Mux, Signal, Value
+from amaranth.hdl import Cat, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
 from .adc import AdcInterface
 from .encoder import EncoderFrontEnd
-from .foc import CurrentLoop
+from .fixed import round_shift, saturate
+from .foc import SPEED_WIDTH, CurrentLoop
 from .gates import Gates
-from .hostlink import HostLink
+from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
 from .protect import FAULTS, Protection
-from .regmap import Access, Scales, build_regmap
+from .regmap import LINK_COUNTERS, LOOP_FLAG_FIELDS, Access, Scales, build_regmap
 from .regs import RegisterFile
 from .scope import Scope
 from .servo import Servo
 from .svpwm import PWMTimer, pwm_half_period
 
-__all__ = ["Top", "regmap_address_map"]
+__all__ = ["Top", "LeadAngle", "regmap_address_map"]
 
 #: Width of the PWM counter, the duties and ``pwm_sample_point``.
 COUNT_WIDTH = 16
@@ -75,6 +93,62 @@ def regmap_address_map(regmap):
     return tuple(regions)
 
 
+class LeadAngle(wiring.Component):
+    """The inverse-Park angle advance ``θ_lead = speed · k``: one sequential shift-and-add
+    multiplication per start (16 clocks, one adder), for :attr:`CurrentLoop.theta_lead`.
+
+    ::
+
+        n     = saturate(round_shift(speed, 16), signed(16))   Q1.15 of N_FS (as CurrentLoop's n)
+        theta = round_shift(n · k, 15) mod 2**16               BinaryAngle(16)
+
+    ``k`` is the advance at full-scale speed, UQ0.16 of a turn (the ``theta_lead`` register:
+    ``ω_e(N_FS)·t_lead``), so ``theta`` is the electrical angle turned in ``t_lead`` at ``speed``
+    (negative for a negative speed: it wraps as an angle). The product is computed MSB first,
+    ``acc ← 2·acc + k[15 − i]·n``, exact in ``signed(33)``; rounding half away from zero.
+
+    Members
+    -------
+    speed : In(signed(32))
+        Speed, Q1.31 of N_FS; latched at ``start``.
+    k : In(unsigned(16))
+        Advance at full-scale speed, UQ0.16 turns; latched at ``start``.
+    start : In(1)
+        Strobe: compute from ``speed`` and ``k`` (restarts a computation in progress).
+    theta : Out(unsigned(16))
+        The last result, BinaryAngle(16); changes only when a computation completes.
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from ``start`` (clock ``t``) to the new ``theta`` (clock ``t + latency``): 17.
+    """
+
+    latency = 17
+
+    speed: In(signed(SPEED_WIDTH))
+    k: In(unsigned(16))
+    start: In(1)
+    theta: Out(unsigned(16))
+
+    def elaborate(self, platform):
+        m = Module()
+        n = Signal(signed(16))
+        k = Signal(16)
+        acc = Signal(signed(33))
+        steps = Signal(range(17))
+        acc_next = Signal(signed(33))
+        m.d.comb += acc_next.eq((acc << 1) + Mux(k[15], n, 0))
+        with m.If(self.start):
+            m.d.sync += [n.eq(saturate(round_shift(self.speed, SPEED_WIDTH - 16), signed(16))),
+                         k.eq(self.k), acc.eq(0), steps.eq(16)]
+        with m.Elif(steps != 0):
+            m.d.sync += [acc.eq(acc_next), k.eq(k << 1), steps.eq(steps - 1)]
+            with m.If(steps == 1):
+                m.d.sync += self.theta.eq(round_shift(acc_next, 15))
+        return m
+
+
 class Top(wiring.Component):
     """The servo controller on its pins (module docstring).
 
@@ -99,6 +173,10 @@ class Top(wiring.Component):
         Highest ADC SCLK frequency (:class:`~.adc.AdcInterface`).
     max_words : int
         Longest host-link burst (:class:`~.hostlink.HostLink`).
+    resets : mapping of str to int, optional
+        Reset (power-up) values of ``rw`` registers, raw, e.g. ``{"theta_lead": 5243}``: a build
+        that starts with tuned gains, or a simulation that starts configured without host writes.
+        Each value must fit its register's format.
 
     Members
     -------
@@ -147,7 +225,7 @@ class Top(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
-                 sclk_hz=25e6, max_words=64):
+                 sclk_hz=25e6, max_words=64, resets=None):
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
             if not _is_hz(value):
@@ -189,6 +267,17 @@ class Top(wiring.Component):
         if (not isinstance(max_words, int) or isinstance(max_words, bool)
                 or not 1 <= max_words <= 255):
             raise TypeError(f"Top max_words must be an integer from 1 to 255, not {max_words!r}")
+        if resets is not None:
+            if not isinstance(resets, Mapping):
+                raise TypeError(f"Top resets must be a mapping of register names to raw values "
+                                f"or None, not {resets!r}")
+            for name in resets:
+                if name not in regmap or regmap[name].access is not Access.RW:
+                    raise ValueError(f"Top resets may only set rw registers, not {name!r}")
+            if dead_time_s is not None and "dead_time" in resets:
+                raise ValueError("Top dead_time_s and resets['dead_time'] both set the dead "
+                                 "time: give one")
+            regmap = regmap.with_constants(dict(resets))   # Register checks each value's range
         self._clk_hz = float(clk_hz)
         self._scales = scales
         self._regmap = regmap
@@ -196,13 +285,16 @@ class Top(wiring.Component):
         # Built here (after every check) so that their timing attributes are known.
         self._regs = RegisterFile(regmap)
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
-                              address_map=regmap_address_map(regmap))
+                              address_map=regmap_address_map(regmap),
+                              counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
         self._loop = CurrentLoop(count_width=COUNT_WIDTH)
         self._encoder = EncoderFrontEnd()
         self._mt = MTSpeed(clk_hz=clk_hz)
-        self._servo = Servo()
+        self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
+                            kx_format=regmap["pi_speed_kx"].fmt)
+        self._lead = LeadAngle()
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
         self._scope = Scope()
@@ -245,6 +337,7 @@ class Top(wiring.Component):
         m.submodules.protect = prot = self._protect
         m.submodules.gates = gates = self._gates
         m.submodules.scope = scope = self._scope
+        m.submodules.lead = lead = self._lead
 
         # --- pins ---------------------------------------------------------------------------
         fault_n = Signal(init=1)
@@ -288,7 +381,13 @@ class Top(wiring.Component):
             servo.trip.eq(prot.trip),
 
             cl.theta.eq(servo.theta),
-            cl.theta_lead.eq(0),            # no register yet: no delay compensation
+            # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
+            # commits at period_start, before mt.o.valid): ready period_start + mt.latency +
+            # LeadAngle.latency, before the ADC sample unless pwm_sample_point is that early.
+            lead.speed.eq(speed),
+            lead.k.eq(regs.theta_lead),
+            lead.start.eq(mt.o.valid),
+            cl.theta_lead.eq(lead.theta),
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
             cl.ol_ud.eq(servo.ol_ud),
@@ -403,10 +502,31 @@ class Top(wiring.Component):
         # --- status registers ---------------------------------------------------------------
         speed_loops = Signal(32)
         overruns = Signal(32)
+        adc_overruns = Signal(32)
         with m.If(servo.speed_valid):
             m.d.sync += speed_loops.eq(speed_loops + 1)     # wraps, as documented
         with m.If(cl.overrun):
             m.d.sync += overruns.eq(overruns + 1)           # wraps (CurrentLoop's saturates)
+        with m.If(adc.overrun):
+            m.d.sync += adc_overruns.eq(adc_overruns + 1)   # wraps
+        # Sticky loop flags, sampled when they are final: the current loop's one clock after its
+        # duty transfer (overmod is registered then), the speed PI's one clock after its result.
+        # clear_faults clears them all (a flag still true is set again by the next loop; one
+        # seen in the clear's own clock is kept).
+        flags = Signal(len(LOOP_FLAG_FIELDS))
+        cl_done = Signal()
+        speed_done = Signal()
+        m.d.sync += [cl_done.eq(cl.done), speed_done.eq(servo.speed_valid)]
+        seen = {
+            "overmod": cl_done & cl.overmod, "sat_d": cl_done & cl.sat_d,
+            "sat_q": cl_done & cl.sat_q, "dc_limited": cl_done & cl.dc_limited,
+            "sat_speed": speed_done & servo.speed_sat,
+        }
+        assert tuple(seen) == LOOP_FLAG_FIELDS
+        m.d.sync += flags.eq(Mux(regs.clear_faults, 0, flags) | Cat(*seen.values()))
+        assert COUNTERS == LINK_COUNTERS
+        for name in COUNTERS:
+            m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
         m.d.comb += [
             _raw(regs.st_mode).eq(_raw(servo.active)),
             regs.st_trip.eq(prot.trip),
@@ -425,6 +545,10 @@ class Top(wiring.Component):
             regs.st_current_loops.eq(cl.count),
             regs.st_speed_loops.eq(speed_loops),
             regs.st_overruns.eq(overruns),
+            regs.st_adc_overruns.eq(adc_overruns),
+            _raw(regs.st_loop_flags).eq(flags),
+            regs.st_uv_armed.eq(prot.uv_armed),
+            regs.st_enc_config_error.eq(enc.config_error),
             _raw(regs.scope_state).eq(_raw(scope.state)),
             _raw(regs.scope_status).eq(Cat(scope.done, scope.pre_full)),
         ]

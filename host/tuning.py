@@ -28,9 +28,11 @@ T_n/2)::
     T_i  = a² · T_σn,   K_i = K_p / T_i      (A per rad)
     ω_c  = 1/(a · T_σn),  phase margin = arcsin((a² − 1)/(a² + 1))   (a = 2: 36.9°, a = 3: 53.1°)
 
-``a = 3`` by default (2 is the classic choice; it needs a 2.7 × larger speed ``kx``, more than
-the register format holds for the catalogue motor at the default scales). ``J`` is the rotor
-inertia plus ``j_load_kgm2``. The speed PI has no reference filter: a small
+``a = 3`` by default (2 is the classic choice, with a 3.4 × larger speed ``kx``). A speed-loop
+bandwidth (crossover) ω_c may be given instead of ``a``: then ``a = 1/(ω_c·T_σn)``, i.e.
+``K_p = J·ω_c/K_t`` and ``K_i = J·ω_c³·T_σn/K_t``; the same range of ``a`` applies (ω_c below
+``1/T_σn``), and the phase margin falls as ω_c approaches it (30° at ``1/(√3·T_σn)``).
+``J`` is the rotor inertia plus ``j_load_kgm2``. The speed PI has no reference filter: a small
 (unsaturated) step overshoots by about 43 % at ``a = 2`` and 25 % at ``a = 3``; large steps are
 current-limited and the PI's anti-windup decides.
 
@@ -44,6 +46,11 @@ the DC-bus compensation), ``T_s = T``; speed loop: ``E_FS = N_FS·2π/60`` (rad/
 ``T_s = speed_div · T``. Raw register values are ``round(K·2**frac)`` (half away from zero) in the
 register's format; a gain outside the format's range, or one the format's resolution cannot hold
 within 5 %, raises :exc:`ValueError` with the fix.
+
+**Delay compensation** (the ``theta_lead`` register, hdl/top.py): the inverse Park turns by the
+angle the rotor covers in ``t_lead``; the register holds that angle at the full-scale speed,
+``360°·(N_FS/60)·P·t_lead`` (:func:`lead_angle`). ``t_lead`` defaults to ``delay_periods · T``
+(the mean delay of the new duties, as T_σ above).
 """
 
 import dataclasses
@@ -56,7 +63,7 @@ from .registers import REGISTERS
 
 __all__ = ["CurrentGains", "SpeedGains", "Tuning", "current_gains", "speed_gains",
            "current_norm", "speed_norm", "to_raw", "from_raw", "tune", "physical_from_registers",
-           "t_min_s",
+           "t_min_s", "lead_angle", "LEAD_FORMAT",
            "CURRENT_KP_FORMAT", "CURRENT_KX_FORMAT", "SPEED_KP_FORMAT", "SPEED_KX_FORMAT",
            "MAX_QUANT_ERROR"]
 
@@ -65,6 +72,7 @@ CURRENT_KP_FORMAT = REGISTERS["pi_q_kp"].fmt
 CURRENT_KX_FORMAT = REGISTERS["pi_q_kx"].fmt
 SPEED_KP_FORMAT = REGISTERS["pi_speed_kp"].fmt
 SPEED_KX_FORMAT = REGISTERS["pi_speed_kx"].fmt
+LEAD_FORMAT = REGISTERS["theta_lead"].fmt
 
 #: Largest relative rounding error of a raw gain accepted by :func:`to_raw`.
 MAX_QUANT_ERROR = 0.05
@@ -186,7 +194,8 @@ def current_gains(motor, *, pwm_hz, bandwidth_rad_s=None, delay_periods=1.0):
                         omega_c_rad_s=wc, t_sigma_s=t_sigma, t_s=t_s)
 
 
-def speed_gains(motor, current, *, speed_div=1, a=3.0, j_load_kgm2=0.0, speed_delay_s=None):
+def speed_gains(motor, current, *, speed_div=1, a=3.0, j_load_kgm2=0.0, speed_delay_s=None,
+                bandwidth_rad_s=None):
     """Symmetric-optimum speed PI gains (module docstring: formulas).
 
     Parameters
@@ -198,23 +207,40 @@ def speed_gains(motor, current, *, speed_div=1, a=3.0, j_load_kgm2=0.0, speed_de
         Speed loop every ``speed_div`` PWM periods, 1 … 255.
     a : float
         Symmetric-optimum parameter, (1, 20]; default 3 (53° phase margin; 2 is the classic
-        choice, 37°, and needs a 2.7 × larger speed ``kx``).
+        choice, 37°, and needs a 3.4 × larger speed ``kx``).
     j_load_kgm2 : float
         Load inertia added to the rotor's, kg·m².
     speed_delay_s : float, optional
         T_ω; default one speed-loop period.
+    bandwidth_rad_s : float, optional
+        Speed-loop crossover ω_c instead of ``a`` (which is then ignored):
+        ``a = 1/(ω_c·T_σn)``, from ``1/(20·T_σn)`` up to (not including) ``1/T_σn``.
+
+    Raises
+    ------
+    ValueError
+        For an ``a`` or a bandwidth out of range, or a bad ``speed_div``, inertia or delay.
     """
     if not isinstance(speed_div, numbers.Integral) or isinstance(speed_div, bool) \
             or not 1 <= speed_div <= 255:
         raise ValueError(f"speed_div must be an integer from 1 to 255 periods, not {speed_div!r}")
-    a = _positive("symmetric optimum a", a, "")
-    if not 1.0 < a <= 20.0:
-        raise ValueError(f"symmetric optimum a must be above 1 and at most 20, not {a!r}")
     j = motor.j_kgm2 + _positive("j_load_kgm2", j_load_kgm2, "kg·m²", allow_zero=True)
     t_n = speed_div * current.t_s
     t_w = t_n if speed_delay_s is None else _positive("speed_delay_s", speed_delay_s, "s",
                                                       allow_zero=True)
     t_sn = 2.0 * current.t_sigma_s + t_w
+    if bandwidth_rad_s is not None:
+        wc = _positive("speed bandwidth", bandwidth_rad_s, "rad/s")
+        a = 1.0 / (wc * t_sn)
+        if not 1.0 < a <= 20.0:
+            raise ValueError(
+                f"speed bandwidth {wc:g} rad/s is outside {1 / (20 * t_sn):.0f} … "
+                f"{1 / t_sn:.0f} rad/s (exclusive), the symmetric optimum's range for "
+                f"T_σn = {t_sn * 1e6:.4g} µs (a = 1/(ω_c·T_σn) from 1 to 20); change it, or "
+                f"pwm_hz / speed_div")
+    a = _positive("symmetric optimum a", a, "")
+    if not 1.0 < a <= 20.0:
+        raise ValueError(f"symmetric optimum a must be above 1 and at most 20, not {a!r}")
     kt = motor.kt_nm_per_a
     kp = j / (a * kt * t_sn)
     ki = kp / (a * a * t_sn)
@@ -285,6 +311,7 @@ class Tuning:
 
 def tune(motor, *, scales=None, u_rated_v=310.0, speed_div=1, current_bandwidth_rad_s=None,
          delay_periods=1.0, a=3.0, j_load_kgm2=0.0, speed_delay_s=None,
+         speed_bandwidth_rad_s=None,
          current_kp_v_per_a=None, current_ki_v_per_as=None,
          speed_kp_a_per_rad_s=None, speed_ki_a_per_rad=None,
          current_kp_format=CURRENT_KP_FORMAT, current_kx_format=CURRENT_KX_FORMAT,
@@ -301,6 +328,8 @@ def tune(motor, *, scales=None, u_rated_v=310.0, speed_div=1, current_bandwidth_
         ``(2/3)·u_rated_v``).
     speed_div, current_bandwidth_rad_s, delay_periods, a, j_load_kgm2, speed_delay_s
         See :func:`current_gains` and :func:`speed_gains`.
+    speed_bandwidth_rad_s : float, optional
+        Speed-loop crossover instead of ``a`` (:func:`speed_gains`'s ``bandwidth_rad_s``).
     current_kp_v_per_a, current_ki_v_per_as, speed_kp_a_per_rad_s, speed_ki_a_per_rad : float
         Overrides of the rule's gains (each independently).
     current_kp_format, current_kx_format, speed_kp_format, speed_kx_format : QFormat
@@ -309,7 +338,9 @@ def tune(motor, *, scales=None, u_rated_v=310.0, speed_div=1, current_bandwidth_
     Raises
     ------
     ValueError
-        From the rule's checks, or when a gain does not fit its register format.
+        From the rule's checks, or when a gain does not fit its register format: the message
+        names the gain, its value, the format's range (or resolution) and the fixes (lower
+        bandwidth, other full scales, another format).
     """
     scales = Scales() if scales is None else scales
     if not isinstance(scales, Scales):
@@ -324,7 +355,7 @@ def tune(motor, *, scales=None, u_rated_v=310.0, speed_div=1, current_bandwidth_
         cur = dataclasses.replace(cur, kp_v_per_a=kp, ki_v_per_as=ki,
                                   omega_c_rad_s=kp / motor.l_q_h)
     spd = speed_gains(motor, cur, speed_div=speed_div, a=a, j_load_kgm2=j_load_kgm2,
-                      speed_delay_s=speed_delay_s)
+                      speed_delay_s=speed_delay_s, bandwidth_rad_s=speed_bandwidth_rad_s)
     if speed_kp_a_per_rad_s is not None or speed_ki_a_per_rad is not None:
         kp = spd.kp_a_per_rad_s if speed_kp_a_per_rad_s is None else \
             _positive("speed kp", speed_kp_a_per_rad_s, "A/(rad/s)", allow_zero=True)
@@ -342,20 +373,30 @@ def tune(motor, *, scales=None, u_rated_v=310.0, speed_div=1, current_bandwidth_
     }
     normalized["pi_q_kp"] = normalized["pi_d_kp"]
     normalized["pi_q_kx"] = normalized["pi_d_kx"]
-    cur_hint = (f"with I_FS = {scales.i_fs_a:g} A and u_rated = {u_rated_v:g} V; use another "
-                f"I_FS or u_rated, or a format with ")
-    spd_hint = (f"with N_FS = {scales.n_fs_rpm:g} r/min and I_FS = {scales.i_fs_a:g} A; use "
-                f"another full scale (gain ∝ N_FS/I_FS), or a format with ")
-    fmts = {"pi_d_kp": (current_kp_format, cur_hint), "pi_q_kp": (current_kp_format, cur_hint),
-            "pi_d_kx": (current_kx_format, cur_hint), "pi_q_kx": (current_kx_format, cur_hint),
-            "pi_speed_kp": (speed_kp_format, spd_hint),
-            "pi_speed_kx": (speed_kx_format, spd_hint)}
+    cur_hint = (f"with I_FS = {scales.i_fs_a:g} A and u_rated = {u_rated_v:g} V; ",
+                "use another I_FS or u_rated, or a format with ")
+    spd_hint = (f"with N_FS = {scales.n_fs_rpm:g} r/min and I_FS = {scales.i_fs_a:g} A; ",
+                "use another full scale (gain ∝ N_FS/I_FS), or a format with ")
+    # A gain too large for its format comes from too high a bandwidth: that knob first.
+    cur_bw = (f"lower the current ω_c {cur.omega_c_rad_s:.0f} rad/s "
+              f"({cur.omega_c_rad_s / 2 / math.pi:.0f} Hz), ")
+    spd_bw = (f"lower the speed ω_c {spd.omega_c_rad_s:.0f} rad/s "
+              f"({spd.omega_c_rad_s / 2 / math.pi:.0f} Hz), ")
+    fmts = {"pi_d_kp": (current_kp_format, cur_hint, cur_bw),
+            "pi_q_kp": (current_kp_format, cur_hint, cur_bw),
+            "pi_d_kx": (current_kx_format, cur_hint, cur_bw),
+            "pi_q_kx": (current_kx_format, cur_hint, cur_bw),
+            "pi_speed_kp": (speed_kp_format, spd_hint, spd_bw),
+            "pi_speed_kx": (speed_kx_format, spd_hint, spd_bw)}
     registers = {}
     for name in ("pi_d_kp", "pi_d_kx", "pi_q_kp", "pi_q_kx", "pi_speed_kp", "pi_speed_kx"):
-        fmt, hint = fmts[name]
+        fmt, (scale_text, fix), bw = fmts[name]
         value = normalized[name]
-        more = "more integer bits" if value > fmt.max else "more fraction bits"
-        registers[name] = to_raw(name, value, fmt, hint=hint + more)
+        if value > fmt.max:
+            hint = scale_text + bw + fix + "more integer bits"
+        else:
+            hint = scale_text + fix + "more fraction bits"
+        registers[name] = to_raw(name, value, fmt, hint=hint)
     return Tuning(current=cur, speed=spd, normalized=normalized, registers=registers)
 
 
@@ -422,3 +463,48 @@ def t_min_s(j_kgm2, delta_speed_rpm, t_max_nm, t_load_nm=0.0):
             or t_load_nm >= t_max):
         raise ValueError(f"t_load_nm {t_load_nm!r} N·m must be below t_max_nm {t_max:g} N·m")
     return j * abs(delta_speed_rpm) * _RPM / (t_max - t_load_nm)
+
+
+def lead_angle(motor, *, scales=None, t_lead_s=None, delay_periods=1.0):
+    """The ``theta_lead`` register for a delay ``t_lead``: the electrical angle turned in
+    ``t_lead`` at the full-scale speed, ``360°·(N_FS/60)·P·t_lead``.
+
+    Parameters
+    ----------
+    motor : MotorParams
+        Its ``pole_pairs``.
+    scales : Scales
+        ``n_fs_rpm`` and ``pwm_hz``; default ``Scales()``.
+    t_lead_s : float, optional
+        The delay to compensate, s; default ``delay_periods / pwm_hz``.
+    delay_periods : float
+        ``t_lead`` in PWM periods when ``t_lead_s`` is not given (1: the duties of a centred
+        sample act from T/2 to 3T/2 after it, mean T).
+
+    Returns
+    -------
+    (float, int)
+        The advance at full-scale speed in degrees, and the raw register value.
+
+    Raises
+    ------
+    ValueError
+        For a negative delay, or an advance of a turn or more (the register holds less than
+        360°): naming ``t_lead``, the angle and the largest ``t_lead`` that fits.
+    """
+    scales = Scales() if scales is None else scales
+    if not isinstance(scales, Scales):
+        raise TypeError(f"scales must be a Scales, not {scales!r}")
+    if t_lead_s is None:
+        t_lead_s = _positive("delay_periods", delay_periods, "periods", allow_zero=True) \
+            / scales.pwm_hz
+    t_lead_s = _positive("t_lead_s", t_lead_s, "s", allow_zero=True)
+    f_e_fs = scales.n_fs_rpm / 60.0 * motor.pole_pairs          # electrical Hz at N_FS
+    turns = f_e_fs * t_lead_s
+    if turns * (1 << LEAD_FORMAT.frac) > LEAD_FORMAT.max_raw + 0.5:
+        raise ValueError(f"t_lead {t_lead_s * 1e6:.6g} µs is {360 * turns:.6g}° at N_FS = "
+                         f"{scales.n_fs_rpm:g} r/min ({f_e_fs:g} Hz electrical), beyond the "
+                         f"theta_lead register's {360 * LEAD_FORMAT.max:.4f}°; at most "
+                         f"{LEAD_FORMAT.max / f_e_fs * 1e6:.6g} µs")
+    raw = to_raw("theta_lead", turns, LEAD_FORMAT) if turns else 0
+    return 360.0 * turns, raw

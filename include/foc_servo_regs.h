@@ -8,8 +8,8 @@
 #define FOC_SERVO_REGS_H
 
 #define FOC_MAGIC 0x464F4353u
-#define FOC_MAP_VERSION 0x00010000u
-#define FOC_MAP_HASH 0x9711AC8Cu
+#define FOC_MAP_VERSION 0x00020000u
+#define FOC_MAP_HASH 0x5F6E8206u
 
 #define FOC_ACCESS_RW 0
 #define FOC_ACCESS_RO 1
@@ -32,7 +32,7 @@
 #define FOC_ID_VERSION_FRAC 0
 #define FOC_ID_VERSION_SIGNED 0
 #define FOC_ID_VERSION_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_VERSION_RESET 0x10000u
+#define FOC_ID_VERSION_RESET 0x20000u
 
 /* id_map_hash: CRC-32 of the register map layout (host and gateware must agree). uint32 */
 #define FOC_ID_MAP_HASH_ADDR 0x0002u
@@ -41,7 +41,7 @@
 #define FOC_ID_MAP_HASH_FRAC 0
 #define FOC_ID_MAP_HASH_SIGNED 0
 #define FOC_ID_MAP_HASH_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_MAP_HASH_RESET 0x9711ac8cu
+#define FOC_ID_MAP_HASH_RESET 0x5f6e8206u
 
 /* id_clk_hz: system clock frequency clk_hz. uint32 [Hz] */
 #define FOC_ID_CLK_HZ_ADDR 0x0003u
@@ -61,14 +61,14 @@
 #define FOC_ID_PWM_MHZ_ACCESS FOC_ACCESS_CONST
 #define FOC_ID_PWM_MHZ_RESET 0x989680u
 
-/* id_i_fs_ma: current full scale I_FS (Q1.15 value 1.0), in mA. uint32 * 1/1000 [A] */
+/* id_i_fs_ma: current full scale I_FS (Q1.15 value 1.0), in mA (default 40 A: the default motor's peak is 39.6 A). uint32 * 1/1000 [A] */
 #define FOC_ID_I_FS_MA_ADDR 0x0005u
 #define FOC_ID_I_FS_MA_WORDS 1u
 #define FOC_ID_I_FS_MA_WIDTH 32u
 #define FOC_ID_I_FS_MA_FRAC 0
 #define FOC_ID_I_FS_MA_SIGNED 0
 #define FOC_ID_I_FS_MA_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_I_FS_MA_RESET 0x4e20u
+#define FOC_ID_I_FS_MA_RESET 0x9c40u
 
 /* id_u_fs_uv: U_FS: DC-bus volts per LSB of the U_dc code, in µV. uint32 * 1/1000000 [V] */
 #define FOC_ID_U_FS_UV_ADDR 0x0006u
@@ -101,7 +101,7 @@
 #define FOC_MODE_CURRENT 2
 #define FOC_MODE_SPEED 3
 
-/* clear_faults: write 1: release the trip latch and clear first/seen faults (if no cause present). bool */
+/* clear_faults: write 1: release the trip latch and clear first/seen faults (if no cause present); clear st_loop_flags. bool */
 #define FOC_CLEAR_FAULTS_ADDR 0x0011u
 #define FOC_CLEAR_FAULTS_WORDS 1u
 #define FOC_CLEAR_FAULTS_WIDTH 1u
@@ -329,6 +329,15 @@
 #define FOC_DECOUPLE_PSI_ACCESS FOC_ACCESS_RW
 #define FOC_DECOUPLE_PSI_RESET 0x0u
 
+/* theta_lead: inverse-Park angle advance at full-scale speed, ω_e,FS·t_lead (θ + speed/N_FS · theta_lead; t_lead = 1/pwm_hz compensates the PWM delay; 0: off). UQ0.16 * 360 [deg] */
+#define FOC_THETA_LEAD_ADDR 0x0124u
+#define FOC_THETA_LEAD_WORDS 1u
+#define FOC_THETA_LEAD_WIDTH 16u
+#define FOC_THETA_LEAD_FRAC 16
+#define FOC_THETA_LEAD_SIGNED 0
+#define FOC_THETA_LEAD_ACCESS FOC_ACCESS_RW
+#define FOC_THETA_LEAD_RESET 0x0u
+
 /* pwm_symmetric: SVPWM symmetric (centre-aligned) mode. bool */
 #define FOC_PWM_SYMMETRIC_ADDR 0x0180u
 #define FOC_PWM_SYMMETRIC_WORDS 1u
@@ -374,11 +383,11 @@
 #define FOC_PI_SPEED_KP_ACCESS FOC_ACCESS_RW
 #define FOC_PI_SPEED_KP_RESET 0x0u
 
-/* pi_speed_kx: speed PI integral gain K_x = K_i·T_s/2 (Tustin; per unit). UQ0.24 [pu] */
+/* pi_speed_kx: speed PI integral gain K_x = K_i·T_s/2 (Tustin; per unit), 0 … 16. UQ4.20 [pu] */
 #define FOC_PI_SPEED_KX_ADDR 0x0201u
 #define FOC_PI_SPEED_KX_WORDS 1u
 #define FOC_PI_SPEED_KX_WIDTH 24u
-#define FOC_PI_SPEED_KX_FRAC 24
+#define FOC_PI_SPEED_KX_FRAC 20
 #define FOC_PI_SPEED_KX_SIGNED 0
 #define FOC_PI_SPEED_KX_ACCESS FOC_ACCESS_RW
 #define FOC_PI_SPEED_KX_RESET 0x0u
@@ -390,7 +399,7 @@
 #define FOC_PI_SPEED_LIM_LO_FRAC 15
 #define FOC_PI_SPEED_LIM_LO_SIGNED 1
 #define FOC_PI_SPEED_LIM_LO_ACCESS FOC_ACCESS_RW
-#define FOC_PI_SPEED_LIM_LO_RESET (-16384)
+#define FOC_PI_SPEED_LIM_LO_RESET (-8192)
 
 /* pi_speed_lim_hi: speed PI output upper limit. Q1.15 * I_FS [A] */
 #define FOC_PI_SPEED_LIM_HI_ADDR 0x0203u
@@ -399,7 +408,7 @@
 #define FOC_PI_SPEED_LIM_HI_FRAC 15
 #define FOC_PI_SPEED_LIM_HI_SIGNED 1
 #define FOC_PI_SPEED_LIM_HI_ACCESS FOC_ACCESS_RW
-#define FOC_PI_SPEED_LIM_HI_RESET 16384
+#define FOC_PI_SPEED_LIM_HI_RESET 8192
 
 /* speed_div: speed loop every speed_div PWM periods (0 acts as 1). uint8 [periods] */
 #define FOC_SPEED_DIV_ADDR 0x0204u
@@ -759,6 +768,92 @@
 #define FOC_ST_OVERRUNS_SIGNED 0
 #define FOC_ST_OVERRUNS_ACCESS FOC_ACCESS_RO
 #define FOC_ST_OVERRUNS_RESET 0x0u
+
+/* st_adc_overruns: ADC sample strobes dropped because a conversion was in progress (wraps). uint32 [counts] */
+#define FOC_ST_ADC_OVERRUNS_ADDR 0x041Bu
+#define FOC_ST_ADC_OVERRUNS_WORDS 1u
+#define FOC_ST_ADC_OVERRUNS_WIDTH 32u
+#define FOC_ST_ADC_OVERRUNS_FRAC 0
+#define FOC_ST_ADC_OVERRUNS_SIGNED 0
+#define FOC_ST_ADC_OVERRUNS_ACCESS FOC_ACCESS_RO
+#define FOC_ST_ADC_OVERRUNS_RESET 0x0u
+
+/* st_loop_flags: sticky: a loop since the last clear_faults over-modulated / saturated PI_d, PI_q / hit the DC-bus gain limit / saturated the speed PI. flags[5] */
+#define FOC_ST_LOOP_FLAGS_ADDR 0x041Cu
+#define FOC_ST_LOOP_FLAGS_WORDS 1u
+#define FOC_ST_LOOP_FLAGS_WIDTH 5u
+#define FOC_ST_LOOP_FLAGS_FRAC 0
+#define FOC_ST_LOOP_FLAGS_SIGNED 0
+#define FOC_ST_LOOP_FLAGS_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LOOP_FLAGS_RESET 0x0u
+#define FOC_ST_LOOP_FLAGS_OVERMOD (1u << 0)
+#define FOC_ST_LOOP_FLAGS_SAT_D (1u << 1)
+#define FOC_ST_LOOP_FLAGS_SAT_Q (1u << 2)
+#define FOC_ST_LOOP_FLAGS_DC_LIMITED (1u << 3)
+#define FOC_ST_LOOP_FLAGS_SAT_SPEED (1u << 4)
+
+/* st_uv_armed: under-voltage check armed (prot_uv_enable and a U_dc sample above prot_uv_limit). bool */
+#define FOC_ST_UV_ARMED_ADDR 0x041Du
+#define FOC_ST_UV_ARMED_WORDS 1u
+#define FOC_ST_UV_ARMED_WIDTH 1u
+#define FOC_ST_UV_ARMED_FRAC 0
+#define FOC_ST_UV_ARMED_SIGNED 0
+#define FOC_ST_UV_ARMED_ACCESS FOC_ACCESS_RO
+#define FOC_ST_UV_ARMED_RESET 0x0u
+
+/* st_enc_config_error: encoder configuration invalid (lines 0, pole pairs 0 or ≥ 4·lines, or z offset ≥ 4·lines): nothing counts. bool */
+#define FOC_ST_ENC_CONFIG_ERROR_ADDR 0x041Eu
+#define FOC_ST_ENC_CONFIG_ERROR_WORDS 1u
+#define FOC_ST_ENC_CONFIG_ERROR_WIDTH 1u
+#define FOC_ST_ENC_CONFIG_ERROR_FRAC 0
+#define FOC_ST_ENC_CONFIG_ERROR_SIGNED 0
+#define FOC_ST_ENC_CONFIG_ERROR_ACCESS FOC_ACCESS_RO
+#define FOC_ST_ENC_CONFIG_ERROR_RESET 0x0u
+
+/* st_link_frames_ok: host-link frames answered OK before this one (wraps). uint16 [frames] */
+#define FOC_ST_LINK_FRAMES_OK_ADDR 0x041Fu
+#define FOC_ST_LINK_FRAMES_OK_WORDS 1u
+#define FOC_ST_LINK_FRAMES_OK_WIDTH 16u
+#define FOC_ST_LINK_FRAMES_OK_FRAC 0
+#define FOC_ST_LINK_FRAMES_OK_SIGNED 0
+#define FOC_ST_LINK_FRAMES_OK_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LINK_FRAMES_OK_RESET 0x0u
+
+/* st_link_crc_errors: host-link frames answered BAD_CRC for a CRC mismatch (wraps). uint16 [frames] */
+#define FOC_ST_LINK_CRC_ERRORS_ADDR 0x0420u
+#define FOC_ST_LINK_CRC_ERRORS_WORDS 1u
+#define FOC_ST_LINK_CRC_ERRORS_WIDTH 16u
+#define FOC_ST_LINK_CRC_ERRORS_FRAC 0
+#define FOC_ST_LINK_CRC_ERRORS_SIGNED 0
+#define FOC_ST_LINK_CRC_ERRORS_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LINK_CRC_ERRORS_RESET 0x0u
+
+/* st_link_framing_errors: host-link frames answered BAD_CRC for a UART framing or COBS error (wraps). uint16 [frames] */
+#define FOC_ST_LINK_FRAMING_ERRORS_ADDR 0x0421u
+#define FOC_ST_LINK_FRAMING_ERRORS_WORDS 1u
+#define FOC_ST_LINK_FRAMING_ERRORS_WIDTH 16u
+#define FOC_ST_LINK_FRAMING_ERRORS_FRAC 0
+#define FOC_ST_LINK_FRAMING_ERRORS_SIGNED 0
+#define FOC_ST_LINK_FRAMING_ERRORS_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LINK_FRAMING_ERRORS_RESET 0x0u
+
+/* st_link_rejected: host-link frames answered BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or READ_ONLY (wraps). uint16 [frames] */
+#define FOC_ST_LINK_REJECTED_ADDR 0x0422u
+#define FOC_ST_LINK_REJECTED_WORDS 1u
+#define FOC_ST_LINK_REJECTED_WIDTH 16u
+#define FOC_ST_LINK_REJECTED_FRAC 0
+#define FOC_ST_LINK_REJECTED_SIGNED 0
+#define FOC_ST_LINK_REJECTED_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LINK_REJECTED_RESET 0x0u
+
+/* st_link_dropped: host-link frames skipped without a reply: bytes arrived while busy (wraps). uint16 [frames] */
+#define FOC_ST_LINK_DROPPED_ADDR 0x0423u
+#define FOC_ST_LINK_DROPPED_WORDS 1u
+#define FOC_ST_LINK_DROPPED_WIDTH 16u
+#define FOC_ST_LINK_DROPPED_FRAC 0
+#define FOC_ST_LINK_DROPPED_SIGNED 0
+#define FOC_ST_LINK_DROPPED_ACCESS FOC_ACCESS_RO
+#define FOC_ST_LINK_DROPPED_RESET 0x0u
 
 /* scope_chan0: scope channel 0 signal select (index into the scope's signal list). uint8 */
 #define FOC_SCOPE_CHAN0_ADDR 0x0500u

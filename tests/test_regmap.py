@@ -6,7 +6,7 @@ import math
 import pytest
 from amaranth.hdl import Shape
 
-from foc_servo.hdl import bus, protect
+from foc_servo.hdl import bus, hostlink, protect
 from foc_servo.hdl.clarke import Clarke
 from foc_servo.hdl.encoder import EncoderFrontEnd
 from foc_servo.hdl.fixed import Q, UQ
@@ -14,8 +14,9 @@ from foc_servo.hdl.gates import Gates
 from foc_servo.hdl.mt_speed import MTSpeed
 from foc_servo.hdl.pi import PI
 from foc_servo.hdl.protect import Protection
-from foc_servo.hdl.regmap import (GROUPS, REGMAP, WORD_WIDTH, Access, Mode, RegMap, Register,
-                                  Scales, Window, build_regmap, scale_factor)
+from foc_servo.hdl.regmap import (GROUPS, LINK_COUNTER_WIDTH, LINK_COUNTERS, REGMAP, WORD_WIDTH,
+                                  Access, Mode, RegMap, Register, Scales, Window, build_regmap,
+                                  scale_factor)
 from foc_servo.hdl.regs import RegisterFile
 from foc_servo.hdl.svpwm import DCBusCompensation, PWMTimer
 from foc_servo.host import codegen
@@ -78,6 +79,11 @@ def test_regmap_widths_match_the_block_ports():
 def test_regmap_names_and_resets_match_the_blocks():
     assert REGMAP["prot_mask"].fields == protect.FAULTS
     assert WORD_WIDTH == bus.DATA_WIDTH
+    assert LINK_COUNTERS == hostlink.COUNTERS
+    for name in LINK_COUNTERS:
+        assert REGMAP[f"st_link_{name}"].width == LINK_COUNTER_WIDTH
+    assert REGMAP["theta_lead"].reset == 0                           # delay compensation off
+    assert REGMAP["pi_speed_lim_hi"].reset == -REGMAP["pi_speed_lim_lo"].reset == 1 << 13
     assert REGMAP["enc_lines"].reset == EncoderFrontEnd().lines.init
     assert REGMAP["enc_pole_pairs"].reset == EncoderFrontEnd().pole_pairs.init
     prot = Protection(speed_width=32)
@@ -185,9 +191,9 @@ def test_regmap_validation_messages():
 
 
 def test_scale_expressions():
-    assert scale_factor("I_FS", SCALES) == 20.0
+    assert scale_factor("I_FS", SCALES) == 40.0
     assert scale_factor("1/clk_hz", SCALES) == 2e-8
-    assert scale_factor("I_FS/32768", SCALES) == 20.0 / 32768
+    assert scale_factor("I_FS/32768", SCALES) == 40.0 / 32768
     assert scale_factor("360", SCALES) == 360.0
 
 
@@ -196,8 +202,8 @@ def test_scale_expressions():
 def test_host_map_converts_units_both_ways():
     r = REGISTERS["i_q_ref"]
     assert r.addr == REGMAP["i_q_ref"].addr and r.words == 1
-    assert r.to_raw(2.5, SCALES) == round(2.5 / 20 * 2**15)
-    assert r.from_raw(-16384, SCALES) == -10.0
+    assert r.to_raw(2.5, SCALES) == round(2.5 / 40 * 2**15)
+    assert r.from_raw(-16384, SCALES) == -20.0
     assert REGISTERS["speed_ref"].to_raw(1667, SCALES) == round(1667 / 12000 * 2**31)
     assert REGISTERS["dead_time"].to_raw(2e-6, SCALES) == 100
     assert REGISTERS["dead_time"].from_raw(50, SCALES) == pytest.approx(1e-6)
@@ -217,9 +223,9 @@ def test_host_map_converts_units_both_ways():
 
 
 def test_host_map_errors_name_register_value_range_and_unit():
-    with pytest.raises(ValueError, match=r"^i_q_ref 25 A is outside the range \[-20, 19\.9994\] "
+    with pytest.raises(ValueError, match=r"^i_q_ref 45 A is outside the range \[-40, 39\.9988\] "
                                          r"A$"):
-        REGISTERS["i_q_ref"].to_raw(25, SCALES)
+        REGISTERS["i_q_ref"].to_raw(45, SCALES)
     with pytest.raises(ValueError, match=r"^speed_ref -13000 r/min is outside the range "
                                          r"\[-12000, 12000\] r/min$"):
         REGISTERS["speed_ref"].to_raw(-13000, SCALES)
@@ -319,6 +325,7 @@ def test_regmap_matches_the_controller_blocks():
         ("ol_freq", srv.ol_freq), ("ol_u_d", srv.ud_set), ("ol_u_q", srv.uq_set),
         ("i_d_ref", srv.id_set), ("i_q_ref", srv.iq_set), ("speed_ref", srv.speed_ref),
         ("pi_speed_kp", srv.speed_kp), ("pi_speed_kx", srv.speed_kx),
+        ("theta_lead", loop.theta_lead),
         ("pi_speed_lim_lo", srv.iq_lim_lo), ("pi_speed_lim_hi", srv.iq_lim_hi),
         ("speed_div", srv.speed_rate_div),
         ("scope_decim", scp.decim), ("scope_trig_src", scp.trig_src),

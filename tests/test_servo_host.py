@@ -26,7 +26,7 @@ def raw_of(servo, name):
 
 
 def test_connect_reads_scales_from_id_registers(servo):
-    assert servo.scales.clk_hz == 50e6 and servo.scales.i_fs_a == 20.0
+    assert servo.scales.clk_hz == 50e6 and servo.scales.i_fs_a == 40.0
     assert servo.scales.n_fs_rpm == 12000.0 and servo.max_words == 64
 
 
@@ -37,7 +37,7 @@ def test_round_trip_in_units_q_formats_enums_flags_and_48_bit(servo):
                     "mt_k": (1 << 48) - 5, "u_rated": 300.0})
     v = servo.get_many(["i_q_ref", "speed_ref", "pi_d_lim_lo", "ol_angle", "mode",
                         "ol_angle_mode", "prot_mask", "decouple_enable", "mt_k", "u_rated"])
-    assert v["i_q_ref"] == 2.5 and raw_of(servo, "i_q_ref") == 4096
+    assert v["i_q_ref"] == 2.5 and raw_of(servo, "i_q_ref") == 2048
     assert v["speed_ref"] == pytest.approx(-1234.5, abs=12000 / 2**31)
     assert v["pi_d_lim_lo"] == -0.5 and raw_of(servo, "pi_d_lim_lo") == -16384
     assert v["ol_angle"] == 90.0 and raw_of(servo, "ol_angle") == 16384
@@ -66,8 +66,8 @@ def test_random_rw_registers_round_trip(servo):
 def test_out_of_range_rejected_without_any_write(servo):
     before = servo.sim.bus_writes
     old = servo.get("pi_d_kp")
-    with pytest.raises(ServoError, match=r"^i_q_ref 25 A is outside the range \[-20, 19\.99"):
-        servo.set_many({"pi_d_kp": old + 1.0, "i_q_ref": 25.0})
+    with pytest.raises(ServoError, match=r"^i_q_ref 45 A is outside the range \[-40, 39\.99"):
+        servo.set_many({"pi_d_kp": old + 1.0, "i_q_ref": 45.0})
     with pytest.raises(ServoError, match=r"^mode 'fast' is not one of disabled, open_loop"):
         servo.set("mode", "fast")
     with pytest.raises(ServoError, match=r"^prot_mask has no flag 'nope'"):
@@ -131,7 +131,7 @@ def test_load_checks_everything_before_writing(servo, tmp_path):
 def test_map_hash_mismatch_detected(monkeypatch):
     monkeypatch.setattr(REGISTERS["id_map_hash"], "reset", 0x12345678)
     with pytest.raises(MapMismatch, match=r"^register map mismatch: the drive's id_map_hash is "
-                                          r"0x[0-9A-F]{8} \(map version 1\.0\), this library's "
+                                          r"0x[0-9A-F]{8} \(map version 2\.0\), this library's "
                                           r"is 0x12345678"):
         Servo.sim()
 

@@ -5,19 +5,22 @@ fault path latency, one current-loop pass from the ADC model.
 The simulations run at 100 kHz PWM (500 clocks per period at 50 MHz) and a UART at clk_hz / 8
 (80 clocks per byte) to keep pysim cheap (~1.5 k clocks/s for the whole top)."""
 
+import math
 import re
 
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Module
+from amaranth.hdl import Module, signed
 from amaranth.lib import wiring
+from amaranth.lib.wiring import In
 
-from foc_servo.hdl.regmap import Access, Mode, Scales
-from foc_servo.hdl.top import Top, _raw, regmap_address_map
+from foc_servo.hdl.fixed import UQ, round_shift_np, saturate_np
+from foc_servo.hdl.regmap import LOOP_FLAG_FIELDS, Access, Mode, Scales
+from foc_servo.hdl.top import LeadAngle, Top, _raw, regmap_address_map
 from foc_servo.hdl.uart import UartRx, UartTx
-from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, crc16, decode_reply,
-                                     encode_request, frame)
+from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, cobs_encode, crc16,
+                                     decode_reply, encode_request, frame)
 from foc_servo.sim.adc_part import AdcPartModel
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.clarke import clarke
@@ -29,20 +32,22 @@ HALL_OK = 0b101          # a valid Hall code (sector 0): 000 would trip the Hall
 
 
 class _Bench(wiring.Component):
-    """Top + a host-side UART pair on its uart pins."""
+    """Top + a host-side UART pair on its uart pins; ``inject`` low pulls ``uart_rx`` low (a
+    testbench bit-bangs frames through it, damaged ones included, while the host UART idles)."""
 
     def __init__(self, top, baud):
         self.top = top
         self.host_tx = UartTx(clk_hz=top.clk_hz, baud=baud)
         self.host_rx = UartRx(clk_hz=top.clk_hz, baud=baud)
-        super().__init__({})
+        super().__init__({"inject": In(1, init=1)})
 
     def elaborate(self, platform):
         m = Module()
         m.submodules.top = top = self.top
         m.submodules.host_tx = tx = self.host_tx
         m.submodules.host_rx = rx = self.host_rx
-        m.d.comb += [top.uart_rx.eq(tx.tx), rx.rx.eq(top.uart_tx), rx.o.ready.eq(1)]
+        m.d.comb += [top.uart_rx.eq(tx.tx & self.inject), rx.rx.eq(top.uart_tx),
+                     rx.o.ready.eq(1)]
         return m
 
 
@@ -136,6 +141,14 @@ def _signed(word, bits=32):
     ({"dead_time_s": 10e-6}, ValueError,
      r"^Top dead_time_s must be 1 to 255 clocks at 5e\+07 Hz, not 1e-05 \(500 clocks\)$"),
     ({"max_words": 0}, TypeError, r"^Top max_words must be an integer from 1 to 255, not 0$"),
+    ({"resets": [1]}, TypeError, r"^Top resets must be a mapping of register names to raw "
+                                 r"values or None, not \[1\]$"),
+    ({"resets": {"st_mode": 1}}, ValueError, r"^Top resets may only set rw registers, "
+                                             r"not 'st_mode'$"),
+    ({"resets": {"theta_lead": 1 << 16}}, ValueError,
+     r"^Register theta_lead reset value must be an integer from 0 to 65535, not 65536$"),
+    ({"dead_time_s": 1e-6, "resets": {"dead_time": 5}}, ValueError,
+     r"^Top dead_time_s and resets\['dead_time'\] both set the dead time: give one$"),
 ])
 def test_top_parameter_validation(kwargs, exc, msg):
     with pytest.raises(exc, match=msg):
@@ -154,6 +167,20 @@ def test_top_scales_and_identification_constants_at_33_333_mhz():
     # Scales given with the requested PWM frequency are moved to the actual one.
     top = Top(clk_hz=33.333e6, scales=Scales(clk_hz=33.333e6, i_fs_a=5.0))
     assert top.scales.i_fs_a == 5.0 and top.scales.pwm_hz == pytest.approx(33.333e6 / 3334)
+
+
+@pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # blocks only inspected
+def test_top_blocks_take_their_formats_and_resets_from_the_register_map():
+    top = Top(resets={"theta_lead": 5243, "mode": Mode.SPEED.value})
+    rm = top.regmap
+    assert rm["theta_lead"].reset == 5243 and rm["mode"].reset == Mode.SPEED.value
+    assert rm["id_map_hash"].reset == Top().regmap["id_map_hash"].reset    # layout unchanged
+    assert top._regs.signature.members["theta_lead"].init == 5243
+    # The speed PI in the formats the host tunes for; the link counters as wide as theirs.
+    assert top._servo._loop_params["kp_format"] == rm["pi_speed_kp"].fmt
+    assert top._servo._loop_params["kx_format"] == rm["pi_speed_kx"].fmt == UQ(24, 20)
+    assert top._link.core.counter_width == rm["st_link_frames_ok"].width == 16
+    assert top.scales.i_fs_a == 40.0 and rm["id_i_fs_ma"].reset == 40_000
 
 
 def test_top_address_map_matches_register_access():
@@ -199,6 +226,7 @@ def _wiring_table(top):
         "clarke_gain_a": (cl.gain_a, same), "clarke_offset_a": (cl.offset_a, same),
         "clarke_gain_b": (cl.gain_b, same), "clarke_offset_b": (cl.offset_b, same),
         "u_rated": (cl.u_rated, same), "decouple_enable": (cl.ff_enable, same),
+        "theta_lead": (top._lead.k, same),
         "decouple_l": (cl.ff_l, same), "decouple_psi": (cl.ff_psi, same),
         "pwm_symmetric": (timer.symmetric, same), "pwm_sample_custom": (timer.sample_custom, same),
         "pwm_sample_point": (timer.sample_point, same), "dead_time": (gates.dead_time, same),
@@ -235,6 +263,10 @@ def _status_sources(top):
         "st_i_alpha": cl.i_alpha, "st_i_beta": cl.i_beta, "st_u_d": cl.u_d, "st_u_q": cl.u_q,
         "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": top._adc.o.payload.udc,
         "st_current_loops": cl.count, "st_speed_loops": None, "st_overruns": None,
+        "st_adc_overruns": None, "st_loop_flags": None, "st_uv_armed": prot.uv_armed,
+        "st_enc_config_error": enc.config_error,
+        **{f"st_link_{n}": getattr(top._link, n) for n in
+           ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")},
         "scope_state": scope.state, "scope_status": None,
     }
 
@@ -426,3 +458,222 @@ def test_top_adc_model_drives_a_current_loop_pass_at_33_333_mhz():
     assert "status_mismatch" not in seen
     assert set(_status_sources(top)) == {r.name for r in top.regmap if r.access is Access.RO}
     assert len(model.reads) >= 6
+
+
+# --- delay compensation (theta_lead) ----------------------------------------------------------
+
+def _lead_model(speed, k):
+    """Golden model of LeadAngle: BinaryAngle(16) advance of a Q1.31 speed times a UQ0.16 k."""
+    n = saturate_np(round_shift_np(speed, 16), signed(16))
+    return round_shift_np(n * k, 15) & 0xFFFF
+
+
+def test_lead_angle_bit_exact_latency_and_restart():
+    dut = LeadAngle()
+    rng = np.random.default_rng(11)
+    cases = [(-(1 << 31), 0xFFFF), ((1 << 31) - 1, 0xFFFF), ((1 << 31) - 1, 0), (0, 0x8000),
+             (-(1 << 16), 1), ((1 << 15), 0x8000), (-(1 << 15), 0x8000)]
+    cases += [(int(rng.integers(-(1 << 31), 1 << 31)), int(rng.integers(0, 1 << 16)))
+              for _ in range(40)]
+    got, changed_at = [], []
+
+    async def testbench(ctx):
+        # A restart in the middle of a computation: only the second one completes.
+        ctx.set(dut.speed, 1 << 30)
+        ctx.set(dut.k, 0x4000)
+        ctx.set(dut.start, 1)
+        await ctx.tick()
+        ctx.set(dut.start, 0)
+        await ctx.tick().repeat(5)
+        for speed, k in cases:
+            ctx.set(dut.speed, speed)
+            ctx.set(dut.k, k)
+            ctx.set(dut.start, 1)
+            before = ctx.get(dut.theta)
+            await ctx.tick()
+            ctx.set(dut.start, 0)
+            ctx.set(dut.speed, 12345)           # latched at start: later changes do not matter
+            ctx.set(dut.k, 0x1234)
+            first = None
+            for t in range(1, 30):
+                if first is None and ctx.get(dut.theta) != before:
+                    first = t
+                await ctx.tick()
+            changed_at.append(first)
+            got.append(ctx.get(dut.theta))
+
+    simulate(dut, [testbench], name="test_lead_angle")
+    want = [_lead_model(sp, k) for sp, k in cases]
+    assert got == want
+    # Hand checks: +0.5 N_FS × a quarter turn = 1/8 turn; −N_FS × 0xFFFF ≈ −1 turn + 1 LSB.
+    assert _lead_model(1 << 30, 0x4000) == 0x2000
+    assert _lead_model(-(1 << 31), 0xFFFF) == 1
+    # Latency: start in clock t → new theta in t + 17 (cases whose result differs).
+    assert {t for t in changed_at if t is not None} == {LeadAngle.latency}
+    assert changed_at.count(None) <= 3
+
+
+def _encoder_process(top, clocks_per_edge):
+    """Quadrature A/B stand-in: one edge every ``clocks_per_edge`` clocks, always forward."""
+    async def process(ctx):
+        states = ((0, 0), (1, 0), (1, 1), (0, 1))
+        k = 0
+        while True:
+            a, b = states[k % 4]
+            ctx.set(top.enc_a, a)
+            ctx.set(top.enc_b, b)
+            k += 1
+            await ctx.delay(clocks_per_edge / top.clk_hz)
+    return process
+
+
+def test_top_theta_lead_advances_the_inverse_park_angle():
+    """Open loop at the fixed angle 0 with u_d only (set at reset): u_αβ points along θ + θ_lead,
+    θ_lead = speed/N_FS · theta_lead: 0 while M/T reads no speed yet, then ≈ 45° with the encoder
+    at 6000 r/min = N_FS/2 and theta_lead = 90°; the Park rotation (i_d, i_q) is not advanced."""
+    k = 0x4000                          # a quarter turn at full-scale speed
+    top = Top(pwm_hz=250e3, baud=BAUD,
+              resets={"mode": Mode.OPEN_LOOP.value, "ol_u_d": 16000, "theta_lead": k})
+    seen = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        for _ in range(6):
+            # Just after each current-loop pass: its θ_lead and the M/T speed it was made from.
+            await ctx.tick().until(top._loop.done)
+            await ctx.tick().repeat(2)
+            seen.append((ctx.get(top._mt.o.payload.speed), ctx.get(top._loop.theta_lead),
+                         ctx.get(top._loop.u_alpha), ctx.get(top._loop.u_beta)))
+
+    simulate(top, [testbench], [_encoder_process(top, 25)], name="test_top_theta_lead")
+    angles = [math.degrees(math.atan2(ub, ua)) for _, _, ua, ub in seen]
+    # The first pass: no speed measured yet, no advance; the vector is on the fixed angle 0.
+    assert seen[0][:2] == (0, 0) and angles[0] == pytest.approx(0, abs=0.01)
+    # Later passes: 25 clocks per edge, 4 edges per line, 5000 lines at 50 MHz = 6000 r/min.
+    speed, lead, ua, ub = seen[-1]
+    assert speed / 2**31 * 12000 == pytest.approx(6000, rel=0.005)
+    assert lead == _lead_model(speed, k)
+    lead_deg = speed / 2**31 * k / 2**16 * 360
+    assert lead_deg == pytest.approx(45, rel=0.005)
+    assert angles[-1] == pytest.approx(lead_deg, abs=0.02)
+    assert math.hypot(ua, ub) == pytest.approx(16000, abs=2)
+
+
+# --- status registers -------------------------------------------------------------------------
+
+def _bitbang(byte, stop=1):
+    """UART levels of one byte, one per bit: start, 8 data bits LSB first, stop."""
+    return [0] + [(byte >> k) & 1 for k in range(8)] + [stop]
+
+
+def test_top_status_registers_read_provoked_values():
+    """Every status register the top adds reads a provoked value. At reset (``resets``): current
+    mode, references of I_FS/2 against 0 A measured and K_p ≈ 256 (both PIs saturate at their
+    ±√3/2 limits: |u| = 1.22, beyond the hexagon once the DC-bus gain limit 2 applies to the 0 V
+    bus), an invalid encoder configuration (0 lines), the under-voltage check on. A 40-clock
+    PWM period is shorter than an ADC conversion (48 clocks): every other sample strobe is
+    dropped. Over the link: a bad-CRC frame, a damaged (framing)
+    frame, a bad-address read, then the read of the status block, then a frame sent while the
+    link is busy replying (dropped)."""
+    per_bit = round(CLK / BAUD)
+    top = Top(pwm_hz=1.25e6, baud=BAUD, dead_time_s=0.1e-6, resets={
+        "mode": Mode.CURRENT.value, "i_d_ref": 1 << 14, "i_q_ref": 1 << 14, "pi_d_kp": 0xFFFF,
+        "pi_q_kp": 0xFFFF, "enc_lines": 0, "prot_uv_enable": 1})
+    assert top.pwm_period == 40 and top._adc.latency + 1 > 40
+    bench = _Bench(top, BAUD)
+    regs = top._regs
+    wire = bytearray()
+    count = {"strobes": 0, "cs_falls": 0, "conversions": 0}
+    seen = {}
+
+    async def monitor(ctx):
+        while True:
+            *_, byte = await ctx.posedge(bench.host_rx.o.valid).sample(bench.host_rx.o.payload)
+            wire.append(byte)
+
+    async def strobes(ctx):
+        while True:
+            await ctx.posedge(top._timer.sample)
+            count["strobes"] += 1
+
+    async def conversions(ctx):
+        # At the ADC pins: CS falls twice per conversion (convert pulse, then the read frame).
+        while True:
+            await ctx.negedge(top.adc_cs_n)
+            count["cs_falls"] += 1
+            count["conversions"] = (count["cs_falls"] + 1) // 2
+
+    def replies():
+        return [decode_reply(cobs_decode(bytes(r))[:-2]) for r in wire.split(b"\x00")[:-1]]
+
+    async def send(ctx, data, bad_stop=None):
+        for k, byte in enumerate(data):
+            bits = _bitbang(byte, stop=0 if k == bad_stop else 1) + ([1] if k == bad_stop else [])
+            for level in bits:
+                ctx.set(bench.inject, level)
+                await ctx.tick().repeat(per_bit)
+
+    async def reply(ctx, n):
+        for _ in range(400):                    # up to 8000 clocks: 100 reply bytes
+            if len(replies()) >= n:
+                return replies()[n - 1]
+            await ctx.tick().repeat(20)
+        raise AssertionError(f"no reply {n}")
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await ctx.tick().repeat(200)
+        payload = encode_request(Command.READ, 1, _addr(top, "st_trip"), 1)
+        bad_crc = (crc16(payload) ^ 0x0100).to_bytes(2, "big")
+        await send(ctx, b"\x00" + cobs_encode(payload + bad_crc) + b"\x00")
+        seen["r1"] = await reply(ctx, 1)
+        await send(ctx, frame(encode_request(Command.PING, 2)), bad_stop=3)
+        seen["r2"] = await reply(ctx, 2)
+        await send(ctx, frame(encode_request(Command.READ, 3, 0x0FFF, 1)))
+        seen["r3"] = await reply(ctx, 3)
+        # The status block, then at once a frame that arrives while the link is busy.
+        await send(ctx, frame(encode_request(Command.READ, 4, _addr(top, "st_adc_overruns"), 9)))
+        seen["lo"] = dict(count)                # the reads happen after the request's end ...
+        await send(ctx, frame(encode_request(Command.PING, 5)))
+        seen["r4"] = await reply(ctx, 4)
+        seen["hi"] = dict(count)                # ... and before the reply
+        await ctx.tick().repeat(1000)
+        seen["n_replies"] = len(replies())
+        seen["link"] = {n: ctx.get(getattr(regs, f"st_link_{n}")) for n in ("frames_ok", "dropped")}
+        # Trip: the PIs are cleared, nothing saturates any more, but the flags stay set.
+        ctx.set(top.fault_n, 0)
+        await ctx.tick().repeat(300)
+        seen["tripped"] = ctx.get(regs.st_trip)
+        seen["sat_now"] = (ctx.get(top._loop.sat_d), ctx.get(top._loop.overmod))
+        seen["flags_held"] = ctx.get(_raw(regs.st_loop_flags))
+        ctx.set(regs.clear_faults, 1)           # the strobe's one-clock pulse
+        await ctx.tick()
+        seen["flags_cleared"] = ctx.get(_raw(regs.st_loop_flags))
+        await ctx.tick().repeat(300)
+        seen["flags_after"] = ctx.get(_raw(regs.st_loop_flags))
+
+    simulate(bench, [testbench], [monitor, strobes, conversions], name="test_top_status")
+    assert seen["r1"].status == ReplyStatus.BAD_CRC and seen["r2"].status == ReplyStatus.BAD_CRC
+    assert seen["r3"].status == ReplyStatus.BAD_ADDRESS
+    r4 = seen["r4"]
+    assert r4.status == ReplyStatus.OK and r4.seq == 4
+    adc_overruns, flags, uv_armed, config_error, *link = r4.data
+    bit = {f: 1 << i for i, f in enumerate(LOOP_FLAG_FIELDS)}
+    # Frames before the read: one BAD_CRC each for the CRC and the framing error, one rejected.
+    assert dict(zip(("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped"), link)) \
+        == {"frames_ok": 0, "crc_errors": 1, "framing_errors": 1, "rejected": 1, "dropped": 0}
+    # ... and after it: the read answered OK, the frame sent during its reply dropped unanswered.
+    assert seen["n_replies"] == 4 and seen["link"] == {"frames_ok": 1, "dropped": 1}
+    assert flags == bit["overmod"] | bit["sat_d"] | bit["sat_q"] | bit["dc_limited"]
+    assert uv_armed == 1 and config_error == 1
+    # Dropped strobes = strobes − conversions counted at the pins, between request and reply;
+    # a conversion takes longer than a period, so every other strobe is dropped.
+    lo, hi = seen["lo"], seen["hi"]
+    assert lo["strobes"] - lo["conversions"] - 1 <= adc_overruns
+    assert adc_overruns <= hi["strobes"] - hi["conversions"] + 1
+    assert lo["strobes"] // 2 - 2 <= adc_overruns <= hi["strobes"] // 2 + 2
+    # Sticky until clear_faults (the trip stopped saturation; a 0 V bus still limits the gain).
+    assert seen["tripped"] == 1 and seen["sat_now"] == (0, 0)
+    assert seen["flags_held"] == flags
+    assert seen["flags_cleared"] & ~bit["dc_limited"] == 0
+    assert seen["flags_after"] == bit["dc_limited"]

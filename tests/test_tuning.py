@@ -13,7 +13,8 @@ from foc_servo.hdl.fixed import UQ
 from foc_servo.hdl.regmap import Scales
 from foc_servo.host.registers import REGISTERS
 from foc_servo.host.tuning import (CURRENT_KX_FORMAT, SPEED_KX_FORMAT, current_gains,
-                                   physical_from_registers, speed_gains, t_min_s, to_raw, tune)
+                                   lead_angle, physical_from_registers, speed_gains, t_min_s,
+                                   to_raw, tune)
 from foc_servo.sim.motor import SGMSH_15A
 
 #: Other motors the rule must serve too: 10× inertia, small fast motor, slow big motor.
@@ -216,21 +217,88 @@ def test_tune_overrides_each_gain():
 
 
 def test_tune_gain_that_does_not_fit_names_gain_range_and_fix():
-    # The classic a = 2 needs a speed kx of 2.72 at N_FS = 12000 r/min, I_FS = 20 A.
-    with pytest.raises(ValueError, match=r"^pi_speed_kx 2\.7\d* does not fit UQ\(24, 24\) "
-                                         r"\(representable 0 … 0\.99999994\): with N_FS = 12000 "
-                                         r"r/min and I_FS = 20 A; use another full scale "
-                                         r"\(gain ∝ N_FS/I_FS\), or a format with more integer "
-                                         r"bits$"):
-        tune(SGMSH_15A, a=2.0)
+    # 10× the rotor inertia at a 500 Hz speed loop needs a speed kx of 91 (UQ4.20 holds < 16).
+    with pytest.raises(ValueError, match=r"^pi_speed_kx 90\.9\d* does not fit UQ\(24, 20\) "
+                                         r"\(representable 0 … 15\.999999\): with N_FS = 12000 "
+                                         r"r/min and I_FS = 40 A; lower the speed ω_c 3142 rad/s "
+                                         r"\(500 Hz\), use another full scale \(gain ∝ "
+                                         r"N_FS/I_FS\), or a format with more integer bits$"):
+        tune(MOTORS[1], speed_bandwidth_rad_s=2 * math.pi * 500)
     # ... and fits with a format with more integer bits.
-    t = tune(SGMSH_15A, a=2.0, speed_kx_format=UQ(24, 20))
-    assert t.registers["pi_speed_kx"] == round(t.normalized["pi_speed_kx"] * 2 ** 20)
-    with pytest.raises(ValueError, match=r"^pi_d_kx 0\.00760\d* is below the resolution of "
-                                         r"UQ\(16, 6\) \(steps of 0\.0156: error above 5%\): with "
-                                         r"I_FS = 20 A and u_rated = 310 V; use another I_FS or "
+    t = tune(MOTORS[1], speed_bandwidth_rad_s=2 * math.pi * 500, speed_kx_format=UQ(24, 16))
+    assert t.registers["pi_speed_kx"] == round(t.normalized["pi_speed_kx"] * 2 ** 16)
+    # The classic a = 2 (speed kx 1.36) fits the register map's UQ4.20; the old UQ0.24 did not.
+    assert tune(SGMSH_15A, a=2.0).normalized["pi_speed_kx"] == pytest.approx(1.36, abs=0.005)
+    with pytest.raises(ValueError, match=r"^pi_speed_kx 1\.358\d* does not fit UQ\(24, 24\) "):
+        tune(SGMSH_15A, a=2.0, speed_kx_format=UQ(24, 24))
+    with pytest.raises(ValueError, match=r"^pi_d_kx 0\.0152\d* is below the resolution of "
+                                         r"UQ\(16, 5\) \(steps of 0\.0312: error above 5%\): with "
+                                         r"I_FS = 40 A and u_rated = 310 V; use another I_FS or "
                                          r"u_rated, or a format with more fraction bits$"):
-        tune(SGMSH_15A, current_kx_format=UQ(16, 6))
+        tune(SGMSH_15A, current_kx_format=UQ(16, 5))
+
+
+def _significant_bits(raw):
+    return int(raw).bit_length()
+
+
+def test_speed_formats_hold_50_to_500_hz_for_the_default_motor():
+    """Decision record (docs/TUNING.md): at 10 kHz and the default scales, the speed PI's
+    gains for crossovers of 50 … 500 Hz fit the register formats with at least 8 significant
+    bits; UQ(24, 20) is the finest kx format that holds 500 Hz (UQ(24, 21) and the former
+    UQ(24, 24) do not)."""
+    assert SPEED_KX_FORMAT == UQ(24, 20) and Scales().i_fs_a == 40.0
+    kx = {}
+    for f_hz in (50, 100, 200, 300, 400, 500):
+        t = tune(SGMSH_15A, speed_bandwidth_rad_s=2 * math.pi * f_hz)
+        assert t.speed.omega_c_rad_s == pytest.approx(2 * math.pi * f_hz)
+        for name, raw in t.registers.items():
+            assert _significant_bits(raw) >= 8, (f_hz, name, raw)
+        kx[f_hz] = t.normalized["pi_speed_kx"]
+    assert kx[50] == pytest.approx(0.0091, rel=0.01) and kx[500] == pytest.approx(9.10, rel=0.01)
+    # K_i ∝ ω_c³ at a fixed T_σn (a = 1/(ω_c·T_σn)).
+    assert kx[500] / kx[50] == pytest.approx(1000)
+    with pytest.raises(ValueError, match=r"^pi_speed_kx 9\.09\d* does not fit UQ\(24, 21\) "):
+        tune(SGMSH_15A, speed_bandwidth_rad_s=2 * math.pi * 500, speed_kx_format=UQ(24, 21))
+    with pytest.raises(ValueError, match=r"^pi_speed_kx 1\.\d* does not fit UQ\(24, 24\) "):
+        tune(SGMSH_15A, speed_bandwidth_rad_s=2 * math.pi * 300, speed_kx_format=UQ(24, 24))
+
+
+@pytest.mark.parametrize("f_hz", [50, 177, 300])
+def test_speed_bandwidth_is_the_open_loop_crossover(f_hz):
+    # Independent: |L(jω)| of the rule's model (PI · K_t/(J·s) · 1/(1 + s·T_σn)) is 1 at ω_c,
+    # and the gains are the symmetric optimum with a = 1/(ω_c·T_σn).
+    m = SGMSH_15A
+    cur = current_gains(m, pwm_hz=10e3)
+    wc = 2 * math.pi * f_hz
+    spd = speed_gains(m, cur, bandwidth_rad_s=wc, a=7.0)      # a is ignored
+    s = 1j * wc
+    loop = ((spd.kp_a_per_rad_s + spd.ki_a_per_rad / s) * m.kt_nm_per_a / (m.j_kgm2 * s)
+            / (1 + s * spd.t_sigma_n_s))
+    assert abs(loop) == pytest.approx(1.0, rel=1e-9)
+    same = speed_gains(m, cur, a=1 / (wc * spd.t_sigma_n_s))
+    assert (spd.kp_a_per_rad_s, spd.ki_a_per_rad) == pytest.approx(
+        (same.kp_a_per_rad_s, same.ki_a_per_rad), rel=1e-12)
+    assert 180 + math.degrees(np.angle(loop)) == pytest.approx(spd.phase_margin_deg, abs=1e-6)
+    with pytest.raises(ValueError, match=r"^speed bandwidth 3769\.91 rad/s is outside 167 … 3333 "
+                                         r"rad/s \(exclusive\), the symmetric optimum's range for "
+                                         r"T_σn = 300 µs \(a = 1/\(ω_c·T_σn\) from 1 to 20\); "
+                                         r"change it, or pwm_hz / speed_div$"):
+        speed_gains(m, cur, bandwidth_rad_s=2 * math.pi * 600)
+
+
+def test_lead_angle_register():
+    # 1 PWM period at 10 kHz, N_FS = 12000 r/min, 4 pole pairs: 800 Hz electrical · 100 µs.
+    deg, raw = lead_angle(SGMSH_15A)
+    assert deg == pytest.approx(28.8) and raw == round(0.08 * 2**16) == 5243
+    assert REGISTERS["theta_lead"].from_raw(raw, Scales()) == pytest.approx(28.8, abs=0.006)
+    deg2, raw2 = lead_angle(SGMSH_15A, t_lead_s=150e-6, scales=Scales(n_fs_rpm=6000))
+    assert deg2 == pytest.approx(21.6) and raw2 == round(0.06 * 2**16)
+    assert lead_angle(SGMSH_15A, t_lead_s=0) == (0.0, 0)
+    with pytest.raises(ValueError, match=r"^t_lead 2000 µs is 576° at N_FS = 12000 r/min \(800 Hz "
+                                         r"electrical\), beyond the theta_lead register's "
+                                         r"359\.9945°; at most 1249\.98 µs$"):
+        lead_angle(SGMSH_15A, t_lead_s=2e-3)
 
 
 def test_default_formats_come_from_the_register_map():
