@@ -1,19 +1,54 @@
-# Ref: paper eq. (7)–(9) (speed PI), SPEC.md §2, §2.5, §4 (operating modes)
+# Ref: paper eq. (7)–(9) (speed PI), SPEC.md §2, §2.5, §4 (operating modes); issue 6 targets
+#      (step 0 → 1667 r/min within 1.2·t_min, < 0.5 % overshoot; ramp 0.45 r/min per sample)
 """Speed loop and operating modes: what drives the current loop.
 
 :class:`SpeedLoop` turns the M/T speed (Q1.(speed_width−1) of the full-scale speed N_FS) and the
-speed reference into the i_q reference (Q1.15 of I_FS) through a Tustin PI
-(:class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9)) of ``width`` bits; the speed error needs far
-more than 16 bits (0.01 % of 1667 r/min is 0.17 r/min; one LSB of Q1.23 at N_FS = 12 000 r/min is
-0.0014 r/min)::
+speed reference into the i_q reference (Q1.15 of I_FS) through a reference profile generator and a
+Tustin PI (:class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9)) of ``width`` bits; the speed error
+needs far more than 16 bits (0.01 % of 1667 r/min is 0.17 r/min; one LSB of Q1.23 at
+N_FS = 12 000 r/min is 0.0014 r/min).
 
-    fb   = saturate(round_shift(speed,     speed_width − width), signed(width))   Q1.(width−1)
-    ref  = saturate(round_shift(speed_ref, speed_width − width), signed(width))
-    O    = PI(ref, fb) with limits lim_lo · 2**(width−16), lim_hi · 2**(width−16)
-    i_q  = saturate(round_shift(O, width − 16), signed(16))                       Q1.15
+**Reference profile.** Per accepted run ``n`` (``S = speed_slew``, ``F = iq_ff``)::
 
-``O`` lies within the scaled limits, so ``i_q`` lies within [lim_lo, lim_hi] exactly (the final
-``saturate`` never binds; it is there so that nothing can wrap).
+    R[n]  = clamp(speed_ref, sat(R[n−1] − S), sat(R[n−1] + S))     ref_int, Q1.(speed_width−1)
+          = R[n−1] + clamp(speed_ref − R[n−1], −S, +S)             (S = 0: R[n] = speed_ref)
+    ff[n] = clamp(±F, lim_lo, lim_hi) if speed_ref ≷ R[n], else 0         Q1.15 of I_FS
+    ref   = to_pi(R[n])                                          ref_delay = d + f/8 with d = 0
+    ref   = a + round_shift(f·(b − a), 3),  a = to_pi(R[n−d]), b = to_pi(R[n−d−1])      (d ≥ 1)
+    kx    = 0 this run if int_hold and R[n] ≠ speed_ref          (integrator held while moving)
+    to_pi(x) = saturate(round_shift(x, speed_width − width), signed(width))    Q1.(width−1)
+
+While ``clear`` is high (not in SPEED mode) ``R`` and its history track the measured speed if
+``S ≠ 0`` (a bumpless start from a spinning motor), else ``speed_ref``. ``R[n]`` lies between
+``R[n−1]`` and ``speed_ref``, so it never leaves signed(speed_width); the interpolated ``ref``
+lies between ``a`` and ``b`` (``|round(f·Δ/8)| ≤ |Δ|`` for ``f ≤ 7``). ``ref_delay`` makes the
+PI compare the speed with the reference as the plant can follow it (the delay of the closed
+current loop and of the M/T average, about 2.5 … 3 runs at 10 kHz with the default tuning),
+while ``ff`` acts at once; ``int_hold`` keeps the integrator out of the acceleration, which ``ff``
+supplies. With ``ref_delay = 0`` and ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and
+``F = 0`` too, the loop has no profile.
+
+Timing: a run compares ``speed_ref`` with bounds ``R ± S`` registered in the clock before from
+that clock's ``speed_slew``, and for ``d ≥ 1`` takes the interpolation registered in the clock
+before from that clock's ``ref_delay``, so the path into the PI gains only a comparison and a
+multiplexer; ``ff``, the hold and the shifted PI limits are registers loaded by the run. In the
+top the registers change at the loop boundary, tens of clocks before a run.
+
+**PI and feed-forward**, with the anti-windup working against the room the feed-forward leaves::
+
+    fb   = to_pi(speed)
+    O    = PI(ref, fb), limits sat((lim_lo − ff)·2**(width−16)), sat((lim_hi − ff)·2**(width−16))
+    i_q  = saturate(round_shift(O + ff·2**(width−16), width − 16), signed(16))          Q1.15
+
+The PI's limits are the current limits shifted by ``−ff`` (saturated to signed(width)): its
+integrator clamp and conditional integration act on the PI's share of i_q, so the integrator
+never winds up behind the feed-forward, and ``sat`` still means "i_q is at the current limit".
+``ff`` is ``+F`` while the profile rises and ``−F`` while it falls, clamped to the current limits
+(so it fits signed(16)); then for ``lim_lo ≤ lim_hi``, ``lim_lo − ff ≤ 0 ≤ lim_hi − ff``, a
+shifted limit can only saturate towards the inside, and ``O + ff`` never leaves
+``[lim_lo, lim_hi]`` (the golden model checks it). Widths: ``lim − ff`` signed(17),
+``O + ff·2**(width−16)`` signed(width + 1); the final ``saturate`` never binds (it is there so
+that nothing can wrap).
 
 :class:`Servo` holds the operating mode (:class:`Mode`), the open-loop angle generator (a phase
 accumulator) and the speed loop, and produces the current loop's inputs (the ``In`` ports of
@@ -25,16 +60,19 @@ from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import UQ, BinaryAngle, clamp, round_shift, saturate
+from .fixed import UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
 from .mt_speed import output_layout as mt_output_layout
 from .pi import PI, pi_widths
 
-__all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "check_speed_loop"]
+__all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
+           "check_speed_loop"]
 
 #: Width of the current references and modulation indices, Q1.15 (docs/ARCHITECTURE.md).
 IQ_WIDTH = 16
 #: The electrical angle format.
 ANGLE = BinaryAngle(16)
+#: Fraction bits of ``ref_delay`` (steps of 1/8 speed-loop run).
+DELAY_FRAC = 3
 
 
 def _is_int(value):
@@ -57,7 +95,8 @@ class AngleSource(enum.Enum, shape=2):
     MEASURED = 2    # the measured θ_e (encoder / Hall check with a voltage vector)
 
 
-def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width):
+def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
+                     delay_width=5):
     """Validate the :class:`SpeedLoop` parameters (shared with the golden model)."""
     if not _is_int(speed_width) or not 16 <= speed_width <= 48:
         raise TypeError(f"SpeedLoop speed_width must be an integer from 16 to 48, "
@@ -71,20 +110,25 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
     if not _is_int(div_width) or not 1 <= div_width <= 16:
         raise TypeError(f"SpeedLoop div_width must be an integer from 1 to 16, "
                         f"not {div_width!r}")
+    if not _is_int(delay_width) or not DELAY_FRAC + 1 <= delay_width <= DELAY_FRAC + 4:
+        raise TypeError(f"SpeedLoop delay_width must be an integer from {DELAY_FRAC + 1} to "
+                        f"{DELAY_FRAC + 4}, not {delay_width!r}")
     pi_widths(width, kp_format, kx_format, int_guard)
 
 
 class SpeedLoop(wiring.Component):
-    """Speed PI: M/T speed and speed reference → i_q reference (module docstring: equations).
+    """Reference profile and speed PI: M/T speed and speed reference → i_q reference (module
+    docstring: equations).
 
     Runs on every ``rate_div + 1``-th valid speed sample (the first one after ``clear`` runs); a
-    run that finds the PI still busy (samples less than :attr:`interval` clocks apart) is dropped.
-    The M/T block delivers one sample per PWM period, thousands of clocks apart.
+    run that finds the PI still busy (samples less than :attr:`interval` clocks apart) is dropped
+    and leaves the profile alone. The M/T block delivers one sample per PWM period, thousands of
+    clocks apart.
 
     Parameters
     ----------
     speed_width : int
-        Width of the speed and speed reference, Q1.(speed_width−1) of N_FS (MTSpeed
+        Width of the speed, speed reference and slew, Q1.(speed_width−1) of N_FS (MTSpeed
         ``out_width``, 32 by default), 16 … 48.
     width : int
         Width of the speed PI (error, integrator scale, output), ``16 … speed_width``.
@@ -95,31 +139,53 @@ class SpeedLoop(wiring.Component):
         keep a small ``kx`` integrating errors far below 0.01 % of full scale.
     div_width : int
         Width of ``rate_div``, 1 … 16.
+    delay_width : int
+        Width of ``ref_delay``, UQ(delay_width, 3): ``4 … 7`` (largest delay 1.875 … 15.875
+        runs; the default 5 gives 0 … 3.875 and stores 3 past references).
 
     Members
     -------
     i : In(stream.Signature(MTSpeed output layout, always_ready=True))
         The M/T speed (``wiring.connect`` it to :attr:`MTSpeed.o`); only ``speed`` is used
-        (a stopped motor reads 0).
+        (a stopped motor reads 0; the payload is held between strobes).
     speed_ref : In(signed(speed_width))
-        Speed reference, Q1.(speed_width−1) of N_FS, read in the clock a run is accepted. A host
-        or DSP closing a position loop writes it (or, in current mode, the i_q reference).
+        Speed reference, Q1.(speed_width−1) of N_FS, read in the clock a run is accepted (and
+        every clock while ``clear`` with ``speed_slew = 0``). A host or DSP closing a position
+        loop writes it (or, in current mode, the i_q reference).
+    speed_slew : In(unsigned(speed_width))
+        Largest change of ``ref_int`` per run, UQ1.(speed_width−1) of N_FS; 0: off (``ref_int``
+        steps to ``speed_ref``). A run uses the value of the clock before it.
+    iq_ff : In(signed(16))
+        Acceleration feed-forward ``J·α/K_t``, Q1.15 of I_FS, added with the direction of the
+        profile while ``ref_int`` has not reached ``speed_ref`` (read in the run's clock).
+    ref_delay : In(unsigned(delay_width))
+        UQ(delay_width, 3): the PI's reference is ``ref_int`` this many runs ago, interpolated
+        linearly between runs; integer part 0: ``ref_int`` itself (the fraction is ignored).
+        A run uses the value of the clock before it (for ``d ≥ 1``).
+    int_hold : In(1)
+        Hold the PI's integrator (its ``kx`` is 0) in runs whose ``ref_int`` has not reached
+        ``speed_ref``: the feed-forward supplies the acceleration.
     kp : In(kp_format.shape)
     kx : In(kx_format.shape)
     lim_lo, lim_hi : In(signed(16))
-        i_q limits (the current limit), Q1.15 of I_FS. Gains and limits must be stable while a
-        run is in flight (the register file changes them only at loop boundaries).
+        i_q limits (the current limit), Q1.15 of I_FS. Gains, limits, ``ref_delay`` and
+        ``int_hold`` must be stable while a run is in flight (the register file changes them
+        only at loop boundaries).
     rate_div : In(unsigned(div_width))
         The loop runs on every ``rate_div + 1``-th speed sample.
     clear : In(1)
-        While high: PI cleared (integrator 0), run in flight abandoned, output 0, decimation
-        counter restarted.
+        While high: PI cleared (integrator 0), run in flight abandoned, output 0, feed-forward
+        0, decimation counter restarted, ``ref_int`` and its history track ``i.payload.speed``
+        (``speed_slew ≠ 0``) or ``speed_ref``.
     o : Out(stream.Signature(signed(16), always_ready=True))
         i_q reference, Q1.15 of I_FS, rounded half away from zero, within [lim_lo, lim_hi];
         ``valid`` strobes :attr:`latency` clocks after an accepted run, payload held (0 after
         reset and ``clear``).
     sat : Out(1)
         The last output was clamped to a limit (updates with ``o.valid``).
+    ref_int : Out(signed(speed_width))
+        The profile's reference ``R``, Q1.(speed_width−1) of N_FS (updates the clock after a
+        run; 0 after reset).
 
     Attributes
     ----------
@@ -127,20 +193,28 @@ class SpeedLoop(wiring.Component):
         Clocks from a valid speed sample that runs the loop to ``o.valid``: PI latency + 1 = 7.
     interval : int
         Minimum clocks between runs (the PI's).
+    max_delay : int
+        Largest integer part of ``ref_delay``: ``2**(delay_width − 3) − 1``.
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8):
-        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width)
+                 int_guard=16, div_width=8, delay_width=5):
+        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
+                         delay_width)
         self._speed_width = speed_width
         self._width = width
         self._kp_format = kp_format
         self._kx_format = kx_format
         self._int_guard = int_guard
         self._div_width = div_width
+        self._delay_width = delay_width
         super().__init__({
             "i": In(stream.Signature(mt_output_layout(speed_width), always_ready=True)),
             "speed_ref": In(signed(speed_width)),
+            "speed_slew": In(unsigned(speed_width)),
+            "iq_ff": In(signed(IQ_WIDTH)),
+            "ref_delay": In(unsigned(delay_width)),
+            "int_hold": In(1),
             "kp": In(kp_format.shape),
             "kx": In(kx_format.shape),
             "lim_lo": In(signed(IQ_WIDTH)),
@@ -149,6 +223,7 @@ class SpeedLoop(wiring.Component):
             "clear": In(1),
             "o": Out(stream.Signature(signed(IQ_WIDTH), always_ready=True)),
             "sat": Out(1),
+            "ref_int": Out(signed(speed_width)),
         })
 
     speed_width = property(lambda self: self._speed_width)
@@ -157,18 +232,23 @@ class SpeedLoop(wiring.Component):
     kx_format = property(lambda self: self._kx_format)
     int_guard = property(lambda self: self._int_guard)
     div_width = property(lambda self: self._div_width)
+    delay_width = property(lambda self: self._delay_width)
+    max_delay = property(lambda self: (1 << (self._delay_width - DELAY_FRAC)) - 1)
     latency = property(lambda self: 6 + 1)
     interval = property(lambda self: 6)
 
     def elaborate(self, platform):
         m = Module()
-        w = self._width
-        shift_in = self._speed_width - w
+        sw, w = self._speed_width, self._width
+        shift_in = sw - w
         shift_out = w - IQ_WIDTH
         m.submodules.pi = pi = PI(width=w, kp_format=self._kp_format,
                                   kx_format=self._kx_format, int_guard=self._int_guard)
         if pi.latency + 1 != self.latency:
             raise RuntimeError(f"PI latency {pi.latency} changed; update SpeedLoop.latency")
+
+        def to_pi(value):
+            return saturate(round_shift(value, shift_in), signed(w))
 
         count = Signal(unsigned(self._div_width))
         run = Signal()
@@ -177,15 +257,103 @@ class SpeedLoop(wiring.Component):
             m.d.sync += count.eq(0)
         with m.Elif(self.i.valid):
             m.d.sync += count.eq(Mux(count >= self.rate_div, 0, count + 1))
+        accept = Signal()
+        m.d.comb += accept.eq(run & pi.i.ready)
+
+        # Profile. The bounds R ± S (signed(sw + 2), unsaturated) are registers, so a run only
+        # compares ``speed_ref`` with them and selects (no adder before the PI's rounding).
+        # They are loaded every clock from ``base`` (the tracked value while clear, else R):
+        # stale only in the clock after a run, when the PI is busy and no run can be accepted.
+        # S = 0 opens them beyond any speed_ref. A bound is selected only when speed_ref lies
+        # beyond it, so it lies between R and speed_ref: the truncation of ``plan`` to
+        # signed(sw) is exact.
+        b_lo, b_hi = shape_range(signed(sw + 2))
+        ref_int = Signal(signed(sw))
+        lo_b = Signal(signed(sw + 2), init=b_lo)
+        hi_b = Signal(signed(sw + 2), init=b_hi)
+        up = Signal()
+        dn = Signal()
+        plan = Signal(signed(sw))
+        track = Signal(signed(sw))
+        base = Signal(signed(sw))
+        ref_next = Signal(signed(sw))
+        ref_next_pi = Signal(signed(w))
+        ref_pi = Signal(signed(w))                      # to_pi(ref_int)
+        m.d.comb += [
+            up.eq(self.speed_ref > hi_b),
+            dn.eq(self.speed_ref < lo_b),
+            plan.eq(Mux(up, hi_b, Mux(dn, lo_b, self.speed_ref))),
+            track.eq(Mux(self.speed_slew == 0, self.speed_ref, self.i.payload.speed)),
+            base.eq(Mux(self.clear, track, ref_int)),
+            self.ref_int.eq(ref_int),
+        ]
+        with m.If(self.clear):
+            m.d.comb += ref_next.eq(track)
+        with m.Elif(accept):
+            m.d.comb += ref_next.eq(plan)
+        with m.Else():
+            m.d.comb += ref_next.eq(ref_int)
+        m.d.comb += ref_next_pi.eq(to_pi(ref_next))
+        m.d.sync += [ref_int.eq(ref_next), ref_pi.eq(ref_next_pi)]
+        with m.If(self.speed_slew == 0):
+            m.d.sync += [lo_b.eq(b_lo), hi_b.eq(b_hi)]
+        with m.Else():
+            m.d.sync += [lo_b.eq(base - self.speed_slew), hi_b.eq(base + self.speed_slew)]
+
+        # Feed-forward and integrator hold of the run in flight (held until the next run).
+        # The feed-forward is clamped to the current limits, so lim − ff never leaves the PI's
+        # range in the direction that would let O + ff pass a limit.
+        ff = Signal(signed(IQ_WIDTH))
+        hold = Signal()
+        with m.If(self.clear):
+            m.d.sync += [ff.eq(0), hold.eq(0)]
+        with m.Elif(accept):
+            m.d.sync += [ff.eq(Mux(up | dn, clamp(Mux(up, self.iq_ff, -self.iq_ff),
+                                                  self.lim_lo, self.lim_hi), 0)),
+                         hold.eq(self.int_hold & (up | dn))]
+
+        # Delayed reference: hist[k] = to_pi(R) k runs before the last; the interpolation for
+        # the next run is registered in ``ref_pre`` (its inputs change only at runs and clear).
+        d_int = self.ref_delay[DELAY_FRAC:]
+        d_frac = self.ref_delay[:DELAY_FRAC]
+        hist = [Signal(signed(w), name=f"hist{k}") for k in range(1, self.max_delay + 1)]
+        taps = [ref_pi] + hist
+        a = Signal(signed(w))
+        b = Signal(signed(w))
+        with m.Switch(d_int):
+            for k in range(1, self.max_delay + 1):
+                with m.Case(k):
+                    m.d.comb += [a.eq(taps[k - 1]), b.eq(taps[k])]
+        ref_pre = Signal(signed(w))
+        # f·(b − a) by shift-and-add (f has DELAY_FRAC bits: no multiplier). a + round(f·(b − a)
+        # / 8) lies between a and b: the truncation to signed(w) is exact.
+        diff = b - a
+        prod = sum(Mux(d_frac[k], diff << k, 0) for k in range(DELAY_FRAC))
+        interp = a + round_shift(prod, DELAY_FRAC)
+        with m.If(self.clear):
+            m.d.sync += [h.eq(ref_next_pi) for h in hist]
+            m.d.sync += ref_pre.eq(ref_next_pi)
+        with m.Else():
+            with m.If(accept):
+                m.d.sync += [dst.eq(src) for dst, src in zip(hist, taps)]
+            m.d.sync += ref_pre.eq(interp)
+
+        # PI limits shifted by −ff (registered: the PI reads them from its third clock on).
+        pi_lo = Signal(signed(w))
+        pi_hi = Signal(signed(w))
+        m.d.sync += [
+            pi_lo.eq(saturate((self.lim_lo - ff) << shift_out, signed(w))),
+            pi_hi.eq(saturate((self.lim_hi - ff) << shift_out, signed(w))),
+        ]
 
         m.d.comb += [
             pi.i.valid.eq(run),
-            pi.i.payload.ref.eq(saturate(round_shift(self.speed_ref, shift_in), signed(w))),
-            pi.i.payload.fb.eq(saturate(round_shift(self.i.payload.speed, shift_in), signed(w))),
+            pi.i.payload.ref.eq(Mux(d_int == 0, to_pi(plan), ref_pre)),
+            pi.i.payload.fb.eq(to_pi(self.i.payload.speed)),
             pi.kp.eq(self.kp),
-            pi.kx.eq(self.kx),
-            pi.lim_lo.eq(self.lim_lo << shift_out),
-            pi.lim_hi.eq(self.lim_hi << shift_out),
+            pi.kx.eq(Mux(hold, 0, self.kx)),
+            pi.lim_lo.eq(pi_lo),
+            pi.lim_hi.eq(pi_hi),
             pi.clear.eq(self.clear),
         ]
 
@@ -194,8 +362,8 @@ class SpeedLoop(wiring.Component):
             m.d.sync += [self.o.payload.eq(0), self.sat.eq(0)]
         with m.Elif(pi.o.valid):
             m.d.sync += [
-                self.o.payload.eq(saturate(round_shift(pi.o.payload, shift_out),
-                                           signed(IQ_WIDTH))),
+                self.o.payload.eq(saturate(round_shift(pi.o.payload + (ff << shift_out),
+                                                       shift_out), signed(IQ_WIDTH))),
                 self.sat.eq(pi.sat),
             ]
         return m
@@ -227,8 +395,10 @@ class Servo(wiring.Component):
     **Bumpless transfer.** The speed PI is cleared (integrator 0) whenever the effective mode is
     not SPEED; on entering SPEED the i_q reference is 0 until the first speed-PI result, which
     starts from a zero integrator. So the switch is bumpless towards zero torque, not towards the
-    previous current-mode ``iq_set`` (that would need an integrator preset on the PI): set
-    ``speed_ref`` to the measured speed before switching for a smooth hand-over.
+    previous current-mode ``iq_set`` (that would need an integrator preset on the PI). With a
+    reference profile (``speed_slew ≠ 0``) the profile starts from the measured speed and moves
+    to ``speed_ref`` at the slew rate, so entering SPEED with a spinning motor is smooth; without
+    one, set ``speed_ref`` to the measured speed before switching.
 
     **Position loop.** A host or DSP closes a position loop (paper Fig. 1) by writing
     ``speed_ref`` (SPEED mode) or ``iq_set`` (CURRENT mode) over the link each of its periods:
@@ -247,7 +417,7 @@ class Servo(wiring.Component):
 
     Parameters
     ----------
-    speed_width, width, kp_format, kx_format, int_guard, div_width
+    speed_width, width, kp_format, kx_format, int_guard, div_width, delay_width
         Of the :class:`SpeedLoop`.
     phase_width : int
         Width of the open-loop phase accumulator, 16 … 48.
@@ -274,6 +444,10 @@ class Servo(wiring.Component):
     speed_ref : In(signed(speed_width))
     speed_kp, speed_kx, iq_lim_lo, iq_lim_hi, speed_rate_div
         The :class:`SpeedLoop`'s ``kp``, ``kx``, ``lim_lo``, ``lim_hi``, ``rate_div``.
+    speed_slew, iq_ff, speed_ref_delay, speed_int_hold
+        The :class:`SpeedLoop`'s ``speed_slew`` (UQ1.(speed_width−1) of N_FS per run),
+        ``iq_ff`` (Q1.15 of I_FS), ``ref_delay`` (UQ(delay_width, 3) runs), ``int_hold``: the
+        reference profile; all 0 = none.
     enable : Out(1)
         Gate enable and current-loop enable.
     ol_enable : Out(1)
@@ -292,6 +466,8 @@ class Servo(wiring.Component):
         The speed PI output is at the current limit.
     speed_valid : Out(1)
         Strobe: a new speed-PI result (the speed loop's ``o.valid``).
+    speed_ref_int : Out(signed(speed_width))
+        The profile's reference (the speed loop's ``ref_int``), Q1.(speed_width−1) of N_FS.
 
     Attributes
     ----------
@@ -300,13 +476,15 @@ class Servo(wiring.Component):
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, phase_width=32):
-        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width)
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32):
+        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
+                         delay_width)
         if not _is_int(phase_width) or not 16 <= phase_width <= 48:
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
                             f"not {phase_width!r}")
         self._loop_params = dict(speed_width=speed_width, width=width, kp_format=kp_format,
-                                 kx_format=kx_format, int_guard=int_guard, div_width=div_width)
+                                 kx_format=kx_format, int_guard=int_guard, div_width=div_width,
+                                 delay_width=delay_width)
         self._phase_width = phase_width
         a = ANGLE.shape
         q = signed(IQ_WIDTH)
@@ -329,6 +507,10 @@ class Servo(wiring.Component):
             "iq_lim_lo": In(q),
             "iq_lim_hi": In(q),
             "speed_rate_div": In(unsigned(div_width)),
+            "speed_slew": In(unsigned(speed_width)),
+            "iq_ff": In(q),
+            "speed_ref_delay": In(unsigned(delay_width)),
+            "speed_int_hold": In(1),
             "enable": Out(1),
             "ol_enable": Out(1),
             "ol_ud": Out(q),
@@ -342,6 +524,7 @@ class Servo(wiring.Component):
             "ref_step": Out(1),
             "speed_sat": Out(1),
             "speed_valid": Out(1),
+            "speed_ref_int": Out(signed(speed_width)),
         })
 
     loop_params = property(lambda self: dict(self._loop_params))
@@ -379,10 +562,15 @@ class Servo(wiring.Component):
             sl.lim_lo.eq(self.iq_lim_lo),
             sl.lim_hi.eq(self.iq_lim_hi),
             sl.rate_div.eq(self.speed_rate_div),
+            sl.speed_slew.eq(self.speed_slew),
+            sl.iq_ff.eq(self.iq_ff),
+            sl.ref_delay.eq(self.speed_ref_delay),
+            sl.int_hold.eq(self.speed_int_hold),
             sl.clear.eq(~is_speed),
             self.speed_clear.eq(~is_speed),
             self.speed_sat.eq(sl.sat),
             self.speed_valid.eq(sl.o.valid),
+            self.speed_ref_int.eq(sl.ref_int),
         ]
 
         # Open-loop phase accumulator.

@@ -47,25 +47,27 @@ def servo_clocks(seq, **params):
     return got
 
 
+LOOP_KEYS = ("valid", "speed", "speed_ref", "kp", "kx", "lim_lo", "lim_hi", "rate_div", "clear",
+             "speed_slew", "iq_ff", "ref_delay", "int_hold")
+
+
 def speed_loop_clocks(seq, **params):
-    """Drive :class:`SpeedLoop` with per-clock dicts (valid, speed, speed_ref, kp, kx, lim_lo,
-    lim_hi, rate_div, clear); return (o_valid, o_payload, sat) per clock, checked against the
-    model."""
+    """Drive :class:`SpeedLoop` with per-clock dicts (:data:`LOOP_KEYS`); return (o_valid,
+    o_payload, sat, ref_int) per clock, checked against the model."""
     dut = SpeedLoop(**params)
     model = SpeedLoopModel(**params)
-    keys = ("valid", "speed", "speed_ref", "kp", "kx", "lim_lo", "lim_hi", "rate_div", "clear")
-    want = [model.clock(*(i[k] for k in keys)) for i in seq]
-    signals = {k: getattr(dut, k) for k in keys if k not in ("valid", "speed")}
+    want = [model.clock(*(i[k] for k in LOOP_KEYS)) for i in seq]
+    signals = {k: getattr(dut, k) for k in LOOP_KEYS if k not in ("valid", "speed")}
     signals.update(valid=dut.i.valid, speed=dut.i.payload.speed)
     bench = Packed(dut, signals, {"o_valid": dut.o.valid, "o_payload": dut.o.payload,
-                                  "sat": dut.sat})
+                                  "sat": dut.sat, "ref_int": dut.ref_int})
     got = []
 
     async def testbench(ctx):
         for i in seq:
             ctx.set(bench.stim, bench.pack_inputs(i))
             o = bench.unpack_outputs(ctx.get(bench.resp))
-            got.append((o["o_valid"], o["o_payload"], o["sat"]))
+            got.append((o["o_valid"], o["o_payload"], o["sat"], o["ref_int"]))
             await ctx.tick()
 
     simulate(bench, [testbench], name="speed_loop_clocks")
@@ -75,7 +77,7 @@ def speed_loop_clocks(seq, **params):
 
 def loop_inputs(**kw):
     d = dict(valid=0, speed=0, speed_ref=0, kp=KP_ONE, kx=0, lim_lo=-32768, lim_hi=32767,
-             rate_div=0, clear=0)
+             rate_div=0, clear=0, speed_slew=0, iq_ff=0, ref_delay=0, int_hold=0)
     d.update(kw)
     return d
 
@@ -92,6 +94,10 @@ def loop_inputs(**kw):
     (dict(width=33), ValueError, r"^SpeedLoop width must be at most speed_width 32, not 33$"),
     (dict(div_width=0), TypeError,
      r"^SpeedLoop div_width must be an integer from 1 to 16, not 0$"),
+    (dict(delay_width=3), TypeError,
+     r"^SpeedLoop delay_width must be an integer from 4 to 7, not 3$"),
+    (dict(delay_width=8), TypeError,
+     r"^SpeedLoop delay_width must be an integer from 4 to 7, not 8$"),
     (dict(kp_format=12), TypeError, r"^PI kp_format must be a QFormat, not 12$"),
     (dict(width=32, kx_format=UQ(32, 32)), ValueError,
      r"^PI parameters need a 65-bit intermediate value; at most 62 bits are supported "),
@@ -178,7 +184,7 @@ def test_speed_loop_rate_divider_and_clear():
     got, model = speed_loop_clocks(seq)
     strobes = [t for t, g in enumerate(got) if g[0]]
     assert strobes == [t + 7 for t in (0, 24, 48, 64, 88)]
-    assert got[8 * 7 + 3] == (0, 0, 0)                            # cleared output
+    assert got[8 * 7 + 3][:3] == (0, 0, 0)                        # cleared output
     assert model.runs == 5
 
 
@@ -203,6 +209,157 @@ def test_speed_loop_integrates_an_error_of_0_01_percent():
         model.pi.step(model._to_pi(err), 0, 0, KX_ONE >> 16, -32768 << 8, 32767 << 8)
         steps.append(model.pi.integrator)
     assert err >> 8 >= 28 and all(b > a for a, b in zip(steps, steps[1:]))
+
+
+# --- reference profile: slew limiter, feed-forward, delay, integrator hold -----------------------
+
+SLEW = 1 << 22                   # Q1.31: 2^14 LSB of the Q1.23 PI scale, 64 LSB of i_q at kp = 1
+
+
+def profile_runs(n, period=8, per_run=None, **kw):
+    """``n`` speed-loop runs ``period`` clocks apart (the sample in each period's first clock),
+    one clock of set-up before them (the profile uses the slew of the clock before a run).
+    ``per_run(k)`` may return extra inputs for the clocks of run ``k``."""
+    seq = [loop_inputs(**kw)]
+    for k in range(n):
+        extra = per_run(k) if per_run else {}
+        seq += [loop_inputs(**dict(kw, **extra, valid=1))]
+        seq += [loop_inputs(**dict(kw, **extra)) for _ in range(period - 1)]
+    return seq
+
+
+def after_runs(got, n, period=8):
+    """(i_q, ref_int) after each of ``n`` runs of :func:`profile_runs` (the clock after o.valid;
+    ``ref_int`` updates the clock after the run)."""
+    lat = SpeedLoop().latency
+    return [(got[1 + k * period + lat][1], got[1 + k * period + 1][3]) for k in range(n)]
+
+
+def test_profile_ramps_by_the_slew_and_lands_exactly():
+    # kp = kx = 0: i_q is the feed-forward alone. Target 5.5 slews: five full steps with +F,
+    # then the half step lands on speed_ref exactly and the feed-forward stops.
+    target = 5 * SLEW + SLEW // 2
+    seq = profile_runs(9, speed_ref=target, speed_slew=SLEW, iq_ff=1234, kp=0)
+    got, model = speed_loop_clocks(seq)
+    out = after_runs(got, 9)
+    assert [r for _, r in out] == [SLEW * k for k in range(1, 6)] + [target] * 4
+    assert [iq for iq, _ in out] == [1234] * 5 + [0] * 4
+    assert [g[0] for g in got].count(1) == 9
+    # The strobe comes latency clocks after the run, as without a profile.
+    assert [t for t, g in enumerate(got) if g[0]] == [1 + 8 * k + 7 for k in range(9)]
+
+
+def test_profile_reverses_through_zero_from_the_measured_speed():
+    # While clear, ref_int tracks the measured speed (slew != 0); the profile then runs down
+    # through zero to -2.5 slews with -F, and lands exactly.
+    start = 2 * SLEW + SLEW // 2
+    seq = [loop_inputs(clear=1, speed=start, speed_slew=SLEW) for _ in range(3)]
+    seq += profile_runs(7, speed=start, speed_ref=-start, speed_slew=SLEW, iq_ff=700, kp=0)
+    got, _ = speed_loop_clocks(seq)
+    assert [g[3] for g in got[1:4]] == [start] * 3                  # tracked while clear
+    out = after_runs(got[3:], 7)
+    assert [r for _, r in out] == [start - k * SLEW for k in range(1, 6)] + [-start] * 2
+    assert [iq for iq, _ in out] == [-700] * 4 + [0] * 3
+
+
+def test_profile_off_with_zero_slew_or_the_largest_slew():
+    # Slew 0: the reference steps, the feed-forward is never applied, ref_int tracks speed_ref
+    # (not the speed) while clear. The largest slew steps too, from the tracked speed.
+    for slew, tracked in ((0, 5000), ((1 << 32) - 1, -77)):
+        seq = [loop_inputs(clear=1, speed=-77, speed_ref=5000, speed_slew=slew)
+               for _ in range(2)]
+        seq += profile_runs(3, speed=-77, speed_ref=SPEED_1667, speed_slew=slew, iq_ff=999,
+                            kp=0)
+        got, _ = speed_loop_clocks(seq)
+        assert got[1][3] == tracked
+        assert after_runs(got[2:], 3) == [(0, SPEED_1667)] * 3
+
+
+def test_profile_feed_forward_is_clamped_to_the_current_limits():
+    # iq_ff beyond the limits, and the full-scale -F = +32768 (the negation of -32768):
+    # clamped to the limit in the ramp's direction, which then holds i_q exactly (kp = 0).
+    cases = [(5000, -1000, 2000, SLEW, 2000), (5000, -1000, 2000, -SLEW, -1000),
+             (-32768, -32768, 32767, -SLEW, 32767), (-32768, 14091, 20621, -SLEW, 20621),
+             (32767, 14091, 20621, -SLEW, 14091)]
+    for ff, lo, hi, direction, want in cases:
+        seq = profile_runs(3, speed_ref=8 * direction, speed_slew=1, iq_ff=ff, kp=0,
+                           lim_lo=lo, lim_hi=hi)
+        got, _ = speed_loop_clocks(seq)
+        assert [iq for iq, _ in after_runs(got, 3)] == [want] * 3, (ff, lo, hi, direction)
+
+
+def test_profile_pi_limits_leave_room_for_the_feed_forward():
+    # F = 1000 with limits ±3000 and a huge speed error: the PI's share is pinned at
+    # +2000 (up) or -4000 (down), the sum exactly at the limit with sat; its integrator winds
+    # only to the shifted limit, so i_q leaves the limit on the first run after the error
+    # changes sign (once the ramp has ended and F is gone).
+    kx = KX_ONE >> 6
+    for sign in (1, -1):
+        def per_run(k):
+            return dict(speed=(-sign << 28) if k < 12 else (sign << 26))
+        seq = profile_runs(16, per_run=per_run, speed_ref=sign * 10 * SLEW, speed_slew=SLEW,
+                           iq_ff=1000, kx=kx, lim_lo=-3000, lim_hi=3000)
+        got, model = speed_loop_clocks(seq)
+        out = after_runs(got, 16)
+        sats = [got[1 + k * 8 + 7][2] for k in range(16)]
+        assert [iq for iq, _ in out[:12]] == [sign * 3000] * 12 and all(sats[:12])
+        assert abs(out[12][0]) < 3000 and not sats[12]
+        assert model.pi.integrator * sign <= (3000 << 8 << 16)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 8, 8 + 3, 16 + 5, 24 + 7])
+def test_profile_reference_delay_interpolates_the_ramp(delay):
+    # kp = 1.0, kx = 0, fb = 0: i_q = round(to_pi(ref)/256), 64 LSB per slew. The PI's
+    # reference is the ramp delayed by delay/8 runs (the fraction ignored below one run),
+    # exact on a linear ramp; the ramp stops after 6 slews.
+    n = 12
+    seq = profile_runs(n, speed_ref=6 * SLEW, speed_slew=SLEW, ref_delay=delay)
+    got, _ = speed_loop_clocks(seq)
+    d = delay / 8 if delay >= 8 else 0
+    want = [round(64 * min(max(k + 1 - d, 0), 6)) for k in range(n)]
+    assert [iq for iq, _ in after_runs(got, n)] == want
+
+
+def test_profile_integrator_hold_while_moving():
+    # With int_hold the ramp's runs leave the integrator alone: i_q equals the kx = 0 response
+    # while the profile moves, then integrates once it has landed.
+    base = dict(speed_ref=4 * SLEW, speed_slew=SLEW, speed=-SLEW, kp=KP_ONE >> 4)
+    no_i = after_runs(speed_loop_clocks(profile_runs(8, **base))[0], 8)
+    held = after_runs(speed_loop_clocks(profile_runs(8, kx=KX_ONE >> 8, int_hold=1,
+                                                     **base))[0], 8)
+    free = after_runs(speed_loop_clocks(profile_runs(8, kx=KX_ONE >> 8, **base))[0], 8)
+    assert held[:3] == no_i[:3] and free[0][0] > no_i[0][0]
+    assert held[4][0] > no_i[4][0]                                  # landed: integrating
+
+
+def test_profile_clear_mid_ramp():
+    # Leaving SPEED mode mid-ramp: output and feed-forward 0 at once, ref_int tracks the speed;
+    # on re-entry the ramp restarts from the speed.
+    seq = profile_runs(3, speed_ref=20 * SLEW, speed_slew=SLEW, iq_ff=500, kp=0)
+    seq += [loop_inputs(clear=1, speed=7 * SLEW, speed_slew=SLEW) for _ in range(4)]
+    seq += profile_runs(2, speed=7 * SLEW, speed_ref=20 * SLEW, speed_slew=SLEW, iq_ff=500,
+                        kp=0)
+    got, _ = speed_loop_clocks(seq)
+    assert got[25][1:] == (500, 0, 3 * SLEW)                      # the clock clear rises
+    assert got[26] == (0, 0, 0, 7 * SLEW)                           # cleared, tracking
+    assert got[29][3] == 7 * SLEW
+    assert after_runs(got[29:], 2) == [(500, 8 * SLEW), (500, 9 * SLEW)]
+
+
+def test_profile_run_in_the_first_clock_after_clear():
+    # The bounds and the delayed reference are registers loaded from the tracked value in the
+    # last clear clock, so a run right after clear starts from the speed of that clock: one
+    # slew up from it, and with a delay of one run the PI sees it as its reference (E = 0).
+    b = 5 * SLEW
+    seq = [loop_inputs(clear=1, speed=0, speed_slew=SLEW) for _ in range(3)]
+    seq += [loop_inputs(clear=1, speed=b, speed_slew=SLEW)]
+    seq += [loop_inputs(valid=1, speed=b, speed_ref=b + 10 * SLEW, speed_slew=SLEW, iq_ff=100,
+                        ref_delay=8)]
+    seq += [loop_inputs(speed=b, speed_ref=b + 10 * SLEW, speed_slew=SLEW, iq_ff=100,
+                        ref_delay=8) for _ in range(8)]
+    got, _ = speed_loop_clocks(seq)
+    assert got[5][3] == b + SLEW
+    assert got[4 + 7][:2] == (1, 100)
 
 
 def test_servo_mode_changes_at_loop_boundary():
@@ -287,10 +444,35 @@ def test_servo_speed_mode_runs_the_speed_loop():
     assert iq == [68, 76, 84, 92, 100] and got[-1]["id_ref"] == 11
 
 
+def test_servo_enters_speed_mode_from_a_spinning_motor_with_a_profile():
+    # DISABLED with the motor at +3 slews: speed_ref_int follows the measured speed; SPEED mode
+    # then ramps from there down to speed_ref with -F, not from 0 (kp = 0: i_q = feed-forward).
+    spd = 3 * SLEW
+    seq = []
+    for t in range(60):
+        seq.append(base_inputs(mode=SPEED, loop=int(t == 4), speed_valid=int(t % 8 == 6),
+                               speed=spd, speed_ref=SLEW // 2, speed_slew=SLEW, iq_ff=321,
+                               speed_kp=0))
+    got = servo_clocks(seq)
+    assert all(g["speed_ref_int"] == spd for g in got[1:6])
+    runs = [t for t in range(60) if t % 8 == 6 and t > 4]
+    assert [got[t + 1]["speed_ref_int"] for t in runs] == [2 * SLEW, SLEW] + [SLEW // 2] * 5
+    assert [got[t + 7]["iq_ref"] for t in runs[:5]] == [-321, -321, 0, 0, 0]
+
+
 def test_servo_random_sequences_vs_model():
     result = run_servo(4000, seed=7)
     assert result["mismatches"] == 0, result["first_mismatch"]
     assert result["speed_runs"] > 20 and result["mode_changes"] > 3
+    assert result["ramp_runs"] > 10 and result["delayed_runs"] > 0 and result["held_runs"] > 0
+
+
+def test_servo_random_sequences_vs_model_other_widths():
+    # Narrow speed path (Q1.23 speed, 16-bit PI: no rounding shift at the output) and the
+    # longest reference delay (7 taps).
+    result = run_servo(6000, seed=3, speed_width=24, width=16, delay_width=7)
+    assert result["mismatches"] == 0, result["first_mismatch"]
+    assert result["ramp_runs"] > 0 and result["delayed_runs"] > 10
 
 
 @pytest.mark.slow
@@ -299,4 +481,7 @@ def test_servo_and_scope_100k_clocks_vs_model():
     assert result["mismatches"] == 0, (result["servo_first_mismatch"],
                                        result["scope_first_mismatch"])
     assert result["servo_recoveries"] > 0 and result["servo_speed_saturated"] > 100
+    for figure in ("ramp_ends", "ramp_reversals", "ramp_cleared", "ff_full_scale_runs",
+                   "ff_clamped_runs", "held_runs", "delayed_runs", "slew_max_runs"):
+        assert result[f"servo_{figure}"] > 2, figure
     assert result["scope_captures"] > 10 and result["scope_capture_order_errors"] == 0

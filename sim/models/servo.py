@@ -1,6 +1,15 @@
-# Ref: paper eq. (7)–(9) (speed PI), SPEC.md §2, §2.5, §4 (operating modes)
+# Ref: paper eq. (7)–(9) (speed PI), SPEC.md §2, §2.5, §4 (operating modes); issue 6 targets
+#      (reference profile: slew limiter, acceleration feed-forward)
 """Bit-true, clock-by-clock golden models of :class:`~foc_servo.hdl.servo.SpeedLoop` and
 :class:`~foc_servo.hdl.servo.Servo` (equations and mode table in ``hdl/servo.py``).
+
+The model keeps the gateware's registers where their timing shows: a run uses the bounds
+``R ± speed_slew`` and the interpolated delayed reference of the clock before it. It computes
+them in its own way (saturated bounds from the value ``R`` takes each clock; the gateware keeps
+unsaturated bounds from the value ``R`` has, stale only in the clock after a run, when no run can
+be accepted), so the comparison checks that the two agree. It also checks the invariants the
+gateware relies on (the i_q reference stays inside ``[lim_lo, lim_hi]`` with the feed-forward;
+the interpolation stays between its two taps) and raises :exc:`AssertionError` if one fails.
 
 Both are stateful and sequential, so they step one clock at a time: :meth:`~ServoModel.clock`
 takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
@@ -11,8 +20,8 @@ PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the PI's timing (a run acc
 
 from amaranth.hdl import signed
 
-from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np
-from ...hdl.servo import ANGLE, IQ_WIDTH, AngleSource, Mode, check_speed_loop
+from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np, shape_range
+from ...hdl.servo import ANGLE, DELAY_FRAC, IQ_WIDTH, AngleSource, Mode, check_speed_loop
 from .pi import PIModel
 
 __all__ = ["SpeedLoopModel", "ServoModel", "SERVO_INPUTS"]
@@ -23,7 +32,8 @@ PI_LATENCY = 6
 #: ``speed_valid``/``speed`` are ``speed.valid`` / ``speed.payload.speed``).
 SERVO_INPUTS = ("loop", "mode", "trip", "ol_src", "ol_theta", "ol_freq", "ud_set", "uq_set",
                 "id_set", "iq_set", "theta_meas", "speed_valid", "speed", "speed_ref",
-                "speed_kp", "speed_kx", "iq_lim_lo", "iq_lim_hi", "speed_rate_div")
+                "speed_kp", "speed_kx", "iq_lim_lo", "iq_lim_hi", "speed_rate_div",
+                "speed_slew", "iq_ff", "speed_ref_delay", "speed_int_hold")
 
 
 class SpeedLoopModel:
@@ -34,22 +44,36 @@ class SpeedLoopModel:
     ----------
     o_valid, o_payload, sat : int
         The registered outputs in the current clock.
+    ref_int : int
+        The profile's reference ``R`` (the ``ref_int`` output) in the current clock.
+    ff, hold : int
+        Feed-forward and integrator hold of the last run (0 after ``clear``).
     pi : PIModel
         The speed PI (``pi.last`` describes the last run).
+    runs, dropped : int
+        Accepted runs, and runs dropped because the PI was busy.
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8):
-        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width)
+                 int_guard=16, div_width=8, delay_width=5):
+        check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
+                         delay_width)
         self.speed_width, self.width = speed_width, width
         self.pi = PIModel(width=width, kp_format=kp_format, kx_format=kx_format,
                           int_guard=int_guard)
         self._shift_in = speed_width - width
         self._shift_out = width - IQ_WIDTH
+        self._s_range = shape_range(signed(speed_width))
+        self.max_delay = (1 << (delay_width - DELAY_FRAC)) - 1
         self.t = 0
         self.count = 0
-        self.pending = None                 # (due clock, PI out, PI sat)
+        self.pending = None                 # (due clock, PI out, PI sat, lim_lo, lim_hi, ff)
         self.o_valid = self.o_payload = self.sat = 0
+        self.ref_int = 0
+        self.lo_b, self.hi_b = self._s_range
+        self.hist = [0] * self.max_delay    # to_pi(R) 1 … max_delay runs before the last
+        self.ref_pre = 0
+        self.ff = self.hold = 0
         self.runs = self.dropped = 0
 
     @property
@@ -60,34 +84,78 @@ class SpeedLoopModel:
     def _to_pi(self, value):
         return saturate_np(round_shift_np(value, self._shift_in), signed(self.width))
 
-    def clock(self, valid, speed, speed_ref, kp, kx, lim_lo, lim_hi, rate_div, clear):
-        """Inputs of the current clock → ``(o_valid, o_payload, sat)`` seen in it; advance."""
-        out = (self.o_valid, self.o_payload, self.sat)
+    def _interp(self, d_int, d_frac):
+        """The registered interpolation ``ref_pre`` computed from the current history."""
+        if d_int == 0:
+            return 0
+        taps = [self._to_pi(self.ref_int)] + self.hist
+        a, b = taps[d_int - 1], taps[d_int]
+        v = a + round_shift_np(d_frac * (b - a), DELAY_FRAC)
+        if not min(a, b) <= v <= max(a, b):
+            raise AssertionError(f"SpeedLoop interpolation {v} outside [{a}, {b}]")
+        return v
+
+    def clock(self, valid, speed, speed_ref, kp, kx, lim_lo, lim_hi, rate_div, clear,
+              speed_slew=0, iq_ff=0, ref_delay=0, int_hold=0):
+        """Inputs of the current clock → ``(o_valid, o_payload, sat, ref_int)`` seen in it;
+        advance one clock."""
+        out = (self.o_valid, self.o_payload, self.sat, self.ref_int)
+        s, sw = self._shift_out, signed(self.speed_width)
+        d_int, d_frac = ref_delay >> DELAY_FRAC, ref_delay & ((1 << DELAY_FRAC) - 1)
+        track = speed_ref if speed_slew == 0 else speed
+        # Registered next values (all computed from the current state).
+        ref_pre = self._interp(d_int, d_frac)
+        ref_next = self.ref_int
         self.o_valid = 0
         if clear:
             self.pending = None
             self.pi.clear()
             self.count = 0
             self.o_payload = self.sat = 0
+            self.ff = self.hold = 0
+            ref_next = track
+            self.hist = [self._to_pi(track)] * self.max_delay
+            ref_pre = self._to_pi(track)
         else:
             if self.pending is not None and self.pending[0] == self.t:
-                _, pi_out, pi_sat = self.pending
+                _, pi_out, pi_sat, lo, hi, ff = self.pending
                 self.pending = None
                 self.o_valid = 1
-                self.o_payload = saturate_np(round_shift_np(pi_out, self._shift_out),
+                self.o_payload = saturate_np(round_shift_np(pi_out + (ff << s), s),
                                              signed(IQ_WIDTH))
                 self.sat = pi_sat
+                if lo <= hi and not lo <= self.o_payload <= hi:
+                    raise AssertionError(f"SpeedLoop i_q {self.o_payload} outside the limits "
+                                         f"[{lo}, {hi}]")
             if valid:
                 if self.count == 0:
                     if self.busy:
                         self.dropped += 1
                     else:
-                        s = self._shift_out
-                        pi_out, pi_sat = self.pi.step(self._to_pi(speed_ref), self._to_pi(speed),
-                                                      kp, kx, lim_lo << s, lim_hi << s)
-                        self.pending = (self.t + PI_LATENCY, pi_out, pi_sat)
+                        up, dn = speed_ref > self.hi_b, speed_ref < self.lo_b
+                        plan = self.hi_b if up else self.lo_b if dn else speed_ref
+                        ff = clamp_np(iq_ff if up else -iq_ff, lim_lo, lim_hi) if up or dn else 0
+                        hold = int(bool(int_hold) and (up or dn))
+                        ref = self._to_pi(plan) if d_int == 0 else self.ref_pre
+                        # The PI runs with the limits shifted by this run's feed-forward (the
+                        # gateware's registered limits have it from the PI's third clock on).
+                        lo_s, hi_s = (saturate_np((lim - ff) << s, signed(self.width))
+                                      for lim in (lim_lo, lim_hi))
+                        pi_out, pi_sat = self.pi.step(ref, self._to_pi(speed), kp,
+                                                      0 if hold else kx, lo_s, hi_s)
+                        self.pending = (self.t + PI_LATENCY, pi_out, pi_sat, lim_lo, lim_hi, ff)
                         self.runs += 1
+                        self.hist = [self._to_pi(self.ref_int)] + self.hist[:-1]
+                        self.ff, self.hold = ff, hold
+                        ref_next = plan
                 self.count = 0 if self.count >= rate_div else self.count + 1
+        self.ref_int = ref_next
+        if speed_slew == 0:
+            self.lo_b, self.hi_b = self._s_range
+        else:
+            self.lo_b = saturate_np(ref_next - speed_slew, sw)
+            self.hi_b = saturate_np(ref_next + speed_slew, sw)
+        self.ref_pre = ref_pre
         self.t += 1
         return out
 
@@ -106,10 +174,11 @@ class ServoModel:
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, phase_width=32):
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32):
         self.speed_loop = SpeedLoopModel(speed_width=speed_width, width=width,
                                          kp_format=kp_format, kx_format=kx_format,
-                                         int_guard=int_guard, div_width=div_width)
+                                         int_guard=int_guard, div_width=div_width,
+                                         delay_width=delay_width)
         if (not isinstance(phase_width, int) or isinstance(phase_width, bool)
                 or not 16 <= phase_width <= 48):
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
@@ -126,10 +195,11 @@ class ServoModel:
         eff = Mode.DISABLED.value if inp["trip"] else self.active
         is_ol, is_cur, is_speed = (eff == Mode.OPEN_LOOP.value, eff == Mode.CURRENT.value,
                                    eff == Mode.SPEED.value)
-        sl_valid, sl_out, sl_sat = self.speed_loop.clock(
+        sl_valid, sl_out, sl_sat, sl_ref = self.speed_loop.clock(
             inp["speed_valid"], inp["speed"], inp["speed_ref"], inp["speed_kp"],
             inp["speed_kx"], inp["iq_lim_lo"], inp["iq_lim_hi"], inp["speed_rate_div"],
-            not is_speed)
+            not is_speed, inp["speed_slew"], inp["iq_ff"], inp["speed_ref_delay"],
+            inp["speed_int_hold"])
 
         theta = inp["theta_meas"]
         if is_ol:
@@ -159,6 +229,7 @@ class ServoModel:
             "ref_step": int(bool(inp["loop"]) and refs != self.last_refs),
             "speed_sat": sl_sat,
             "speed_valid": sl_valid,
+            "speed_ref_int": sl_ref,
         }
 
         # Next state.

@@ -7,10 +7,15 @@ inverted), speed-loop rate dividers and loop periods; random register writes (mo
 open-loop angle source, angle and frequency), protection trips, extra speed samples that find the
 PI busy; the speed feedback comes from a crude plant (speed integrates the i_q reference the
 model outputs), so steps drive the PI into the current limit, wind it up and let it recover, with
-occasional full-scale speed values. Scope: random arm/force/trigger strobes, strobe densities,
-decimation, pre-trigger counts (0 and depth − 1 included), channel selects (invalid codes
-included) and read addresses every clock; each finished capture is also read back from the model
-and compared with the samples as taken (trigger sample at index ``pretrigger``).
+occasional full-scale speed values. The reference profile gets random slews (0, 1 LSB, small,
+large, the maximum), feed-forwards (0, random, ±full scale), reference delays and integrator
+holds, changed at any clock (mid-run and mid-ramp too), and speed references that reverse
+through zero or land exactly a whole number of slews away.
+
+Scope: random arm/force/trigger strobes, strobe densities, decimation, pre-trigger counts (0 and
+depth − 1 included), channel selects (invalid codes included) and read addresses every clock;
+each finished capture is also read back from the model and compared with the samples as taken
+(trigger sample at index ``pretrigger``).
 
 To keep Python out of the per-clock work, a simulation-only wrapper packs every input into one
 ``stim`` signal and every output into one ``resp`` signal: one ``ctx.set`` and one ``ctx.get``
@@ -25,7 +30,7 @@ from amaranth.lib.wiring import In, Out
 
 from ...hdl.fixed import shape_range
 from ...hdl.scope import Scope, ScopeState
-from ...hdl.servo import AngleSource, Mode, Servo
+from ...hdl.servo import DELAY_FRAC, AngleSource, Mode, Servo
 from ..harness import Progress, simulate
 from ..models.scope import ScopeModel
 from ..models.servo import SERVO_INPUTS, ServoModel
@@ -96,6 +101,20 @@ def _log_uniform(rng, lo, hi):
     return int(min(max(int(2.0 ** bits) - 1, lo), hi))
 
 
+def _profile(rng, sw, delay_max):
+    """Random reference-profile registers (slew, feed-forward, delay, integrator hold)."""
+    slew_max = (1 << sw) - 1
+    slew = int(rng.choice([0, 0, 1, slew_max, _log_uniform(rng, 1, 1 << (sw - 8)),
+                           _log_uniform(rng, 1, 1 << (sw - 14)),
+                           _log_uniform(rng, 1, slew_max)]))
+    ff = int(rng.choice([0, 0, -32768, 32767, int(rng.integers(-32768, 32768)),
+                         int(rng.integers(-2000, 2000))]))
+    delay = int(rng.choice([0, 0, int(rng.integers(0, 1 << DELAY_FRAC)),
+                            int(rng.integers(0, delay_max))]))
+    return dict(speed_slew=slew, iq_ff=ff, speed_ref_delay=delay,
+                speed_int_hold=int(rng.random() < 0.5))
+
+
 def _limits(rng):
     kind = rng.choice(["full", "sym", "sym", "sym", "asym", "narrow", "equal", "inverted"],
                       p=[0.15, 0.35, 0.15, 0.1, 0.15, 0.04, 0.03, 0.03])
@@ -126,6 +145,7 @@ def _servo_stimulus(count, rng, model, dut):
     s_lo, s_hi = shape_range(dut.speed_ref.shape())
     p_lo, p_hi = shape_range(dut.ol_freq.shape())
     div_max = (1 << dut.loop_params["div_width"]) - 1
+    delay_max = 1 << dut.loop_params["delay_width"]
     regs = {name: 0 for name in SERVO_INPUTS}
     regs.update(iq_lim_lo=-32768, iq_lim_hi=32767, speed_kp=1 << max(kp_fmt.frac, 0))
     pending_cfg = None
@@ -134,7 +154,10 @@ def _servo_stimulus(count, rng, model, dut):
     omega = 0.0                                 # plant speed, raw Q1.(sw-1)
     gain = 0.0
     figures = dict(speed_runs=0, speed_saturated=0, speed_windup=0, recoveries=0,
-                   dropped_runs=0, mode_changes=0, trips=0, ref_steps=0, rotating_clocks=0)
+                   dropped_runs=0, mode_changes=0, trips=0, ref_steps=0, rotating_clocks=0,
+                   ramp_runs=0, ramp_ends=0, ramp_reversals=0, ramp_cleared=0,
+                   ff_full_scale_runs=0, ff_clamped_runs=0, held_runs=0, delayed_runs=0,
+                   slew_max_runs=0)
     prev_last = None
     prev_active = 0
     inputs, outputs = [], []
@@ -157,6 +180,8 @@ def _servo_stimulus(count, rng, model, dut):
         if pending_cfg is not None and not sl.busy:
             regs.update(pending_cfg)
             pending_cfg = None
+        if rng.random() < 1 / 700:
+            regs.update(_profile(rng, sw, delay_max))
 
         # Register writes.
         if rng.random() < 1 / 120:
@@ -168,6 +193,12 @@ def _servo_stimulus(count, rng, model, dut):
                 r = rng.random()
                 if r < 0.15:
                     regs["speed_ref"] = int(rng.choice([s_lo, s_hi, 0]))
+                elif r < 0.25:                  # reversal through zero
+                    regs["speed_ref"] = int(np.clip(-regs["speed_ref"], s_lo, s_hi))
+                elif r < 0.35:                  # a whole number of slews away: lands exactly
+                    k = int(rng.integers(-6, 7))
+                    regs["speed_ref"] = int(np.clip(sl.ref_int + k * regs["speed_slew"],
+                                                    s_lo, s_hi))
                 elif r < 0.6:
                     regs["speed_ref"] = int(rng.integers(s_lo // 4, s_hi // 4))
                 else:
@@ -204,6 +235,7 @@ def _servo_stimulus(count, rng, model, dut):
 
         runs = sl.runs
         dropped = sl.dropped
+        ref_before, ff_before = sl.ref_int, sl.ff
         out = model.clock(regs)
         inputs.append(dict(regs))
         outputs.append(out)
@@ -219,6 +251,19 @@ def _servo_stimulus(count, rng, model, dut):
                     and not last["sat"] and last["e"] * prev_last["e"] < 0):
                 figures["recoveries"] += 1
             prev_last = last
+            moving = sl.ref_int != regs["speed_ref"]          # after this run's update
+            figures["ramp_runs"] += moving
+            figures["ramp_ends"] += (ref_before != sl.ref_int and sl.ref_int == regs["speed_ref"]
+                                     and regs["speed_slew"] != 0)
+            figures["ramp_reversals"] += ((ref_before > 0) != (sl.ref_int > 0)
+                                          and regs["speed_slew"] != 0)
+            figures["ff_full_scale_runs"] += moving and abs(regs["iq_ff"]) >= 32767
+            figures["ff_clamped_runs"] += moving and abs(sl.ff) != abs(regs["iq_ff"])
+            figures["held_runs"] += sl.hold
+            figures["delayed_runs"] += regs["speed_ref_delay"] >> DELAY_FRAC != 0
+            figures["slew_max_runs"] += regs["speed_slew"] == (1 << sw) - 1
+        elif ff_before != 0 and sl.ff == 0 and out["speed_clear"]:
+            figures["ramp_cleared"] += 1
         figures["mode_changes"] += out["active"] != prev_active
         prev_active = out["active"]
         figures["ref_steps"] += out["ref_step"]
@@ -268,7 +313,13 @@ def run_servo(count=100_000, *, seed=0, progress=False, **params):
         with the integrator clamped or held), ``recoveries`` (pinned with a wound-up integrator,
         then inside the limits on the first run after the error changed sign),
         ``dropped_runs`` (speed samples that found the PI busy), ``mode_changes``, ``trips``,
-        ``ref_steps``, ``rotating_clocks``.
+        ``ref_steps``, ``rotating_clocks``; of the reference profile: ``ramp_runs`` (runs whose
+        reference had not reached ``speed_ref``), ``ramp_ends`` (runs landing on it),
+        ``ramp_reversals`` (runs whose reference crossed zero), ``ramp_cleared`` (a moving
+        profile left SPEED mode), ``ff_full_scale_runs`` (moving with ``|iq_ff|`` at full
+        scale), ``ff_clamped_runs`` (moving, feed-forward clamped to a current limit),
+        ``held_runs`` (integrator held), ``delayed_runs`` (reference delay ≥ 1 run),
+        ``slew_max_runs`` (the largest slew).
     """
     dut = Servo(**params)
     model = ServoModel(**params)
