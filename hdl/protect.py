@@ -1,4 +1,5 @@
-# Ref: issue 4 item 8 (protection and fault latch); SPEC.md §2.4 (gate drive)
+# Ref: issue 4 item 8 (protection and fault latch); SPEC.md §2.4 (gate drive);
+#      issue 6 item 7 (encoder/Hall plausibility fault)
 """Fault detection, trip latch and cause register.
 
 Every cause is evaluated each clock into the registered ``present`` set; ``trip`` is the OR of
@@ -17,6 +18,8 @@ Causes (the field order of :data:`FAULT_LAYOUT`; add a field and its detector to
 ``overspeed``               ``|speed| > os_limit`` on a valid speed sample (held)
 ``encoder``                 ``encoder_illegal`` (illegal quadrature transition, pulse or level)
 ``hall``                    ``hall_invalid`` (Hall code 000 or 111, pulse or level)
+``encoder_hall``            ``encoder_hall`` (the encoder angle disagrees with the Hall edges:
+                            :class:`~.encoder.HallPlausibility`, a pulse per failing edge)
 ==========================  ==================================================================
 
 Under-voltage arming: at power-up the DC bus is still charging, so an under-voltage check from
@@ -36,7 +39,7 @@ __all__ = ["FAULTS", "FAULT_LAYOUT", "Protection"]
 
 #: Cause names, in bit order of :data:`FAULT_LAYOUT` (bit 0 first).
 FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator",
-          "overvoltage", "undervoltage", "overspeed", "encoder", "hall")
+          "overvoltage", "undervoltage", "overspeed", "encoder", "hall", "encoder_hall")
 
 #: One flag per cause.
 FAULT_LAYOUT = data.StructLayout({name: 1 for name in FAULTS})
@@ -67,8 +70,9 @@ class Protection(wiring.Component):
         DC-bus voltage code.
     speed : In(stream.Signature(signed(speed_width), always_ready=True))
         Measured speed.
-    encoder_illegal, hall_invalid : In(1)
-        Flags from the encoder / Hall front end (1-clock pulses or levels).
+    encoder_illegal, hall_invalid, encoder_hall : In(1)
+        Flags from the encoder / Hall front end (1-clock pulses or levels): illegal quadrature
+        transition, invalid Hall code, encoder/Hall plausibility failure.
     oc_limit : In(unsigned(w), init=2**w − 1)
         Over-current threshold on ``|i_x|`` (same scale as ``i``); the reset value never trips.
     ov_limit, uv_limit : In(udc_shape, init=max / min code)
@@ -129,6 +133,7 @@ class Protection(wiring.Component):
             "speed": In(stream.Signature(signed(speed_width), always_ready=True)),
             "encoder_illegal": In(1),
             "hall_invalid": In(1),
+            "encoder_hall": In(1),
             "oc_limit": In(unsigned(current_width), init=(1 << current_width) - 1),
             "ov_limit": In(udc_shape, init=u_hi),
             "uv_limit": In(udc_shape, init=u_lo),
@@ -184,6 +189,7 @@ class Protection(wiring.Component):
                                  magnitude(self.speed.payload) > self.os_limit),
             "encoder": self.encoder_illegal,
             "hall": self.hall_invalid,
+            "encoder_hall": self.encoder_hall,
         }
         assert tuple(cause) == FAULTS
 

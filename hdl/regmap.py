@@ -56,13 +56,15 @@ WORD_WIDTH = 32
 #: ``id_magic``: "FOCS" in ASCII.
 MAGIC = 0x464F4353
 #: ``id_version``: major << 16 | minor of the register map; bump the major on incompatible change
-#: (2.0: ``pi_speed_kx`` UQ(24, 24) → UQ(24, 20), I_FS 20 A → 40 A; status registers, theta_lead).
-MAP_VERSION = (2 << 16) | 0
+#: (2.0: ``pi_speed_kx`` UQ(24, 24) → UQ(24, 20), I_FS 20 A → 40 A; status registers, theta_lead;
+#: 2.1: the ``encoder_hall`` fault, ``prot_eh_tolerance``, ``prot_eh_misses``,
+#: ``st_enc_hall_error``).
+MAP_VERSION = (2 << 16) | 1
 
 #: Fault causes in bit order (bit 0 first), as ``hdl.protect.FAULTS`` (a test checks they agree).
 FAULT_FIELDS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c",
                 "overcurrent_comparator", "overvoltage", "undervoltage", "overspeed", "encoder",
-                "hall")
+                "hall", "encoder_hall")
 #: Scope status flags in bit order.
 SCOPE_STATUS_FIELDS = ("done", "pre_full")
 #: Sticky control-loop flags (``st_loop_flags``) in bit order.
@@ -685,6 +687,18 @@ def build_regmap(scales=Scales()):
         reg("mt_k", 0x0205, UQ(48, 0), RW, k,
             "M/T scale k = 60·2^31·f_TCLK / (lines·N_FS), f_TCLK = clk_hz", unit="",
             shadow="speed"),
+        # Reference profile (hdl/servo.py): off at reset (slew 0, no feed-forward).
+        reg("speed_slew", 0x0207, UQ(32, 31), RW, 0,
+            "largest change of the speed loop's reference per speed-loop run (0: steps)",
+            unit="r/min", scale="N_FS", shadow="speed"),
+        reg("speed_ff_iq", 0x0208, cur, RW, 0,
+            "acceleration feed-forward J·α/K_t, added while the reference profile moves",
+            unit="A", scale="I_FS", shadow="speed"),
+        reg("speed_ref_delay", 0x0209, UQ(5, 3), RW, 0,
+            "the speed PI compares with the profile this many runs ago (0 … 3.875)",
+            unit="runs", shadow="speed"),
+        reg("speed_int_hold", 0x020A, UQ(1, 0), RW, 0,
+            "hold the speed PI's integrator while the profile moves", shadow="speed"),
         # --- encoder and Hall sensors ---
         reg("enc_lines", 0x0280, UQ(16, 0), RW, 5000, "encoder lines per revolution",
             unit="lines", shadow="encoder"),
@@ -714,6 +728,13 @@ def build_regmap(scales=Scales()):
             scale="N_FS"),
         reg("prot_mask", 0x0305, UQ(len(FAULT_FIELDS), 0), RW, (1 << len(FAULT_FIELDS)) - 1,
             "fault causes acted on (a cleared bit ignores that cause)", fields=FAULT_FIELDS),
+        reg("prot_eh_tolerance", 0x0306, angle, RW, 1 << 13,
+            "encoder/Hall plausibility: largest |θ_e(encoder) − Hall edge angle| at a Hall edge, "
+            "and largest error of the encoder's advance over a Hall sector, that is not a miss",
+            unit="deg", scale="360"),
+        reg("prot_eh_misses", 0x0307, UQ(4, 0), RW, 1,
+            "encoder/Hall plausibility: consecutive missed Hall edges that raise the "
+            "encoder_hall fault (0 acts as 1)", unit="edges"),
         # --- status ---
         reg("st_mode", 0x0400, UQ(2, 0), RO, 0,
             "mode in force (disabled while tripped; mode changes at a loop boundary)",
@@ -772,6 +793,9 @@ def build_regmap(scales=Scales()):
               "host-link frames answered BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or READ_ONLY "
               "(wraps)",
               "host-link frames skipped without a reply: bytes arrived while busy (wraps)")))],
+        reg("st_enc_hall_error", 0x0424, Q(16, 16), RO, 0,
+            "θ_e(encoder) − Hall edge angle (with enc_hall_offset) at the last Hall edge; once "
+            "aligned, the error of enc_hall_offset", unit="deg", scale="360"),
         # --- scope control (acts at once) ---
         *[reg(f"scope_chan{c}", 0x0500 + c, UQ(8, 0), RW, c,
               f"scope channel {c} signal select (index into the scope's signal list)")

@@ -8,6 +8,7 @@
     PWMTimer ─ sample ─ AdcInterface (adc_cs_n, adc_sclk, adc_sdo) ─ CurrentLoop ─ duties ─ PWMTimer
     PWMTimer.pwm ─ Gates (dead time, enable = Servo.enable, trip) ─ gate_h, gate_l
     fault_n, oc_comp ─ FFSynchronizer (2 flops) ─ Protection ─ trip ─ Gates, Servo
+    EncoderFrontEnd illegal, hall_fault, plausibility (encoder/Hall check) ─ Protection
     Servo (modes, speed loop, open-loop angle) ─ θ, references ─ CurrentLoop; ref_step ─ Scope
     MTSpeed speed × theta_lead register ─ LeadAngle ─ θ_lead ─ CurrentLoop (inverse Park θ + θ_lead)
 
@@ -402,6 +403,7 @@ class Top(wiring.Component):
             prot.speed.payload.eq(speed),
             prot.encoder_illegal.eq(enc.illegal),
             prot.hall_invalid.eq(enc.hall_fault),
+            prot.encoder_hall.eq(enc.plausibility),
 
             gates.pwm.eq(timer.pwm),
             gates.enable.eq(servo.enable),
@@ -445,6 +447,10 @@ class Top(wiring.Component):
             servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
             # speed_div: "every n periods, 0 acts as 1"; rate_div: "every rate_div + 1".
             servo.speed_rate_div.eq(Mux(regs.speed_div == 0, 0, regs.speed_div - 1)),
+            servo.speed_slew.eq(regs.speed_slew),
+            servo.iq_ff.eq(regs.speed_ff_iq),
+            servo.speed_ref_delay.eq(regs.speed_ref_delay),
+            servo.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
 
             enc.lines.eq(regs.enc_lines),
@@ -453,6 +459,8 @@ class Top(wiring.Component):
             enc.hall_offset.eq(regs.enc_hall_offset),
             enc.length.eq(regs.enc_filter),
             enc.realign.eq(regs.enc_realign),
+            enc.hall_tolerance.eq(regs.prot_eh_tolerance),
+            enc.hall_misses.eq(regs.prot_eh_misses),
 
             prot.oc_limit.eq(regs.prot_oc_limit),
             prot.ov_limit.eq(regs.prot_ov_limit),
@@ -549,6 +557,7 @@ class Top(wiring.Component):
             _raw(regs.st_loop_flags).eq(flags),
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),
+            regs.st_enc_hall_error.eq(enc.hall_error),
             _raw(regs.scope_state).eq(_raw(scope.state)),
             _raw(regs.scope_status).eq(Cat(scope.done, scope.pre_full)),
         ]

@@ -8,8 +8,8 @@
 #define FOC_SERVO_REGS_H
 
 #define FOC_MAGIC 0x464F4353u
-#define FOC_MAP_VERSION 0x00020000u
-#define FOC_MAP_HASH 0x5F6E8206u
+#define FOC_MAP_VERSION 0x00020001u
+#define FOC_MAP_HASH 0x71E8FEE6u
 
 #define FOC_ACCESS_RW 0
 #define FOC_ACCESS_RO 1
@@ -32,7 +32,7 @@
 #define FOC_ID_VERSION_FRAC 0
 #define FOC_ID_VERSION_SIGNED 0
 #define FOC_ID_VERSION_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_VERSION_RESET 0x20000u
+#define FOC_ID_VERSION_RESET 0x20001u
 
 /* id_map_hash: CRC-32 of the register map layout (host and gateware must agree). uint32 */
 #define FOC_ID_MAP_HASH_ADDR 0x0002u
@@ -41,7 +41,7 @@
 #define FOC_ID_MAP_HASH_FRAC 0
 #define FOC_ID_MAP_HASH_SIGNED 0
 #define FOC_ID_MAP_HASH_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_MAP_HASH_RESET 0x5f6e8206u
+#define FOC_ID_MAP_HASH_RESET 0x71e8fee6u
 
 /* id_clk_hz: system clock frequency clk_hz. uint32 [Hz] */
 #define FOC_ID_CLK_HZ_ADDR 0x0003u
@@ -428,6 +428,42 @@
 #define FOC_MT_K_ACCESS FOC_ACCESS_RW
 #define FOC_MT_K_RESET 0x1900000000ULL
 
+/* speed_slew: largest change of the speed loop's reference per speed-loop run (0: steps). UQ1.31 * N_FS [r/min] */
+#define FOC_SPEED_SLEW_ADDR 0x0207u
+#define FOC_SPEED_SLEW_WORDS 1u
+#define FOC_SPEED_SLEW_WIDTH 32u
+#define FOC_SPEED_SLEW_FRAC 31
+#define FOC_SPEED_SLEW_SIGNED 0
+#define FOC_SPEED_SLEW_ACCESS FOC_ACCESS_RW
+#define FOC_SPEED_SLEW_RESET 0x0u
+
+/* speed_ff_iq: acceleration feed-forward J·α/K_t, added while the reference profile moves. Q1.15 * I_FS [A] */
+#define FOC_SPEED_FF_IQ_ADDR 0x0208u
+#define FOC_SPEED_FF_IQ_WORDS 1u
+#define FOC_SPEED_FF_IQ_WIDTH 16u
+#define FOC_SPEED_FF_IQ_FRAC 15
+#define FOC_SPEED_FF_IQ_SIGNED 1
+#define FOC_SPEED_FF_IQ_ACCESS FOC_ACCESS_RW
+#define FOC_SPEED_FF_IQ_RESET 0
+
+/* speed_ref_delay: the speed PI compares with the profile this many runs ago (0 … 3.875). UQ2.3 [runs] */
+#define FOC_SPEED_REF_DELAY_ADDR 0x0209u
+#define FOC_SPEED_REF_DELAY_WORDS 1u
+#define FOC_SPEED_REF_DELAY_WIDTH 5u
+#define FOC_SPEED_REF_DELAY_FRAC 3
+#define FOC_SPEED_REF_DELAY_SIGNED 0
+#define FOC_SPEED_REF_DELAY_ACCESS FOC_ACCESS_RW
+#define FOC_SPEED_REF_DELAY_RESET 0x0u
+
+/* speed_int_hold: hold the speed PI's integrator while the profile moves. bool */
+#define FOC_SPEED_INT_HOLD_ADDR 0x020Au
+#define FOC_SPEED_INT_HOLD_WORDS 1u
+#define FOC_SPEED_INT_HOLD_WIDTH 1u
+#define FOC_SPEED_INT_HOLD_FRAC 0
+#define FOC_SPEED_INT_HOLD_SIGNED 0
+#define FOC_SPEED_INT_HOLD_ACCESS FOC_ACCESS_RW
+#define FOC_SPEED_INT_HOLD_RESET 0x0u
+
 /* enc_lines: encoder lines per revolution. uint16 [lines] */
 #define FOC_ENC_LINES_ADDR 0x0280u
 #define FOC_ENC_LINES_WORDS 1u
@@ -527,14 +563,14 @@
 #define FOC_PROT_OS_LIMIT_ACCESS FOC_ACCESS_RW
 #define FOC_PROT_OS_LIMIT_RESET 0xffffffffu
 
-/* prot_mask: fault causes acted on (a cleared bit ignores that cause). flags[10] */
+/* prot_mask: fault causes acted on (a cleared bit ignores that cause). flags[11] */
 #define FOC_PROT_MASK_ADDR 0x0305u
 #define FOC_PROT_MASK_WORDS 1u
-#define FOC_PROT_MASK_WIDTH 10u
+#define FOC_PROT_MASK_WIDTH 11u
 #define FOC_PROT_MASK_FRAC 0
 #define FOC_PROT_MASK_SIGNED 0
 #define FOC_PROT_MASK_ACCESS FOC_ACCESS_RW
-#define FOC_PROT_MASK_RESET 0x3ffu
+#define FOC_PROT_MASK_RESET 0x7ffu
 #define FOC_PROT_MASK_EXTERNAL (1u << 0)
 #define FOC_PROT_MASK_OVERCURRENT_A (1u << 1)
 #define FOC_PROT_MASK_OVERCURRENT_B (1u << 2)
@@ -545,6 +581,25 @@
 #define FOC_PROT_MASK_OVERSPEED (1u << 7)
 #define FOC_PROT_MASK_ENCODER (1u << 8)
 #define FOC_PROT_MASK_HALL (1u << 9)
+#define FOC_PROT_MASK_ENCODER_HALL (1u << 10)
+
+/* prot_eh_tolerance: encoder/Hall plausibility: largest |θ_e(encoder) − Hall edge angle| at a Hall edge, and largest error of the encoder's advance over a Hall sector, that is not a miss. UQ0.16 * 360 [deg] */
+#define FOC_PROT_EH_TOLERANCE_ADDR 0x0306u
+#define FOC_PROT_EH_TOLERANCE_WORDS 1u
+#define FOC_PROT_EH_TOLERANCE_WIDTH 16u
+#define FOC_PROT_EH_TOLERANCE_FRAC 16
+#define FOC_PROT_EH_TOLERANCE_SIGNED 0
+#define FOC_PROT_EH_TOLERANCE_ACCESS FOC_ACCESS_RW
+#define FOC_PROT_EH_TOLERANCE_RESET 0x2000u
+
+/* prot_eh_misses: encoder/Hall plausibility: consecutive missed Hall edges that raise the encoder_hall fault (0 acts as 1). uint4 [edges] */
+#define FOC_PROT_EH_MISSES_ADDR 0x0307u
+#define FOC_PROT_EH_MISSES_WORDS 1u
+#define FOC_PROT_EH_MISSES_WIDTH 4u
+#define FOC_PROT_EH_MISSES_FRAC 0
+#define FOC_PROT_EH_MISSES_SIGNED 0
+#define FOC_PROT_EH_MISSES_ACCESS FOC_ACCESS_RW
+#define FOC_PROT_EH_MISSES_RESET 0x1u
 
 /* st_mode: mode in force (disabled while tripped; mode changes at a loop boundary). enum Mode */
 #define FOC_ST_MODE_ADDR 0x0400u
@@ -568,10 +623,10 @@
 #define FOC_ST_TRIP_ACCESS FOC_ACCESS_RO
 #define FOC_ST_TRIP_RESET 0x0u
 
-/* st_fault_present: fault causes present now. flags[10] */
+/* st_fault_present: fault causes present now. flags[11] */
 #define FOC_ST_FAULT_PRESENT_ADDR 0x0402u
 #define FOC_ST_FAULT_PRESENT_WORDS 1u
-#define FOC_ST_FAULT_PRESENT_WIDTH 10u
+#define FOC_ST_FAULT_PRESENT_WIDTH 11u
 #define FOC_ST_FAULT_PRESENT_FRAC 0
 #define FOC_ST_FAULT_PRESENT_SIGNED 0
 #define FOC_ST_FAULT_PRESENT_ACCESS FOC_ACCESS_RO
@@ -586,11 +641,12 @@
 #define FOC_ST_FAULT_PRESENT_OVERSPEED (1u << 7)
 #define FOC_ST_FAULT_PRESENT_ENCODER (1u << 8)
 #define FOC_ST_FAULT_PRESENT_HALL (1u << 9)
+#define FOC_ST_FAULT_PRESENT_ENCODER_HALL (1u << 10)
 
-/* st_fault_first: fault cause(s) that tripped the latch. flags[10] */
+/* st_fault_first: fault cause(s) that tripped the latch. flags[11] */
 #define FOC_ST_FAULT_FIRST_ADDR 0x0403u
 #define FOC_ST_FAULT_FIRST_WORDS 1u
-#define FOC_ST_FAULT_FIRST_WIDTH 10u
+#define FOC_ST_FAULT_FIRST_WIDTH 11u
 #define FOC_ST_FAULT_FIRST_FRAC 0
 #define FOC_ST_FAULT_FIRST_SIGNED 0
 #define FOC_ST_FAULT_FIRST_ACCESS FOC_ACCESS_RO
@@ -605,11 +661,12 @@
 #define FOC_ST_FAULT_FIRST_OVERSPEED (1u << 7)
 #define FOC_ST_FAULT_FIRST_ENCODER (1u << 8)
 #define FOC_ST_FAULT_FIRST_HALL (1u << 9)
+#define FOC_ST_FAULT_FIRST_ENCODER_HALL (1u << 10)
 
-/* st_fault_seen: every fault cause since the last clear. flags[10] */
+/* st_fault_seen: every fault cause since the last clear. flags[11] */
 #define FOC_ST_FAULT_SEEN_ADDR 0x0404u
 #define FOC_ST_FAULT_SEEN_WORDS 1u
-#define FOC_ST_FAULT_SEEN_WIDTH 10u
+#define FOC_ST_FAULT_SEEN_WIDTH 11u
 #define FOC_ST_FAULT_SEEN_FRAC 0
 #define FOC_ST_FAULT_SEEN_SIGNED 0
 #define FOC_ST_FAULT_SEEN_ACCESS FOC_ACCESS_RO
@@ -624,6 +681,7 @@
 #define FOC_ST_FAULT_SEEN_OVERSPEED (1u << 7)
 #define FOC_ST_FAULT_SEEN_ENCODER (1u << 8)
 #define FOC_ST_FAULT_SEEN_HALL (1u << 9)
+#define FOC_ST_FAULT_SEEN_ENCODER_HALL (1u << 10)
 
 /* st_enc_aligned: encoder aligned by a Z index (else θ_e from the Hall sensors). bool */
 #define FOC_ST_ENC_ALIGNED_ADDR 0x0405u
@@ -854,6 +912,15 @@
 #define FOC_ST_LINK_DROPPED_SIGNED 0
 #define FOC_ST_LINK_DROPPED_ACCESS FOC_ACCESS_RO
 #define FOC_ST_LINK_DROPPED_RESET 0x0u
+
+/* st_enc_hall_error: θ_e(encoder) − Hall edge angle (with enc_hall_offset) at the last Hall edge; once aligned, the error of enc_hall_offset. Q0.16 * 360 [deg] */
+#define FOC_ST_ENC_HALL_ERROR_ADDR 0x0424u
+#define FOC_ST_ENC_HALL_ERROR_WORDS 1u
+#define FOC_ST_ENC_HALL_ERROR_WIDTH 16u
+#define FOC_ST_ENC_HALL_ERROR_FRAC 16
+#define FOC_ST_ENC_HALL_ERROR_SIGNED 1
+#define FOC_ST_ENC_HALL_ERROR_ACCESS FOC_ACCESS_RO
+#define FOC_ST_ENC_HALL_ERROR_RESET 0
 
 /* scope_chan0: scope channel 0 signal select (index into the scope's signal list). uint8 */
 #define FOC_SCOPE_CHAN0_ADDR 0x0500u

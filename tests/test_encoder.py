@@ -1,5 +1,6 @@
 # amaranth: UnusedElaboratable=no
-# Ref: SPEC.md §2.3 (encoder A/B/Z + Hall, ×4 position counter); §4 (synchronisers, glitch filters)
+# Ref: SPEC.md §2.3 (encoder A/B/Z + Hall, ×4 position counter); §4 (synchronisers, glitch filters);
+#      issue 6 item 7 (encoder/Hall plausibility check)
 import numpy as np
 import pytest
 from amaranth.back import verilog
@@ -7,8 +8,9 @@ from amaranth.hdl import Cat
 
 import foc_servo.hdl.encoder as hdl_encoder
 import foc_servo.sim.verify.encoder as verify_encoder
-from foc_servo.hdl.encoder import (HALL_CODES, EncoderFrontEnd, GlitchFilter, HallSensor,
-                                   QuadratureDecoder, angle_constants, hall_centres)
+from foc_servo.hdl.encoder import (HALL_CODES, EncoderFrontEnd, GlitchFilter, HallPlausibility,
+                                   HallSensor, QuadratureDecoder, angle_constants,
+                                   hall_boundaries, hall_centres)
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models import encoder as model
 
@@ -340,6 +342,226 @@ def test_hall_angle_before_first_index_then_encoder():
     assert out["aligned"][-1] == 1 and after == (5000 << 16) // 20000
 
 
+# --- encoder/Hall plausibility --------------------------------------------------------------
+
+B = hall_boundaries()
+TURN = 1 << 16
+
+
+def run_plausibility(steps, hold_clocks=3):
+    """Drive a HallPlausibility with ``steps`` (dicts of inputs, each held ``hold_clocks``
+    clocks; unspecified inputs keep their value) and return per-step outputs
+    ``(edge, miss, fault, error)`` OR-ed (strobes) / last (error) over the step, after checking
+    every clock against the golden model."""
+    dut = HallPlausibility()
+    ref = model.HallPlausibilityModel()
+    state = {"theta": 0, "aligned": 0, "restart": 0, "sector": 0, "valid": 0, "hold": 0,
+             "offset": 0, "tolerance": 8192, "misses": 2}
+    per_step, errors = [], []
+
+    async def testbench(ctx):
+        clock = 0
+        for step in steps:
+            state.update(step)
+            acc = [0, 0, 0, 0]
+            for _ in range(hold_clocks):
+                for k, v in state.items():
+                    ctx.set(getattr(dut, k), v)
+                await ctx.tick()
+                ref.tick(**state)
+                got = (ctx.get(dut.edge), ctx.get(dut.miss), ctx.get(dut.fault),
+                       ctx.get(dut.error))
+                want = (ref.edge, ref.miss, ref.fault, ref.error)
+                if got != want:
+                    errors.append((clock, got, want))
+                acc = [acc[0] | got[0], acc[1] | got[1], acc[2] | got[2], got[3]]
+                clock += 1
+            per_step.append(tuple(acc))
+
+    simulate(dut, [testbench], name="test_plausibility")
+    assert errors == []
+    return per_step
+
+
+def test_hall_boundaries_are_the_sector_starts():
+    """Boundary k is the binary angle nearest to k·60°, within one LSB of the first angle of
+    sector k (the ideal Hall code's)."""
+    assert B == (0, 10923, 21845, 32768, 43691, 54613)
+    for k, b in enumerate(B):
+        assert abs(b - k * TURN / 6) <= 0.5
+        first = next(t for t in range(b - 2, b + 3) if model.hall_sector(model.hall_code(t)) == k)
+        assert abs(first - b) <= 1
+
+
+def test_plausibility_latency_cycle_by_cycle():
+    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 1."""
+    dut = HallPlausibility()
+    seen = []
+
+    async def testbench(ctx):
+        ctx.set(dut.aligned, 1)
+        ctx.set(dut.valid, 1)
+        ctx.set(dut.misses, 1)
+        ctx.set(dut.theta, B[3])                  # far from the 0 → 1 boundary: a miss
+        await ctx.tick().repeat(3)
+        ctx.set(dut.sector, 1)                    # the edge, in this clock
+        for _ in range(3):
+            seen.append((ctx.get(dut.edge), ctx.get(dut.miss), ctx.get(dut.fault)))
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="test_plausibility_latency")
+    assert HallPlausibility.latency == 1
+    assert seen == [(0, 0, 0), (1, 1, 1), (0, 0, 0)]
+    assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 1
+
+
+def test_plausibility_absolute_check_threshold_count_and_reset():
+    al = {"aligned": 1, "valid": 1}
+    out = run_plausibility([
+        {**al, "sector": 0, "theta": B[0] + 4000},
+        {"sector": 1, "theta": B[1] + 8192},                    # |d| = tolerance: pass
+        {"sector": 2, "theta": B[2] - 8193},                    # miss 1
+        {"sector": 3, "theta": B[3] + 100},                     # pass: count back to 0
+        {"sector": 4, "theta": B[4] + 20000},                   # miss 1
+        {"sector": 5, "theta": B[5] - 30000},                   # miss 2: fault
+        {"sector": 0, "theta": B[0] + 32768},                   # miss 3 (|d| = 180°): fault
+        {"sector": 5, "theta": (B[0] - 36) % TURN},             # backward at B[0]: pass
+        {"sector": 3, "theta": B[4]},                           # skips a sector: miss 1
+        {"misses": 0, "sector": 4, "theta": B[4]},              # pass (0 acts as 1) ...
+        {"sector": 0, "theta": B[0]},                           # skip: miss → fault at once
+        {"offset": 1000, "sector": 1, "theta": B[1] + 1000 - 8193},   # offset moves the edge
+    ])
+    edge, miss, fault, err = (list(x) for x in zip(*out))
+    assert edge == [0] + [1] * 11
+    assert miss == [0, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 1]
+    assert fault == [0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 1, 1]
+    assert err[1] == 8192 and err[2] == -8193 and err[6] == -32768 and err[7] == -36
+    assert err[8] == err[7]                                     # a skip leaves the error
+    assert err[11] == -8193
+
+
+def test_plausibility_relative_check_before_alignment():
+    t0 = 12345                                                  # unknown encoder offset
+    v = {"valid": 1}
+    out = run_plausibility([
+        {**v, "sector": 0, "theta": t0},
+        {"sector": 1, "theta": t0 + B[1]},                      # first edge: no check
+        {"sector": 2, "theta": t0 + B[2] + 5000},               # advanced 60° + 27°: pass
+        {"sector": 3, "theta": t0 + B[2] + 5000},               # encoder stuck: miss 1
+        {"sector": 2, "theta": t0 + B[2] + 5000},               # reversal: no check
+        {"sector": 1, "theta": t0 + B[1] - 20},                 # backward across 2: pass
+        {"sector": 0, "theta": t0 + B[1] - 20},                 # stuck: miss 1
+        {"sector": 5, "theta": t0 + B[1] - 20},                 # stuck: miss 2 → fault
+        {"restart": 1},                                         # the reference may move
+        {"restart": 0, "sector": 4, "theta": 999},              # not compared: no miss
+        {"sector": 3, "theta": 999 - (B[5] - B[4])},            # compared again: pass
+        {"aligned": 1, "theta": B[3] + 50},                     # aligned: the angle jumps
+        {"sector": 2, "theta": B[3] - 30},                      # absolute only: pass
+        {"hold": 1, "sector": 1, "theta": 0},                   # held: no edge
+    ])
+    edge, miss, fault, _ = (list(x) for x in zip(*out))
+    assert edge == [0, 1, 1, 1, 1, 1, 1, 1, 0, 1, 1, 0, 1, 0]
+    assert miss == [0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0]
+    assert fault == [0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0]
+
+
+def _plant_gateware(lines=64, **kw):
+    """A plant-driven gateware run at a reduced scale: 100 kHz clock, 64-line encoder (one
+    count 5.6° electrical), filter length 1: a 500th of the clocks of 50 MHz."""
+    r = verify_encoder.run_plant(clk_hz=1e5, lines=lines, length=1, engine="gateware", **kw)
+    assert r["mismatches"] == 0, r["first_mismatch"]           # gateware = per-clock model
+    assert r["sparse_mismatches"] == 0                          # = event-driven model
+    return r
+
+
+@pytest.mark.parametrize("speed_rpm, theta_m0, phi_deg, aligned, misses", [
+    (1000.0, -0.05, 30.0, True, 1),       # Z passed before the break: absolute check
+    (-1000.0, -0.05, 5.0, False, 2),      # backward, Z a turn away: relative check
+])
+def test_plausibility_plant_broken_a_line_trips(speed_rpm, theta_m0, phi_deg, aligned, misses):
+    """Encoder A broken at 1000 r/min (rotor held): no illegal transition, yet the check trips
+    at the rotation the Hall edges predict, N·60° − φ when the first edge after the break is
+    beyond the tolerance, else (N + 1)·60° − φ: N = 1 (the default), φ = 30°: 90°;
+    N = 2, φ = 5°: 115°."""
+    r = _plant_gateware(speed_rpm=speed_rpm, theta_m0=theta_m0, duration_s=25e-3,
+                        break_after_s=8e-3, break_phi_deg=phi_deg, misses=misses)
+    assert r["aligned_at_break"] is aligned
+    assert r["illegal_strobes"] == 0 and r["false_trips"] == 0
+    assert r["detected"]
+    assert r["expected_angle_deg"] == pytest.approx({1: 90.0, 2: 115.0}[misses], abs=0.5)
+    # One count (5.6°) of dither/quantisation plus the front end's 5 clocks (0.2°).
+    assert abs(r["detect_angle_deg"] - r["expected_angle_deg"]) < 6.0
+    assert r["detect_sectors"] <= 0.75 + misses
+
+
+def test_plausibility_plant_healthy_turns_and_reversals_no_trip():
+    """No miss at all without the fault: a turn forward (aligning on the way; Z and Hall
+    offsets) and a turn back at 3000 r/min (a 32-line encoder: 16 clocks per count), and a
+    rotor swinging through standstill with its turning points just past Hall boundaries, Hall
+    switches chattering (3 bounces of 20 clocks at every edge) and the decoder's Hall offset 10°
+    off."""
+    sector_m = np.pi / 12                                      # one Hall sector, mechanical
+    runs = [
+        _plant_gateware(lines=32, speed_rpm=3000.0, theta_m0=-0.3, duration_s=22e-3,
+                        z_count=17, hall_offset_rad=0.4),
+        _plant_gateware(lines=32, speed_rpm=-3000.0, theta_m0=0.2, duration_s=21e-3),
+        _plant_gateware(swing=(1.5 * sector_m + 0.002, 40.0), theta_m0=2.5 * sector_m,
+                        duration_s=32e-3, hall_bounce=(3, 20), hall_offset_error_deg=10.0),
+    ]
+    for r in runs:
+        assert r["plausibility_strobes"] == 0 and r["hall_misses"] == 0
+    assert runs[0]["hall_edges"] >= 24 and runs[1]["hall_edges"] >= 24
+    assert runs[0]["aligned_clock"] is not None
+    # From the centre up (2 boundaries), down (4), up (4): 10 crossings, 6 bounces each where
+    # the next crossing is not too close (the two at a turning point are 0.8 ms apart).
+    assert runs[2]["hall_edges"] >= 50
+    assert runs[2]["aligned_clock"] is None
+
+
+def test_plausibility_plant_full_scale_model():
+    """50 MHz, 5000 lines, 1000 r/min, the event-driven golden model (bit-exact with the
+    gateware: the tests above): A broken past Z, both directions, N = 1 and 2; the tripping
+    rotation equals the predicted one within 0.1° (a count is 0.072°, 5 clocks 0.13°)."""
+    for speed, phi, misses in ((1000.0, 10.0, 1), (-1000.0, 30.0, 2)):
+        r = verify_encoder.run_plant(speed_rpm=speed, theta_m0=-0.05 * np.sign(speed),
+                                     duration_s=13e-3, break_after_s=2.5e-3,
+                                     break_phi_deg=phi, misses=misses)
+        assert r["aligned_at_break"] and r["illegal_strobes"] == 0 and r["false_trips"] == 0
+        assert r["detected"] and abs(r["detect_angle_deg"] - r["expected_angle_deg"]) < 0.1
+        assert r["max_abs_error_deg"] < 0.1                       # one count: 0.072°
+
+
+@pytest.mark.slow
+def test_plausibility_plant_full_scale_sweep_and_no_false_trips():
+    """Full scale: the tripping rotation for break positions every 5° of a sector (2.5° …
+    57.5°, N = 1 and 2 alternately) in both directions, aligned or not; no trip over 3 turns
+    each way at 1000 r/min, at 5000 r/min, at 5 r/min, and over swings through standstill with
+    chattering Halls and a 10° Hall offset error."""
+    sector_m = np.pi / 12
+    for speed in (1000.0, -1000.0):
+        for th0 in (-0.05, 0.05):
+            for phi in np.arange(2.5, 60.0, 5.0):      # not at the threshold 60° − 45°
+                misses = 1 + int(phi) % 2                   # N = 1 and 2 alternately
+                r = verify_encoder.run_plant(speed_rpm=speed, theta_m0=th0, duration_s=16e-3,
+                                             break_after_s=3e-3, break_phi_deg=float(phi),
+                                             misses=misses)
+                assert r["false_trips"] == 0 and r["illegal_strobes"] == 0
+                assert abs(r["detect_angle_deg"] - r["expected_angle_deg"]) < 0.2, (speed, phi)
+    healthy = [
+        dict(speed_rpm=1000.0, theta_m0=-0.3, duration_s=185e-3),
+        dict(speed_rpm=-1000.0, theta_m0=0.2, duration_s=185e-3, z_count=4321,
+             hall_offset_rad=-1.0),
+        dict(speed_rpm=5000.0, duration_s=40e-3),
+        dict(speed_rpm=5.0, theta_m0=-0.01, duration_s=2.0, chunk_s=10e-3),   # 2 sectors/s
+        dict(swing=(1.5 * sector_m + 0.0005, 2.0), theta_m0=2.5 * sector_m, duration_s=1.1,
+             hall_bounce=(3, 500), hall_offset_error_deg=10.0),
+    ]
+    for kw in healthy:
+        r = verify_encoder.run_plant(**kw)
+        assert r["plausibility_strobes"] == 0 and r["hall_misses"] == 0, kw
+        assert r["hall_edges"] >= (3 if kw.get("speed_rpm") == 5.0 else 12), kw
+
+
 # --- electrical angle -----------------------------------------------------------------------
 
 def test_angle_no_drift_forward_back_random_walk():
@@ -403,6 +625,9 @@ def test_front_end_converts_to_verilog():
 def test_front_end_100k_random_vectors_and_targets():
     r = verify_encoder.run(100_000, seed=0)
     assert r["mismatches"] == 0
+    rr = r["random"]
+    assert rr["plausibility_strobes"] == rr["plausibility_strobes_model"] > 0
+    assert 0 < rr["hall_misses_model"] < rr["hall_edges_model"]
     assert r["angle_drift_counts"] == 0
     assert r["glitch_short_counted"] == 0 and r["glitch_long_missed"] == 0
     assert r["illegal_detected"] == r["illegal_injected"]

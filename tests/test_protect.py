@@ -13,8 +13,8 @@ from foc_servo.sim.models.protect import INPUTS, pack_flags, protect_np, unpack_
 
 DEFAULTS = {"fault_n": 1, "oc_comp": 0, "i_valid": 0, "a": 0, "b": 0, "c": 0, "udc_valid": 0,
             "udc": 20000, "speed_valid": 0, "speed": 0, "encoder_illegal": 0, "hall_invalid": 0,
-            "oc_limit": 1000, "ov_limit": 30000, "uv_limit": 10000, "uv_enable": 0,
-            "os_limit": 1000, "mask": (1 << len(FAULTS)) - 1, "clear": 0}
+            "encoder_hall": 0, "oc_limit": 1000, "ov_limit": 30000, "uv_limit": 10000,
+            "uv_enable": 0, "os_limit": 1000, "mask": (1 << len(FAULTS)) - 1, "clear": 0}
 
 
 def run_clocks(steps):
@@ -38,6 +38,7 @@ def run_clocks(steps):
             ctx.set(dut.speed.payload, v["speed"])
             ctx.set(dut.encoder_illegal, v["encoder_illegal"])
             ctx.set(dut.hall_invalid, v["hall_invalid"])
+            ctx.set(dut.encoder_hall, v["encoder_hall"])
             for r in ("oc_limit", "ov_limit", "uv_limit", "uv_enable", "os_limit", "clear"):
                 ctx.set(getattr(dut, r), v[r])
             ctx.set(dut.mask, {n: (v["mask"] >> k) & 1 for k, n in enumerate(FAULTS)})

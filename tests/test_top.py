@@ -223,6 +223,9 @@ def _wiring_table(top):
         "pi_speed_kp": (servo.speed_kp, same), "pi_speed_kx": (servo.speed_kx, same),
         "pi_speed_lim_lo": (servo.iq_lim_lo, same), "pi_speed_lim_hi": (servo.iq_lim_hi, same),
         "speed_div": (servo.speed_rate_div, minus_one), "mt_k": (mt.k, same),
+        "speed_slew": (servo.speed_slew, same), "speed_ff_iq": (servo.iq_ff, same),
+        "speed_ref_delay": (servo.speed_ref_delay, same),
+        "speed_int_hold": (servo.speed_int_hold, same),
         "clarke_gain_a": (cl.gain_a, same), "clarke_offset_a": (cl.offset_a, same),
         "clarke_gain_b": (cl.gain_b, same), "clarke_offset_b": (cl.offset_b, same),
         "u_rated": (cl.u_rated, same), "decouple_enable": (cl.ff_enable, same),
@@ -236,6 +239,7 @@ def _wiring_table(top):
         "prot_oc_limit": (prot.oc_limit, same), "prot_ov_limit": (prot.ov_limit, same),
         "prot_uv_limit": (prot.uv_limit, same), "prot_uv_enable": (prot.uv_enable, same),
         "prot_os_limit": (prot.os_limit, same), "prot_mask": (prot.mask, same),
+        "prot_eh_tolerance": (enc.hall_tolerance, same), "prot_eh_misses": (enc.hall_misses, same),
         "clear_faults": (prot.clear, same),
         "scope_decim": (scope.decim, minus_one),
         "scope_pretrig": (scope.pretrigger, lambda v: min(v, scope.depth - 1)),
@@ -264,7 +268,7 @@ def _status_sources(top):
         "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": top._adc.o.payload.udc,
         "st_current_loops": cl.count, "st_speed_loops": None, "st_overruns": None,
         "st_adc_overruns": None, "st_loop_flags": None, "st_uv_armed": prot.uv_armed,
-        "st_enc_config_error": enc.config_error,
+        "st_enc_config_error": enc.config_error, "st_enc_hall_error": enc.hall_error,
         **{f"st_link_{n}": getattr(top._link, n) for n in
            ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")},
         "scope_state": scope.state, "scope_status": None,
@@ -458,6 +462,57 @@ def test_top_adc_model_drives_a_current_loop_pass_at_33_333_mhz():
     assert "status_mismatch" not in seen
     assert set(_status_sources(top)) == {r.name for r in top.regmap if r.access is Access.RO}
     assert len(model.reads) >= 6
+
+
+def test_top_hall_edges_with_a_still_encoder_trip_encoder_hall():
+    """Issue 6 item 7: Hall sectors advancing while the encoder does not move (a broken encoder
+    line before the first Z) raise the encoder_hall fault through the top: on the first missed
+    Hall edge (the default prot_eh_misses 1), in the clock the latencies add up to, with the
+    cause in st_fault_first; masking the cause ignores it."""
+    from foc_servo.hdl.encoder import EncoderFrontEnd, hall_boundaries
+    from foc_servo.hdl.protect import FAULTS, Protection
+    from foc_servo.sim.models.encoder import hall_code
+
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    regs = top._regs
+    dwell = 40
+    codes = [hall_code(b + 100) for b in hall_boundaries()]     # sectors 0, 1, 2, …
+    seen = {}
+
+    async def walk(ctx, sectors):
+        trips, first_trip = [], None
+        for k in sectors:
+            ctx.set(top.hall, codes[k % 6])                      # the pin changes in this clock
+            for t in range(dwell):
+                await ctx.tick()
+                trips.append(ctx.get(top._protect.trip))
+                if trips[-1] and first_trip is None:
+                    first_trip = (k, t + 1)
+        return first_trip
+
+    async def testbench(ctx):
+        ctx.set(top.hall, codes[0])
+        await ctx.tick().repeat(dwell)
+        # Edges 0→1 (no reference yet), 1→2 (the encoder did not advance: a miss, the fault).
+        seen["first_trip"] = await walk(ctx, [1, 2, 3])
+        seen["first"] = ctx.get(_raw(regs.st_fault_first))
+        seen["error"] = ctx.get(regs.st_enc_hall_error)
+        # Masked, cleared: the same walk goes on without a trip.
+        mask = (1 << len(FAULTS)) - 1 - (1 << FAULTS.index("encoder_hall"))
+        ctx.set(_raw(regs.prot_mask), mask)
+        ctx.set(regs.clear_faults, 1)                             # the strobe's pulse
+        await ctx.tick()
+        ctx.set(regs.clear_faults, 0)
+        seen["masked_trip"] = await walk(ctx, [4, 5, 0, 1])
+
+    simulate(top, [testbench], name="test_top_encoder_hall")
+    length = top.regmap["enc_filter"].reset
+    assert seen["first_trip"] == (2, EncoderFrontEnd.plausibility_latency + length - 1
+                                  + Protection.latency)
+    assert seen["first"] == 1 << FAULTS.index("encoder_hall")
+    # The encoder angle (0: never moved, offset 0) against the 2 → 3 boundary (180°).
+    assert seen["error"] == -(1 << 15)
+    assert seen["masked_trip"] is None
 
 
 # --- delay compensation (theta_lead) ----------------------------------------------------------

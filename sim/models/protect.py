@@ -1,4 +1,4 @@
-# Ref: issue 4 item 8 (protection and fault latch)
+# Ref: issue 4 item 8 (protection and fault latch); issue 6 item 7 (encoder/Hall plausibility)
 """Bit-true, cycle-true golden model of :class:`foc_servo.hdl.protect.Protection`.
 
 The latch is sequential, so the model steps clock by clock (a plain Python loop over int64
@@ -13,8 +13,8 @@ __all__ = ["INPUTS", "protect_np", "pack_flags", "unpack_flags"]
 
 #: Per-clock input columns of :func:`protect_np` (registers are columns too).
 INPUTS = ("fault_n", "oc_comp", "i_valid", "a", "b", "c", "udc_valid", "udc", "speed_valid",
-          "speed", "encoder_illegal", "hall_invalid", "oc_limit", "ov_limit", "uv_limit",
-          "uv_enable", "os_limit", "mask", "clear")
+          "speed", "encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
+          "uv_limit", "uv_enable", "os_limit", "mask", "clear")
 
 _BIT = {name: 1 << k for k, name in enumerate(FAULTS)}
 
@@ -55,7 +55,7 @@ def protect_np(cols):
 
     lists = {k: c[k].tolist() for k in ("fault_n", "oc_comp", "i_valid", "udc_valid",
                                         "speed_valid", "encoder_illegal", "hall_invalid",
-                                        "uv_enable", "mask", "clear")}
+                                        "encoder_hall", "uv_enable", "mask", "clear")}
     oc_l = {p: oc[p].tolist() for p in "abc"}
     ov_l, uv_l, arm_l, os_l = ov.tolist(), uv.tolist(), arm.tolist(), os_.tolist()
 
@@ -98,6 +98,8 @@ def protect_np(cols):
             cause |= b["encoder"]
         if lists["hall_invalid"][t]:
             cause |= b["hall"]
+        if lists["encoder_hall"][t]:
+            cause |= b["encoder_hall"]
 
         # The clock edge.
         if lists["clear"][t] and present == 0:

@@ -8,15 +8,23 @@ issue's targets, in three simulations:
   Z and Hall offsets, invalid ones included). Stimulus and the model's expected outputs sit in ROMs
   of a simulation-only wrapper that compares every output on every clock in gateware.
 * **drift** — a gateware stimulus generator drives the :class:`QuadratureDecoder`'s A/B at one
-  state change per clock (a test hook past the synchronisers and filters): after the first Z, ``count`` forward counts, ``count`` back, then ``count`` clocks of
-  random walk (an LFSR). A gateware checker compares ``count`` with a reference counter on every
-  clock and checks ``theta == floor(e·2**16 / cpr)`` by multiplication
+  state change per clock (a test hook past the synchronisers and filters): after the first Z,
+  ``count`` forward counts, ``count`` back, then ``count`` clocks of random walk (an LFSR). A
+  gateware checker compares ``count`` with a reference counter on every clock and checks
+  ``theta == floor(e·2**16 / cpr)`` by multiplication
   (``theta·cpr ≤ e·2**16 < (theta + 1)·cpr``); the testbench compares ``e`` with the exact
   ``(pole_pairs·net + z_offset) mod cpr`` (Python integers) every few thousand clocks and at the
   end of each phase.
 * **events** — directed pulses at every filter length 0 … 12 (and a few long ones) and every
   width around it on A, B, Z and a Hall input, illegal A/B transitions from every state, and Hall
   codes 000/111: counts what was seen downstream.
+
+And with the motor model (:func:`run_plant`, issue 6 item 7): the encoder and Hall pins from
+:meth:`foc_servo.sim.pmsm.Plant.sensor_events` (rotor held at a speed, or swinging back and forth
+under a load torque), optionally with the encoder's A line broken
+(:meth:`~foc_servo.sim.pmsm.Plant.sensor_fault`) and Hall bounce, through the golden model
+(event-driven, full scale) or the gateware (compared with the model on every clock): the
+plausibility check's detection latency and its false trips.
 """
 
 import numpy as np
@@ -25,11 +33,15 @@ from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import Out
 
+import math
+import time
+
 from ...hdl.encoder import ANGLE, HALL_CODES, EncoderFrontEnd, QuadratureDecoder
 from ..harness import Progress, pack_words, simulate
 from ..models import encoder as model
 
-__all__ = ["run", "run_random", "run_drift", "run_events", "stimulus"]
+__all__ = ["run", "run_random", "run_drift", "run_events", "run_plant", "plant_schedule",
+           "stimulus", "changes"]
 
 _AB = ((0, 0), (1, 0), (1, 1), (0, 1))          # quadrature state of phase 0 … 3 (A, B)
 _LINES = (5000, 1, 2, 3, 7, 13, 50, 997, 65535)
@@ -53,7 +65,17 @@ def _segment(rng, n, max_length):
         z_offset = int(rng.integers(0, 1 << 18))        # often ≥ cpr: an invalid configuration
     else:
         z_offset = int(rng.integers(0, cpr))
-    hall_offset = int(rng.integers(0, ANGLE.turn))
+    if rng.random() < 0.5 and cpr:
+        # Hall offset matching the Z offset (the plausibility check passes, up to quantisation).
+        hall_offset = (model.theta_exact(z_offset % cpr, cpr)
+                       + int(rng.integers(-600, 601))) % ANGLE.turn
+    else:
+        hall_offset = int(rng.integers(0, ANGLE.turn))
+    pick = rng.random()
+    hall_tolerance = (8192 if pick < 0.4 else int(rng.integers(0, 2000)) if pick < 0.6 else
+                      int(rng.integers(8192, ANGLE.turn)) if pick < 0.8 else
+                      int(rng.integers(0, ANGLE.turn)))
+    hall_misses = int(rng.integers(1, 3)) if rng.random() < 0.5 else int(rng.integers(0, 16))
 
     pins, realign = [], []
     pos = int(rng.integers(-12, 13))                    # true position, counts (Z at 0 mod cpr)
@@ -95,7 +117,8 @@ def _segment(rng, n, max_length):
         pos += 2 * direction if event > 0.995 else direction    # rare illegal jump by 2
     n = len(pins)
     cols = {"length": length, "lines": lines, "pole_pairs": pole_pairs, "z_offset": z_offset,
-            "hall_offset": hall_offset}
+            "hall_offset": hall_offset, "hall_tolerance": hall_tolerance,
+            "hall_misses": hall_misses}
     return (np.array(pins, dtype=np.int64), np.array(realign, dtype=np.int64),
             {k: np.full(n, v, dtype=np.int64) for k, v in cols.items()})
 
@@ -108,7 +131,9 @@ def stimulus(count, *, seed=0, max_length=255):
     -------
     dict of int64 arrays
         ``pins`` (A, B, Z, H_a, H_b, H_c in bits 0 … 5) and the configuration columns
-        ``length``, ``lines``, ``pole_pairs``, ``z_offset``, ``hall_offset``, ``realign``.
+        ``length``, ``lines``, ``pole_pairs``, ``z_offset``, ``hall_offset``, ``realign``,
+        ``hall_tolerance``, ``hall_misses`` (half of the segments with a Hall offset that
+        matches the Z offset, so the plausibility check sees passes as well as misses).
     """
     rng = np.random.default_rng(seed)
     parts = []
@@ -129,7 +154,8 @@ def stimulus(count, *, seed=0, max_length=255):
 
 
 
-_STIM = ("pins", "length", "lines", "pole_pairs", "z_offset", "hall_offset", "realign")
+_STIM = ("pins", "length", "lines", "pole_pairs", "z_offset", "hall_offset", "realign",
+         "hall_tolerance", "hall_misses")
 
 
 class _RandomBench(wiring.Component):
@@ -141,6 +167,9 @@ class _RandomBench(wiring.Component):
     first_mismatch: Out(32, init=0xFFFF_FFFF)
     illegal_seen: Out(32)
     hall_faults_seen: Out(32)
+    hall_edges_seen: Out(32)
+    hall_misses_seen: Out(32)
+    plausibility_seen: Out(32)
 
     def __init__(self, dut, stim, stim_layout, exp, exp_layout):
         self._dut, self._stim, self._stim_layout = dut, stim, stim_layout
@@ -165,6 +194,7 @@ class _RandomBench(wiring.Component):
             dut.length.eq(word.length), dut.lines.eq(word.lines),
             dut.pole_pairs.eq(word.pole_pairs), dut.z_offset.eq(word.z_offset),
             dut.hall_offset.eq(word.hall_offset), dut.realign.eq(word.realign & (t < n)),
+            dut.hall_tolerance.eq(word.hall_tolerance), dut.hall_misses.eq(word.hall_misses),
         ]
         got = Cat(*(getattr(dut, name) for name, _ in self._exp_layout))
         with m.If(t <= n):
@@ -179,14 +209,19 @@ class _RandomBench(wiring.Component):
             m.d.sync += self.illegal_seen.eq(self.illegal_seen + 1)
         with m.If(dut.hall_fault & ~fault_prev):
             m.d.sync += self.hall_faults_seen.eq(self.hall_faults_seen + 1)
+        for flag, counter in ((dut.hall_edge, self.hall_edges_seen),
+                              (dut.hall_miss, self.hall_misses_seen),
+                              (dut.plausibility, self.plausibility_seen)):
+            with m.If(flag):
+                m.d.sync += counter.eq(counter + 1)
         return m
 
 
-def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=None):
-    """Random pin waveforms against :func:`~foc_servo.sim.models.encoder.front_end`, every
-    output on every clock. Returns ``mismatches``, ``vectors`` (clocks compared), ``clocks``,
-    ``sim_s``, ``clocks_per_s``, ``first_mismatch`` and event tallies."""
-    vec = stimulus(count, seed=seed, max_length=max_length)
+def _compare(vec, *, max_length=255, z_gate=None, name="encoder_random", progress=False,
+             label="encoder random"):
+    """Gateware :class:`EncoderFrontEnd` against :func:`~foc_servo.sim.models.encoder.front_end`
+    on the per-clock stimulus ``vec`` (the columns of :data:`_STIM`), every output on every
+    clock. Returns the bench's counters, the model's outputs ``exp`` and timing."""
     n = vec["pins"].size
     exp = model.front_end(vec["pins"], max_length=max_length, z_gate=z_gate,
                           **{k: vec[k] for k in _STIM[1:]})
@@ -195,13 +230,14 @@ def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=
         "pins": 6, "length": dut.length.shape(), "lines": dut.lines.shape(),
         "pole_pairs": dut.pole_pairs.shape(), "z_offset": dut.z_offset.shape(),
         "hall_offset": dut.hall_offset.shape(), "realign": 1,
+        "hall_tolerance": dut.hall_tolerance.shape(), "hall_misses": dut.hall_misses.shape(),
     })
     exp_layout = data.StructLayout({k: getattr(dut, k).shape() for k in model.OUTPUTS})
     bench = _RandomBench(dut, pack_words(stim_layout, vec, n), stim_layout,
                          pack_words(exp_layout, exp, n + 1), exp_layout)
     clocks = n + 2
     result = {}
-    prog = Progress("encoder random", clocks, enabled=progress)
+    prog = Progress(label, clocks, enabled=progress)
 
     async def testbench(ctx):
         done = 0
@@ -210,24 +246,45 @@ def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=
             await ctx.tick().repeat(k)
             done += k
             prog.update(done)
-        for name in ("compared", "mismatches", "first_mismatch", "illegal_seen",
-                     "hall_faults_seen"):
-            result[name] = ctx.get(getattr(bench, name))
+        for key in ("compared", "mismatches", "first_mismatch", "illegal_seen",
+                    "hall_faults_seen", "hall_edges_seen", "hall_misses_seen",
+                    "plausibility_seen"):
+            result[key] = ctx.get(getattr(bench, key))
 
-    sim_s = simulate(bench, [testbench], name="encoder_random")
+    sim_s = simulate(bench, [testbench], name=name)
     prog.close()
     first = result["first_mismatch"]
     missing = (n + 1) - result["compared"]
+    result.update(
+        mismatches=result["mismatches"] + max(missing, 0), vectors=n + 1, clocks=clocks,
+        sim_s=sim_s, clocks_per_s=clocks / sim_s if sim_s > 0 else float("inf"),
+        first_mismatch=None if first == 0xFFFF_FFFF else int(first), exp=exp)
+    return result
+
+
+def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=None):
+    """Random pin waveforms against :func:`~foc_servo.sim.models.encoder.front_end`, every
+    output on every clock. Returns ``mismatches``, ``vectors`` (clocks compared), ``clocks``,
+    ``sim_s``, ``clocks_per_s``, ``first_mismatch`` and event tallies (gateware and model)."""
+    vec = stimulus(count, seed=seed, max_length=max_length)
+    r = _compare(vec, max_length=max_length, z_gate=z_gate, progress=progress)
+    exp = r["exp"]
     return {
-        "mismatches": result["mismatches"] + max(missing, 0),
-        "vectors": n + 1,
-        "clocks": clocks,
-        "sim_s": sim_s,
-        "clocks_per_s": clocks / sim_s if sim_s > 0 else float("inf"),
-        "first_mismatch": None if first == 0xFFFF_FFFF else int(first),
-        "illegal_strobes": result["illegal_seen"],
+        "mismatches": r["mismatches"],
+        "vectors": r["vectors"],
+        "clocks": r["clocks"],
+        "sim_s": r["sim_s"],
+        "clocks_per_s": r["clocks_per_s"],
+        "first_mismatch": r["first_mismatch"],
+        "illegal_strobes": r["illegal_seen"],
         "illegal_strobes_model": int(exp["illegal"].sum()),
-        "hall_fault_episodes": result["hall_faults_seen"],
+        "hall_fault_episodes": r["hall_faults_seen"],
+        "hall_edges": r["hall_edges_seen"],
+        "hall_edges_model": int(exp["hall_edge"].sum()),
+        "hall_misses": r["hall_misses_seen"],
+        "hall_misses_model": int(exp["hall_miss"].sum()),
+        "plausibility_strobes": r["plausibility_seen"],
+        "plausibility_strobes_model": int(exp["plausibility"].sum()),
         "index_strobes_model": int(exp["index"].sum()),
         "align_events_model": int(np.sum(np.diff(exp["aligned"]) == 1)),
         "config_commits_model": int(np.sum(np.diff(exp["busy"]) == -1)),
@@ -601,3 +658,269 @@ def run(count=100_000, *, seed=0, progress=False, drift_counts=None, max_length=
             out[k] = e[k]
     out.update(random=r, drift=d, events=e)
     return out
+
+
+# --- with the motor model: the encoder/Hall plausibility check (issue 6 item 7) -------------
+
+def changes(out, until=None):
+    """The per-clock outputs ``out`` (entry ``t``: during clock ``t``, as
+    :func:`~foc_servo.sim.models.encoder.front_end` returns them) as a change trace: ``clock``
+    and each output, one row per clock whose outputs differ from the previous clock's (as
+    :func:`~foc_servo.sim.models.encoder.front_end_changes` returns it), up to clock
+    ``until − 1``."""
+    n = len(out[model.OUTPUTS[0]]) if until is None else until
+    stack = np.stack([np.asarray(out[k][:n], dtype=np.int64) for k in model.OUTPUTS])
+    keep = np.ones(n, dtype=bool)
+    keep[1:] = np.any(stack[:, 1:] != stack[:, :-1], axis=0)
+    rows = {"clock": np.flatnonzero(keep).astype(np.int64)}
+    rows.update({k: stack[i, keep] for i, k in enumerate(model.OUTPUTS)})
+    return rows
+
+
+def _merge(groups):
+    """Union of per-group change lists ``[(clock, value), ...]`` (each starting at the same
+    clock) → (clocks, per-group values forward-filled)."""
+    clocks = np.unique(np.concatenate([np.array([c for c, _ in g], dtype=np.int64)
+                                       for g in groups]))
+    filled = []
+    for g in groups:
+        gc = np.array([c for c, _ in g], dtype=np.int64)
+        gv = np.array([v for _, v in g], dtype=np.int64)
+        filled.append(gv[np.searchsorted(gc, clocks, side="right") - 1])
+    return clocks, filled
+
+
+def _append(lst, clock, value):
+    """Append a change, replacing one at the same clock; drop it if it changes nothing."""
+    if lst and lst[-1][0] == clock:
+        lst.pop()
+    if not lst or lst[-1][1] != value:
+        lst.append((clock, value))
+
+
+def plant_schedule(plant, until, *, chunk, break_at=None, broken_level=1, hall_bounce=None):
+    """Pin-change schedule of a plant's encoder and Hall pins from its ``now`` to ``until``.
+
+    The plant is advanced (gates as they are) in chunks of at most ``chunk`` clocks, each after
+    asking :meth:`~foc_servo.sim.pmsm.Plant.sensor_events` for its edges. At clock
+    ``break_at`` the encoder's A line breaks (:meth:`~foc_servo.sim.pmsm.Plant.sensor_fault`,
+    held at ``broken_level``): the pin takes that level from ``break_at + 1``.
+
+    Parameters
+    ----------
+    hall_bounce : (int, int) or None
+        ``(n, w)``: every Hall change bounces ``n`` times back to the previous code and forward
+        again, ``w`` clocks apart (skipped where the next Hall change comes sooner) — Hall
+        switches chattering at their threshold.
+
+    Returns
+    -------
+    (clocks, words) : int64 arrays
+        The pins hold ``words[i]`` (A, B, Z, H_a, H_b, H_c in bits 0 … 5) from ``clocks[i]`` on;
+        ``clocks[0]`` is the plant's ``now`` at the call.
+    """
+    lv = plant.sensor_levels()
+    t0 = plant.now
+    enc = [(t0, int(lv["a"]) | int(lv["b"]) << 1 | int(lv["z"]) << 2)]
+    hall = [(t0, int(lv["hall"]))]
+    broken = False
+    while plant.now < until:
+        stop = min(until, plant.now + chunk)
+        if break_at is not None and not broken:
+            if plant.now >= break_at:
+                plant.sensor_fault(enc_a_broken=broken_level)
+                broken = True
+            else:
+                stop = min(stop, break_at)
+        ev, levels = plant.sensor_events(stop)
+        at = plant.now + 1                    # a level change without an edge (a fault)
+        _append(enc, at, int(levels["a"]) | int(levels["b"]) << 1 | int(levels["z"]) << 2)
+        _append(hall, at, int(levels["hall"]))
+        for c, a, b, z, h in zip(ev["clock"].tolist(), ev["a"].tolist(), ev["b"].tolist(),
+                                 ev["z"].tolist(), ev["hall"].tolist()):
+            _append(enc, c, a | b << 1 | z << 2)
+            _append(hall, c, h)
+        plant.advance(stop)
+    if hall_bounce is not None:
+        n_b, w = hall_bounce
+        bounced = [hall[0]]
+        for i in range(1, len(hall)):
+            c, h = hall[i]
+            prev = hall[i - 1][1]
+            nxt = hall[i + 1][0] if i + 1 < len(hall) else until
+            bounced.append((c, h))
+            if c + 2 * n_b * w < nxt:
+                for j in range(1, n_b + 1):
+                    bounced += [(c + (2 * j - 1) * w, prev), (c + 2 * j * w, h)]
+        hall = bounced
+    clocks, (e, h) = _merge([enc, hall])
+    keep = clocks < until
+    return clocks[keep], (e | (h << 3))[keep]
+
+
+def _strobes(trace, name):
+    return trace["clock"][trace[name] == 1]
+
+
+def run_plant(*, speed_rpm=1000.0, duration_s=20e-3, break_after_s=None, break_phi_deg=None,
+              broken_level=1, swing=None, clk_hz=50e6, lines=None, z_count=0, theta_m0=0.0,
+              chunk_s=100e-6, length=4, hall_offset_rad=0.0, hall_offset_error_deg=0.0,
+              hall_bounce=None, tolerance=8192, misses=1, engine="model", progress=False,
+              motor=None):
+    """The encoder front end driven by the motor model's encoder and Hall pins.
+
+    Parameters
+    ----------
+    speed_rpm : float
+        Rotor speed (held: a stiff dynamometer), r/min; negative turns backward.
+    duration_s : float
+        Motor time simulated, s.
+    break_after_s, break_phi_deg : float or None
+        The encoder's A line breaks (held at ``broken_level``) at ``break_after_s`` (s); with
+        ``break_phi_deg`` at the first clock after that where the rotor is ``break_phi_deg``
+        electrical degrees past a Hall boundary in its direction of rotation (held rotor).
+    swing : (float, float) or None
+        ``(amplitude_rad, freq_hz)``: instead of a held speed the free rotor swings as
+        ``θ_m0 + amplitude·sin(2π·freq·t)`` (mechanical), driven by the matching load torque:
+        a reversal every half period, through standstill.
+    clk_hz : float
+        System clock (a lower clock with fewer ``lines`` makes a cheaper gateware run).
+    lines, z_count, hall_offset_rad
+        :class:`~foc_servo.sim.pmsm.Sensors` (``lines=None``: the motor's 5000).
+    theta_m0 : float
+        Initial mechanical angle, rad (Z at ``z_count``: 0 rad for 0).
+    length : int
+        Glitch filter length, clocks.
+    hall_offset_error_deg : float
+        Error of the decoder's Hall offset against the plant's, electrical degrees.
+    hall_bounce : (int, int) or None
+        See :func:`plant_schedule`.
+    tolerance, misses : int
+        The check's registers (binary angle; count).
+    engine : str
+        ``"model"``: the event-driven golden model
+        (:func:`~foc_servo.sim.models.encoder.front_end_changes`); ``"gateware"``: the gateware
+        compared on every clock with the per-clock model (and the event-driven model checked
+        against the per-clock one).
+
+    Returns
+    -------
+    dict
+        ``detected`` (a ``plausibility`` strobe after the break), ``detect_clock``,
+        ``detect_latency_s`` (from the break at the pins to the strobe; the protection latch
+        adds 1 clock), ``detect_angle_deg`` (electrical rotation in that time),
+        ``expected_angle_deg`` (the rotation at which the ``misses``-th missed Hall edge
+        comes, from the rotor position at the break: ``N·60° − φ`` if ``60° − φ`` exceeds the
+        tolerance, else ``(N + 1)·60° − φ``), ``break_phi_deg`` (φ), ``detect_sectors``
+        (detect angle / 60°), ``false_trips`` (strobes before the break, or in a run without a
+        break), ``plausibility_strobes``, ``hall_edges``, ``hall_misses``, ``illegal_strobes``,
+        ``aligned_clock``, ``aligned_at_break``, ``max_abs_error_deg`` (largest
+        ``|hall_error|`` at the aligned Hall edges, before the break), ``clocks``, ``edges``
+        (pin changes), ``wall_s``; with the gateware also ``mismatches`` (gateware vs model,
+        every output, every clock), ``sparse_mismatches`` (event-driven vs per-clock model
+        trace rows), ``sim_s``; and ``trace`` (the change trace of every output).
+    """
+    from ..motor import DEFAULT_MOTOR
+    from ..pmsm import Plant, Sensors
+
+    if engine not in ("model", "gateware"):
+        raise ValueError(f"run_plant engine must be 'model' or 'gateware', not {engine!r}")
+    motor = DEFAULT_MOTOR if motor is None else motor
+    t_wall = time.perf_counter()
+    sensors = Sensors(lines=lines, z_count=z_count, hall_offset_rad=hall_offset_rad,
+                      noise_lsb=0.0)
+    if swing is None:
+        omega = speed_rpm * 2 * math.pi / 60
+        plant = Plant(motor, clk_hz=clk_hz, sensors=sensors, theta_m0=theta_m0,
+                      omega_m0=omega, rotor="held")
+    else:
+        amp, f = swing
+        w = 2 * math.pi * f
+        j, b = motor.j_kgm2, motor.b_nms
+        plant = Plant(motor, clk_hz=clk_hz, sensors=sensors, theta_m0=theta_m0,
+                      omega_m0=amp * w, rotor="free",
+                      load_nm=lambda t: j * amp * w * w * math.sin(w * t)
+                      - b * amp * w * math.cos(w * t))
+        omega = amp * w
+    p = motor.pole_pairs
+    until = round(duration_s * clk_hz)
+    break_at = None
+    phi = None
+    if break_after_s is not None:
+        break_at = round(break_after_s * clk_hz)
+        if break_phi_deg is not None:
+            if swing is not None:
+                raise ValueError("run_plant break_phi_deg needs a held rotor, not a swing")
+            # θ_e − offset at the break, in the direction of rotation, mod 60°.
+            sgn = 1.0 if omega > 0 else -1.0
+            th = math.degrees(p * (theta_m0 + omega * break_at / clk_hz) - hall_offset_rad)
+            past = (sgn * th) % 60.0
+            extra = (break_phi_deg - past) % 60.0
+            break_at += math.ceil(math.radians(extra) / (p * abs(omega)) * clk_hz)
+        th = math.degrees(p * (theta_m0 + omega * break_at / clk_hz) - hall_offset_rad)
+        phi = ((1.0 if omega > 0 else -1.0) * th) % 60.0
+    clocks, words = plant_schedule(plant, until, chunk=max(1, round(chunk_s * clk_hz)),
+                                   break_at=break_at, hall_bounce=hall_bounce,
+                                   broken_level=broken_level)
+    offset = (plant.hall_offset_register()
+              + round(hall_offset_error_deg / 360 * ANGLE.turn)) % ANGLE.turn
+    cfg = dict(length=length, lines=plant.sensors.lines or motor.encoder_lines,
+               pole_pairs=p, z_offset=plant.z_offset_register(), hall_offset=offset,
+               hall_tolerance=tolerance, hall_misses=misses)
+    res = {}
+    trace = model.front_end_changes(clocks, words, until, **cfg)
+    if engine == "gateware":
+        pins = np.repeat(words, np.diff(np.append(clocks, until)))
+        vec = {"pins": pins, "realign": np.zeros(until, dtype=np.int64),
+               **{k: np.full(until, v, dtype=np.int64) for k, v in cfg.items()}}
+        r = _compare(vec, name="encoder_plant", progress=progress, label="encoder plant")
+        dense = changes(r["exp"], until)
+        res["sparse_mismatches"] = int(
+            len(dense["clock"]) != len(trace["clock"])
+            or sum(int(np.any(dense[k] != trace[k])) for k in dense))
+        res.update(mismatches=r["mismatches"], first_mismatch=r["first_mismatch"],
+                   sim_s=r["sim_s"], gateware_plausibility_strobes=r["plausibility_seen"],
+                   gateware_hall_edges=r["hall_edges_seen"])
+        trace = dense
+
+    strobes = _strobes(trace, "plausibility")
+    onset = None if break_at is None else break_at + 1
+    false = strobes if onset is None else strobes[strobes < onset]
+    after = strobes if onset is None else strobes[strobes >= onset]
+    aligned_rows = trace["clock"][trace["aligned"] == 1]
+    aligned_clock = int(aligned_rows[0]) if len(aligned_rows) else None
+    edges = _strobes(trace, "hall_edge")
+    # hall_error after each aligned edge (one clock later it holds the edge's d).
+    err_rows = np.searchsorted(trace["clock"], edges, side="right") - 1
+    aligned_edges = trace["aligned"][err_rows] == 1
+    if onset is not None:
+        aligned_edges &= edges < onset
+    errors = trace["hall_error"][err_rows][aligned_edges] * 360.0 / ANGLE.turn
+    detect = int(after[0]) if onset is not None and len(after) else None
+    w_e = abs(p * omega)
+    res.update(
+        detected=detect is not None,
+        detect_clock=detect,
+        detect_latency_s=None if detect is None else (detect - onset) / clk_hz,
+        detect_angle_deg=None if detect is None else
+        math.degrees(w_e * (detect - onset) / clk_hz),
+        break_clock=break_at,
+        break_phi_deg=phi,
+        expected_angle_deg=None if phi is None else
+        (misses * 60.0 - phi if 60.0 - phi > tolerance * 360 / ANGLE.turn
+         else (misses + 1) * 60.0 - phi),
+        false_trips=int(len(false)),
+        plausibility_strobes=int(len(strobes)),
+        hall_edges=int(len(edges)),
+        hall_misses=int(len(_strobes(trace, "hall_miss"))),
+        illegal_strobes=int(len(_strobes(trace, "illegal"))),
+        aligned_clock=aligned_clock,
+        aligned_at_break=(aligned_clock is not None and onset is not None
+                          and aligned_clock < onset),
+        max_abs_error_deg=float(np.max(np.abs(errors))) if len(errors) else None,
+        clocks=until, edges=int(len(clocks)), trace=trace,
+        wall_s=time.perf_counter() - t_wall,
+    )
+    if res["detect_angle_deg"] is not None:
+        res["detect_sectors"] = res["detect_angle_deg"] / 60.0
+    return res

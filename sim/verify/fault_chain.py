@@ -51,6 +51,7 @@ def _stimuli(p):
         "overspeed": [(p.speed.payload, -OS - 1, 0), (p.speed.valid, 1, 1)],
         "encoder": [(p.encoder_illegal, 1, 0)],
         "hall": [(p.hall_invalid, 1, 0)],
+        "encoder_hall": [(p.encoder_hall, 1, 0)],
     }
 
 

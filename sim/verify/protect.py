@@ -1,4 +1,4 @@
-# Ref: issue 4 item 8 (protection and fault latch)
+# Ref: issue 4 item 8 (protection and fault latch); issue 6 item 7 (encoder/Hall plausibility)
 """Gateware :class:`~foc_servo.hdl.protect.Protection` against its golden model, clock by clock,
 and the fault-to-trip latency of every input.
 
@@ -101,6 +101,7 @@ def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_wid
     cols["oc_comp"] = _episodes(rng, n, 1 / 400, 3)
     cols["encoder_illegal"] = _episodes(rng, n, 1 / 400, 1)
     cols["hall_invalid"] = _episodes(rng, n, 1 / 400, 3)
+    cols["encoder_hall"] = _episodes(rng, n, 1 / 400, 1)
     cols["i_valid"] = (rng.random(n) < 0.3).astype(np.int64)
     cols["udc_valid"] = (rng.random(n) < 0.2).astype(np.int64)
     cols["speed_valid"] = (rng.random(n) < 0.05).astype(np.int64)
@@ -119,9 +120,9 @@ def _in_layout(dut):
     return data.StructLayout({
         "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
         "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
-        "encoder_illegal": 1, "hall_invalid": 1, "oc_limit": unsigned(w), "ov_limit": us,
-        "uv_limit": us, "uv_enable": 1, "os_limit": unsigned(sw), "mask": FAULT_LAYOUT,
-        "clear": 1,
+        "encoder_illegal": 1, "hall_invalid": 1, "encoder_hall": 1, "oc_limit": unsigned(w),
+        "ov_limit": us, "uv_limit": us, "uv_enable": 1, "os_limit": unsigned(sw),
+        "mask": FAULT_LAYOUT, "clear": 1,
     })
 
 
@@ -168,6 +169,7 @@ class _ProtectBench(wiring.Component):
             dut.speed.payload.eq(s.speed),
             dut.encoder_illegal.eq(running & s.encoder_illegal),
             dut.hall_invalid.eq(running & s.hall_invalid),
+            dut.encoder_hall.eq(running & s.encoder_hall),
             dut.oc_limit.eq(s.oc_limit), dut.ov_limit.eq(s.ov_limit),
             dut.uv_limit.eq(s.uv_limit), dut.uv_enable.eq(s.uv_enable),
             dut.os_limit.eq(s.os_limit), dut.mask.eq(s.mask),
@@ -217,6 +219,8 @@ def measure_latency(**params):
                 ctx.set(dut.encoder_illegal, on)
             elif name == "hall":
                 ctx.set(dut.hall_invalid, on)
+            elif name == "encoder_hall":
+                ctx.set(dut.encoder_hall, on)
             elif name.startswith("overcurrent_"):
                 phase = name[-1]
                 ctx.set(dut.i.payload, {p: (-1001 if (on and p == phase) else 0) for p in "abc"})
