@@ -178,6 +178,9 @@ def build_parser():
     from .host_cli import add_host_parser
     add_host_parser(sub)
 
+    from .sim_cli import add_sim_parser
+    add_sim_parser(sub)
+
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
     p.add_argument("suite", nargs="?", default="all",
                    choices=["all", "arith", "io", "control", "link"],

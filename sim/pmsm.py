@@ -848,6 +848,13 @@ class Plant:
         self._x = self._x[:2] + [0.0]
         self._topos = {}
 
+    def sensor_fault(self, *, enc_a_broken=None, hall_floating=None):
+        """A sensor wiring fault from now on: the encoder's A line held at 0 or 1, or the three
+        Hall lines floating at 0 or 1 (``None``: that sensor intact). The pin changes at the next
+        :meth:`sensor_events` (a level event at ``now + 1``)."""
+        self._sensors = dataclasses.replace(self._sensors, enc_a_broken=enc_a_broken,
+                                            hall_floating=hall_floating)
+
     # --- sensors ---------------------------------------------------------------------------------
 
     def adc_codes(self, noise=True):

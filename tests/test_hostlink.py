@@ -242,7 +242,9 @@ def test_hostlink_uart_framing_error_and_bytes_while_busy():
 
 def test_link_random_run_through_pty_and_uart():
     r = verify.run(rw=20, malformed=60, uart_pairs=1)
-    assert r["rw_mismatches"] == 0 and r["rw_uart_mismatches"] == 0
+    assert r["rw"] == r["rw_engine"] == 20
+    assert r["rw_mismatches"] == 0 and r["rw_engine_mismatches"] == 0
+    assert r["rw_uart_mismatches"] == 0
     assert r["malformed_writes"] == 0 and r["malformed_mismatches"] == 0 and r["hangs"] == 0
     assert r["mismatches"] == 0 and r["malformed_frames"] == 60
 
@@ -250,7 +252,8 @@ def test_link_random_run_through_pty_and_uart():
 @pytest.mark.slow
 def test_link_full_run_1000_rw_10000_malformed():
     r = verify.run(rw=1000, malformed=10_000, uart_pairs=10)
-    assert r["rw_mismatches"] == 0 and r["rw_uart_mismatches"] == 0
+    assert r["rw_mismatches"] == 0 and r["rw_engine_mismatches"] == 0
+    assert r["rw_uart_mismatches"] == 0
     assert r["malformed_writes"] == 0 and r["malformed_mismatches"] == 0 and r["hangs"] == 0
 
 

@@ -1,7 +1,13 @@
 # Ref: docs/PROTOCOL.md; issue 5 targets (host link: 1 000 writes + read-backs, 10 000 malformed)
 """The host link gateware against the protocol model, end to end.
 
-Three parts, each on a fresh :class:`~foc_servo.sim.link.LinkSim` with the
+0. ``drive``: the host library's :class:`~foc_servo.host.servo.Servo`, through pyserial on a
+   pseudo-terminal, against the **whole controller** (:class:`~foc_servo.hdl.top.Top` with its
+   UART at 3.125 Mbaud, the register file, the motor plant) in the closed-loop co-simulation
+   (:class:`~foc_servo.sim.closed_loop.CoSim`, compiled engine): random values, in physical units,
+   written to random read-write registers and read back raw (the register's width);
+
+then three parts, each on a fresh :class:`~foc_servo.sim.link.LinkSim` with the
 :class:`~foc_servo.sim.link.StandInRegisters` bank:
 
 1. ``rw``: random register writes, each read back, by :class:`~foc_servo.host.protocol.Client`
@@ -152,6 +158,38 @@ def _rw_pass(count, *, rng, uart, max_words, clk_hz, progress, label):
             "clocks": sim.clocks, "sim_s": sim.sim_s}
 
 
+def _drive_pass(count, *, rng, engine, progress):
+    """Random register writes in physical units + raw read-backs, Servo ⇄ pty ⇄ whole top."""
+    from ...host.registers import REGISTERS
+    from ...host.servo import Servo
+    from ..closed_loop import CoSim
+    cosim = CoSim(engine=engine, progress=progress)
+    path = cosim.open_pty()
+    names = [n for n, r in REGISTERS.items() if r.access == "rw"]
+    mismatches = 0
+    bar = Progress("link rw (pty, Servo, whole top)", count, enabled=progress)
+    start = time.perf_counter()
+    try:
+        with Servo.open(path, baud=round(cosim.baud), timeout_s=600) as servo:
+            for k in range(count):
+                reg = REGISTERS[rng.choice(names)]
+                raw = rng.randint(reg.fmt.min_raw, reg.fmt.max_raw)
+                try:
+                    value = servo._decode(reg, raw)
+                    servo.set(reg.name, value)
+                    words = servo.client.read(reg.addr, reg.words)
+                    if reg.from_words(words) != raw:
+                        mismatches += 1
+                except Exception:                       # a failed transaction is a mismatch
+                    mismatches += 1
+                bar.update(k + 1)
+    finally:
+        cosim.close()
+        bar.close()
+    return {"mismatches": mismatches, "bytes": cosim.bytes_in + cosim.bytes_out,
+            "clocks": cosim.now, "sim_s": time.perf_counter() - start}
+
+
 def _malformed_items(count, rng, max_words):
     """``count`` (kind, wire bytes) items: a malformed frame that the model confirms writes
     nothing, then a ping with its own sequence number."""
@@ -208,14 +246,19 @@ def _malformed_pass(items, max_words, clk_hz, batch, progress=False):
             "bytes": sim.bytes_in + sim.bytes_out, "clocks": sim.clocks, "sim_s": sim.sim_s}
 
 
-def run(rw=1000, malformed=10_000, *, seed=0, progress=False, uart_pairs=10, max_words=16,
-        clk_hz=50e6, batch=16, jobs=None):
-    """Run the three parts; return the figures.
+def run(rw=1000, malformed=10_000, *, drive=None, engine="compiled", seed=0, progress=False,
+        uart_pairs=10, max_words=16, clk_hz=50e6, batch=16, jobs=None):
+    """Run the parts; return the figures.
 
     Parameters
     ----------
     rw : int
         Writes + read-backs through pyserial on the bare engine.
+    drive : int or None
+        Writes (physical units, by :class:`~foc_servo.host.servo.Servo`) + read-backs through
+        pyserial on the whole controller in the co-simulation; ``None``: as many as ``rw``.
+    engine : str
+        The co-simulation's engine for ``drive``.
     malformed : int
         Malformed frames, each followed by a ping.
     uart_pairs : int
@@ -242,6 +285,7 @@ def run(rw=1000, malformed=10_000, *, seed=0, progress=False, uart_pairs=10, max
     """
     start = time.perf_counter()
     rng = random.Random(seed)
+    d = _drive_pass(rw if drive is None else drive, rng=rng, engine=engine, progress=progress)
     a = _rw_pass(rw, rng=rng, uart=False, max_words=max_words, clk_hz=clk_hz,
                  progress=progress, label="link rw (pty, engine)")
     b = _rw_pass(uart_pairs, rng=rng, uart=True, max_words=max_words, clk_hz=clk_hz,
@@ -263,19 +307,24 @@ def run(rw=1000, malformed=10_000, *, seed=0, progress=False, uart_pairs=10, max
     else:
         results = [_malformed_pass(items, max_words, clk_hz, batch, progress=progress)]
     c = {key: sum(r[key] for r in results) for key in results[0]}
+    n_drive = rw if drive is None else drive
     return {
-        "rw_mismatches": a["mismatches"],
+        "rw_mismatches": d["mismatches"],
+        "rw_engine_mismatches": a["mismatches"],
         "rw_uart_mismatches": b["mismatches"],
-        "rw": rw,
+        "rw": n_drive,
+        "rw_engine": rw,
+        "drive_clocks": d["clocks"],
+        "drive_s": d["sim_s"],
         "uart_pairs": uart_pairs,
         "malformed_frames": malformed,
         "malformed_writes": c["writes"],
         "malformed_mismatches": c["mismatches"],
         "hangs": c["hangs"],
         "kinds": kinds,
-        "mismatches": a["mismatches"] + b["mismatches"] + c["mismatches"],
-        "vectors": rw + uart_pairs + malformed,
-        "bytes": a["bytes"] + b["bytes"] + c["bytes"],
+        "mismatches": d["mismatches"] + a["mismatches"] + b["mismatches"] + c["mismatches"],
+        "vectors": n_drive + rw + uart_pairs + malformed,
+        "bytes": d["bytes"] + a["bytes"] + b["bytes"] + c["bytes"],
         "clocks": a["clocks"] + b["clocks"] + c["clocks"],
         "sim_s": a["sim_s"] + b["sim_s"] + c["sim_s"],
         "uart_clocks": b["clocks"],
@@ -287,7 +336,10 @@ def summary(figures):
     """Human-readable lines of :func:`run`'s figures (for ``foc-servo bench link``)."""
     f = figures
     return "\n".join([
-        f"rw (pty, engine)      {f['rw']:6d} writes + read-backs, {f['rw_mismatches']} mismatches",
+        f"rw (pty, Servo, whole top, UART 3.125 Mbaud) {f['rw']:6d} writes + read-backs, "
+        f"{f['rw_mismatches']} mismatches ({f['drive_clocks']} clocks in {f['drive_s']:.1f} s)",
+        f"rw (pty, engine)      {f['rw_engine']:6d} writes + read-backs, "
+        f"{f['rw_engine_mismatches']} mismatches",
         f"rw (pty, UART clk/8)  {f['uart_pairs']:6d} writes + read-backs, "
         f"{f['rw_uart_mismatches']} mismatches",
         f"malformed frames      {f['malformed_frames']:6d} "
