@@ -4,7 +4,8 @@
 Commands: ``get NAME...``, ``set NAME=VALUE...``, ``dump``, ``load FILE``, ``save FILE``,
 ``watch NAME...``, ``scope``, ``clear-faults``, ``tune``. Each takes ``--json``: the figures then
 follow as one JSON object on the last line of stdout. ``--port sim`` talks to the simulated
-gateware (:meth:`~foc_servo.host.servo.Servo.sim`, register level).
+gateware (:meth:`~foc_servo.host.servo.Servo.drive_sim`: the whole controller and the motor;
+``--sim-level registers``: :meth:`~foc_servo.host.servo.Servo.sim`, register level).
 
 Wiring into ``foc-servo`` (host/cli.py, ``build_parser``)::
 
@@ -249,8 +250,13 @@ def add_host_parser(subparsers):
                    help="serial port (e.g. /dev/ttyUSB0), or 'sim' for the simulated gateware")
     p.add_argument("--baud", type=_positive_int, default=115200,
                    help="baud rate (default: %(default)s)")
+    p.add_argument("--sim-level", choices=["drive", "registers"], default="drive",
+                   help="with --port sim: 'drive' (default) is the whole controller gateware "
+                        "driving the simulated motor (compiled engine, built once); 'registers' "
+                        "is only the host link, register file and trace buffer (Amaranth's "
+                        "simulator)")
     p.add_argument("--sim-uart", action="store_true",
-                   help="with --port sim: simulate the UARTs too (slower)")
+                   help="with --port sim --sim-level registers: simulate the UARTs too (slower)")
     p.add_argument("--timeout", type=_positive_float, default=None,
                    help="reply timeout, s (default: 0.5, 120 with --port sim)")
     p.set_defaults(func=cmd_host)
@@ -334,7 +340,10 @@ def cmd_host(args):
     try:
         if args.port == "sim":
             kw = {} if args.timeout is None else {"timeout_s": args.timeout}
-            servo = Servo.sim(uart=args.sim_uart, **kw)
+            if args.sim_level == "drive":
+                servo = Servo.drive_sim(**kw)
+            else:
+                servo = Servo.sim(uart=args.sim_uart, **kw)
         else:
             servo = Servo.open(args.port, args.baud, timeout_s=args.timeout or 0.5)
         with servo:

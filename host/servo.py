@@ -181,6 +181,39 @@ class Servo:
             raise
         return servo
 
+    @classmethod
+    def drive_sim(cls, *, engine="compiled", timeout_s=120.0, **cosim_kw):
+        """Connect to the **simulated drive**: the whole controller gateware
+        (:class:`~foc_servo.hdl.top.Top`, its UART at 3.125 Mbaud) driving the motor plant in the
+        closed-loop co-simulation (:class:`~foc_servo.sim.closed_loop.CoSim`), through a
+        pseudo-terminal with pyserial as the client. The simulation runs freely between
+        transactions (as fast as the engine goes), so the motor turns while the host watches.
+
+        Parameters
+        ----------
+        engine : str
+            ``"compiled"`` (Verilator; builds once, then cached) or ``"pysim"``.
+        timeout_s : float
+            Reply timeout, wall seconds.
+        cosim_kw
+            More :class:`~foc_servo.sim.closed_loop.CoSim` parameters (motor, pwm_hz, …).
+        """
+        import serial
+
+        from ..sim.closed_loop import CoSim
+        cosim = CoSim(engine=engine, **cosim_kw)
+        cosim.free_run = True
+        path = cosim.open_pty()
+        ser = serial.Serial(path, baudrate=round(cosim.baud), timeout=timeout_s)
+        servo = cls(Client(SerialTransport(ser), timeout_s=timeout_s), [ser.close, cosim.close])
+        servo.sim = cosim
+        try:
+            servo.connect()
+        except BaseException:
+            servo.close()
+            raise
+        return servo
+
     def connect(self):
         """Ping, read the identification registers, check the magic number and the map hash
         against this library's map, build :attr:`scales`.

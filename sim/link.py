@@ -239,6 +239,9 @@ class ByteSim:
     """
 
     _thread = None
+    #: The pty bridge keeps simulating while no bytes are in flight (a drive whose motor moves
+    #: while the host is quiet), instead of pausing.
+    free_run = False
 
     def _init_bytes(self):
         self._out = bytearray()
@@ -329,7 +332,7 @@ class ByteSim:
                 if data:
                     self.send(data)
                     busy = True
-            if busy:
+            if busy or self.free_run:
                 self.step()
             out = self.take_output()
             while out:

@@ -131,7 +131,7 @@ def test_load_checks_everything_before_writing(servo, tmp_path):
 def test_map_hash_mismatch_detected(monkeypatch):
     monkeypatch.setattr(REGISTERS["id_map_hash"], "reset", 0x12345678)
     with pytest.raises(MapMismatch, match=r"^register map mismatch: the drive's id_map_hash is "
-                                          r"0x[0-9A-F]{8} \(map version 2\.0\), this library's "
+                                          r"0x[0-9A-F]{8} \(map version 2\.1\), this library's "
                                           r"is 0x12345678"):
         Servo.sim()
 
@@ -173,12 +173,12 @@ def last_json(capsys):
 
 
 def test_cli_get_set_json(capsys):
-    host_cli.main(["host", "--port", "sim", "set", "i_q_ref=2.5", "mode=current",
+    host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "set", "i_q_ref=2.5", "mode=current",
                    "prot_mask=external|hall", "--json"])
     out, fig = last_json(capsys)
     assert "i_q_ref = 2.5 A" in out
     assert fig["written"]["mode"] == "current" and fig["written"]["i_q_ref"] == 2.5
-    host_cli.main(["host", "--port", "sim", "get", "id_magic", "mode", "--json"])
+    host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "get", "id_magic", "mode", "--json"])
     out, fig = last_json(capsys)
     assert fig == {"id_magic": 0x464F4353, "mode": "disabled"}
 
@@ -186,13 +186,13 @@ def test_cli_get_set_json(capsys):
 def test_cli_unknown_register_suggests_names():
     with pytest.raises(SystemExit, match=r"^foc-servo host get: no register named 'pi_d_kpp'; "
                                          r"did you mean pi_d_kp"):
-        host_cli.main(["host", "--port", "sim", "get", "pi_d_kpp"])
+        host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "get", "pi_d_kpp"])
     with pytest.raises(SystemExit, match=r"^foc-servo host set: i_q_ref 100 A is outside"):
-        host_cli.main(["host", "--port", "sim", "set", "i_q_ref=100"])
+        host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "set", "i_q_ref=100"])
 
 
 def test_cli_dump_save_load_watch_clear_faults(capsys, tmp_path):
-    base = ["host", "--port", "sim"]
+    base = ["host", "--port", "sim", "--sim-level", "registers"]
     host_cli.main(base + ["dump", "--json"])
     _, fig = last_json(capsys)
     assert fig["id_clk_hz"] == 50_000_000 and fig["scope_trig_src"] == "host"
@@ -215,7 +215,7 @@ def test_cli_dump_save_load_watch_clear_faults(capsys, tmp_path):
 def test_cli_tune_dry_run_prints_values(capsys, tmp_path):
     motor = tmp_path / "motor.toml"
     SGMSH_15A.to_file(motor)
-    host_cli.main(["host", "--port", "sim", "tune", "--motor", str(motor), "--dry-run",
+    host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "tune", "--motor", str(motor), "--dry-run",
                    "--json"])
     out, fig = last_json(capsys)
     assert "dry run: nothing written" in out and fig["written"] is False
@@ -227,10 +227,20 @@ def test_cli_tune_dry_run_prints_values(capsys, tmp_path):
 
 def test_cli_scope_writes_csv_and_png(capsys, tmp_path):
     csv, png = tmp_path / "s.csv", tmp_path / "s.png"
-    host_cli.main(["host", "--port", "sim", "scope", "--channels", "i_q_ref", "--pretrigger",
+    host_cli.main(["host", "--port", "sim", "--sim-level", "registers", "scope", "--channels", "i_q_ref", "--pretrigger",
                    "5", "--png", str(png), "--csv", str(csv), "--json"])
     _, fig = last_json(capsys)
     assert fig["samples"] == 1024 and fig["channels"]["i_q_ref"]["unit"] == "A"
     rows = csv.read_text().splitlines()
     assert rows[0] == "t_s,i_q_ref_A" and len(rows) == 1025
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_cli_port_sim_is_the_whole_drive(capsys):
+    """--port sim (default level): the whole controller gateware with the motor plant: the
+    DC-bus voltage reads the plant's 310 V through the ADC, and a written register reads back."""
+    host_cli.main(["host", "--port", "sim", "set", "speed_ref=100"])
+    capsys.readouterr()
+    host_cli.main(["host", "--port", "sim", "get", "st_udc", "id_magic", "--json"])
+    values = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert abs(values["st_udc"] - 310.0) < 0.5

@@ -167,27 +167,33 @@ def _drive_pass(count, *, rng, engine, progress):
     path = cosim.open_pty()
     names = [n for n, r in REGISTERS.items() if r.access == "rw"]
     mismatches = 0
+    failures = []
     bar = Progress("link rw (pty, Servo, whole top)", count, enabled=progress)
     start = time.perf_counter()
     try:
         with Servo.open(path, baud=round(cosim.baud), timeout_s=600) as servo:
             for k in range(count):
                 reg = REGISTERS[rng.choice(names)]
-                raw = rng.randint(reg.fmt.min_raw, reg.fmt.max_raw)
+                if reg.kind == "enum":      # the library rejects codes outside the enum
+                    raw = rng.choice([m.value for m in reg.enum])
+                else:
+                    raw = rng.randint(reg.fmt.min_raw, reg.fmt.max_raw)
                 try:
                     value = servo._decode(reg, raw)
                     servo.set(reg.name, value)
-                    words = servo.client.read(reg.addr, reg.words)
-                    if reg.from_words(words) != raw:
+                    got = reg.from_words(servo.client.read(reg.addr, reg.words))
+                    if got != raw:
                         mismatches += 1
-                except Exception:                       # a failed transaction is a mismatch
+                        failures.append(f"{reg.name}: wrote raw {raw} ({value!r}), read {got}")
+                except Exception as e:                  # a failed transaction is a mismatch
                     mismatches += 1
+                    failures.append(f"{reg.name}: raw {raw}: {type(e).__name__}: {e}")
                 bar.update(k + 1)
     finally:
         cosim.close()
         bar.close()
     return {"mismatches": mismatches, "bytes": cosim.bytes_in + cosim.bytes_out,
-            "clocks": cosim.now, "sim_s": time.perf_counter() - start}
+            "clocks": cosim.now, "sim_s": time.perf_counter() - start, "failures": failures}
 
 
 def _malformed_items(count, rng, max_words):
@@ -315,6 +321,7 @@ def run(rw=1000, malformed=10_000, *, drive=None, engine="compiled", seed=0, pro
         "rw": n_drive,
         "rw_engine": rw,
         "drive_clocks": d["clocks"],
+        "drive_failures": d["failures"][:20],
         "drive_s": d["sim_s"],
         "uart_pairs": uart_pairs,
         "malformed_frames": malformed,
