@@ -24,6 +24,7 @@ import numpy as np
 
 from . import metrics as M
 from .closed_loop import CoSim
+from .engines.base import IN_BITS
 from ..hdl.regmap import Mode
 from .motor import DEFAULT_MOTOR
 
@@ -397,14 +398,15 @@ def current_step(*, iq_a=10.0, duration_s=0.01, t_step_s=1e-3, engine="compiled"
 
 #: Fault scenarios (``foc-servo sim fault KIND``): kind → what happens.
 FAULTS = {
-    "encoder_a": "encoder A line broken at 1000 r/min (encoder/Hall plausibility check)",
+    "encoder_a": "encoder A line broken (held at its level) at 1000 r/min (encoder/Hall "
+                 "plausibility check)",
     "short": "phase-to-phase short a–b at 1000 r/min (over-current)",
     "regen": "regenerative stop from 3000 r/min, no brake resistor (DC-bus over-voltage)",
     "gate_driver": "gate-driver fault pin asserted at 1000 r/min",
 }
 #: The fault bit each scenario must latch first (``st_fault_first``).
 FAULT_CAUSES = {
-    "encoder_a": ("encoder_hall", "encoder"),
+    "encoder_a": ("encoder_hall",),
     "short": ("overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator"),
     "regen": ("overvoltage",),
     "gate_driver": ("external",),
@@ -448,17 +450,20 @@ def fault(kind, *, duration_s=None, engine="compiled", motor=DEFAULT_MOTOR, pwm_
     servo.set_many({"speed_ref": speed, "mode": Mode.SPEED})
     t_spin = 2.5 * speed / (motor.t_peak_nm / motor.j_kgm2 * 60 / (2 * math.pi)) + 5e-3
     _run(cosim, t_spin, kind, progress)
+    if kind == "regen":
+        servo.set("speed_ref", 0.0)             # the command: part of the registers kept
     before = _rw_raw(servo)
     onset = cosim.now + 1
     if kind == "encoder_a":
-        cosim.plant.sensor_fault(enc_a_broken=1)
+        # The line stays at the level it had (a broken wire held by its pull resistor): no
+        # illegal transition at the break, only the plausibility check can see it.
+        level = (cosim.engine.pins_in >> IN_BITS["enc_a"]) & 1
+        cosim.plant.sensor_fault(enc_a_broken=level)
     elif kind == "short":
         cosim.plant.short("ab", r_ohm=0.05)
         cosim.max_chunk = 50                    # the comparator pin follows the plant closely
     elif kind == "gate_driver":
         cosim.set_pin("fault_n", 0, at=onset)
-    else:
-        servo.set("speed_ref", 0.0)
     if duration_s is None:
         duration_s = 40e-3 if kind in ("encoder_a", "regen") else 5e-3
     _run(cosim, duration_s, kind, progress)
