@@ -13,6 +13,7 @@ Slow (``-m slow``): the real builds — iCEBreaker and ULX3S bitstreams with YoW
 """
 
 import gc
+import os
 import re
 import subprocess
 import warnings
@@ -374,6 +375,9 @@ def test_icebreaker_bitstream_build(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("FOC_SERVO_LONG_BUILDS", "0") == "0",
+                    reason="the ULX3S place-and-route takes ~45 min on a 2-core machine: set "
+                           "FOC_SERVO_LONG_BUILDS=1 to run it (kept out of CI's time budget)")
 def test_ulx3s_bitstream_build(tmp_path):
     r = build("ulx3s", out_dir=tmp_path, progress=True)
     assert r["fits"] is True and r["error"] is None
