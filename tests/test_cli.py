@@ -52,3 +52,15 @@ def test_bench_link_json_keys(capsys, monkeypatch):
     figures = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("rw_mismatches", "malformed_frames", "malformed_writes", "hangs"):
         assert figures[key] == (12 if key == "malformed_frames" else 0), key
+
+
+def test_prove_json_keys(capsys):
+    """`foc-servo prove NAME --json`: the issue's `proofs` mapping name → status."""
+    assert main(["prove", "deadtime", "--quiet", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["proofs"] == {"deadtime": "proven"}
+
+
+def test_prove_rejects_unknown_name():
+    with pytest.raises(SystemExit, match=r"^foc-servo prove: unknown proof 'nosuch'; choose from "):
+        main(["prove", "nosuch"])
