@@ -130,7 +130,15 @@ class Servo:
             ser = serial.Serial(port, baudrate=baud, timeout=timeout_s)
         except serial.SerialException as e:
             raise ServoError(f"cannot open serial port {port!r}: {e}") from None
-        servo = cls(Client(SerialTransport(ser), timeout_s=timeout_s), [ser.close])
+        return cls._connected(ser, timeout_s)
+
+    @classmethod
+    def _connected(cls, ser, timeout_s, sim=None):
+        """A Servo on the open pyserial port ``ser`` (closing it, then ``sim``, on close),
+        connected; everything is closed again if connecting fails."""
+        closers = [ser.close] + ([sim.close] if sim is not None else [])
+        servo = cls(Client(SerialTransport(ser), timeout_s=timeout_s), closers)
+        servo.sim = sim
         try:
             servo.connect()
         except BaseException:
@@ -147,8 +155,8 @@ class Servo:
         :class:`~foc_servo.hdl.hostlink.LinkCore`) in front of the real register file
         (:class:`~foc_servo.hdl.regs.RegisterFile`) and the real trace buffer
         (:class:`~foc_servo.hdl.scope.Scope`), wired as :class:`RegisterLevelSim` describes; the
-        status registers read 0 and nothing turns. The closed-loop plant (top + motor model)
-        comes with issue 6 (pass its factory as ``bus_slave_factory``).
+        status registers read 0 and nothing turns. The whole drive with the motor is
+        :meth:`drive_sim`.
 
         Parameters
         ----------
@@ -170,16 +178,7 @@ class Servo:
                    else bus_slave_factory)
         link = LinkSim(factory, clk_hz=clk_hz, uart=uart,
                        address_map=regmap_address_map(REGMAP))
-        path = link.open_pty()
-        ser = serial.Serial(path, timeout=timeout_s)
-        servo = cls(Client(SerialTransport(ser), timeout_s=timeout_s), [ser.close, link.close])
-        servo.sim = link
-        try:
-            servo.connect()
-        except BaseException:
-            servo.close()
-            raise
-        return servo
+        return cls._connected(serial.Serial(link.open_pty(), timeout=timeout_s), timeout_s, link)
 
     @classmethod
     def drive_sim(cls, *, engine="compiled", timeout_s=120.0, **cosim_kw):
@@ -203,16 +202,8 @@ class Servo:
         from ..sim.closed_loop import CoSim
         cosim = CoSim(engine=engine, **cosim_kw)
         cosim.free_run = True
-        path = cosim.open_pty()
-        ser = serial.Serial(path, baudrate=round(cosim.baud), timeout=timeout_s)
-        servo = cls(Client(SerialTransport(ser), timeout_s=timeout_s), [ser.close, cosim.close])
-        servo.sim = cosim
-        try:
-            servo.connect()
-        except BaseException:
-            servo.close()
-            raise
-        return servo
+        ser = serial.Serial(cosim.open_pty(), baudrate=round(cosim.baud), timeout=timeout_s)
+        return cls._connected(ser, timeout_s, cosim)
 
     def connect(self):
         """Ping, read the identification registers, check the magic number and the map hash

@@ -130,11 +130,10 @@ def _scenario_kwargs(args):
 
 def _lines(res):
     info, met = res.info, res.metrics
-    rate = info["clocks"] / max(info["sim_wall_s"], 1e-9) / 1e6
     lines = [f"{res.name}: {info['motor_time_s'] * 1e3:.1f} ms of motor time on the "
              f"{info['engine']} engine in {info['wall_s']:.1f} s wall (simulating "
              f"{info['sim_wall_s']:.1f} s: engine {info['engine_s']:.1f} s, plant "
-             f"{info['plant_s']:.1f} s; {rate:.3f} M clocks/s)"]
+             f"{info['plant_s']:.1f} s; {info['clk_per_s'] / 1e6:.3f} M clocks/s)"]
     for k, v in met.items():
         if isinstance(v, float):
             lines.append(f"  {k:<24} {v:.6g}")

@@ -117,8 +117,7 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
     if slew_rpm_per_s is None:
         slew_rpm_per_s = 0.95 * alpha_max * 60 / (2 * math.pi)
     f_speed = cosim.scales.pwm_hz / max(servo.get("speed_div"), 1)
-    from ..host.registers import REGISTERS
-    if slew_rpm_per_s and "speed_slew" in REGISTERS:
+    if slew_rpm_per_s:
         alpha = slew_rpm_per_s * 2 * math.pi / 60
         servo.set_many({"speed_slew": slew_rpm_per_s / f_speed,
                         "speed_ff_iq": motor.j_kgm2 * alpha / motor.kt_nm_per_a if accel_ff
@@ -130,7 +129,9 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
 def _info(cosim, name, wall_s, **extra):
     clocks = cosim.now
     info = {"scenario": name, "engine": cosim.engine.kind, "motor_time_s": clocks / cosim.clk_hz,
-            "clocks": clocks, "wall_s": wall_s, "clk_per_s": clocks / max(wall_s, 1e-9),
+            "clocks": clocks, "wall_s": wall_s,
+            # The simulation proper (not the Verilog conversion or a model build).
+            "clk_per_s": clocks / max(cosim.wall_s, 1e-9),
             "engine_s": cosim.engine_s, "plant_s": cosim.plant_s, "sim_wall_s": cosim.wall_s,
             "build_s": getattr(cosim.engine, "build_s", 0.0) or 0.0, "clk_hz": cosim.clk_hz,
             "pwm_hz": cosim.scales.pwm_hz}
@@ -371,7 +372,8 @@ def current_step(*, iq_a=10.0, duration_s=0.01, t_step_s=1e-3, engine="compiled"
     Metrics of the plant's true i_q: ``settle_s`` (±2 %, the noise of a 1-LSB ADC is about
     0.1 % of I_FS), ``overshoot_pct``, ``rise_s``, ``ss_err_pct``.
     """
-    iq = _finite("iq_a", iq_a, "A", -0.99 * 40.0, 0.99 * 40.0)
+    i_fs = kw.get("i_fs_a", 40.0)
+    iq = _finite("iq_a", iq_a, "A", -0.99 * i_fs, 0.99 * i_fs)
     if iq == 0:
         raise ValueError("iq_a must not be 0")
     t0 = time.perf_counter()
@@ -495,3 +497,9 @@ def fault(kind, *, duration_s=None, engine="compiled", motor=DEFAULT_MOTOR, pwm_
     s["speed_ref_rpm"] = np.full(len(s["t_s"]), speed)
     return Result(f"fault {kind}", s, met, _info(
         cosim, f"fault {kind}", time.perf_counter() - t0, title=f"Fault: {FAULTS[kind]}"), cosim)
+
+
+#: Scenario name → function (the ``foc-servo sim`` sub-commands).
+SCENARIOS = {"step": step, "ramp": ramp, "load": load, "reversal": reversal,
+             "lowspeed": lowspeed, "highspeed": highspeed, "current": current_step,
+             "fault": fault}
