@@ -208,7 +208,7 @@ class CurrentLoop(wiring.Component):
                         int_guard=int_guard)
         self._dcbus = DCBusCompensation(width=width, out_width=width + 1, adc_width=adc_width,
                                         gain_limit=gain_limit)
-        self._svpwm = SVPWM(width=width + 1, count_width=count_width)
+        self._svpwm = SVPWM(width=width + 1, frac=width - 1, count_width=count_width)
         self._stage_latency = {
             "clarke": self._clarke.latency,
             "park": self._cordic.latency,

@@ -43,21 +43,22 @@ __all__ = ["svpwm_constants", "SVPWM", "DCBusCompensation", "PWMTimer", "pwm_hal
 SVPWM_GUARD_BITS = 8
 
 
-def svpwm_constants(width):
-    """Internal constants of :class:`SVPWM` for inputs Q1.(width−1).
+def svpwm_constants(width, frac=None):
+    """Internal constants of :class:`SVPWM` for inputs of ``width`` bits with ``frac``
+    fractional bits (default ``width − 1``: Q1.(width−1)).
 
-    Returns ``(frac, k_frac, k)``: ``frac = F = width − 1 + 8``, fractional bits of ``A``, ``S``
-    and ``D`` (so ``1.0 = 2**F``); ``k = round(2**(8 + k_frac) / √3)`` with ``k_frac = width + 2``,
-    so that ``S = round_shift(u_β · k, k_frac)`` (half away from zero) is ``u_β/√3`` in that
-    format. ``k`` is exact in integers: ``isqrt`` then the nearest of the two candidates (never
-    a tie). Its error is at most ``2**(width−1) · 0.5 / 2**k_frac = 1/16`` LSB of ``S``.
+    Returns ``(F, k_frac, k)``: ``F = frac + 8``, fractional bits of ``A``, ``S`` and ``D`` (so
+    ``1.0 = 2**F``); ``k = round(2**(8 + k_frac) / √3)`` with ``k_frac = width + 2``, so that
+    ``S = round_shift(u_β · k, k_frac)`` (half away from zero) is ``u_β/√3`` in that format.
+    ``k`` is exact in integers: ``isqrt`` then the nearest of the two candidates (never a tie).
+    Its error is at most ``2**(width−1) · 0.5 / 2**k_frac = 1/16`` LSB of ``S``.
     """
-    frac = width - 1 + SVPWM_GUARD_BITS
+    frac = width - 1 if frac is None else frac
     k_frac = width + 2
     e = 2 * (SVPWM_GUARD_BITS + k_frac)         # k = round(sqrt(2**e / 3))
     n = math.isqrt((1 << e) // 3)
     k = n + 1 if 3 * (2 * n + 1) ** 2 < (1 << (e + 2)) else n
-    return frac, k_frac, k
+    return frac + SVPWM_GUARD_BITS, k_frac, k
 
 
 def _check_width(owner, name, value, lo, hi):
@@ -88,14 +89,18 @@ class SVPWM(wiring.Component):
     Min–max zero-sequence injection (equivalent to sector + dwell times with T0 split equally
     between 000 and 111), constant latency, one command at a time (one per PWM period). See the
     module docstring for the arithmetic; all of it is exact integer arithmetic except ``u_β/√3``
-    (rounded half away from zero to ``F = width + 7`` fractional bits) and the final division
+    (rounded half away from zero to ``F = frac + 8`` fractional bits) and the final division
     (rounded half up to a count).
 
     Parameters
     ----------
     width : int
-        Width ``w`` of u_α and u_β, 8 … 24 bits: Q1.(w−1) fractions of (2/3)·U_dc (hexagon vertices
-        at 1.0, linear range up to √3/2).
+        Width ``w`` of u_α and u_β, 8 … 24 bits: fractions of (2/3)·U_dc (hexagon vertices at
+        1.0, linear range up to √3/2).
+    frac : int or None
+        Fractional bits of u_α and u_β, ``w − 2`` or ``w − 1`` (default): Q1.(w−1), or Q2.(w−2)
+        for the 1-bit-wider output of :class:`DCBusCompensation` (``out_width = width + 1``),
+        whose LSB is the input's.
     count_width : int
         Width ``cw`` of the scale and of the duties, 4 … 24 bits.
 
@@ -119,6 +124,8 @@ class SVPWM(wiring.Component):
         ``count_width = 16``; a 10 kHz period at 50 MHz is 5000 clocks, 1 MHz at 33.333 MHz 34).
     frac : int
         ``F``, fractional bits of the internal phase voltages (``1.0 = 2**F``).
+    in_frac : int
+        Fractional bits of the inputs (the ``frac`` parameter).
 
     Raises
     ------
@@ -126,12 +133,19 @@ class SVPWM(wiring.Component):
         A width of the wrong type or outside its range.
     """
 
-    def __init__(self, *, width=16, count_width=16):
+    def __init__(self, *, width=16, frac=None, count_width=16):
         _check_width("SVPWM", "width", width, 8, 24)
         _check_width("SVPWM", "count_width", count_width, 4, 24)
+        if frac is None:
+            frac = width - 1
+        if not isinstance(frac, int) or isinstance(frac, bool) or frac not in (width - 2,
+                                                                                width - 1):
+            raise TypeError(f"SVPWM frac must be width − 2 ({width - 2}) or width − 1 "
+                            f"({width - 1}), not {frac!r}")
         self._width = width
         self._count_width = count_width
-        self._frac, self._k_frac, self._k = svpwm_constants(width)
+        self._int_bits = width - frac           # 1: Q1.(w−1), 2: Q2.(w−2)
+        self._frac, self._k_frac, self._k = svpwm_constants(width, frac)
         out = data.StructLayout({"a": unsigned(count_width), "b": unsigned(count_width),
                                  "c": unsigned(count_width), "overmod": 1})
         super().__init__({
@@ -143,6 +157,7 @@ class SVPWM(wiring.Component):
     width = property(lambda self: self._width)
     count_width = property(lambda self: self._count_width)
     frac = property(lambda self: self._frac)
+    in_frac = property(lambda self: self._frac - SVPWM_GUARD_BITS)
 
     @property
     def latency(self):
@@ -151,22 +166,24 @@ class SVPWM(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         F, cw = self._frac, self._count_width
+        # G integer bits of the input (sign included): |u| ≤ 2**(G−1) (2**(F+G−1) internally).
+        G = self._int_bits
         one = 1 << F
         phases = "abc"
 
-        # Stage 1: A = u_α·2**8, S = u_β/√3 (|A| ≤ 2**F, |S| < 2**F / √3 + 1).
-        a1 = Signal(signed(F + 2))
-        s1 = Signal(signed(F + 2))
+        # Stage 1: A = u_α·2**8, S = u_β/√3 (|A| ≤ 2**(F+G−1), |S| < 2**(F+G−1) / √3 + 1).
+        a1 = Signal(signed(F + G + 1))
+        s1 = Signal(signed(F + G + 1))
         scale = Signal(unsigned(cw))
-        # Stage 2: max, min, D = max(spread, 1) < 2**(F+1).
-        q2 = {p: Signal(signed(F + 2), name=f"q2_{p}") for p in phases}
-        mx2 = Signal(signed(F + 2))
-        mn2 = Signal(signed(F + 2))
-        d2 = Signal(unsigned(F + 1))
+        # Stage 2: max, min, D = max(spread, 1) < 2**(F+G).
+        q2 = {p: Signal(signed(F + G + 1), name=f"q2_{p}") for p in phases}
+        mx2 = Signal(signed(F + G + 1))
+        mn2 = Signal(signed(F + G + 1))
+        d2 = Signal(unsigned(F + G))
         om2 = Signal()
         # Division: remainder (< 2·D), low dividend bits shifting out / quotient bits shifting in.
-        div = Signal(unsigned(F + 2))           # 2·D
-        rem = {p: Signal(unsigned(F + 2), name=f"rem_{p}") for p in phases}
+        div = Signal(unsigned(F + G + 1))       # 2·D
+        rem = {p: Signal(unsigned(F + G + 1), name=f"rem_{p}") for p in phases}
         low = {p: Signal(unsigned(cw), name=f"low_{p}") for p in phases}
         count = Signal(range(cw))
 
@@ -200,7 +217,7 @@ class SVPWM(wiring.Component):
             with m.State("PREPARE"):
                 m.d.sync += div.eq(d2 << 1)
                 for p in phases:
-                    n_x = (d2 + (q2[p] << 1) - mx2 - mn2).as_unsigned()[:F + 2]   # ∈ [0, 2·D]
+                    n_x = (d2 + (q2[p] << 1) - mx2 - mn2).as_unsigned()[:F + G + 1]  # [0, 2·D]
                     x = scale * n_x + d2                        # < 2·D·2**cw
                     m.d.sync += [rem[p].eq(x >> cw), low[p].eq(x[:cw])]
                 m.d.sync += count.eq(cw - 1)
@@ -211,7 +228,7 @@ class SVPWM(wiring.Component):
                     trial = Cat(low[p][-1], rem[p])             # 2·rem + next bit < 4·D
                     fits = trial >= div
                     m.d.sync += [
-                        rem[p].eq(Mux(fits, trial - div, trial)[:F + 2]),
+                        rem[p].eq(Mux(fits, trial - div, trial)[:F + G + 1]),
                         low[p].eq(Cat(fits, low[p][:-1])),
                     ]
                 m.d.sync += count.eq(count - 1)
@@ -242,7 +259,7 @@ class DCBusCompensation(wiring.Component):
 
     A component saturating changes the vector's angle; that only happens for commands already
     outside the hexagon (``|u_α| > 1`` or ``|u_β| > 1``). ``out_width = width + 1`` (Q2.(w−1)) with
-    ``SVPWM(width=width + 1)`` removes even that, up to ``gain · |u| < 2``.
+    ``SVPWM(width=width + 1, frac=width − 1)`` removes even that, up to ``gain · |u| < 2``.
 
     Parameters
     ----------

@@ -612,7 +612,8 @@ class Servo:
     def tune(self, motor, *, current_bandwidth_hz=None, speed_a=3.0, dry_run=False, **kw):
         """PI gains for ``motor`` (:class:`~foc_servo.sim.motor.MotorParams`) by the rule of
         :func:`foc_servo.host.tuning.tune`, with the drive's scales, ``u_rated`` and
-        ``speed_div``; written (each PI's group in one frame) unless ``dry_run``.
+        ``speed_div``, and the feed-forward (decoupling, ``theta_lead``; ``feedforward=False``
+        in ``kw`` leaves them alone); written in one burst unless ``dry_run``.
 
         Parameters
         ----------
@@ -638,7 +639,7 @@ class Servo:
             raise ServoError(f"tune: {e}") from None
         if not dry_run:
             words = {}
-            for name, raw in result.registers.items():
+            for name, raw in {**result.registers, **result.feedforward}.items():
                 reg = REGISTERS[name]
                 for k, w in enumerate(reg.to_words(raw)):
                     words[reg.addr + k] = w

@@ -183,6 +183,32 @@ def test_svpwm_named_corners_and_latency_cycle_by_cycle():
     assert outs[5][3] == 1 and outs[6][3] == 1            # outside the hexagon
 
 
+def test_svpwm_q2_inputs_against_model_and_physics():
+    """``frac = width − 2`` (the DC-bus compensation's Q2 output): 1.0 is ``2**(w−2)``; random
+    commands up to |u| = 1.9 match the model, and inside the hexagon the duties make the
+    commanded vector (``vector_of_duties``) within a count."""
+    width, frac, scale = 17, 15, 2500
+    dut = SVPWM(width=width, frac=frac)
+    assert dut.in_frac == frac
+    rng = np.random.default_rng(11)
+    mag = rng.uniform(0, 1.9, 60)
+    ang = rng.uniform(-math.pi, math.pi, 60)
+    a = np.rint(mag * np.cos(ang) * FS).astype(int)
+    b = np.rint(mag * np.sin(ang) * FS).astype(int)
+    a[:2], b[:2] = (-(1 << 16), (1 << 16) - 1), (0, (1 << 16) - 1)       # the Q2 extremes
+    cmds = [(int(x), int(y), scale) for x, y in zip(a, b)]
+    outs, lats = svpwm_outputs(dut, cmds, ready_delay=0)
+    assert lats == [dut.latency] * len(cmds)
+    exp = model.svpwm(a, b, np.full(len(a), scale), width=width, frac=frac)
+    for k, got in enumerate(outs):
+        assert got == (exp["a"][k], exp["b"][k], exp["c"][k], exp["overmod"][k]), k
+    ua, ub = model.vector_of_duties(*(np.array([o[i] for o in outs]) / scale for i in range(3)))
+    inside = exp["overmod"] == 0
+    assert inside.sum() > 10 and (~inside).sum() > 10
+    err = np.abs((ua + 1j * ub) - (a + 1j * b) / FS)[inside]
+    assert err.max() <= 1.5 / scale
+
+
 def test_svpwm_random_commands_against_model_via_run():
     r = verify_svpwm._run_svpwm(1500, seed=3, progress=False, width=16, count_width=16,
                                 scale=2500)

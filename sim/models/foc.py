@@ -138,7 +138,7 @@ class CurrentLoopModel:
         self.dc_gain = int(gain[-1])
         comp_a = dcbus_apply(u_alpha, applied, out_width=w + 1)
         comp_b = dcbus_apply(u_beta, applied, out_width=w + 1)
-        duties = svpwm(comp_a, comp_b, v["scale"], width=w + 1)
+        duties = svpwm(comp_a, comp_b, v["scale"], width=w + 1, frac=w - 1)
 
         return {
             "a": c["a"], "b": c["b"], "c": c["c"], "i_alpha": c["alpha"], "i_beta": c["beta"],

@@ -25,11 +25,12 @@ GUARD_BITS = 8
 GAIN_FRAC = 16
 
 
-def svpwm_constants(width):
-    """``(F, k_frac, k)``: ``F = width − 1 + 8``, ``k_frac = width + 2``,
+def svpwm_constants(width, frac=None):
+    """``(F, k_frac, k)``: ``F = frac + 8`` (``frac`` default ``width − 1``), ``k_frac = width + 2``,
     ``k = round(2**(8 + k_frac) / √3)`` (float: exact at these sizes)."""
     k_frac = width + 2
-    return width - 1 + GUARD_BITS, k_frac, int(np.rint(2.0 ** (GUARD_BITS + k_frac) / np.sqrt(3)))
+    frac = width - 1 if frac is None else frac
+    return frac + GUARD_BITS, k_frac, int(np.rint(2.0 ** (GUARD_BITS + k_frac) / np.sqrt(3)))
 
 
 def _a_s(alpha, beta, width):
@@ -44,13 +45,13 @@ def _counts(numerators, d, scale):
     return [(scale * n + d) // (2 * d) for n in numerators]
 
 
-def svpwm(alpha, beta, scale, *, width=16):
+def svpwm(alpha, beta, scale, *, width=16, frac=None):
     """Duties of :class:`~foc_servo.hdl.svpwm.SVPWM` by min–max injection.
 
     Parameters
     ----------
     alpha, beta : array of int
-        Raw Q1.(width−1) commands.
+        Raw commands of ``width`` bits, ``frac`` fractional (default ``width − 1``).
     scale : int or array of int
         Count of a 100 % duty.
 
@@ -59,7 +60,7 @@ def svpwm(alpha, beta, scale, *, width=16):
     dict
         ``"a"``, ``"b"``, ``"c"``: int64 counts in ``[0, scale]``; ``"overmod"``: 0/1.
     """
-    frac = svpwm_constants(width)[0]
+    frac = svpwm_constants(width, frac)[0]
     a, s = _a_s(alpha, beta, width)
     q = np.stack([a, s, -s])
     mx, mn = q.max(axis=0), q.min(axis=0)
