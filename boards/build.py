@@ -486,7 +486,8 @@ def _tool(name):
         sibling = Path(sys.executable).parent / candidate
         if found or sibling.exists():
             return [found or str(sibling)]
-    raise FileNotFoundError(f"{name} not found: install yowasp-{name} (pip) or set ${var}")
+    raise FileNotFoundError(f"{name} not found: install yowasp-{name} (pip install "
+                            f"\"foc-servo[tools]\") or set ${var}")
 
 
 def _run(argv, cwd, log_path):

