@@ -364,9 +364,10 @@ class PISpec(Elaboratable):
         m = Module()
         cls = PI
         if self.broken:
-            cls = mutant(PI, ("i_c.eq(clamp(integ + di, lo_g, hi_g))", "i_c.eq(integ + di)"),
-                         ("self.o.payload.eq(saturate(clamp(u, self.lim_lo, self.lim_hi), "
-                          "signed(w)))", "self.o.payload.eq(u)"))
+            cls = mutant(PI, ("i_c.eq(Mux(di > hi_r, hi_g, Mux(di < lo_r, lo_g, integ + di)))",
+                              "i_c.eq(integ + di)"),
+                         ("self.o.payload.eq(Mux(hold, clamp_k, clamp_c))",
+                          "self.o.payload.eq(Mux(hold, u_k, u_c))"))
         pi = cls(**self.params)
         g = pi.int_guard
         m.submodules.pi, internal = elaborate_with_internals(pi, platform)

@@ -14,11 +14,12 @@ rounds half away from zero and ``sat`` clamps to ``signed(width)`` (see :mod:`.f
 
 import math
 
-from amaranth.hdl import Module, Shape, Signal, signed
+from amaranth.hdl import Const, Module, Shape, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import Q, QFormat, round_shift, saturate
+from .dsp import partial_sum, registered_products, saturate_bits
+from .fixed import Q, QFormat, round_shift
 
 __all__ = ["Clarke", "clarke_constants"]
 
@@ -181,15 +182,16 @@ class Clarke(wiring.Component):
                     g1[p].eq(getattr(self, f"gain_{p}")),
                 ]
 
-        # Stage 2: exact product (gain width + n + 2 bits).
-        p2 = {p: Signal(signed(self._gain_format.width + n + 2), name=f"prod_{p}") for p in phases}
-        with m.If(valid[1]):
-            m.d.sync += [p2[p].eq(g1[p] * d1[p]) for p in phases]
+        # Stage 2: exact product (gain width + n + 2 bits) as registered partial products, each
+        # one hard multiplier (hdl/dsp.py): their sum is left to stage 3.
+        p2 = {p: registered_products(m, g1[p], d1[p], enable=valid[1], name=f"prod_{p}")
+              for p in phases}
 
         # Stage 3: scaled phase currents, Q1.(w-1), rounded and saturated.
         i3 = {p: Signal(out, name=f"i_{p}") for p in phases}
         with m.If(valid[2]):
-            m.d.sync += [i3[p].eq(saturate(round_shift(p2[p], self._gain_format.frac), out))
+            m.d.sync += [i3[p].eq(saturate_bits(round_shift(partial_sum(p2[p]),
+                                                            self._gain_format.frac), out))
                          for p in phases]
 
         # Stage 4: the Clarke sums (exact), and i_c.
@@ -200,31 +202,32 @@ class Clarke(wiring.Component):
             if self._three_phase:
                 m.d.sync += [c4.eq(i3["c"]), s_beta4.eq(i3["b"] - i3["c"])]
             else:
-                m.d.sync += [c4.eq(saturate(-i3["a"] - i3["b"], out)),
+                m.d.sync += [c4.eq(saturate_bits(-i3["a"] - i3["b"], out)),
                              s_beta4.eq(i3["a"] + (i3["b"] << 1))]
         if self._three_phase:
             s_alpha4 = Signal(signed(w + 2))
             with m.If(valid[3]):
                 m.d.sync += s_alpha4.eq((i3["a"] << 1) - i3["b"] - i3["c"])
 
-        # Stage 5: products by the constants.
+        # Stage 5: products by the constants (registered partial products).
         a5, b5, c5 = (Signal(out, name=f"{p}5") for p in "abc")
-        m_beta5 = Signal(signed(w + 2 + self._k_beta.bit_length()))
         with m.If(valid[4]):
-            m.d.sync += [a5.eq(a4), b5.eq(b4), c5.eq(c4), m_beta5.eq(s_beta4 * self._k_beta)]
+            m.d.sync += [a5.eq(a4), b5.eq(b4), c5.eq(c4)]
+        m_beta5 = registered_products(m, s_beta4, Const(self._k_beta), enable=valid[4],
+                                      name="m_beta")
         if self._three_phase:
-            m_alpha5 = Signal(signed(w + 2 + self._k_alpha.bit_length()))
-            with m.If(valid[4]):
-                m.d.sync += m_alpha5.eq(s_alpha4 * self._k_alpha)
+            m_alpha5 = registered_products(m, s_alpha4, Const(self._k_alpha), enable=valid[4],
+                                           name="m_alpha")
 
-        # Stage 6: round and saturate to Q1.(w-1).
+        # Stage 6: sum, round and saturate to Q1.(w-1).
         a6, b6, c6, alpha6, beta6 = (Signal(out, name=f"{p}6")
                                      for p in ("a", "b", "c", "alpha", "beta"))
         with m.If(valid[5]):
             m.d.sync += [a6.eq(a5), b6.eq(b5), c6.eq(c5),
-                         beta6.eq(saturate(round_shift(m_beta5, frac_c), out))]
+                         beta6.eq(saturate_bits(round_shift(partial_sum(m_beta5), frac_c), out))]
             if self._three_phase:
-                m.d.sync += alpha6.eq(saturate(round_shift(m_alpha5, frac_c), out))
+                m.d.sync += alpha6.eq(saturate_bits(round_shift(partial_sum(m_alpha5), frac_c),
+                                                    out))
             else:
                 m.d.sync += alpha6.eq(a5)
 

@@ -324,6 +324,13 @@ class QuadratureDecoder(wiring.Component):
         rz = Signal(CPR_WIDTH, init=rz0)
         valid = Signal(init=valid0)
         cpr = Signal(CPR_WIDTH, init=4 * lines0)
+        # cpr − Rz, cpr − z, cpr − Rp, cpr − pole_pairs, cpr − 1: the wrap tests of the
+        # position steps and of the output sums as one comparison each, on registers.
+        cpr_rz = Signal(CPR_WIDTH + 1, init=4 * lines0 - rz0)
+        cpr_z = Signal(CPR_WIDTH + 1, init=4 * lines0 - z0)
+        cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
+        cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
+        cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)
         # Pending configuration and its first quotient while the divisions run.
         lines_p = Signal(LINES_WIDTH)
         pp_p = Signal(POLE_PAIRS_WIDTH)
@@ -380,7 +387,8 @@ class QuadratureDecoder(wiring.Component):
             m.d.sync += [
                 lines_q.eq(lines_p), pp_q.eq(pp_p), z_q.eq(z_p), cpr.eq(cpr_p),
                 qp.eq(qp_p), rp.eq(rp_p), qz.eq(quotient), rz.eq(remainder),
-                valid.eq(new_valid),
+                valid.eq(new_valid), cpr_rz.eq(cpr_p - remainder), cpr_z.eq(cpr_p - z_p),
+                cpr_rp.eq(cpr_p - rp_p), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
             ]
 
         # --- quadrature decoding ------------------------------------------------------------
@@ -412,25 +420,23 @@ class QuadratureDecoder(wiring.Component):
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
         rm = Signal(CPR_WIDTH)          # em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
-        e_up = em + pp_q
-        e_dn = em - pp_q
-        r_up = rm + rp
-        r_dn = rm - rp
-        carry = r_up >= cpr
-        borrow = r_dn[-1]
+        # Each wrap test compares a register with a per-configuration constant, side by side
+        # with the candidate sums (em + p ≥ cpr ⇔ em ≥ cpr − p; rm − Rp < 0 ⇔ rm < Rp).
+        carry = rm >= cpr_rp
+        borrow = rm < rp
         with m.If(valid & fwd):
             m.d.sync += [
-                self.count.eq(Mux(self.count == cpr - 1, 0, self.count + 1)),
-                em.eq(Mux(e_up >= cpr, e_up - cpr, e_up)),
-                rm.eq(Mux(carry, r_up - cpr, r_up)),
-                thm.eq(thm + qp + carry),
+                self.count.eq(Mux(self.count == cpr_m1, 0, self.count + 1)),
+                em.eq(Mux(em >= cpr_pp, em - cpr_pp, em + pp_q)),
+                rm.eq(Mux(carry, rm - cpr_rp, rm + rp)),
+                thm.eq(Mux(carry, thm + qp + 1, thm + qp)),
             ]
         with m.Elif(valid & bwd):
             m.d.sync += [
-                self.count.eq(Mux(self.count == 0, cpr - 1, self.count - 1)),
-                em.eq(Mux(e_dn[-1], e_dn + cpr, e_dn)),
-                rm.eq(Mux(borrow, r_dn + cpr, r_dn)),
-                thm.eq(thm - qp - borrow),
+                self.count.eq(Mux(self.count == 0, cpr_m1, self.count - 1)),
+                em.eq(Mux(em < pp_q, em + cpr_pp, em - pp_q)),
+                rm.eq(Mux(borrow, rm + cpr_rp, rm - rp)),
+                thm.eq(Mux(borrow, thm - qp - 1, thm - qp)),
             ]
         arm = ~self.aligned | self.realign
         with m.If(valid & index & arm):
@@ -441,10 +447,12 @@ class QuadratureDecoder(wiring.Component):
             m.d.sync += [self.aligned.eq(0), self.count.eq(0), em.eq(0), thm.eq(0), rm.eq(0)]
 
         # --- outputs: the Z offset added to the electrical position -------------------------
-        e_sum = em + z_q
+        # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
+        # the registers alone (em ≥ cpr − z, rm ≥ cpr − Rz): one carry chain before the sums,
+        # not two.
         m.d.comb += [
-            self.e.eq(Mux(e_sum >= cpr, e_sum - cpr, e_sum)),
-            self.theta.eq(thm + qz + (rm + rz >= cpr)),
+            self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
+            self.theta.eq(thm + qz + (rm >= cpr_rz)),
         ]
         return m
 
@@ -551,9 +559,10 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: three 16-bit subtractions, one magnitude comparison, a 6-entry constant table and
-    30 flip-flops, no multiplier or divider (Yosys 0.70: 122 LUTs on a Spartan-7, 182 LUT4s on
-    an iCE40).
+    Cost: three 16-bit subtractions, two comparisons, a 6-entry constant table and ≈ 180
+    flip-flops, no multiplier or divider. Pipelined in three clocks (the edge and the inputs
+    registered; ``d``; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of
+    clocks apart, the two clocks cost nothing.
 
     Members
     -------
@@ -589,10 +598,11 @@ class HallPlausibility(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from ``sector``/``theta`` to the outputs (1).
+        Clocks from ``sector``/``theta`` to the outputs (3). The outputs are those of the
+        unpipelined check (all inputs taken in the same clock) delayed by two clocks.
     """
 
-    latency = 1
+    latency = 3
 
     def __init__(self):
         super().__init__({
@@ -617,13 +627,10 @@ class HallPlausibility(wiring.Component):
         sector_q = Signal(range(6))
         have_q = Signal()               # a valid sector was seen in the previous clock
         aligned_q = Signal()
-        dir_q = Signal()                # the previous edge went forward
-        d_q = Signal(aw)                # d at the previous edge
-        ref_ok = Signal()               # d_q is comparable with d now
-        count = Signal(4)               # consecutive misses, saturating at 15
         m.d.sync += [sector_q.eq(self.sector), have_q.eq(self.valid & ~self.hold),
                      aligned_q.eq(self.aligned)]
 
+        # Clock 1: the edge and its direction, the boundary, the inputs, registered.
         edge = Signal()
         fwd = Signal()
         bwd = Signal()
@@ -632,49 +639,74 @@ class HallPlausibility(wiring.Component):
             fwd.eq(self.sector == Mux(sector_q == 5, 0, sector_q + 1)),
             bwd.eq(self.sector == Mux(sector_q == 0, 5, sector_q - 1)),
         ]
-        adjacent = fwd | bwd
-
         bound = Signal(aw)
         with m.Switch(Mux(fwd, self.sector, sector_q)):
             for k, b in enumerate(hall_boundaries(aw)):
                 with m.Case(k):
                     m.d.comb += bound.eq(b)
+        edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
+            Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
+                                           "jump"))
+        theta1, bound1, offset1, tol1 = (Signal(aw, name=f"{n}1")
+                                         for n in ("theta", "bound", "offset", "tol"))
+        need1 = Signal(4)
+        m.d.sync += [
+            edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
+            restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
+            theta1.eq(self.theta), bound1.eq(bound), offset1.eq(self.offset),
+            tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 1, self.misses)),
+        ]
 
-        def magnitude(x):
-            # |x| of a binary angle read as signed, 0 … 2**(aw−1) (aw bits, unsigned).
-            return Mux(x[-1], -x, x)[:aw]
+        # Clock 2: d = θ − boundary − offset (mod a turn); 2**aw − tolerance.
+        edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
+            Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
+                                           "jump"))
+        d2 = Signal(aw)
+        tol2 = Signal(aw)
+        ntol2 = Signal(aw + 1)
+        need2 = Signal(4)
+        m.d.sync += [
+            edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
+            restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
+            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1), ntol2.eq((1 << aw) - tol1),
+        ]
 
-        d = Signal(aw)
+        # Clock 3: the checks and the miss count, on the state of the previous edges.
+        dir_q = Signal()                # the previous edge went forward
+        d_q = Signal(aw)                # d at the previous edge
+        ref_ok = Signal()               # d_q is comparable with d now
+        count = Signal(4)               # consecutive misses, saturating at 15
         dd = Signal(aw)
-        m.d.comb += [d.eq(self.theta - bound - self.offset), dd.eq(d - d_q)]
-        jump = self.restart | (self.aligned != aligned_q)
-        # The two checks never apply together: one magnitude comparison serves both.
-        over = magnitude(Mux(self.aligned, d, dd)) > self.tolerance
-        abs_miss = self.aligned & over
-        rel_check = ~self.aligned & ref_ok & ~jump & (fwd == dir_q) & adjacent
+        m.d.comb += dd.eq(d2 - d_q)
+        # The two checks never apply together: one magnitude comparison serves both. For x
+        # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
+        # true for tol ≥ 2**(aw−1)): two comparisons side by side, no negation.
+        x = Mux(aligned2, d2, dd)
+        over = (x > tol2) & (x < ntol2)
+        abs_miss = aligned2 & over
+        rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
         miss = Signal()
         passed = Signal()
         m.d.comb += [
-            miss.eq(edge & (~adjacent | abs_miss | rel_miss)),
-            passed.eq(edge & adjacent & (self.aligned | rel_check) & ~abs_miss & ~rel_miss),
+            miss.eq(edge2 & (~adjacent2 | abs_miss | rel_miss)),
+            passed.eq(edge2 & adjacent2 & (aligned2 | rel_check) & ~abs_miss & ~rel_miss),
         ]
 
-        with m.If(edge):
-            m.d.sync += [dir_q.eq(fwd), ref_ok.eq(adjacent & ~self.restart)]
-            with m.If(adjacent):
-                m.d.sync += [d_q.eq(d), self.error.eq(d)]
-        with m.Elif(jump):
+        with m.If(edge2):
+            m.d.sync += [dir_q.eq(fwd2), ref_ok.eq(adjacent2 & ~restart2)]
+            with m.If(adjacent2):
+                m.d.sync += [d_q.eq(d2), self.error.eq(d2)]
+        with m.Elif(jump2):
             m.d.sync += ref_ok.eq(0)
         with m.If(miss):
             m.d.sync += count.eq(Mux(count == 15, 15, count + 1))
         with m.Elif(passed):
             m.d.sync += count.eq(0)
-        need = Mux(self.misses == 0, 1, self.misses)
         m.d.sync += [
-            self.edge.eq(edge),
+            self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count + 1 >= need)),
+            self.fault.eq(miss & (count + 1 >= need2)),
         ]
         return m
 
@@ -731,7 +763,7 @@ class EncoderFrontEnd(wiring.Component):
         Clocks from a pin change to the outputs with ``length`` ≤ 1 (4: two synchroniser flops,
         the filter register, the decoder); add ``length − 1`` for a longer filter.
     plausibility_latency : int
-        The same for ``hall_edge``, ``hall_miss``, ``plausibility`` and ``hall_error`` (5).
+        The same for ``hall_edge``, ``hall_miss``, ``plausibility`` and ``hall_error`` (7).
     """
 
     latency = 4

@@ -8,6 +8,7 @@ Park by θ + θ_lead); the two passes are serial in time. Per accepted sample (`
 ``i.valid`` is accepted; ``L_x`` the blocks' ``latency`` attributes)::
 
     t                     inputs latched (θ, θ_lead, references, mode bits, speed, U_dc)
+    t + 1                 −θ and θ + θ_lead from the latched angles
     t + L_clarke          i_a, i_b, i_c, i_α, i_β                      → Cordic, tag 0, angle −θ
     t + 6 + L_cordic      i_d, i_q                                     → PI_d, PI_q
     t + 14 + L_pi         PI outputs; command stage (one register):
@@ -17,11 +18,15 @@ Park by θ + θ_lead); the two passes are serial in time. Per accepted sample (`
                                     sat(PI_q + [ff]·(ω·(L·i_d + ψ)))   otherwise
     t + 21                u_d, u_q                                     → Cordic, tag 1, θ + θ_lead
     t + 21 + L_cordic     u_α, u_β                                     → DCBusCompensation
-    t + 30                u_α·U_rated/U_dc (Q2.15: no angle error below 2)  → SVPWM
-    t + 30 + L_svpwm      duties on ``o``                              (49 clocks with defaults)
+    t + 29 + L_dcbus      u_α·U_rated/U_dc (Q2.15: no angle error below 2)  → SVPWM
+    t + 31 + L_svpwm      duties on ``o``                              (46 clocks with defaults)
+
+Every stage puts at most one multiplier or about one carry chain between registers (100 MHz on
+an ECP5, issue 7); the budget of issue 5 is ≤ 50 clocks.
 
 ``sat`` saturates to ``signed(width)``, nothing wraps except the binary angles. The decoupling
-feed-forward (``ff_enable``) uses one multiplier four times while the PIs run (no extra latency)::
+feed-forward (``ff_enable``) uses one multiplier four times (operands, product and rounding
+each registered) while the PIs run (no extra latency)::
 
     n      = sat(round_shift(speed, 32 − w))                  Q1.(w−1) of N_FS (speed: Q1.31)
     ωL     = round_shift(ff_l · n, 14)                        Q3.(w−1), exact in signed(w + 2)
@@ -46,7 +51,8 @@ from amaranth.lib.wiring import In, Out
 
 from .clarke import Clarke
 from .cordic import Cordic
-from .fixed import UQ, Q, QFormat, round_shift, saturate
+from .dsp import round_shift_signed, saturate_bits
+from .fixed import UQ, Q, QFormat, round_shift
 from .pi import PI
 from .svpwm import SVPWM, DCBusCompensation
 
@@ -309,7 +315,9 @@ class CurrentLoop(wiring.Component):
 
         # --- Per-sample inputs, latched with the sample -------------------------------------------
         theta = Signal(unsigned(aw))
-        theta_inv = Signal(unsigned(aw))
+        theta_lead = Signal(unsigned(aw))
+        theta_park = Signal(unsigned(aw))       # −θ, one clock after the sample
+        theta_inv = Signal(unsigned(aw))        # θ + θ_lead, one clock after the sample
         id_ref = Signal(sw)
         iq_ref = Signal(sw)
         run = Signal()                      # closed loop: PIs run (else held cleared)
@@ -321,7 +329,7 @@ class CurrentLoop(wiring.Component):
         with m.If(accept):
             m.d.sync += [
                 theta.eq(self.theta),
-                theta_inv.eq(self.theta + self.theta_lead),
+                theta_lead.eq(self.theta_lead),
                 id_ref.eq(self.id_ref),
                 iq_ref.eq(self.iq_ref),
                 run.eq(self.enable & ~self.ol_enable),
@@ -329,10 +337,16 @@ class CurrentLoop(wiring.Component):
                 ol_ud.eq(self.ol_ud),
                 ol_uq.eq(self.ol_uq),
                 ff_run.eq(self.ff_enable & self.enable & ~self.ol_enable),
-                n_spd.eq(saturate(round_shift(self.speed, SPEED_WIDTH - w), sw)),
+                n_spd.eq(saturate_bits(round_shift(self.speed, SPEED_WIDTH - w), sw)),
                 self.udc.payload.eq(self.i.payload.udc),
             ]
         m.d.sync += self.udc.valid.eq(accept)
+        # The angle sums from the latched inputs, a clock later (Park needs −θ at
+        # t + L_clarke, the inverse Park θ + θ_lead at t + 21): no adder behind the encoder's.
+        accepted = Signal()
+        m.d.sync += accepted.eq(accept)
+        with m.If(accepted):
+            m.d.sync += [theta_park.eq(-theta), theta_inv.eq(theta + theta_lead)]
 
         # --- Clarke ------------------------------------------------------------------------------
         m.d.comb += [
@@ -357,7 +371,7 @@ class CurrentLoop(wiring.Component):
             m.d.comb += [
                 cordic.i.payload.x.eq(clarke.o.payload.alpha),
                 cordic.i.payload.y.eq(clarke.o.payload.beta),
-                cordic.i.payload.theta.eq(-theta),
+                cordic.i.payload.theta.eq(theta_park),
                 cordic.i.payload.tag.eq(TAG_PARK),
             ]
         with m.Else():
@@ -401,47 +415,52 @@ class CurrentLoop(wiring.Component):
                            "CurrentLoop: PI result missing")
 
         # --- Decoupling feed-forward: one multiplier, four products -------------------------------
+        # Operands registered, then the product, then its rounding (with the product's sign
+        # from the operands'): one multiplier or one adder per clock. ff_d is kept as
+        # +round(ωL·i_q) and subtracted in the command stage; ff_q folds e into its rounding:
+        # round_shift(p, s) + e = (p + e·2**s + 2**(s−1) − [p < 0]) >> s.
         accept_delay = [accept]
-        for k in range(1, 3):
-            s = Signal(name=f"ff_step{k}")
-            m.d.sync += s.eq(accept_delay[-1])
-            accept_delay.append(s)
+        for k in range(1, 4):
+            s_ = Signal(name=f"ff_step{k}")
+            m.d.sync += s_.eq(accept_delay[-1])
+            accept_delay.append(s_)
         wide = signed(w + 2)
         op_a = Signal(wide)
         op_b = Signal(sw)
         prod = Signal(signed(2 * w + 2))
+        prod_neg = Signal()
         wl = Signal(wide)                   # ω·L, Q3.(w−1)
         emf = Signal(wide)                  # ω·ψ, Q3.(w−1)
-        ff_d = Signal(signed(w + 5))
+        ff_d = Signal(signed(w + 5))        # +round(ω·L·i_q): subtracted from PI_d
         ff_q = Signal(signed(w + 5))
-        emf_step = Signal()
-        m.d.sync += emf_step.eq(accept_delay[2])
         with m.If(accept_delay[1]):
-            m.d.comb += [op_a.eq(self.ff_l), op_b.eq(n_spd)]
+            m.d.sync += [op_a.eq(self.ff_l), op_b.eq(n_spd)]
         with m.Elif(accept_delay[2]):
-            m.d.comb += [op_a.eq(self.ff_psi), op_b.eq(n_spd)]
+            m.d.sync += [op_a.eq(self.ff_psi), op_b.eq(n_spd)]
         with m.Elif(pi_delay[1]):
-            m.d.comb += [op_a.eq(wl), op_b.eq(self.i_q)]
-        with m.Else():
-            m.d.comb += [op_a.eq(wl), op_b.eq(self.i_d)]
-        m.d.sync += prod.eq(op_a * op_b)
-        # ω·L and ω·ψ are ready long before the Park result (t + 3 < t + dq_latency).
-        with m.If(accept_delay[2]):
-            m.d.sync += wl.eq(round_shift(prod, FF_FORMAT.frac))
+            m.d.sync += [op_a.eq(wl), op_b.eq(self.i_q)]
+        with m.Elif(pi_delay[2]):
+            m.d.sync += [op_a.eq(wl), op_b.eq(self.i_d)]
+        m.d.sync += [prod.eq(op_a * op_b), prod_neg.eq(op_a[-1] ^ op_b[-1])]
+        # ω·L and ω·ψ are ready long before the Park result (t + 4 < t + dq_latency).
+        with m.If(accept_delay[3]):
+            m.d.sync += wl.eq(round_shift_signed(prod, FF_FORMAT.frac, prod_neg))
+        emf_step = Signal()
+        m.d.sync += emf_step.eq(accept_delay[3])
         with m.If(emf_step):
-            m.d.sync += emf.eq(round_shift(prod, FF_FORMAT.frac))
-        with m.If(pi_delay[2]):
-            m.d.sync += ff_d.eq(-round_shift(prod, w - 1))
+            m.d.sync += emf.eq(round_shift_signed(prod, FF_FORMAT.frac, prod_neg))
         with m.If(pi_delay[3]):
-            m.d.sync += ff_q.eq(round_shift(prod, w - 1) + emf)
+            m.d.sync += ff_d.eq(round_shift_signed(prod, w - 1, prod_neg))
+        with m.If(pi_delay[4]):
+            m.d.sync += ff_q.eq(round_shift_signed(prod + (emf << (w - 1)), w - 1, prod_neg))
 
         # --- Command stage ------------------------------------------------------------------------
         with m.If(pi_done):
             m.d.sync += [
                 self.u_d.eq(Mux(ol, ol_ud,
-                                saturate(pi_d.o.payload + Mux(ff_run, ff_d, 0), sw))),
+                                saturate_bits(pi_d.o.payload - Mux(ff_run, ff_d, 0), sw))),
                 self.u_q.eq(Mux(ol, ol_uq,
-                                saturate(pi_q.o.payload + Mux(ff_run, ff_q, 0), sw))),
+                                saturate_bits(pi_q.o.payload + Mux(ff_run, ff_q, 0), sw))),
             ]
         m.d.sync += cmd_valid.eq(pi_done)
 

@@ -22,7 +22,8 @@ from ..host.protocol import CRC_BYTES, REPLY_HEADER, REQUEST_HEADER, Command, Re
 from .bus import ADDR_WIDTH, RegBusSignature, Status
 from .uart import UartRx, UartTx, uart_params
 
-__all__ = ["normalize_address_map", "hostlink_params", "crc16_byte", "LinkCore", "HostLink"]
+__all__ = ["normalize_address_map", "address_decode", "hostlink_params", "crc16_byte", "LinkCore",
+           "HostLink"]
 
 _ADDR_SPACE = 1 << ADDR_WIDTH
 
@@ -73,6 +74,63 @@ def normalize_address_map(address_map):
         else:
             merged.append((start, stop, writable))
     return tuple(merged)
+
+
+def _aligned_blocks(start, stop):
+    """``[start, stop)`` as the fewest aligned power-of-two blocks ``(base, log2 size)``."""
+    blocks = []
+    while start < stop:
+        k = (start & -start).bit_length() - 1 if start else ADDR_WIDTH
+        while start + (1 << k) > stop:
+            k -= 1
+        blocks.append((start, k))
+        start += 1 << k
+    return blocks
+
+
+def address_decode(addr, address_map):
+    """Whether the word address ``addr`` exists in ``address_map`` and whether it is writable,
+    decoded from its bits: no magnitude comparisons (on the iCE40 each is a carry chain).
+
+    Each region is split into aligned power-of-two blocks. A block of 16 words or more is one
+    prefix match of the address's upper bits; smaller blocks are collected per aligned group
+    of 16 words into two 16-bit maps (exists, writable) indexed by the address's 4 low bits, a
+    constant function of 4 bits (one LUT4), enabled by the group's prefix match.
+
+    Parameters
+    ----------
+    addr : Value
+        ``ADDR_WIDTH + 1`` bits: the word address and an overflow bit (set: no such word).
+    address_map : tuple
+        A normalised address map (:func:`normalize_address_map`).
+
+    Returns
+    -------
+    exists, writable : Value
+        1-bit values.
+    """
+    addr = Value.cast(addr)
+    exists, writable = [], []
+    groups = {}                             # group of 16 words → [exists map, writable map]
+    for start, stop, is_writable in address_map:
+        for base, k in _aligned_blocks(start, stop):
+            if k >= 4:
+                hit = addr[k:] == base >> k
+                exists.append(hit)
+                if is_writable:
+                    writable.append(hit)
+            else:
+                maps = groups.setdefault(base >> 4, [0, 0])
+                bits = ((1 << (1 << k)) - 1) << (base & 15)
+                maps[0] |= bits
+                if is_writable:
+                    maps[1] |= bits
+    for group, (e_map, w_map) in sorted(groups.items()):
+        hit = addr[4:] == group
+        exists.append(hit & Const(e_map, 16).bit_select(addr[:4], 1))
+        if w_map:
+            writable.append(hit & Const(w_map, 16).bit_select(addr[:4], 1))
+    return Cat(*exists).any(), Cat(*writable).any()
 
 
 def hostlink_params(*, max_words=64, address_map=None, counter_width=16):
@@ -278,15 +336,9 @@ class LinkCore(wiring.Component):
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), widx.eq(0)]
             m.d.sync += [h.eq(0) for h in hdr]
 
-        # Address checks of word `idx`.
+        # Address checks of word `idx`, decoded from the address bits.
         a_full = addr_in + idx                  # ADDR_WIDTH + 1 bits: no wrap
-        a_exists = Const(0, 1)
-        a_writable = Const(0, 1)
-        for start, stop, writable in self._address_map:
-            inside = (a_full >= start) & (a_full < stop)
-            a_exists = a_exists | inside
-            if writable:
-                a_writable = a_writable | inside
+        a_exists, a_writable = address_decode(a_full, self._address_map)
 
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)

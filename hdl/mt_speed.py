@@ -4,7 +4,11 @@
 MC counts encoder edges (signed by direction), TC runs free at f_TCLK, T latches TC at every
 counted edge. At each speed-update strobe the window closes on the last counted edge:
 ``ΔM`` = edges since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges,
-and the foundation :class:`~foc_servo.hdl.divider.Divider` computes ``D_n = k·ΔM/ΔT``.
+and the foundation :class:`~foc_servo.hdl.divider.Divider` computes ``D_n = k·ΔM/ΔT``: unsigned,
+``k·|ΔM| / ΔT``, with ``out_width − 1`` quotient bits (a larger quotient saturates inside the
+divider, see ``Divider.quotient_width``), then the sign of ΔM applied to the result. This is
+``trunc(k·ΔM/ΔT)`` saturated to ±(2**(out_width−1) − 1), as a signed division would give, in
+half the clocks and without the signed divider's negations and 64-bit saturation compares.
 
 Window rules (the golden model :mod:`foc_servo.sim.models.mt_speed` reproduces them clock for
 clock):
@@ -28,7 +32,7 @@ clock):
 
 import enum
 
-from amaranth.hdl import Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
@@ -123,12 +127,14 @@ class MTSpeed(wiring.Component):
     k : In(unsigned(k_width))
         Scale factor, an integer: ``D_n = k·ΔM/ΔT`` in Q1.(out_width−1) of N_M;
         ``k = 60·2**(out_width−1)·f_TCLK / (lines·edges_per_line·N_M)`` (see
-        :func:`foc_servo.sim.models.mt_speed.k_for`). Sampled one clock after the accepted update.
+        :func:`foc_servo.sim.models.mt_speed.k_for`). Sampled 16 bits at a time, least
+        significant first, in the :attr:`k_chunks` clocks after the accepted update (hold it
+        steady; the register file changes it only at a commit).
     o : Out(stream.Signature(output_layout(out_width), always_ready=True))
         One 1-clock ``valid`` strobe :attr:`latency` clocks after each accepted update; payload
         held until the next. ``speed``: signed Q1.(out_width−1) of N_M, truncated toward zero,
         symmetric saturation (division by ΔT = 0, more edges than one per TC tick, saturates with
-        the sign of ΔM). ``stopped``: no edge within the TC span (or no measurement yet since
+        the sign of ΔM, also when ``k = 0``). ``stopped``: no edge within the TC span (or no measurement yet since
         reset); ``speed`` is then 0. ``fresh``: the window closed on a new edge this update
         (``speed = k·ΔM/ΔT``); 0 = bounded previous measurement or stopped.
 
@@ -136,8 +142,13 @@ class MTSpeed(wiring.Component):
     ----------
     latency : int
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
-        ``o.valid`` high in clock ``u + latency``): 2 (snapshot, product) + the divider's
-        ``latency`` + 1 (output register) = ``k_width + m_width + 5``.
+        ``o.valid`` high in clock ``u + latency``): 1 (snapshot) + :attr:`k_chunks` (product)
+        + 1 (divider input) + the divider's ``latency`` + 1 (output register) =
+        ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the defaults).
+    k_chunks : int
+        ``ceil(k_width / 16)``: ``k·|ΔM|`` is computed as ``k_chunks`` products of 16 bits of
+        ``k`` and ``|ΔM|``, one per clock, least significant first (one 16 × ``m_width``
+        multiplier instead of ``k_chunks``; the result is the exact product).
     tclk_ratio : int
         System clocks per TC tick.
     tclk_hz : float
@@ -193,19 +204,28 @@ class MTSpeed(wiring.Component):
     tc_span_s = property(lambda self: (1 << self._tc_width) / self.tclk_hz)
 
     @property
+    def _quotient_width(self):
+        # |k·ΔM| < 2**(k_width + m_width − 1); the output's magnitude needs out_width − 1 bits.
+        return min(self._out_width - 1, self._k_width + self._m_width - 1)
+
+    @property
     def divider_latency(self):
-        """:attr:`Divider.latency` of the divider built in :meth:`elaborate` (``width + 2``;
-        not built here, so that an unelaborated MTSpeed leaves no unused divider behind; the
-        tests measure :attr:`latency` cycle by cycle)."""
-        return self._k_width + self._m_width + 2
+        """:attr:`Divider.latency` of the divider built in :meth:`elaborate`
+        (``quotient_width + 2``; not built here, so that an unelaborated MTSpeed leaves no unused
+        divider behind; the tests measure :attr:`latency` cycle by cycle)."""
+        return self._quotient_width + 2
+
+    @property
+    def k_chunks(self):
+        return -(-self._k_width // 16)
 
     @property
     def latency(self):
-        return self.divider_latency + 3
+        return self.divider_latency + self.k_chunks + 2
 
     def _make_divider(self):
-        return Divider(width=self._k_width + self._m_width, divisor_width=self._tc_width + 1,
-                       signed=True)
+        return Divider(width=self._k_width + self._m_width - 1, divisor_width=self._tc_width,
+                       signed=False, quotient_width=self._quotient_width)
 
     def elaborate(self, platform):
         m = Module()
@@ -237,7 +257,8 @@ class MTSpeed(wiring.Component):
         t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
         have_ref = Signal()             # a reference edge younger than the TC span exists
-        prev = Signal(signed(ow))       # last fresh measurement
+        prev_mag = Signal(ow - 1)       # last fresh measurement: magnitude
+        prev_neg = Signal()             # and sign
         prev_valid = Signal()           # a measurement since reset / the last expiry
         busy = Signal()                 # a computation is in flight
 
@@ -270,52 +291,76 @@ class MTSpeed(wiring.Component):
         with m.Else():
             m.d.sync += [m_acc.eq(m_e), t_last.eq(tl_e), pending.eq(pend_e)]
 
-        # --- Computation: snapshot at the update, product, divide, select.
+        # --- Computation: snapshot at the update, product, divide, select. The window's ΔM is
+        # kept as magnitude and sign: the divider is unsigned, the sign goes on the result.
         mode = Signal(WindowMode)
-        snap_dm = Signal(signed(mw))
+        snap_dm = Signal(mw)            # |ΔM| <= 2**(mw - 1)
+        snap_neg = Signal()             # ΔM < 0
         snap_dt = Signal(w)
+        # ΔT of a fresh window (last edge − reference) or the time elapsed since the reference
+        # (bounded): one subtractor.
+        dt = Signal(w)
+        m.d.comb += dt.eq(Mux(pend_e, tl_e, tc) - t_ref)
         with m.If(start):
             m.d.sync += busy.eq(1)
             with m.If(have_ref & pend_e):
-                m.d.sync += [mode.eq(WindowMode.FRESH), snap_dm.eq(m_e),
-                             snap_dt.eq(tl_e - t_ref)]
+                m.d.sync += [mode.eq(WindowMode.FRESH),
+                             snap_dm.eq(Mux(m_e < 0, -m_e, m_e)), snap_neg.eq(m_e < 0),
+                             snap_dt.eq(dt)]
             with m.Elif(have_ref & prev_valid):
-                m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_dt.eq(tc - t_ref)]
+                m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_neg.eq(0),
+                             snap_dt.eq(dt)]
             with m.Else():
-                m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_dt.eq(1)]
+                m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_neg.eq(0),
+                             snap_dt.eq(1)]
 
-        s1 = Signal()
-        s2 = Signal()
-        prod = Signal(signed(self._k_width + mw))      # |k·ΔM| < 2**(k_width + mw - 1)
-        m.d.sync += [s1.eq(start), s2.eq(s1)]
-        with m.If(s1):
-            m.d.sync += prod.eq(self.k * snap_dm)
+        # k·|ΔM| on 16-bit chunks of k, least significant first, one per clock: t = k_c·|ΔM| +
+        # carry; t's low 16 bits are bits 16c … 16c + 15 of the product (shifted into `low`),
+        # the rest is the next carry. After the last chunk the product is Cat(low, carry).
+        nk = self.k_chunks
+        low = Signal(16 * nk)
+        carry = Signal(mw)                              # (k_c·|ΔM| + carry) >> 16 < 2**mw
+        prod = Cat(low, carry)[:self._k_width + mw - 1]  # k·|ΔM| < 2**(k_width + mw - 1)
+        left = Signal(range(nk + 1))                    # chunks still to multiply
+        ready = Signal()                                # prod is complete: divider input
+        k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
+        # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
+        k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
+        t = Signal(16 + mw)
+        m.d.comb += t.eq(k_rev.word_select(left, 16) * snap_dm + carry)
+        m.d.sync += ready.eq(left == 1)
+        with m.If(start):
+            m.d.sync += [carry.eq(0), left.eq(nk)]
+        with m.Elif(left != 0):
+            m.d.sync += [low.eq(Cat(low[16:], t[:16])), carry.eq(t[16:]), left.eq(left - 1)]
         m.d.comb += [
-            div.i.valid.eq(s2),                         # the divider is idle: one at a time
+            div.i.valid.eq(ready),                      # the divider is idle: one at a time
             div.i.payload.dividend.eq(prod),
             div.i.payload.divisor.eq(snap_dt),
             div.o.ready.eq(1),
         ]
 
+        # |quotient| saturated to s_max: inside the divider (ovf, div0: all ones = s_max) when
+        # it computes out_width − 1 bits; a narrower quotient saturates only on ΔT = 0.
         q = div.o.payload.quotient
-        q_sat = Signal(signed(ow))
-        m.d.comb += q_sat.eq(Mux(q > s_max, s_max, Mux(q < -s_max, -s_max, q)))
-        prev_mag = Signal(unsigned(ow - 1))
-        m.d.comb += prev_mag.eq(Mux(prev < 0, -prev, prev))
-        bound = Signal(unsigned(ow - 1))                # q >= 0 in BOUND mode (k >= 0, ΔT >= 0)
-        m.d.comb += bound.eq(Mux(q_sat < prev_mag, q_sat, prev_mag))
+        if self._quotient_width < ow - 1:
+            q = Mux(div.o.payload.div0, s_max, q)
+        mag = Signal(ow - 1)
+        neg = Signal()
+        with m.Switch(mode):
+            with m.Case(WindowMode.FRESH):              # 0/0 (net-zero window, ΔT = 0) is 0
+                m.d.comb += [mag.eq(Mux(snap_dm == 0, 0, q)), neg.eq(snap_neg)]
+            with m.Case(WindowMode.BOUND):              # never above the last measurement
+                m.d.comb += [mag.eq(Mux(q < prev_mag, q, prev_mag)), neg.eq(prev_neg)]
         p = self.o.payload
         m.d.sync += self.o.valid.eq(div.o.valid)
         with m.If(div.o.valid):
-            m.d.sync += busy.eq(0)
-            with m.Switch(mode):
-                with m.Case(WindowMode.FRESH):
-                    speed = Mux(snap_dm == 0, 0, q_sat)  # 0/0 (net-zero window, ΔT = 0) is 0
-                    m.d.sync += [p.speed.eq(speed), p.stopped.eq(0), p.fresh.eq(1),
-                                 prev.eq(speed), prev_valid.eq(1)]
-                with m.Case(WindowMode.BOUND):
-                    m.d.sync += [p.speed.eq(Mux(prev < 0, -bound, bound)), p.stopped.eq(0),
-                                 p.fresh.eq(0)]
-                with m.Default():
-                    m.d.sync += [p.speed.eq(0), p.stopped.eq(1), p.fresh.eq(0)]
+            m.d.sync += [
+                busy.eq(0),
+                p.speed.eq(Mux(neg, -mag, mag)),
+                p.stopped.eq(mode == WindowMode.STOPPED),
+                p.fresh.eq(mode == WindowMode.FRESH),
+            ]
+            with m.If(mode == WindowMode.FRESH):
+                m.d.sync += [prev_mag.eq(mag), prev_neg.eq(neg), prev_valid.eq(1)]
         return m

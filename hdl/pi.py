@@ -50,11 +50,12 @@ and a wider mux instead of two multipliers).
 
 import numbers
 
-from amaranth.hdl import Cat, Module, Mux, Signal, signed
+from amaranth.hdl import Assert, Cat, Module, Mux, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import QFormat, UQ, clamp, round_shift, saturate, sat_sub
+from .dsp import partial_sum, registered_products, round_shift_signed, saturate_bits
+from .fixed import QFormat, UQ, round_shift
 
 __all__ = ["PI", "pi_widths", "round_shift_width"]
 
@@ -168,22 +169,33 @@ class PI(wiring.Component):
         m = Module()
         w, g = self._width, self._int_guard
         wd = self._widths
+        kpf, kxf = self._kp_format, self._kx_format
 
         e = Signal(signed(w))
         e_prev = Signal(signed(w))
-        prod_p = Signal(signed(wd["prod_p"]))
-        prod_x = Signal(signed(wd["prod_x"]))
+        es_neg = Signal()                   # E[n] + E[n−1] < 0
         p = Signal(signed(wd["p"]))
         di = Signal(signed(wd["di"]))
         integ = Signal(signed(w + g))
         i_c = Signal(signed(w + g))
+        wx = max(wd["p"], w + g) + 1        # P + I (any I within the limits)
+        hi_r = Signal(signed(w + g + 1))    # hi·2**g − I
+        lo_r = Signal(signed(w + g + 1))    # lo·2**g − I
+        gt = Signal()                       # I + dI > hi·2**g
+        lt = Signal()                       # I + dI < lo·2**g
+        x_k, x_hi, x_lo, x_s = (Signal(signed(wx), name=n) for n in ("x_k", "x_hi", "x_lo", "x_s"))
         u_c = Signal(signed(wd["u"]))
         u_k = Signal(signed(wd["u"]))
+        above = {k: Signal(name=f"above_{k}") for k in "ck"}     # U > lim_hi
+        below = {k: Signal(name=f"below_{k}") for k in "ck"}     # U < lim_lo
+        t_hi = Signal(signed(w + g + 2))    # U > lim_hi ⇔ P + I ≥ t_hi + [P + I < 0]
+        t_lo = Signal(signed(w + g + 2))    # U ≥ lim_lo ⇔ P + I ≥ t_lo + [P + I < 0]
         lo_g = Signal(signed(w + g))
         hi_g = Signal(signed(w + g))
+        half = (1 << (g - 1)) if g > 0 else 0
+
         # One valid bit per stage; stage k's registers load when stage k-1 is valid.
         stage = [Signal(name=f"stage{k}") for k in range(1, self.latency)]
-
         busy = Signal()
         m.d.comb += busy.eq(Cat(*stage).any())
         m.d.comb += [
@@ -193,46 +205,98 @@ class PI(wiring.Component):
             hi_g.eq(self.lim_hi << g),
         ]
         accept = self.i.valid & self.i.ready & ~self.clear
-
         m.d.sync += stage[0].eq(accept)
         for prev, cur in zip(stage, stage[1:]):
             m.d.sync += cur.eq(prev)
         m.d.sync += self.o.valid.eq(stage[-1])
-
         # Clock 0 (acceptance): saturated error.
         with m.If(accept):
-            m.d.sync += e.eq(sat_sub(self.i.payload.ref, self.i.payload.fb, signed(w)))
-        # Clock 1: both products; E[n] becomes E[n-1] for the next sample.
+            m.d.sync += e.eq(saturate_bits(self.i.payload.ref - self.i.payload.fb, signed(w)))
+        # Clock 1: products as registered partial products (one hard multiplier each),
+        # kx·(E + E[n−1]) as kx·E + kx·E[n−1]; E[n] becomes E[n−1] for the next sample.
+        prod_p = registered_products(m, self.kp, e, enable=stage[0], name="prod_p")
+        prod_x = (registered_products(m, self.kx, e, enable=stage[0], name="prod_x")
+                  + registered_products(m, self.kx, e_prev, enable=stage[0], name="prod_xp"))
         with m.If(stage[0]):
-            m.d.sync += [
-                prod_p.eq(self.kp * e),
-                prod_x.eq(self.kx * (e + e_prev)),
-                e_prev.eq(e),
-            ]
-        # Clock 2: products rounded to integrator precision.
+            m.d.sync += [e_prev.eq(e), es_neg.eq((e + e_prev)[-1])]
+        # Clock 2: products rounded to integrator precision (a product's sign is its factors'),
+        # the integrator's distances to the limits and the thresholds of the output comparisons
+        # (the limits are read from this clock on).
+        t_hi_v = ((self.lim_hi + 1) << g) - half
+        t_lo_v = (self.lim_lo << g) - half
+        kp_neg = self.kp[-1] if kpf.signed else 0
+        kx_neg = self.kx[-1] if kxf.signed else 0
         with m.If(stage[1]):
             m.d.sync += [
-                p.eq(round_shift(prod_p, self._kp_format.frac - g)),
-                di.eq(round_shift(prod_x, self._kx_format.frac - g)),
+                p.eq(round_shift_signed(partial_sum(prod_p), kpf.frac - g, e[-1] ^ kp_neg)),
+                di.eq(round_shift_signed(partial_sum(prod_x), kxf.frac - g, es_neg ^ kx_neg)),
+                hi_r.eq(hi_g - integ),
+                lo_r.eq(lo_g - integ),
+                t_hi.eq(t_hi_v),
+                t_lo.eq(t_lo_v),
             ]
-        # Clock 3: integrator candidate, clamped to the output limits (a).
+        # Clock 3: integrator candidate, clamped to the output limits (a):
+        # I_c = clamp(I + dI, lo·2**g, hi·2**g); P + I for each of its three cases and for the
+        # kept integrator.
         with m.If(stage[2]):
-            m.d.sync += i_c.eq(clamp(integ + di, lo_g, hi_g))
-        # Clock 4: output candidates with the new and with the kept integrator.
-        with m.If(stage[3]):
             m.d.sync += [
-                u_c.eq(round_shift(p + i_c, g)),
-                u_k.eq(round_shift(p + integ, g)),
+                gt.eq(di > hi_r),
+                lt.eq(di < lo_r),
+                i_c.eq(Mux(di > hi_r, hi_g, Mux(di < lo_r, lo_g, integ + di))),
+                x_k.eq(p + integ),
+                x_hi.eq(p + hi_g),
+                x_lo.eq(p + lo_g),
+                x_s.eq(p + integ + di),
             ]
-        # Clock 5: conditional integration (b), output clamp, strobe on the next clock.
-        hold = (((u_c > self.lim_hi) & (di > 0)) | ((u_c < self.lim_lo) & (di < 0)))
-        u = Mux(hold, u_k, u_c)
+        # Clock 4: output candidates U = round_shift(P + I, g) with the new and with the kept
+        # integrator, and their comparisons with the limits, made on P + I against thresholds
+        # (u > H ⇔ x ≥ (H + 1)·2**g − 2**(g−1) + [x < 0]) so that they do not wait for U.
+        x_c = Mux(gt, x_hi, Mux(lt, x_lo, x_s))
+        for k, x, u in (("c", x_c, u_c), ("k", x_k, u_k)):
+            neg = x[-1] if g > 0 else 0
+            with m.If(stage[3]):
+                m.d.sync += [
+                    u.eq(round_shift_signed(x, g, neg)),
+                    above[k].eq(Mux(neg, x > t_hi, x >= t_hi)),
+                    below[k].eq(Mux(neg, x <= t_lo, x < t_lo)),
+                ]
+        # Clock 5: conditional integration (b), output clamp, strobe on the next clock. A
+        # clamped U is within [lim_lo, lim_hi] ⊂ signed(w): the saturation is a truncation.
+        hold = (above["c"] & (di > 0)) | (below["c"] & di[-1])
+        clamp_c = Mux(above["c"], self.lim_hi, Mux(below["c"], self.lim_lo, u_c[:w]))
+        clamp_k = Mux(above["k"], self.lim_hi, Mux(below["k"], self.lim_lo, u_k[:w]))
         with m.If(stage[4]):
             m.d.sync += [
                 integ.eq(Mux(hold, integ, i_c)),
-                self.o.payload.eq(saturate(clamp(u, self.lim_lo, self.lim_hi), signed(w))),
-                self.sat.eq((u > self.lim_hi) | (u < self.lim_lo)),
+                self.o.payload.eq(Mux(hold, clamp_k, clamp_c)),
+                self.sat.eq(Mux(hold, above["k"] | below["k"], above["c"] | below["c"])),
             ]
+
+        # Invariants of the pipeline (checked in every simulation; they make the limit proof
+        # of boards/prove.py inductive): one sample in flight, and each stage's registers are
+        # what the module docstring's equations give for the integrator and limits of now
+        # (limits stable from clock 2 to o.valid, integrator changed only in clock 5).
+        s_all = Cat(*stage)
+        i_sum = integ + di
+        m.d.comb += Assert((s_all & (s_all - 1)) == 0, "PI: two samples in flight")
+        with m.If(stage[2]):
+            m.d.comb += [Assert((hi_r == hi_g - integ) & (lo_r == lo_g - integ),
+                                "PI: limit distances stale")]
+        with m.If(stage[2] | stage[3]):
+            m.d.comb += Assert((t_hi == t_hi_v) & (t_lo == t_lo_v), "PI: thresholds stale")
+        with m.If(stage[3] | stage[4]):
+            m.d.comb += [
+                Assert((gt == (i_sum > hi_g)) & (lt == (i_sum < lo_g)) &
+                       (i_c == Mux(i_sum > hi_g, hi_g, Mux(i_sum < lo_g, lo_g, i_sum))),
+                       "PI: integrator candidate inconsistent"),
+                Assert((x_k == p + integ) & (x_hi == p + hi_g) & (x_lo == p + lo_g) &
+                       (gt | lt | (x_s == p + i_sum)), "PI: output sums inconsistent"),
+            ]
+        with m.If(stage[4]):
+            for k, x, u in (("c", p + i_c, u_c), ("k", p + integ, u_k)):
+                m.d.comb += Assert((u == round_shift(x, g)) & (above[k] == (u > self.lim_hi)) &
+                                   (below[k] == (u < self.lim_lo)),
+                                   f"PI: output candidate {k} inconsistent")
 
         with m.If(self.clear):
             m.d.sync += [s.eq(0) for s in stage]

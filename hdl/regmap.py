@@ -58,8 +58,9 @@ MAGIC = 0x464F4353
 #: ``id_version``: major << 16 | minor of the register map; bump the major on incompatible change
 #: (2.0: ``pi_speed_kx`` UQ(24, 24) → UQ(24, 20), I_FS 20 A → 40 A; status registers, theta_lead;
 #: 2.1: the ``encoder_hall`` fault, ``prot_eh_tolerance``, ``prot_eh_misses``,
-#: ``st_enc_hall_error``).
-MAP_VERSION = (2 << 16) | 1
+#: ``st_enc_hall_error``; 2.2: dead-time compensation ``dtc_clocks``, ``dtc_band``; the status
+#: counters ``st_current_loops``, ``st_speed_loops``, ``st_overruns``, ``st_adc_overruns`` 16 bit).
+MAP_VERSION = (2 << 16) | 2
 
 #: Fault causes in bit order (bit 0 first), as ``hdl.protect.FAULTS`` (a test checks they agree).
 FAULT_FIELDS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c",
@@ -676,6 +677,13 @@ def build_regmap(scales=Scales()):
             scale="1/clk_hz", shadow="pwm"),
         reg("dead_time", 0x0183, UQ(8, 0), RW, dead_clk, "gate dead time", unit="s",
             scale="1/clk_hz", shadow="pwm"),
+        # Dead-time compensation (hdl/deadtime_comp.py): off at reset.
+        reg("dtc_clocks", 0x0184, UQ(8, 0), RW, 0,
+            "dead-time compensation: high time added per period beyond the band, the effective "
+            "dead time max(dead_time, 1) (0: off)", unit="s", scale="1/clk_hz", shadow="pwm"),
+        reg("dtc_band", 0x0185, UQ(4, 0), RW, 4,
+            "dead-time compensation slope shift: linear up to |i| = dtc_clocks · 2^dtc_band "
+            "current LSB (I_FS/32768), saturated beyond", unit="", shadow="pwm"),
         # --- speed loop ---
         # Reset limit ±I_FS/4 (±10 A at the default 40 A); kx UQ4.20: the default motor's
         # symmetric-optimum kx is 0.0091 … 9.10 for 50 … 500 Hz at 10 kHz (docs/TUNING.md).
@@ -767,14 +775,17 @@ def build_regmap(scales=Scales()):
         reg("st_u_beta", 0x0410, mod, RO, 0, "β voltage command (modulation index)",
             unit="pu"),
         reg("st_udc", 0x0411, Q(16, 0), RO, 0, "DC-bus voltage", unit="V", scale="U_FS"),
-        reg("st_current_loops", 0x0418, UQ(32, 0), RO, 0,
-            "current-loop computations since reset (wraps)", unit="counts"),
-        reg("st_speed_loops", 0x0419, UQ(32, 0), RO, 0,
-            "speed-loop computations since reset (wraps)", unit="counts"),
-        reg("st_overruns", 0x041A, UQ(32, 0), RO, 0,
-            "ADC samples arriving while the current loop was busy (wraps)", unit="counts"),
-        reg("st_adc_overruns", 0x041B, UQ(32, 0), RO, 0,
-            "ADC sample strobes dropped because a conversion was in progress (wraps)",
+        # 16-bit counters (area, issue 7): st_current_loops wraps every 6.5 s at 10 kHz, so a
+        # rate is the difference of two reads less than that apart, modulo 2**16.
+        reg("st_current_loops", 0x0418, UQ(16, 0), RO, 0,
+            "current-loop computations since reset (wraps at 2^16)", unit="counts"),
+        reg("st_speed_loops", 0x0419, UQ(16, 0), RO, 0,
+            "speed-loop computations since reset (wraps at 2^16)", unit="counts"),
+        reg("st_overruns", 0x041A, UQ(16, 0), RO, 0,
+            "ADC samples arriving while the current loop was busy (wraps at 2^16)",
+            unit="counts"),
+        reg("st_adc_overruns", 0x041B, UQ(16, 0), RO, 0,
+            "ADC sample strobes dropped because a conversion was in progress (wraps at 2^16)",
             unit="counts"),
         reg("st_loop_flags", 0x041C, UQ(len(LOOP_FLAG_FIELDS), 0), RO, 0,
             "sticky: a loop since the last clear_faults over-modulated / saturated PI_d, PI_q / "

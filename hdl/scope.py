@@ -12,6 +12,17 @@ narrower one is padded with zeros below. A Q1.31 speed thus reads as Q1.15 of N_
 current as itself, a BinaryAngle(16) as itself. The bits are stored raw; the reader knows from
 the source whether they are signed.
 
+**One source multiplexer, time-shared.** A sample is taken over ``channels`` consecutive clocks:
+channel ``c`` records its source ``c`` clocks after the taken strobe (the strobe's clock for
+channel 0), through one source multiplexer, into its own lane of the RAM word (a write-enable per
+lane). Sources that hold their value for ``channels`` clocks after the strobe (all the current
+loop's outputs, the references, the M/T speed and the ADC code in the top) read as if sampled
+together; a source changing every clock (the measured θ) is read ``c`` clocks late in channel
+``c``. While a sample's channels are being written (the ``channels − 1`` clocks after a taken
+strobe) further strobes are ignored entirely (neither taken nor counted by the decimation), and
+``done`` waits for the last channel of the last sample. ``arm`` abandons the channels not yet
+written. (Four independent multiplexers cost ≈ 180 LUT4 each on the iCE40; see docs/AREA.md.)
+
 **Capture** (``state``: :class:`ScopeState`)::
 
     arm ─► PRE: samples go into the ring; once `pretrigger` of them are in (pre_full), a trigger
@@ -133,7 +144,8 @@ class Scope(wiring.Component):
     sel : In(ArrayLayout(unsigned(sel_width), channels))
         Source code of each channel (latched at ``arm``); a code ≥ ``len(sources)`` records 0.
     strobe : In(1)
-        Loop-rate sample strobe.
+        Loop-rate sample strobe; strobes within ``channels − 1`` clocks after a taken one are
+        ignored (module docstring).
     decim : In(unsigned(decim_width))
         One sample per ``decim + 1`` strobes (latched at ``arm``).
     pretrigger : In(unsigned(log2(depth)))
@@ -145,7 +157,7 @@ class Scope(wiring.Component):
         :attr:`Servo.ref_step`).
     state : Out(ScopeState)
     done : Out(1)
-        A capture is complete (cleared by ``arm``).
+        A capture is complete, its last sample's channels all written (cleared by ``arm``).
     pre_full : Out(1)
         In PRE with the pre-trigger part full: a trigger now is accepted.
     rd_addr : In(unsigned(addr_width))
@@ -157,6 +169,9 @@ class Scope(wiring.Component):
     ----------
     read_latency : int
         1: ``rd_data`` shows the sample addressed in the previous clock.
+    write_clocks : int
+        ``channels``: clocks from a taken strobe to its last channel in the RAM (channel ``c``
+        written in clock ``c`` after the strobe's).
     source_names : tuple of str
         Names in select-code order.
     sel_width, addr_width, memory_bits : int
@@ -200,6 +215,7 @@ class Scope(wiring.Component):
     addr_width = property(lambda self: self._cbits + self._abits)
     memory_bits = property(lambda self: self._channels * self._depth * self._width)
     read_latency = property(lambda self: 1)
+    write_clocks = property(lambda self: self._channels)
 
     def _aligned(self, name):
         """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
@@ -212,7 +228,7 @@ class Scope(wiring.Component):
         n, depth, ab = self._channels, self._depth, self._abits
         layout = data.ArrayLayout(unsigned(self._width), n)
         m.submodules.mem = mem = Memory(shape=layout, depth=depth, init=[])
-        wr = mem.write_port()
+        wr = mem.write_port(granularity=1)         # one write-enable per channel lane
         rd = mem.read_port()
 
         sel = Signal.like(self.sel)
@@ -225,28 +241,46 @@ class Scope(wiring.Component):
         filled = Signal(unsigned(ab))
         post_left = Signal(unsigned(ab + 1))
         dcount = Signal.like(self.decim)
+        # Channel being written: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
+        # in the clocks after it; `slot` is the ring address of that sample.
+        phase = Signal(range(n))
+        slot = Signal(unsigned(ab))
+        busy = phase != 0
 
         capturing = state != ScopeState.IDLE
+        strobe = Signal()
         take = Signal()
         full = Signal()
         event = Signal()
         m.d.comb += [
-            take.eq(self.strobe & capturing & (dcount == 0) & ~self.arm),
+            strobe.eq(self.strobe & ~busy),
+            take.eq(strobe & capturing & (dcount == 0) & ~self.arm),
             full.eq(filled >= pre),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
-            self.done.eq(done),
+            self.done.eq(done & ~busy),
             self.pre_full.eq((state == ScopeState.PRE) & full),
         ]
 
-        # Sample word: each channel's selected source.
+        # Sample word: one multiplexer, the channel of this clock's source code, into every lane;
+        # only the lane of `phase` is written.
         names = self.source_names
+        sample = Signal(unsigned(self._width))
+        with m.Switch(sel[phase] if n > 1 else sel[0]):
+            for code, name in enumerate(names):
+                with m.Case(code):
+                    m.d.comb += sample.eq(self._aligned(name))
+        write = (take | busy) & ~self.arm
         for c in range(n):
-            with m.Switch(sel[c]):
-                for code, name in enumerate(names):
-                    with m.Case(code):
-                        m.d.comb += wr.data[c].eq(self._aligned(name))
-        m.d.comb += [wr.addr.eq(wr_ptr), wr.en.eq(take)]
+            m.d.comb += [wr.data[c].eq(sample), wr.en[c].eq(write & (phase == c))]
+        m.d.comb += wr.addr.eq(Mux(busy, slot, wr_ptr))
+        if n > 1:
+            with m.If(self.arm):
+                m.d.sync += phase.eq(0)
+            with m.Elif(take):
+                m.d.sync += [phase.eq(1), slot.eq(wr_ptr)]
+            with m.Elif(busy):
+                m.d.sync += phase.eq(Mux(phase == n - 1, 0, phase + 1))
 
         with m.If(self.arm):
             m.d.sync += [
@@ -260,7 +294,7 @@ class Scope(wiring.Component):
                 trig_src.eq(self.trig_src),
             ]
         with m.Else():
-            with m.If(self.strobe & capturing):
+            with m.If(strobe & capturing):
                 m.d.sync += dcount.eq(Mux(dcount >= decim, 0, dcount + 1))
             with m.If(take):
                 m.d.sync += wr_ptr.eq(wr_ptr + 1)

@@ -15,7 +15,8 @@ N_FS = 12 000 r/min is 0.0014 r/min).
     ff[n] = clamp(±F, lim_lo, lim_hi) if speed_ref ≷ R[n], else 0         Q1.15 of I_FS
     ref   = to_pi(R[n])                                          ref_delay = d + f/8 with d = 0
     ref   = a + round_shift(f·(b − a), 3),  a = to_pi(R[n−d]), b = to_pi(R[n−d−1])      (d ≥ 1)
-    kx    = 0 this run if int_hold and R[n] ≠ speed_ref          (integrator held while moving)
+    mv    = S ≠ 0 and (R[n−1] ≠ speed_ref or (d ≥ 1 and ref ≠ to_pi(R[n−1])))   ref moves
+    kx    = 0 this run if int_hold and mv                                   (integrator held)
     to_pi(x) = saturate(round_shift(x, speed_width − width), signed(width))    Q1.(width−1)
 
 While ``clear`` is high (not in SPEED mode) ``R`` and its history track the measured speed if
@@ -25,8 +26,10 @@ lies between ``a`` and ``b`` (``|round(f·Δ/8)| ≤ |Δ|`` for ``f ≤ 7``). ``
 PI compare the speed with the reference as the plant can follow it (the delay of the closed
 current loop and of the M/T average, about 2.5 … 3 runs at 10 kHz with the default tuning),
 while ``ff`` acts at once; ``int_hold`` keeps the integrator out of the acceleration, which ``ff``
-supplies. With ``ref_delay = 0`` and ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and
-``F = 0`` too, the loop has no profile.
+supplies, until the *delayed* reference has arrived (``mv``: the PI's reference still moves), so
+the lag of the plant behind the profile is never integrated. With ``ref_delay = 0`` and
+``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
+(``mv`` is then never set: no hold).
 
 Timing: a run compares ``speed_ref`` with bounds ``R ± S`` registered in the clock before from
 that clock's ``speed_slew``, and for ``d ≥ 1`` takes the interpolation registered in the clock
@@ -163,8 +166,9 @@ class SpeedLoop(wiring.Component):
         linearly between runs; integer part 0: ``ref_int`` itself (the fraction is ignored).
         A run uses the value of the clock before it (for ``d ≥ 1``).
     int_hold : In(1)
-        Hold the PI's integrator (its ``kx`` is 0) in runs whose ``ref_int`` has not reached
-        ``speed_ref``: the feed-forward supplies the acceleration.
+        Hold the PI's integrator (its ``kx`` is 0) in runs whose reference still moves
+        (``ref_int`` has not reached ``speed_ref``, or the delayed reference has not reached
+        ``ref_int``): the feed-forward supplies the acceleration.
     kp : In(kp_format.shape)
     kx : In(kx_format.shape)
     lim_lo, lim_hi : In(signed(16))
@@ -300,18 +304,6 @@ class SpeedLoop(wiring.Component):
         with m.Else():
             m.d.sync += [lo_b.eq(base - self.speed_slew), hi_b.eq(base + self.speed_slew)]
 
-        # Feed-forward and integrator hold of the run in flight (held until the next run).
-        # The feed-forward is clamped to the current limits, so lim − ff never leaves the PI's
-        # range in the direction that would let O + ff pass a limit.
-        ff = Signal(signed(IQ_WIDTH))
-        hold = Signal()
-        with m.If(self.clear):
-            m.d.sync += [ff.eq(0), hold.eq(0)]
-        with m.Elif(accept):
-            m.d.sync += [ff.eq(Mux(up | dn, clamp(Mux(up, self.iq_ff, -self.iq_ff),
-                                                  self.lim_lo, self.lim_hi), 0)),
-                         hold.eq(self.int_hold & (up | dn))]
-
         # Delayed reference: hist[k] = to_pi(R) k runs before the last; the interpolation for
         # the next run is registered in ``ref_pre`` (its inputs change only at runs and clear).
         d_int = self.ref_delay[DELAY_FRAC:]
@@ -338,6 +330,29 @@ class SpeedLoop(wiring.Component):
                 m.d.sync += [dst.eq(src) for dst, src in zip(hist, taps)]
             m.d.sync += ref_pre.eq(interp)
 
+        # The PI's reference this run, and whether it still moves (a profile only): R has not
+        # reached speed_ref before this run, or the delayed reference has not reached R
+        # (registers and inputs only: no comparison after the profile's multiplexer).
+        pi_ref = Signal(signed(w))
+        moving = Signal()
+        m.d.comb += [
+            pi_ref.eq(Mux(d_int == 0, to_pi(plan), ref_pre)),
+            moving.eq((self.speed_slew != 0)
+                      & ((ref_int != self.speed_ref) | ((d_int != 0) & (ref_pre != ref_pi)))),
+        ]
+
+        # Feed-forward and integrator hold of the run in flight (held until the next run).
+        # The feed-forward is clamped to the current limits, so lim − ff never leaves the PI's
+        # range in the direction that would let O + ff pass a limit.
+        ff = Signal(signed(IQ_WIDTH))
+        hold = Signal()
+        with m.If(self.clear):
+            m.d.sync += [ff.eq(0), hold.eq(0)]
+        with m.Elif(accept):
+            m.d.sync += [ff.eq(Mux(up | dn, clamp(Mux(up, self.iq_ff, -self.iq_ff),
+                                                  self.lim_lo, self.lim_hi), 0)),
+                         hold.eq(self.int_hold & moving)]
+
         # PI limits shifted by −ff (registered: the PI reads them from its third clock on).
         pi_lo = Signal(signed(w))
         pi_hi = Signal(signed(w))
@@ -348,7 +363,7 @@ class SpeedLoop(wiring.Component):
 
         m.d.comb += [
             pi.i.valid.eq(run),
-            pi.i.payload.ref.eq(Mux(d_int == 0, to_pi(plan), ref_pre)),
+            pi.i.payload.ref.eq(pi_ref),
             pi.i.payload.fb.eq(to_pi(self.i.payload.speed)),
             pi.kp.eq(self.kp),
             pi.kx.eq(Mux(hold, 0, self.kx)),

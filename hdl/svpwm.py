@@ -29,12 +29,12 @@ volt-seconds) is within one count of it; against the real-valued command add at 
 
 import math
 
-from amaranth.hdl import Assert, Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .fixed import round_shift, saturate
+from .dsp import partial_products, partial_sum, saturate_bits
 
 __all__ = ["svpwm_constants", "SVPWM", "DCBusCompensation", "PWMTimer", "pwm_half_period"]
 
@@ -92,6 +92,25 @@ class SVPWM(wiring.Component):
     (rounded half away from zero to ``F = frac + 8`` fractional bits) and the final division
     (rounded half up to a count).
 
+    **Pipeline** (one carry chain or one multiplier per clock, for 100 MHz on an ECP5). With
+    ``T = |S|``, ``max(q) = max(A, T)`` and ``min(q) = min(A, −T)``, so ``spread`` and
+    ``max + min`` are selected from the four sums ``±A ± S`` by three sign bits instead of being
+    computed after the comparisons. In the linear range (``D = 2**F``) the division by ``2·D`` is
+    a shift: ``count_x = (scale·N_x + 2**F) >> (F + 1)``. Over-modulating (``D = spread``) the
+    largest phase has ``N_x = 2·D`` (``count = scale``) and the smallest ``N_x = 0``
+    (``count = 0``): only the middle phase divides, on one restoring divider of radix
+    ``2**radix_bits``. The result waits for the division in both cases (constant latency)::
+
+        clock  1  A = α·2**8, partial products of β·k          (k = round(2**(8 + k_frac)/√3))
+               2  S = round_shift(β·k, k_frac)
+               3  −S, A + S, A − S, S − A, −A − S
+               4  spread, max + min, overmod (selected by the signs of S, A − T, −A − T)
+               5  D = overmod ? spread : 2**F;  N_x = D + 2·q_x − max − min
+               6  partial products of scale·N_x; N_x = 0 / N_x = 2·D; j·2·D for the divider
+               7  x_x = scale·N_x + D; duties: linear x_x >> (F + 1), extremes 0 / scale
+               8 … 7 + ⌈cw / radix_bits⌉   division of the middle phase's x by 2·D, its
+                                          quotient into its duty (all duties registered)
+
     Parameters
     ----------
     width : int
@@ -103,6 +122,9 @@ class SVPWM(wiring.Component):
         whose LSB is the input's.
     count_width : int
         Width ``cw`` of the scale and of the duties, 4 … 24 bits.
+    radix_bits : int
+        Quotient bits per clock of the over-modulation divider, 1 … 4 (radix 2 … 16; radix
+        ``2**r`` compares with ``2**r − 1`` multiples of the divisor in parallel).
 
     Members
     -------
@@ -118,10 +140,9 @@ class SVPWM(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from the transfer on ``i`` to ``o.valid``: ``count_width + 3`` (one per duty bit,
-        three for the arithmetic before the division), whatever the command. The block is idle
-        again the clock after ``o`` is taken: one command per ``latency + 1`` clocks (20 at
-        ``count_width = 16``; a 10 kHz period at 50 MHz is 5000 clocks, 1 MHz at 33.333 MHz 34).
+        Clocks from the transfer on ``i`` to ``o.valid``: ``7 + ⌈count_width / radix_bits⌉``
+        (15 at ``count_width = 16``, ``radix_bits = 2``), whatever the command. The block is idle
+        again the clock after ``o`` is taken: one command per ``latency + 1`` clocks.
     frac : int
         ``F``, fractional bits of the internal phase voltages (``1.0 = 2**F``).
     in_frac : int
@@ -133,9 +154,13 @@ class SVPWM(wiring.Component):
         A width of the wrong type or outside its range.
     """
 
-    def __init__(self, *, width=16, frac=None, count_width=16):
+    #: Clocks before the division (clock 7 above holds x_x).
+    PREPARE = 7
+
+    def __init__(self, *, width=16, frac=None, count_width=16, radix_bits=2):
         _check_width("SVPWM", "width", width, 8, 24)
         _check_width("SVPWM", "count_width", count_width, 4, 24)
+        _check_width("SVPWM", "radix_bits", radix_bits, 1, 4)
         if frac is None:
             frac = width - 1
         if not isinstance(frac, int) or isinstance(frac, bool) or frac not in (width - 2,
@@ -144,6 +169,7 @@ class SVPWM(wiring.Component):
                             f"({width - 1}), not {frac!r}")
         self._width = width
         self._count_width = count_width
+        self._radix_bits = radix_bits
         self._int_bits = width - frac           # 1: Q1.(w−1), 2: Q2.(w−2)
         self._frac, self._k_frac, self._k = svpwm_constants(width, frac)
         out = data.StructLayout({"a": unsigned(count_width), "b": unsigned(count_width),
@@ -156,95 +182,178 @@ class SVPWM(wiring.Component):
 
     width = property(lambda self: self._width)
     count_width = property(lambda self: self._count_width)
+    radix_bits = property(lambda self: self._radix_bits)
     frac = property(lambda self: self._frac)
     in_frac = property(lambda self: self._frac - SVPWM_GUARD_BITS)
 
     @property
+    def divide_steps(self):
+        """Clocks of the over-modulation division, ``⌈count_width / radix_bits⌉``."""
+        return -(-self._count_width // self._radix_bits)
+
+    @property
     def latency(self):
-        return self._count_width + 3
+        return self.PREPARE + self.divide_steps
 
     def elaborate(self, platform):
         m = Module()
-        F, cw = self._frac, self._count_width
+        F, cw, r = self._frac, self._count_width, self._radix_bits
         # G integer bits of the input (sign included): |u| ≤ 2**(G−1) (2**(F+G−1) internally).
         G = self._int_bits
+        W = F + G + 1               # A, S, their sums, N_x ∈ [0, 2·D], 2·D: all fit W bits
         one = 1 << F
+        kf = self._k_frac
         phases = "abc"
+        steps = self.divide_steps
+        nq = r * steps              # quotient bits the divider produces (≥ cw)
+        lat = self.latency
 
-        # Stage 1: A = u_α·2**8, S = u_β/√3 (|A| ≤ 2**(F+G−1), |S| < 2**(F+G−1) / √3 + 1).
-        a1 = Signal(signed(F + G + 1))
-        s1 = Signal(signed(F + G + 1))
+        # Sequencing: clock 0 takes the command, stage k's registers load in clock k − 1.
+        cyc = Signal(range(lat + 1))
+        take = self.i.valid & self.i.ready
+        m.d.comb += [self.i.ready.eq(cyc == 0), self.o.valid.eq(cyc == lat)]
+        with m.If(take):
+            m.d.sync += cyc.eq(1)
+        with m.Elif((cyc != 0) & (cyc != lat)):
+            m.d.sync += cyc.eq(cyc + 1)
+        with m.Elif(self.o.valid & self.o.ready):
+            m.d.sync += cyc.eq(0)
+
+        # 1: A (as u_α), partial products of u_β·k, the rounding's sign.
+        alpha1 = Signal(signed(self._width))
+        neg1 = Signal()
         scale = Signal(unsigned(cw))
-        # Stage 2: max, min, D = max(spread, 1) < 2**(F+G).
-        q2 = {p: Signal(signed(F + G + 1), name=f"q2_{p}") for p in phases}
-        mx2 = Signal(signed(F + G + 1))
-        mn2 = Signal(signed(F + G + 1))
-        d2 = Signal(unsigned(F + G))
-        om2 = Signal()
-        # Division: remainder (< 2·D), low dividend bits shifting out / quotient bits shifting in.
-        div = Signal(unsigned(F + G + 1))       # 2·D
-        rem = {p: Signal(unsigned(F + G + 1), name=f"rem_{p}") for p in phases}
-        low = {p: Signal(unsigned(cw), name=f"low_{p}") for p in phases}
-        count = Signal(range(cw))
+        k = Const(self._k, unsigned(self._k.bit_length()))
+        pp1 = []
+        for n, (p, s) in enumerate(partial_products(self.i.payload.beta, k)):
+            reg = Signal(p.shape(), name=f"pp_s{n}")
+            pp1.append((reg, s))
+            with m.If(take):
+                m.d.sync += reg.eq(p)
+        with m.If(take):
+            m.d.sync += [alpha1.eq(self.i.payload.alpha), neg1.eq(self.i.payload.beta[-1]),
+                         scale.eq(self.scale)]
 
-        with m.FSM():
-            with m.State("IDLE"):
-                m.d.comb += self.i.ready.eq(1)
-                with m.If(self.i.valid):
-                    m.d.sync += [
-                        a1.eq(self.i.payload.alpha << SVPWM_GUARD_BITS),
-                        s1.eq(round_shift(self.i.payload.beta * self._k, self._k_frac)),
-                        scale.eq(self.scale),
-                    ]
-                    m.next = "EXTREMES"
+        # 2: S = round_shift(u_β·k, k_frac), half away from zero (k > 0: sign(β·k) = sign(β)).
+        a2 = Signal(signed(W))
+        s2 = Signal(signed(W))
+        with m.If(cyc == 1):
+            m.d.sync += [
+                a2.eq(alpha1 << SVPWM_GUARD_BITS),
+                s2.eq((partial_sum(pp1) + (1 << (kf - 1)) - neg1) >> kf),
+            ]
 
-            with m.State("EXTREMES"):
-                q = {"a": a1, "b": s1, "c": -s1}
-                # max(q) and min(q): S and −S order themselves by the sign of S.
-                hi_bc = Mux(s1[-1], -s1, s1)
-                lo_bc = Mux(s1[-1], s1, -s1)
-                mx = Mux(a1 > hi_bc, a1, hi_bc)
-                mn = Mux(a1 < lo_bc, a1, lo_bc)
-                spread = mx - mn
-                m.d.sync += [
-                    mx2.eq(mx), mn2.eq(mn),
-                    d2.eq(Mux(spread > one, spread, one)),
-                    om2.eq(spread > one),
-                ]
-                m.d.sync += [q2[p].eq(q[p]) for p in phases]
-                m.next = "PREPARE"
+        # 3: the four sums ±A ± S and −S.
+        a3, s3, ns3 = (Signal(signed(W), name=n) for n in ("a3", "s3", "ns3"))
+        up3, um3, nup3, num3 = (Signal(signed(W), name=n) for n in ("up3", "um3", "nup3", "num3"))
+        with m.If(cyc == 2):
+            m.d.sync += [a3.eq(a2), s3.eq(s2), ns3.eq(-s2),
+                         up3.eq(a2 + s2), um3.eq(a2 - s2), nup3.eq(-a2 - s2), num3.eq(s2 - a2)]
 
-            with m.State("PREPARE"):
-                m.d.sync += div.eq(d2 << 1)
-                for p in phases:
-                    n_x = (d2 + (q2[p] << 1) - mx2 - mn2).as_unsigned()[:F + G + 1]  # [0, 2·D]
-                    x = scale * n_x + d2                        # < 2·D·2**cw
-                    m.d.sync += [rem[p].eq(x >> cw), low[p].eq(x[:cw])]
-                m.d.sync += count.eq(cw - 1)
-                m.next = "DIVIDE"
+        # 4: T = |S|; case 1 A ≥ T: max = A, min = −T; case 2 A ≤ −T: max = T, min = A;
+        # else max = T, min = −T. The phases holding the max, the min and the middle (with S
+        # and −S ordered by the sign of S); on a tie any choice is right, see 7.
+        neg = s3[-1]
+        t = Mux(neg, ns3, s3)
+        u = Mux(neg, um3, up3)              # A + T
+        v = Mux(neg, up3, um3)              # A − T
+        nv = Mux(neg, nup3, num3)           # T − A
+        nu = Mux(neg, num3, nup3)           # −A − T
+        case1 = ~v[-1]
+        case2 = ~nu[-1] & ~case1
+        case3 = ~case1 & ~case2
+        hi_bc = {"b": ~neg, "c": neg}       # the phase of T among b (S) and c (−S)
+        q4 = {p: Signal(signed(W), name=f"q4_{p}") for p in phases}
+        spread4 = Signal(unsigned(W - 1))
+        sum4 = Signal(signed(W))            # max(q) + min(q)
+        om4 = Signal()
+        top4 = {p: Signal(name=f"max4_{p}") for p in phases}
+        mid4 = {p: Signal(name=f"mid4_{p}") for p in phases}
+        with m.If(cyc == 3):
+            m.d.sync += [
+                q4["a"].eq(a3), q4["b"].eq(s3), q4["c"].eq(ns3),
+                spread4.eq(Mux(case1, u, Mux(case2, nv, t << 1))),
+                sum4.eq(Mux(case1, v, Mux(case2, u, 0))),
+                om4.eq(Mux(case1, u > one, Mux(case2, nv > one, (t << 1) > one))),
+                top4["a"].eq(case1), mid4["a"].eq(case3),
+            ]
+            for p in "bc":                  # case 1: min −T; case 2: max T; case 3: mid A
+                m.d.sync += [top4[p].eq(~case1 & hi_bc[p]),
+                             mid4[p].eq((case1 & hi_bc[p]) | (case2 & ~hi_bc[p]))]
 
-            with m.State("DIVIDE"):
-                for p in phases:
-                    trial = Cat(low[p][-1], rem[p])             # 2·rem + next bit < 4·D
-                    fits = trial >= div
-                    m.d.sync += [
-                        rem[p].eq(Mux(fits, trial - div, trial)[:F + G + 1]),
-                        low[p].eq(Cat(fits, low[p][:-1])),
-                    ]
-                m.d.sync += count.eq(count - 1)
-                with m.If(count == 0):
-                    m.next = "DONE"
+        # 5: D and the numerators N_x = D + 2·q_x − max − min ∈ [0, 2·D]. Over-modulating,
+        # lane a computes the middle phase's numerator instead of phase a's: the extremes need
+        # none (7) and the divider then always takes lane a.
+        d5 = Signal(unsigned(W - 1))
+        om = Signal()
+        top = {p: Signal(name=f"max_{p}") for p in phases}
+        mid = {p: Signal(name=f"mid_{p}") for p in phases}
+        n5 = {p: Signal(unsigned(W), name=f"n5_{p}") for p in phases}
+        d = Mux(om4, spread4, one)
+        q_lane = {"a": Mux(om4 & mid4["b"], q4["b"], Mux(om4 & mid4["c"], q4["c"], q4["a"])),
+                  "b": q4["b"], "c": q4["c"]}
+        with m.If(cyc == 4):
+            m.d.sync += [d5.eq(d), om.eq(om4)]
+            m.d.sync += [n5[p].eq((d + (q_lane[p] << 1) - sum4)[:W]) for p in phases]
+            m.d.sync += [top[p].eq(top4[p]) for p in phases]
+            m.d.sync += [mid[p].eq(mid4[p]) for p in phases]
 
-            with m.State("DONE"):
-                m.d.comb += self.o.valid.eq(1)
-                for p in phases:
-                    m.d.comb += [
-                        self.o.payload[p].eq(low[p]),
-                        Assert(low[p] <= scale, "SVPWM duty above the full scale"),
-                    ]
-                m.d.comb += self.o.payload.overmod.eq(om2)
-                with m.If(self.o.ready):
-                    m.next = "IDLE"
+        # 6: partial products of scale·N_x; multiples of 2·D.
+        d6 = Signal(unsigned(W - 1))
+        mult = [None] + [Signal(unsigned(W + r), name=f"div_m{j}") for j in range(1, 1 << r)]
+        pp6 = {}
+        with m.If(cyc == 5):
+            m.d.sync += d6.eq(d5)
+            for p in phases:
+                pp6[p] = []
+                for n, (prod, s) in enumerate(partial_products(scale, n5[p])):
+                    reg = Signal(prod.shape(), name=f"pp_{p}{n}")
+                    pp6[p].append((reg, s))
+                    m.d.sync += reg.eq(prod)
+            for j in range(1, 1 << r):     # shifts and adds (a constant product takes a DSP)
+                m.d.sync += mult[j].eq(sum(d5 << (1 + b) for b in range(r) if j >> b & 1))
+
+        # 7: x_x = scale·N_x + D < 2·D·2**cw. Linear range: the duty is x_x >> (F + 1).
+        # Over-modulating (D = spread), the max phase has N = 2·D: its duty is scale; the min
+        # phase N = 0: duty 0; the middle phase divides (any N ∈ [0, 2·D] gives the right duty
+        # through the division, so on a tie any choice of max/min/middle is right). Lane a's x
+        # (the middle phase's when over-modulating) goes to the divider: remainder x >> nq
+        # (< 2·D) and low bits, which shift out as the quotient bits shift in.
+        duty = {p: Signal(unsigned(cw), name=f"duty_{p}") for p in phases}
+        rem = Signal(unsigned(W))
+        low = Signal(unsigned(nq))
+        with m.If(cyc == 6):
+            for p in phases:
+                lin = (partial_sum(pp6[p]) + d6)[F + 1:F + 1 + cw]
+                m.d.sync += duty[p].eq(Mux(om, Mux(top[p], scale, 0), lin))
+            m.d.sync += Cat(low, rem).eq(partial_sum(pp6["a"]) + d6)
+
+        # 8 …: restoring division by 2·D, radix 2**r; the last step also writes the quotient
+        # into the middle phase's duty.
+        trial = Cat(low[nq - r:], rem)                              # < 2**r · 2·D
+        val = trial
+        digit = 0
+        for j in range(1, 1 << r):
+            diff = Signal(signed(W + r + 1), name=f"div_d{j}")
+            m.d.comb += diff.eq(trial - mult[j])
+            fits = ~diff[-1]                # multiples increase with j: a thermometer code
+            val = Mux(fits, diff, val)
+            digit = digit + fits
+        low_next = Cat(Value.cast(digit)[:r], low[:nq - r])
+        with m.If((cyc >= self.PREPARE) & (cyc < lat)):
+            m.d.sync += [rem.eq(val[:W]), low.eq(low_next)]
+        with m.If((cyc == lat - 1) & om):
+            for p in phases:
+                with m.If(mid[p]):
+                    m.d.sync += duty[p].eq(low_next[:cw])
+
+        # Output: the duty registers.
+        for p in phases:
+            m.d.comb += [
+                self.o.payload[p].eq(duty[p]),
+                Assert(~self.o.valid | (duty[p] <= scale), "SVPWM duty above the full scale"),
+            ]
+        m.d.comb += self.o.payload.overmod.eq(om)
         return m
 
 
@@ -282,7 +391,8 @@ class DCBusCompensation(wiring.Component):
         Bus-voltage measurements. The latest one is kept if the divider is busy.
     i : In(stream.Signature(data.StructLayout({"alpha", "beta": signed(w)})))
     o : Out(stream.Signature(data.StructLayout({"alpha", "beta": signed(out_width)})))
-        One clock after each transfer on ``i`` (``i.ready = ~o.valid | o.ready``).
+        :attr:`latency` clocks after each transfer on ``i``; a two-stage pipeline that moves
+        while ``i.ready = ~o.valid | o.ready``.
     gain : Out(unsigned(18))
         Gain in force, UQ2.16.
     limited : Out(1)
@@ -291,7 +401,8 @@ class DCBusCompensation(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from a transfer on ``i`` to ``o.valid``: 1.
+        Clocks from a transfer on ``i`` to ``o.valid``: 2 (the partial products of ``u · gain``
+        registered, then their sum rounded and saturated: 100 MHz on an ECP5).
     gain_latency : int
         Clocks from a ``u_dc`` transfer (divider idle) until ``gain`` holds its result:
         ``divider.latency + 2``: one clock into the pending register, the division, one into
@@ -309,7 +420,7 @@ class DCBusCompensation(wiring.Component):
         ``out_width`` other than ``width`` or ``width + 1``; ``gain_limit`` outside [1, 4).
     """
 
-    latency = 1
+    latency = 2
     gain_frac = 16
 
     def __init__(self, *, width=16, out_width=None, adc_width=16, gain_limit=2.0):
@@ -381,14 +492,27 @@ class DCBusCompensation(wiring.Component):
                 self.limited.eq(over),
             ]
 
-        # Commands: one register stage.
+        # Commands, two register stages: partial products of u·gain, then rounded and saturated.
         m.d.comb += self.i.ready.eq(~self.o.valid | self.o.ready)
+        valid1 = Signal()
+        parts = {}
         with m.If(self.i.ready):
-            m.d.sync += self.o.valid.eq(self.i.valid)
-            with m.If(self.i.valid):
-                for f in ("alpha", "beta"):
-                    m.d.sync += self.o.payload[f].eq(saturate(
-                        round_shift(self.i.payload[f] * self.gain, gf), signed(self._out_width)))
+            m.d.sync += [valid1.eq(self.i.valid), self.o.valid.eq(valid1)]
+        for f in ("alpha", "beta"):
+            neg = Signal(name=f"neg_{f}")
+            parts[f] = []
+            for n, (prod, s) in enumerate(partial_products(self.i.payload[f], self.gain)):
+                reg = Signal(prod.shape(), name=f"pp_{f}{n}")
+                parts[f].append((reg, s))
+                with m.If(self.i.ready & self.i.valid):
+                    m.d.sync += reg.eq(prod)
+            with m.If(self.i.ready & self.i.valid):
+                m.d.sync += neg.eq(self.i.payload[f][-1])
+            # round_shift(u·gain, gf): the product's sign is u's (gain ≥ 0; 0 rounds to 0).
+            rounded = (partial_sum(parts[f]) + (1 << (gf - 1)) - neg) >> gf
+            with m.If(self.i.ready & valid1):
+                m.d.sync += self.o.payload[f].eq(
+                    saturate_bits(rounded, signed(self._out_width)))
         return m
 
 

@@ -5,7 +5,8 @@
 
     uart_rx/tx ─ HostLink ─ bus ─ RegisterFile ─ (every register ↔ its block port)
     enc_a/b/z, hall ─ EncoderFrontEnd (own 2-flop sync + filter) ─ θ_e, count, a_rise ─ MTSpeed
-    PWMTimer ─ sample ─ AdcInterface (adc_cs_n, adc_sclk, adc_sdo) ─ CurrentLoop ─ duties ─ PWMTimer
+    PWMTimer ─ sample ─ AdcInterface (adc_cs_n, adc_sclk, adc_sdo) ─ CurrentLoop ─ duties ─
+        DeadTimeComp (+ trapezoid of CurrentLoop.phase, combinational) ─ PWMTimer
     PWMTimer.pwm ─ Gates (dead time, enable = Servo.enable, trip) ─ gate_h, gate_l
     fault_n, oc_comp ─ FFSynchronizer (2 flops) ─ Protection ─ trip ─ Gates, Servo
     EncoderFrontEnd illegal, hall_fault, plausibility (encoder/Hall check) ─ Protection
@@ -29,10 +30,10 @@ the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. Th
 from the next period boundary (T/2 after a centred sample) for one period, so their mean is
 ``t_lead = 1/pwm_hz`` after the sample (``host.tuning.lead_angle``). ``θ_lead`` is computed from
 each M/T result (``mt.o.valid``, after the register commit of the same period start) and is
-ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (86 at 50 MHz); a
+ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (55 at 50 MHz); a
 sample taken earlier uses the previous period's value.
 
-**Status.** Besides the blocks' own outputs, the top keeps wrapping 32-bit counters of current-
+**Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
@@ -53,6 +54,7 @@ from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
 from .adc import AdcInterface
+from .deadtime_comp import DeadTimeComp
 from .encoder import EncoderFrontEnd
 from .fixed import round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
@@ -173,7 +175,8 @@ class Top(wiring.Component):
     sclk_hz : float
         Highest ADC SCLK frequency (:class:`~.adc.AdcInterface`).
     max_words : int
-        Longest host-link burst (:class:`~.hostlink.HostLink`).
+        Longest host-link burst (:class:`~.hostlink.HostLink`); PING reports it and the host
+        library splits longer transfers. 16 (was 64: −80 LUT4 of frame buffer addressing).
     resets : mapping of str to int, optional
         Reset (power-up) values of ``rw`` registers, raw, e.g. ``{"theta_lead": 5243}``: a build
         that starts with tuned gains, or a simulation that starts configured without host writes.
@@ -226,7 +229,7 @@ class Top(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
-                 sclk_hz=25e6, max_words=64, resets=None):
+                 sclk_hz=25e6, max_words=16, resets=None):
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
             if not _is_hz(value):
@@ -291,6 +294,9 @@ class Top(wiring.Component):
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
         self._loop = CurrentLoop(count_width=COUNT_WIDTH)
+        self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
+                                 clocks_width=regmap["dtc_clocks"].width,
+                                 shift_width=regmap["dtc_band"].width)
         self._encoder = EncoderFrontEnd()
         self._mt = MTSpeed(clk_hz=clk_hz)
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
@@ -332,6 +338,7 @@ class Top(wiring.Component):
         m.submodules.timer = timer = self._timer
         m.submodules.adc = adc = self._adc
         m.submodules.current_loop = cl = self._loop
+        m.submodules.dtc = dtc = self._dtc
         m.submodules.encoder = enc = self._encoder
         m.submodules.mt_speed = mt = self._mt
         m.submodules.servo = servo = self._servo
@@ -362,8 +369,14 @@ class Top(wiring.Component):
         # --- data path ----------------------------------------------------------------------
         wiring.connect(m, link=link.bus, regs=regs.bus)
         wiring.connect(m, adc=adc.o, current_loop=cl.i)
-        wiring.connect(m, current_loop=cl.o, timer=timer.duty)
+        # Dead-time compensation between the duties and the timer's shadow register (no added
+        # latency); its currents (Clarke) must be ready before this sample's duties.
+        assert cl.stage_latency["clarke"] + dtc.comp_latency < cl.latency
+        wiring.connect(m, current_loop=cl.o, dtc=dtc.i)
+        wiring.connect(m, dtc=dtc.o, timer=timer.duty)
         wiring.connect(m, current_loop=cl.phase, protect=prot.i)
+        m.d.comb += [dtc.phase.valid.eq(cl.phase.valid),        # fan-out (always ready)
+                     dtc.phase.payload.eq(cl.phase.payload)]
         wiring.connect(m, current_loop=cl.udc, protect=prot.udc)
         speed = mt.o.payload.speed
         m.d.comb += [
@@ -440,6 +453,10 @@ class Top(wiring.Component):
             timer.sample_custom.eq(regs.pwm_sample_custom),
             timer.sample_point.eq(regs.pwm_sample_point),
             gates.dead_time.eq(regs.dead_time),
+            dtc.scale.eq(timer.full_scale),
+            dtc.symmetric.eq(regs.pwm_symmetric),
+            dtc.clocks.eq(regs.dtc_clocks),
+            dtc.shift.eq(regs.dtc_band),
 
             servo.speed_kp.eq(regs.pi_speed_kp),
             servo.speed_kx.eq(regs.pi_speed_kx),
@@ -508,9 +525,9 @@ class Top(wiring.Component):
         ]
 
         # --- status registers ---------------------------------------------------------------
-        speed_loops = Signal(32)
-        overruns = Signal(32)
-        adc_overruns = Signal(32)
+        speed_loops = Signal(16)
+        overruns = Signal(16)
+        adc_overruns = Signal(16)
         with m.If(servo.speed_valid):
             m.d.sync += speed_loops.eq(speed_loops + 1)     # wraps, as documented
         with m.If(cl.overrun):
@@ -550,7 +567,7 @@ class Top(wiring.Component):
             regs.st_u_d.eq(cl.u_d), regs.st_u_q.eq(cl.u_q),
             regs.st_u_alpha.eq(cl.u_alpha), regs.st_u_beta.eq(cl.u_beta),
             regs.st_udc.eq(adc.o.payload.udc),
-            regs.st_current_loops.eq(cl.count),
+            regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
             regs.st_speed_loops.eq(speed_loops),
             regs.st_overruns.eq(overruns),
             regs.st_adc_overruns.eq(adc_overruns),

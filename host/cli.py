@@ -183,6 +183,27 @@ def cmd_build(args):
           progress=not args.quiet, json=args.json)
 
 
+def cmd_fmax(args):
+    from ..boards.fmax import fmax_block, fmax_catalog
+    blocks = fmax_catalog()
+    names = args.block or [n for n in blocks if n != "top"]
+    unknown = [n for n in names if n not in blocks]
+    if unknown:
+        raise SystemExit(f"foc-servo fmax: unknown block {unknown[0]!r}; "
+                         f"choose from {', '.join(blocks)}")
+    results, lines = {}, []
+    for name in names:
+        keep = Path(args.out) / name if args.out else None
+        r = results[name] = fmax_block(name, freq_mhz=args.freq_mhz, seed=args.seed,
+                                       keep_dir=keep, progress=not args.quiet)
+        cp = r["critical_path"] or {}
+        lines.append(f"{name:<10} {r['fmax_mhz'] or 0:7.2f} MHz  ({r['wall_s']:.0f} s)  "
+                     f"{cp.get('from')} → {cp.get('to')}: {cp.get('delay_ns')} ns, "
+                     f"{cp.get('logic_levels')} levels")
+    doc = results[names[0]] if len(names) == 1 else {"blocks": results}
+    emit(doc, lines, args.json)
+
+
 def build_parser():
     parser = argparse.ArgumentParser(
         prog="foc-servo",
@@ -219,6 +240,21 @@ def build_parser():
     p.add_argument("--json", action="store_true",
                    help="print the figures as one JSON object on the last line")
     p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("fmax", help="ECP5-85F Fmax of one block alone (yosys synth_ecp5 + "
+                                    "nextpnr-ecp5, ports registered): Fmax and critical path")
+    p.add_argument("--block", action="append",
+                   help="catalogue block or uart_rx / uart_tx (repeatable; default: every block "
+                        "but the top)")
+    p.add_argument("--freq-mhz", type=float, default=100.0,
+                   help="clock constraint for nextpnr, MHz (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=1, help="nextpnr seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="keep netlists, logs and reports in OUT/BLOCK")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--json", action="store_true",
+                   help="print the figures as one JSON object on the last line (one block: its "
+                        "figures, fmax_mhz and critical_path.from/to; several: under 'blocks')")
+    p.set_defaults(func=cmd_fmax)
 
     p = sub.add_parser("prove", help="SymbiYosys safety proofs (k-induction, yices): dead time, "
                                      "fault → gates off, PI limits, host-link writes")

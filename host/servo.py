@@ -612,8 +612,9 @@ class Servo:
     def tune(self, motor, *, current_bandwidth_hz=None, speed_a=3.0, dry_run=False, **kw):
         """PI gains for ``motor`` (:class:`~foc_servo.sim.motor.MotorParams`) by the rule of
         :func:`foc_servo.host.tuning.tune`, with the drive's scales, ``u_rated`` and
-        ``speed_div``, and the feed-forward (decoupling, ``theta_lead``; ``feedforward=False``
-        in ``kw`` leaves them alone); written in one burst unless ``dry_run``.
+        ``speed_div``, and the feed-forward (decoupling, ``theta_lead``, dead-time compensation
+        for the drive's ``dead_time`` register; ``feedforward=False`` in ``kw`` leaves them
+        alone); written in one burst unless ``dry_run``.
 
         Parameters
         ----------
@@ -629,8 +630,9 @@ class Servo:
         Tuning
         """
         from .tuning import tune
-        v = self.get_many(["u_rated", "speed_div"])
+        v = self.get_many(["u_rated", "speed_div", "dead_time"])
         bw = None if current_bandwidth_hz is None else 2 * math.pi * current_bandwidth_hz
+        kw.setdefault("dead_time_s", v["dead_time"])    # compensate the drive's own dead time
         try:
             result = tune(motor, scales=self.scales, u_rated_v=v["u_rated"],
                           speed_div=max(v["speed_div"], 1), current_bandwidth_rad_s=bw,

@@ -8,8 +8,8 @@
 #define FOC_SERVO_REGS_H
 
 #define FOC_MAGIC 0x464F4353u
-#define FOC_MAP_VERSION 0x00020001u
-#define FOC_MAP_HASH 0x71E8FEE6u
+#define FOC_MAP_VERSION 0x00020002u
+#define FOC_MAP_HASH 0x1F4E7B9Bu
 
 #define FOC_ACCESS_RW 0
 #define FOC_ACCESS_RO 1
@@ -32,7 +32,7 @@
 #define FOC_ID_VERSION_FRAC 0
 #define FOC_ID_VERSION_SIGNED 0
 #define FOC_ID_VERSION_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_VERSION_RESET 0x20001u
+#define FOC_ID_VERSION_RESET 0x20002u
 
 /* id_map_hash: CRC-32 of the register map layout (host and gateware must agree). uint32 */
 #define FOC_ID_MAP_HASH_ADDR 0x0002u
@@ -41,7 +41,7 @@
 #define FOC_ID_MAP_HASH_FRAC 0
 #define FOC_ID_MAP_HASH_SIGNED 0
 #define FOC_ID_MAP_HASH_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_MAP_HASH_RESET 0x71e8fee6u
+#define FOC_ID_MAP_HASH_RESET 0x1f4e7b9bu
 
 /* id_clk_hz: system clock frequency clk_hz. uint32 [Hz] */
 #define FOC_ID_CLK_HZ_ADDR 0x0003u
@@ -373,6 +373,24 @@
 #define FOC_DEAD_TIME_SIGNED 0
 #define FOC_DEAD_TIME_ACCESS FOC_ACCESS_RW
 #define FOC_DEAD_TIME_RESET 0x32u
+
+/* dtc_clocks: dead-time compensation: high time added per period beyond the band, the effective dead time max(dead_time, 1) (0: off). uint8 * 1/clk_hz [s] */
+#define FOC_DTC_CLOCKS_ADDR 0x0184u
+#define FOC_DTC_CLOCKS_WORDS 1u
+#define FOC_DTC_CLOCKS_WIDTH 8u
+#define FOC_DTC_CLOCKS_FRAC 0
+#define FOC_DTC_CLOCKS_SIGNED 0
+#define FOC_DTC_CLOCKS_ACCESS FOC_ACCESS_RW
+#define FOC_DTC_CLOCKS_RESET 0x0u
+
+/* dtc_band: dead-time compensation slope shift: linear up to |i| = dtc_clocks · 2^dtc_band current LSB (I_FS/32768), saturated beyond. uint4 */
+#define FOC_DTC_BAND_ADDR 0x0185u
+#define FOC_DTC_BAND_WORDS 1u
+#define FOC_DTC_BAND_WIDTH 4u
+#define FOC_DTC_BAND_FRAC 0
+#define FOC_DTC_BAND_SIGNED 0
+#define FOC_DTC_BAND_ACCESS FOC_ACCESS_RW
+#define FOC_DTC_BAND_RESET 0x4u
 
 /* pi_speed_kp: speed PI proportional gain K_p (per unit: I_FS per N_FS). UQ12.12 [pu] */
 #define FOC_PI_SPEED_KP_ADDR 0x0200u
@@ -800,37 +818,37 @@
 #define FOC_ST_UDC_ACCESS FOC_ACCESS_RO
 #define FOC_ST_UDC_RESET 0
 
-/* st_current_loops: current-loop computations since reset (wraps). uint32 [counts] */
+/* st_current_loops: current-loop computations since reset (wraps at 2^16). uint16 [counts] */
 #define FOC_ST_CURRENT_LOOPS_ADDR 0x0418u
 #define FOC_ST_CURRENT_LOOPS_WORDS 1u
-#define FOC_ST_CURRENT_LOOPS_WIDTH 32u
+#define FOC_ST_CURRENT_LOOPS_WIDTH 16u
 #define FOC_ST_CURRENT_LOOPS_FRAC 0
 #define FOC_ST_CURRENT_LOOPS_SIGNED 0
 #define FOC_ST_CURRENT_LOOPS_ACCESS FOC_ACCESS_RO
 #define FOC_ST_CURRENT_LOOPS_RESET 0x0u
 
-/* st_speed_loops: speed-loop computations since reset (wraps). uint32 [counts] */
+/* st_speed_loops: speed-loop computations since reset (wraps at 2^16). uint16 [counts] */
 #define FOC_ST_SPEED_LOOPS_ADDR 0x0419u
 #define FOC_ST_SPEED_LOOPS_WORDS 1u
-#define FOC_ST_SPEED_LOOPS_WIDTH 32u
+#define FOC_ST_SPEED_LOOPS_WIDTH 16u
 #define FOC_ST_SPEED_LOOPS_FRAC 0
 #define FOC_ST_SPEED_LOOPS_SIGNED 0
 #define FOC_ST_SPEED_LOOPS_ACCESS FOC_ACCESS_RO
 #define FOC_ST_SPEED_LOOPS_RESET 0x0u
 
-/* st_overruns: ADC samples arriving while the current loop was busy (wraps). uint32 [counts] */
+/* st_overruns: ADC samples arriving while the current loop was busy (wraps at 2^16). uint16 [counts] */
 #define FOC_ST_OVERRUNS_ADDR 0x041Au
 #define FOC_ST_OVERRUNS_WORDS 1u
-#define FOC_ST_OVERRUNS_WIDTH 32u
+#define FOC_ST_OVERRUNS_WIDTH 16u
 #define FOC_ST_OVERRUNS_FRAC 0
 #define FOC_ST_OVERRUNS_SIGNED 0
 #define FOC_ST_OVERRUNS_ACCESS FOC_ACCESS_RO
 #define FOC_ST_OVERRUNS_RESET 0x0u
 
-/* st_adc_overruns: ADC sample strobes dropped because a conversion was in progress (wraps). uint32 [counts] */
+/* st_adc_overruns: ADC sample strobes dropped because a conversion was in progress (wraps at 2^16). uint16 [counts] */
 #define FOC_ST_ADC_OVERRUNS_ADDR 0x041Bu
 #define FOC_ST_ADC_OVERRUNS_WORDS 1u
-#define FOC_ST_ADC_OVERRUNS_WIDTH 32u
+#define FOC_ST_ADC_OVERRUNS_WIDTH 16u
 #define FOC_ST_ADC_OVERRUNS_FRAC 0
 #define FOC_ST_ADC_OVERRUNS_SIGNED 0
 #define FOC_ST_ADC_OVERRUNS_ACCESS FOC_ACCESS_RO

@@ -6,6 +6,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 from amaranth.back import verilog
+from amaranth.hdl import unsigned
 
 from foc_servo.hdl.divider import Divider
 from foc_servo.hdl.fixed import shape_range
@@ -81,6 +82,20 @@ def test_divider_rejects_non_bool_signed(signed):
         Divider(signed=signed)
 
 
+@pytest.mark.parametrize("quotient_width", [1, 33, 8.0, "8", True])
+def test_divider_rejects_bad_quotient_width(quotient_width):
+    with pytest.raises(TypeError, match=r"^Divider quotient_width must be None or an integer "
+                                        r"from 2 to width 32, not .+$"):
+        Divider(signed=False, quotient_width=quotient_width)
+
+
+def test_divider_rejects_narrow_signed_quotient():
+    with pytest.raises(ValueError, match=r"^Divider quotient_width must equal width 32 for a "
+                                         r"signed divider, not 16$"):
+        Divider(quotient_width=16)
+    assert Divider(quotient_width=32).quotient_width == 32
+
+
 def test_divider_message_names_the_value():
     with pytest.raises(TypeError, match=r"^Divider width must be an integer of at least 2, not 1$"):
         Divider(width=1)
@@ -104,11 +119,19 @@ def test_divider_interface_shapes():
     assert dut.o.payload.quotient.shape().signed
     assert dut.o.payload.remainder.shape().width == 24
     u = Divider(width=16, signed=False)
-    assert u.divisor_width == 16 and not u.signed
+    assert u.divisor_width == 16 and not u.signed and u.quotient_width == 16
     assert not u.o.payload.quotient.shape().signed
+    n = Divider(width=63, divisor_width=32, signed=False, quotient_width=31)
+    assert n.latency == 33 == model.latency(31)
+    assert n.i.payload.dividend.shape() == unsigned(63)
+    assert n.o.payload.quotient.shape() == unsigned(31)
 
 
-@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24}])
+NARROW = {"width": 40, "divisor_width": 16, "signed": False, "quotient_width": 20}
+
+
+@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24},
+                                    NARROW])
 def test_divider_converts_to_verilog(params):
     text = verilog.convert(Divider(**params), name="divider")
     assert "module divider" in text
@@ -140,6 +163,27 @@ def test_divider_model_matches_exact_arithmetic():
                 assert (n, d, r) == (lo, -1, 0)
 
 
+def test_divider_model_narrow_quotient_matches_exact_arithmetic():
+    """quotient_width < width: floor(n / d) when it fits, else saturated with ovf."""
+    rng = random.Random(2)
+    w, dw, qw = 40, 16, 20
+    pairs = [(rng.randrange(2**w), rng.randrange(2**dw) >> rng.randint(0, dw))
+             for _ in range(3000)]
+    pairs += [(d * 2**qw + e, d) for d in (1, 2, 3, 2**dw - 1) for e in (-1, 0, 1)]
+    pairs += [(0, 0), (2**w - 1, 0), (2**w - 1, 2**dw - 1)]
+    got = _expected(pairs, width=w, divisor_width=dw, signed=False, quotient_width=qw)
+    hits = 0
+    for (n, d), (q, r, z, v) in zip(pairs, got):
+        if d == 0:
+            assert (q, r, z, v) == (2**qw - 1, 0, 1, 0)
+        elif n // d >= 2**qw:
+            assert (q, r, z, v) == (2**qw - 1, 0, 0, 1)
+            hits += 1
+        else:
+            assert (q, r, z, v) == (n // d, n % d, 0, 0)
+    assert 100 < hits < len(pairs) - 100
+
+
 def test_divider_model_rejects_out_of_range_operands():
     with pytest.raises(ValueError, match=r"^Divider divisor -1 is outside the range \[0, 255\] "):
         model.divide(5, -1, width=8, signed=False)
@@ -160,6 +204,20 @@ def test_divider_by_zero():
     dut = Divider(width=40, divisor_width=24)
     results, _ = _run_hw(dut, [(-3, 0), (2**39 - 1, 0)])
     assert results == [(-2**39, 0, 1, 0), (2**39 - 1, 0, 1, 0)]
+
+
+def test_divider_narrow_quotient_saturates():
+    """Quotients of 2**quotient_width and more saturate with ovf (remainder 0); one below fits;
+    division by zero is div0, not ovf."""
+    dut = Divider(**NARROW)
+    top = 2**20 - 1
+    pairs = [(7 * 2**20 - 1, 7), (7 * 2**20, 7), (2**40 - 1, 2**16 - 1), (2**35 - 1, 2**16 - 1),
+             (2**40 - 1, 1), (5, 0), (0, 1), (1000, 7)]
+    results, _ = _run_hw(dut, pairs)
+    assert results == [(top, 6, 0, 0), (top, 0, 0, 1), (top, 0, 0, 1),
+                       ((2**35 - 1) // (2**16 - 1), (2**35 - 1) % (2**16 - 1), 0, 0),
+                       (top, 0, 0, 1), (top, 0, 1, 0), (0, 0, 0, 0), (142, 6, 0, 0)]
+    assert results == _expected(pairs, **NARROW)
 
 
 def test_divider_min_by_minus_one():
@@ -184,7 +242,7 @@ def test_divider_truncates_toward_zero():
 
 
 @pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24},
-                                    {"width": 2}])
+                                    {"width": 2}, NARROW])
 @pytest.mark.parametrize("operands", [(1000, 7), (5, 0), (-1, -1)])
 def test_divider_latency(params, operands):
     """Cycle by cycle: ready only while idle; o.valid exactly `latency` clocks after the
@@ -207,9 +265,9 @@ def test_divider_latency(params, operands):
         for _ in range(dut.latency + 2):
             trace.append((ctx.get(dut.i.ready), ctx.get(dut.o.valid)))
             await ctx.tick()
-        assert _fields(ctx.get(dut.o.payload)) == _expected([(n, d)], width=dut.width,
-                                                            divisor_width=dut.divisor_width,
-                                                            signed=dut.signed)[0]
+        assert _fields(ctx.get(dut.o.payload)) == _expected(
+            [(n, d)], width=dut.width, divisor_width=dut.divisor_width, signed=dut.signed,
+            quotient_width=dut.quotient_width)[0]
         ctx.set(dut.i.valid, 0)
         ctx.set(dut.o.ready, 1)
         await ctx.tick()                                # result taken
@@ -269,7 +327,8 @@ def test_divider_random_handshakes_lose_nothing(ready_prob, valid_prob):
 
 # --- against the golden model ---------------------------------------------------------------------
 
-@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24}])
+@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24},
+                                    NARROW])
 def test_divider_random_vs_model(params):
     res = verify.run(2000, seed=1, **params)
     assert res["mismatches"] == 0, res["first_mismatch"]
@@ -277,7 +336,16 @@ def test_divider_random_vs_model(params):
     assert res["latency_deviations"] == 0
     assert res["clocks_per_division"] == Divider(**params).latency
     assert res["div0_cases"] > 0
-    assert (res["ovf_cases"] > 0) == params.get("signed", True)
+    narrow = params.get("quotient_width", 0) not in (0, params.get("width", 32))
+    assert (res["ovf_cases"] > 0) == (params.get("signed", True) or narrow)
+
+
+def test_divider_narrow_vectors_straddle_the_boundary():
+    n, d = verify.vectors(5000, seed=2, **NARROW)
+    q = np.array([int(a) // int(b) for a, b in zip(n, d) if b], dtype=object)
+    assert np.count_nonzero(q == 2**20 - 1) > 50 and np.count_nonzero(q == 2**20) > 50
+    cn, cd = verify.corner_cases(**NARROW)
+    assert (7 * 2**20, 7) in set(zip(cn, cd)) and (7 * 2**20 - 1, 7) in set(zip(cn, cd))
 
 
 def test_divider_corner_cases_cover_the_extremes():
@@ -310,7 +378,8 @@ def test_divider_verify_reports_a_wrong_model(monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24}])
+@pytest.mark.parametrize("params", [{}, {"signed": False}, {"width": 40, "divisor_width": 24},
+                                    NARROW])
 def test_divider_100k_vs_model(params):
     res = verify.run(100_000, seed=0, **params)
     assert res["mismatches"] == 0, res["first_mismatch"]

@@ -394,7 +394,8 @@ def test_hall_boundaries_are_the_sector_starts():
 
 
 def test_plausibility_latency_cycle_by_cycle():
-    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 1."""
+    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3
+    (and ``error`` with them), once."""
     dut = HallPlausibility()
     seen = []
 
@@ -405,14 +406,16 @@ def test_plausibility_latency_cycle_by_cycle():
         ctx.set(dut.theta, B[3])                  # far from the 0 → 1 boundary: a miss
         await ctx.tick().repeat(3)
         ctx.set(dut.sector, 1)                    # the edge, in this clock
-        for _ in range(3):
-            seen.append((ctx.get(dut.edge), ctx.get(dut.miss), ctx.get(dut.fault)))
+        for _ in range(5):
+            seen.append((ctx.get(dut.edge), ctx.get(dut.miss), ctx.get(dut.fault),
+                         ctx.get(dut.error)))
             await ctx.tick()
 
     simulate(dut, [testbench], name="test_plausibility_latency")
-    assert HallPlausibility.latency == 1
-    assert seen == [(0, 0, 0), (1, 1, 1), (0, 0, 0)]
-    assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 1
+    assert HallPlausibility.latency == model.HallPlausibilityModel.LATENCY == 3
+    err = B[3] - B[1]
+    assert seen == [(0, 0, 0, 0)] * 3 + [(1, 1, 1, err), (0, 0, 0, err)]
+    assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 3
 
 
 def test_plausibility_absolute_check_threshold_count_and_reset():
@@ -438,6 +441,26 @@ def test_plausibility_absolute_check_threshold_count_and_reset():
     assert err[1] == 8192 and err[2] == -8193 and err[6] == -32768 and err[7] == -36
     assert err[8] == err[7]                                     # a skip leaves the error
     assert err[11] == -8193
+
+
+def test_plausibility_tolerance_edges():
+    """``|d| > tolerance`` at its edges: d = ±tolerance passes, one more misses; tolerance 0
+    passes only d = 0; tolerance ≥ 180° never misses (|d| ≤ 180°)."""
+    al = {"aligned": 1, "valid": 1, "misses": 1}
+    out = run_plausibility([
+        {**al, "sector": 0, "theta": B[0]},
+        {"sector": 1, "theta": B[1] - 8192},                    # d = −tolerance: pass
+        {"sector": 2, "theta": B[2] + 8193},                    # d = tolerance + 1: miss
+        {"tolerance": 0, "sector": 3, "theta": B[3]},           # d = 0: pass
+        {"sector": 4, "theta": B[4] - 1},                       # |d| = 1: miss
+        {"tolerance": 32768, "sector": 5, "theta": B[5] + 32768},   # |d| = 180°: pass
+        {"tolerance": 32767, "sector": 0, "theta": B[0] + 32768},   # miss
+        {"tolerance": 65535, "sector": 1, "theta": B[1] - 32767},   # pass
+    ])
+    edge, miss, fault, err = (list(x) for x in zip(*out))
+    assert edge == [0] + [1] * 7
+    assert miss == [0, 0, 1, 0, 1, 0, 1, 0]
+    assert err[1] == -8192 and err[5] == -32768
 
 
 def test_plausibility_relative_check_before_alignment():

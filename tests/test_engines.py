@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from foc_servo.hdl.gates import Gates
-from foc_servo.hdl.regmap import MAGIC
+from foc_servo.hdl.regmap import MAGIC, Scales
 from foc_servo.hdl.uart import PHASE_BITS, uart_params
 from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, crc16, decode_reply,
                                      encode_request, frame)
@@ -330,10 +330,160 @@ def test_compiled_cache_is_reused(compiled, tmp_path, monkeypatch):
     assert compiled_mod.builds == builds and lib.stat().st_mtime_ns == mtime
     assert lib.parent.parent == compiled_mod.cache_dir() / "verilator"
     assert len(lib.parent.name) == 64                     # sha256 hex
+    # No source locations in the Verilog: the model key follows the logic, not the line numbers
+    # or the checkout's path.
+    assert "(* src =" not in compiled.verilog and "simtop" in compiled.verilog
     monkeypatch.setenv("FOC_SERVO_CACHE", str(tmp_path))
     assert compiled_mod.cache_dir() == tmp_path
     # Another key (the Verilog changed): not in this (empty) cache.
     assert compiled_mod._key(compiled.verilog + "\n") != compiled_mod._key(compiled.verilog)
+
+
+# --- the source key (skipping the Verilog conversion) ---------------------------------------
+
+def test_source_files_follow_the_imports():
+    files = compiled_mod.source_files()
+    hdl_dir = files["foc_servo.hdl.top"].parent
+    # Every hdl module, the ADC chip, the engines, and what they import from elsewhere in the
+    # package (the host link's frame constants come from host/protocol.py).
+    assert {f"foc_servo.hdl.{p.stem}" for p in hdl_dir.glob("*.py") if p.stem != "__init__"} \
+        <= set(files)
+    assert {"foc_servo.hdl", "foc_servo.sim.adc_chip", "foc_servo.sim.engines.base",
+            "foc_servo.sim.engines.compiled", "foc_servo.host.protocol"} <= set(files)
+    assert all(p.suffix == ".py" and p.is_file() for p in files.values())
+    # What a fresh process imports to build a SimTop is all in the key's files.
+    import subprocess
+    import sys
+    code = ("import sys; from foc_servo.sim.engines import compiled, make_engine; "
+            "from foc_servo.sim.engines.base import SimTop; SimTop(); "
+            "print(' '.join(m for m in sys.modules if m.startswith('foc_servo.')))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True).stdout.split()
+    assert "foc_servo.hdl.top" in loaded and set(loaded) <= set(files), \
+        set(loaded) - set(files)
+
+
+def test_source_digest_follows_every_byte(tmp_path):
+    a, b = tmp_path / "a.py", tmp_path / "b.py"
+    a.write_text("X = 1\n")
+    b.write_text("Y = 2\n")
+    files = {"pkg.a": a, "pkg.b": b}
+    ref = compiled_mod._digest_files(files)
+    assert compiled_mod._digest_files(dict(reversed(files.items()))) == ref
+    b.write_text("Y = 3\n")
+    assert compiled_mod._digest_files(files) != ref
+    b.write_text("Y = 2\n")
+    assert compiled_mod._digest_files(files) == ref
+    assert compiled_mod._digest_files({"pkg.a": a, "pkg.c": b}) != ref    # a renamed module
+    assert compiled_mod._digest_files({"pkg.a": a}) != ref                # a module less
+
+
+def test_import_scan_finds_every_import(tmp_path):
+    src = tmp_path / "m.py"
+    src.write_text('"""from the docs: import nothing here"""\n'
+                   "import os, foc_servo.hdl.top as t\n"
+                   "from . import sibling\n"
+                   "from ..up import (a,\n    b)\n"
+                   "def f():\n    from .lazy import g\n")
+    names = set(compiled_mod._imported_names("foc_servo.sim.m", src))
+    assert {"os", "foc_servo.hdl.top", "foc_servo.sim", "foc_servo.sim.sibling", "foc_servo.up",
+            "foc_servo.up.a", "foc_servo.up.b", "foc_servo.sim.lazy",
+            "foc_servo.sim.lazy.g"} <= names
+
+
+class _Opaque:
+    pass
+
+
+@pytest.mark.parametrize("a, b", [
+    (dict(clk_hz=50e6), dict(clk_hz=50e6 + 1)),
+    (dict(clk_hz=50e6), dict(clk_hz=50_000_000)),              # int and float kept apart
+    (dict(pwm_hz=10e3), dict(pwm_hz=10e3, baud=115_200)),
+    (dict(resets={"kp": 1}), dict(resets={"kp": 2})),
+    (dict(scales=Scales(i_fs_a=40.0)), dict(scales=Scales(i_fs_a=20.0))),
+])
+def test_canonical_parameters_tell_configurations_apart(a, b):
+    assert compiled_mod._canonical(a) != compiled_mod._canonical(b)
+    assert compiled_mod._canonical(a) == compiled_mod._canonical(dict(reversed(a.items())))
+
+
+def test_canonical_parameters_refuse_unknown_objects():
+    with pytest.raises(compiled_mod._NoCanonicalForm):
+        compiled_mod._canonical({"x": _Opaque()})
+
+
+def test_source_key_is_off_when_a_source_is_newer_than_the_process(compiled, monkeypatch):
+    st = compiled.simtop
+    key = compiled_mod.source_key(st)
+    if key is None:
+        pytest.skip("a source file changed after this test session started")
+    assert key == compiled_mod.source_key(st) and len(key) == 64
+    # The process started 'before' the newest file: the modules in memory may be older.
+    newest = max(p.stat().st_mtime_ns for p in compiled_mod.source_files().values())
+    monkeypatch.setattr(compiled_mod, "_process_start_ns", lambda: newest)
+    assert compiled_mod.source_key(st) is None
+    monkeypatch.setattr(compiled_mod, "_process_start_ns", lambda: None)
+    assert compiled_mod.source_key(st) is None
+    monkeypatch.undo()
+    # Another parameter set, unknown parameters, another toolchain: another key or none.
+    other = SimTop(**dict(KWARGS, pwm_hz=50e3))
+    compiled_mod._mark_elaborated(other)            # never elaborated: no warning
+    assert compiled_mod.source_key(other) not in (None, key)
+    monkeypatch.setattr(st, "_top_kwargs", {"scales": _Opaque()})
+    assert compiled_mod.source_key(st) is None
+    monkeypatch.undo()
+    monkeypatch.setattr(compiled_mod, "_quick_toolchain_id", lambda: "another compiler")
+    assert compiled_mod.source_key(st) not in (None, key)
+
+
+@pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")
+def test_cached_model_skips_the_verilog_conversion(compiled, monkeypatch):
+    if compiled.source_key is None:
+        pytest.skip("a source file changed after this test session started")
+    def no_convert(*args, **kwargs):
+        raise AssertionError("verilog.convert called for a cached model")
+    monkeypatch.setattr(compiled_mod.verilog, "convert", no_convert)
+    builds = compiled_mod.builds
+    again = make_engine("compiled", **KWARGS)
+    assert not again.converted and not again.built and compiled_mod.builds == builds
+    assert again.lib_path == compiled.lib_path and again.source_key == compiled.source_key
+    assert again.build_s < 5.0
+    assert again.verilog == compiled.verilog        # read back from the cache
+    # The same model: the same outputs.
+    ev = np.array([_hall_event(1)], dtype=EVENT_DTYPE)
+    compiled.reset()
+    np.testing.assert_array_equal(again.run(3000, ev).out, compiled.run(3000, ev).out)
+    # A source-map entry naming a model that is gone: converted again (here: refused).
+    compiled_mod._source_map_file(compiled.source_key).write_text('{"model": "' + "0" * 64 + '"}')
+    try:
+        with pytest.raises(AssertionError, match="verilog.convert called"):
+            make_engine("compiled", **KWARGS)
+    finally:
+        compiled_mod._remember(compiled.source_key, compiled.lib_path)
+        gc.collect()        # the refused engine's SimTop warns here, inside the filter
+
+
+def test_build_lock_makes_a_second_builder_wait(tmp_path, monkeypatch):
+    import threading
+    monkeypatch.setenv("FOC_SERVO_CACHE", str(tmp_path))
+    verilog_text = "// not built: the first builder finishes while the second waits\n"
+    key = compiled_mod._key(verilog_text)
+    result = {}
+
+    def second():
+        result["value"] = compiled_mod.build_model(verilog_text, progress=False)
+
+    with compiled_mod._build_lock(key):
+        thread = threading.Thread(target=second)
+        thread.start()
+        thread.join(0.5)
+        assert thread.is_alive()                    # waiting for the lock
+        final = tmp_path / "verilator" / key        # 'the first builder' finishes
+        final.mkdir(parents=True)
+        (final / compiled_mod._LIB).write_bytes(b"")
+    thread.join(10)
+    assert result["value"] == (final / compiled_mod._LIB, False)
+    assert sorted(p.name for p in (tmp_path / "verilator").iterdir()) == [key]
 
 
 @pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")
@@ -479,12 +629,16 @@ def test_compiled_build_is_safe_in_parallel_and_reports_assertions(tmp_path):
     code = ("import sys; from foc_servo.sim.engines.compiled import build_model; "
             "p, b = build_model(open(sys.argv[1]).read(), progress=False); print(p, b)")
     env = dict(os.environ, FOC_SERVO_CACHE=str(tmp_path / "cache"))
+    # The leftover of a build that was killed (SIGTERM/SIGKILL skip the clean-up): removed.
+    stale = tmp_path / "cache" / "verilator" / f"{compiled_mod._key(_TINY)[:16]}.building-dead"
+    (stale / "obj").mkdir(parents=True)
     procs = [subprocess.Popen([sys.executable, "-c", code, str(src)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in range(2)]
     results = [p.communicate(timeout=900) for p in procs]
     assert all(p.returncode == 0 for p in procs), results
     lines = [out.split() for out, _ in results]
-    assert lines[0][0] == lines[1][0] and "True" in {lines[0][1], lines[1][1]}
+    # One process built the model, the other waited on the lock and took it.
+    assert lines[0][0] == lines[1][0] and {lines[0][1], lines[1][1]} == {"True", "False"}
     entries = list((tmp_path / "cache" / "verilator").iterdir())
     assert [e.name for e in entries] == [os.path.basename(os.path.dirname(lines[0][0]))]
     # The harness: the model runs, and a failed assertion stops it at its clock (status 2).

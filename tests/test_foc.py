@@ -95,12 +95,12 @@ def test_current_loop_latency_budget_per_stage():
     dut = CurrentLoop()
     Fragment.get(dut, None)
     assert dut.stage_latency == {"clarke": 6, "park": 8, "pi": 6, "command": 1,
-                                 "inverse_park": 8, "dcbus": 1, "svpwm": 19}
-    assert dut.latency == 49 <= 50
+                                 "inverse_park": 8, "dcbus": 2, "svpwm": 15}
+    assert dut.latency == 46 <= 50
     assert dut.dq_latency == 15
     slow = CurrentLoop(iterations_per_stage=1)
     Fragment.get(slow, None)
-    assert slow.latency == 49 + 2 * (22 - 8)
+    assert slow.latency == 46 + 2 * (22 - 8)
 
 
 @pytest.mark.slow
@@ -114,8 +114,8 @@ def test_current_loop_converts_to_verilog():
 
 def test_current_loop_latency_cycle_by_cycle():
     """One sample accepted in clock t: phase currents at t + 6, i_d/i_q visible at
-    t + dq_latency, duties valid in clock t + 49 exactly, busy from t + 1; the loop accepts the
-    next sample in its done clock (back to back), whose duties come at t + 98."""
+    t + dq_latency, duties valid in clock t + latency (46) exactly, busy from t + 1; the loop
+    accepts the next sample in its done clock (back to back), whose duties come at t + 92."""
     dut = CurrentLoop()
     lat = dut.latency
     seen = {}
@@ -314,7 +314,7 @@ def test_current_loop_random_sequences_against_model():
 
 @pytest.mark.slow
 def test_current_loop_5k_samples_against_model():
-    # ~49 clocks a sample at ~2-5 k clocks/s in Amaranth's simulator: 5 000 samples take a few
+    # ~46 clocks a sample at ~2-5 k clocks/s in Amaranth's simulator: 5 000 samples take a few
     # minutes; 100 000 (~40 min) wait for the compiled engine (issue 6).
     r = verify_foc.run(5_000)
     assert r["mismatches"] == 0, r

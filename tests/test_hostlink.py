@@ -7,7 +7,10 @@ from amaranth.back import verilog
 from amaranth.hdl import Module, Signal
 from amaranth.lib import wiring
 
-from foc_servo.hdl.hostlink import HostLink, LinkCore, crc16_byte, normalize_address_map
+from foc_servo.hdl.hostlink import (HostLink, LinkCore, address_decode, crc16_byte,
+                                    normalize_address_map)
+from foc_servo.hdl.regmap import REGMAP
+from foc_servo.hdl.top import regmap_address_map
 from foc_servo.hdl.uart import UartRx
 from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, cobs_encode, crc16,
                                      decode_reply, encode_request, frame)
@@ -47,6 +50,48 @@ def test_address_map_normalisation():
     assert normalize_address_map(None) == ((0, 0x10000, True),)
     assert normalize_address_map([(8, 16, True), (0, 8, True), (16, 20, False)]) == \
         ((0, 16, True), (16, 20, False))
+
+
+def _decode_mismatches(address_map, addresses):
+    """Addresses whose gateware decode (exists, writable) differs from the map's regions."""
+    amap = normalize_address_map(address_map)
+    a, e, w = Signal(17), Signal(), Signal()
+    m = Module()
+    exists, writable = address_decode(a, amap)
+    m.d.comb += [e.eq(exists), w.eq(writable)]
+
+    def ref(x):
+        return next(((1, int(wb)) for s0, s1, wb in amap if s0 <= x < s1), (0, 0))
+
+    bad = []
+
+    async def testbench(ctx):
+        for x in addresses:
+            ctx.set(a, x)
+            if (ctx.get(e), ctx.get(w)) != ref(x):
+                bad.append(x)
+
+    simulate(m, [testbench], name="address_decode")
+    return bad
+
+
+def test_address_decode_of_the_register_map_exhaustive():
+    """The top's map, every address 0 … 0x1FFFF (the top bit: a burst past 0xFFFF)."""
+    assert _decode_mismatches(regmap_address_map(REGMAP), range(1 << 17)) == []
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_address_decode_random_maps(seed):
+    """Random maps of small and large regions: every region edge ± 2 and random addresses."""
+    rng = random.Random(seed)
+    edges = sorted(rng.sample(range(1, 0x10000), 40))
+    if seed == 3:
+        edges = [0] + edges[:-1] + [0x10000]            # regions touching both ends
+    amap = [(edges[k], edges[k + 1], rng.random() < 0.5) for k in range(0, len(edges) - 1, 2)]
+    probe = {x + d for x in edges for d in range(-2, 3)} | {rng.randrange(1 << 17)
+                                                            for _ in range(3000)}
+    assert _decode_mismatches(amap, sorted(x for x in probe if 0 <= x < 1 << 17)) == []
+    assert _decode_mismatches(None, [0, 0xFFFF, 0x10000, 0x1FFFF]) == []
 
 
 def test_crc16_byte_gateware_matches_reference():

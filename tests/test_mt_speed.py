@@ -81,7 +81,7 @@ def test_mt_tclk_ratio_exact_and_rounded():
     assert dut.tclk_ratio == 33 and dut.tclk_hz == 33.333e6 / 33
     dut = MTSpeed(edge_mode="x4")
     assert (dut.tclk_ratio, dut.edges_per_line, dut.k_width) == (1, 4, 48)
-    assert dut.latency == dut.k_width + dut.m_width + 5 == model.MTParams.of(dut).latency
+    assert dut.latency == dut.out_width + 3 + dut.k_chunks == 38 == model.MTParams.of(dut).latency
 
 
 def test_mt_verilog_converts():
@@ -190,6 +190,23 @@ def test_mt_reversal():
     assert out["speed"].tolist() == [k * 3 // 300, -(k // 300), k // 100, 0, 0]
     assert out["fresh"].tolist() == [1, 1, 1, 1, 0]
     assert out["dm"].tolist()[:4] == [3, -1, 1, 0]
+
+
+@pytest.mark.parametrize("out_width", [16, 32])     # quotient 15 bits = out_width − 1; 23 < 31
+@pytest.mark.parametrize("k", [1000, 0])
+def test_mt_zero_dt_saturates_with_the_sign_of_dm(out_width, k):
+    """Two edges in one TC tick (ΔT = 0): full scale with the sign of ΔM, whatever k (the
+    unsigned divider's saturation, or its division by zero, then the sign fix)."""
+    dut = MTSpeed(clk_hz=1e6, tclk_hz=1e5, tc_width=10, out_width=out_width, k_width=16,
+                  m_width=8)
+    s_max = 2 ** (out_width - 1) - 1
+    ev = [(100, 0), (103, 0),            # tick 10, tick 10: ΔM = +1, ΔT = 0
+          (200, 1), (202, 1),            # tick 20: ΔM = −2, ΔT = 10
+          (207, 1)]                      # tick 20: ΔM = −1, ΔT = 0
+    edges, neg = zip(*ev)
+    out = both(dut, edges, neg, [105, 205, 300], k=k, end_cycle=400)
+    assert out["speed"].tolist() == [s_max, -(k * 2 // 10), -s_max]
+    assert out["dt"].tolist() == [0, 10, 0] and out["fresh"].tolist() == [1, 1, 1]
 
 
 def test_mt_reversal_random_profile_x4():

@@ -109,64 +109,103 @@ def test_scope_msb_alignment():
     assert align_sample(-2, signed(16), 16) == 0xFFFE
 
 
+def window(samples, trigger_at, pretrigger, depth=16):
+    """The capture's sample clocks: ``pretrigger`` before the first at or after the trigger."""
+    k = next(i for i, t in enumerate(samples) if t >= trigger_at)
+    return samples[k - pretrigger:k - pretrigger + depth]
+
+
 def test_scope_pretrigger_and_wraparound():
-    # depth 16, 5 pre-trigger samples; the ring wraps several times before the trigger.
-    got, model, ch = capture(80, pretrigger=5, trigger_at=50)
-    assert model.captures == 1 and got[80]["done"] == 1 and got[80]["state"] == IDLE
-    assert ch[0] == list(range(45, 61))                  # trigger sample (clock 50) at index 5
-    assert ch[1] == [align_sample(-t << 16, signed(32), 16) for t in range(45, 61)]
-    assert ch[2] == [(t & 0xFF) << 8 for t in range(45, 61)]
-    states = [g["state"] for g in got[:80]]
-    assert states[0] == IDLE and set(states[1:51]) == {PRE} and set(states[51:61]) == {POST}
-    assert states[61:] == [IDLE] * 19
+    # depth 16, 5 pre-trigger samples, a strobe every 3rd clock (= channels: every one taken);
+    # the ring wraps several times before the trigger. Channel c records its source c clocks
+    # after the strobe.
+    got, model, ch = capture(200, pretrigger=5, trigger_at=120, strobe_every=3)
+    clocks = window(list(range(3, 200, 3)), 120, 5)
+    assert clocks[5] == 120 and model.captures == 1
+    assert ch[0] == clocks
+    assert ch[1] == [align_sample(-(t + 1) << 16, signed(32), 16) for t in clocks]
+    assert ch[2] == [((t + 2) & 0xFF) << 8 for t in clocks]
+    states = [g["state"] for g in got[:200]]
+    assert states[0] == IDLE and set(states[1:121]) == {PRE} and set(states[121:151]) == {POST}
+    assert states[151:] == [IDLE] * 49
+    # The last sample (clock 150) has its channels 1 and 2 written in clocks 151 and 152: done
+    # shows from 153.
+    assert [g["done"] for g in got[149:155]] == [0, 0, 0, 0, 1, 1]
 
 
 @pytest.mark.parametrize("pretrigger", [0, 15])
 def test_scope_pretrigger_extremes(pretrigger):
-    got, model, ch = capture(60, pretrigger=pretrigger, trigger_at=30)
-    assert ch[0] == list(range(30 - pretrigger, 30 - pretrigger + 16))
+    got, model, ch = capture(150, pretrigger=pretrigger, trigger_at=60, strobe_every=3)
+    assert ch[0] == window(list(range(3, 150, 3)), 60, pretrigger)
 
 
 def test_scope_ignores_triggers_before_pretrigger_is_full():
-    # Arm at 0 takes no sample; samples from clock 1: 8 pre-trigger samples are in at clock 9.
-    got, model, ch = capture(40, pretrigger=8, trigger_at=5)
+    # Arm at 0 takes no sample; samples at clocks 3, 6, …: 8 pre-trigger samples are in after
+    # clock 24.
+    got, model, ch = capture(40, pretrigger=8, trigger_at=5, strobe_every=3)
     assert model.triggers_ignored == 1 and model.captures == 0
     assert all(g["state"] == PRE for g in got[1:40])
-    assert [g["pre_full"] for g in got[1:12]] == [0] * 8 + [1] * 3
+    assert [g["pre_full"] for g in got[1:28]] == [0] * 24 + [1] * 3
 
 
 def test_scope_external_trigger_and_decimation():
-    # trig_src EXTERNAL: the trigger input; decim 2 with a strobe every other clock: one sample
-    # per 6 clocks, the first strobe after arm sampled.
-    got, model, ch = capture(200, pretrigger=3, trigger_at=100, decim=2, strobe_every=2,
+    # trig_src EXTERNAL: the trigger input; decim 2 with a strobe every 4th clock: one sample
+    # per 12 clocks, the first strobe after arm sampled.
+    got, model, ch = capture(300, pretrigger=3, trigger_at=100, decim=2, strobe_every=4,
                              trig_src=EXTERNAL, use_trigger=True)
-    samples = list(range(2, 200, 6))
-    k = next(i for i, t in enumerate(samples) if t >= 100)        # first sample after trigger
-    assert ch[0] == samples[k - 3:k + 13]
+    assert ch[0] == window(list(range(4, 300, 12)), 100, 3)
     # The same trigger input with trig_src HOST does nothing.
     got, model, _ = capture(120, pretrigger=3, trigger_at=100, use_trigger=True, read=False)
     assert model.captures == 0 and got[-1]["state"] == PRE
 
 
+def test_scope_time_shared_channels():
+    """A strobe every clock: a strobe within `channels − 1` clocks after a taken one is ignored
+    (also by the decimation), so samples are 3 clocks apart and channel c holds its source at
+    strobe + c; an arm while a sample's channels are being written drops the rest of them."""
+    seq = [idle_inputs(src={"ramp": t, "wide": t << 16, "narrow": t & 0xFF}, strobe=1,
+                       arm=int(t == 0), pretrigger=4, force=int(t == 30)) for t in range(80)]
+    seq += [idle_inputs(rd_addr=a) for a in range(48)] + [idle_inputs()]
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
+    clocks = window(list(range(1, 80, 3)), 30, 4)
+    assert clocks[4] == 31 and model.captures == 1
+    data = [g["rd_data"] for g in got[81:]]
+    assert data[:16] == clocks
+    assert data[16:32] == [t + 1 for t in clocks]
+    assert data[32:48] == [(t + 2) << 8 for t in clocks]
+    # Re-arm one clock after a taken strobe (channels 1, 2 of that slot not written); the ring
+    # slot keeps the old channels 1 and 2 and channel 0 of the new sample.
+    seq = [idle_inputs(src={"ramp": t, "wide": t << 16, "narrow": t & 0xFF},
+                       strobe=int(t in (5, 7, 9)), arm=int(t in (0, 6))) for t in range(12)]
+    seq += [idle_inputs(rd_addr=a) for a in (15, 31, 47, 14, 30, 46)] + [idle_inputs()]
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
+    assert model.wr_ptr == 2
+    # Slot 0: strobe 5, channel 0 only (arm at 6); slot 1: strobe 7, channels 1 and 2 written
+    # in clocks 8 and 9, so the strobe at 9 is ignored. Index 15 is slot 1, index 14 slot 0.
+    assert [g["rd_data"] for g in got[13:19]] == [7, 8, 9 << 8, 5, 0, 0]
+
+
 def test_scope_read_latency_cycle_by_cycle():
-    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=1, arm=int(t == 0),
-                       pretrigger=2, force=int(t == 20)) for t in range(40)]
+    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=int(t % 3 == 0),
+                       arm=int(t == 0), pretrigger=2, force=int(t == 20)) for t in range(70)]
     addrs = [7, 3, 3, 16 + 2, 0, 48 + 5, 9]               # channel 1 at index 2; channel 3: none
     seq += [idle_inputs(rd_addr=a) for a in addrs] + [idle_inputs()]
     got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
     assert model.captures == 1
-    data = [g["rd_data"] for g in got[40:]]
-    # Clock 40 + k shows the address of clock 40 + k − 1: 18 + index for channel 0 (ramp).
-    assert data[1:] == [18 + 7, 18 + 3, 18 + 3, 0, 18, 0, 18 + 9]
+    data = [g["rd_data"] for g in got[70:]]
+    # Clock 70 + k shows the address of clock 70 + k − 1: sample clock 15 + 3·index for
+    # channel 0 (ramp; the trigger sample, clock 21, at index 2).
+    assert data[1:] == [15 + 21, 15 + 9, 15 + 9, 0, 15, 0, 15 + 27]
 
 
 def test_scope_rearm_restarts_capture():
-    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=1, arm=int(t in (0, 10)),
-                       pretrigger=2, force=int(t == 30)) for t in range(60)]
+    seq = [idle_inputs(src={"ramp": t, "wide": 0, "narrow": 0}, strobe=int(t % 3 == 0),
+                       arm=int(t in (0, 10)), pretrigger=2, force=int(t == 30))
+           for t in range(90)]
     seq += [idle_inputs(rd_addr=k) for k in range(17)]
     got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
     assert got[10]["state"] == PRE and got[11]["state"] == PRE and got[11]["done"] == 0
-    assert [g["rd_data"] for g in got[61:77]] == list(range(28, 44))
+    assert [g["rd_data"] for g in got[91:107]] == list(range(24, 72, 3))
 
 
 def test_scope_random_sequences_vs_model():

@@ -332,6 +332,25 @@ def test_profile_integrator_hold_while_moving():
     assert held[4][0] > no_i[4][0]                                  # landed: integrating
 
 
+def test_profile_integrator_hold_until_the_delayed_reference_arrives():
+    # Delay 2 runs: the profile lands in run 4, the PI's reference in run 6; the integrator
+    # stays held until then (i_q as with kx = 0), and integrates from run 6 on.
+    base = dict(speed_ref=4 * SLEW, speed_slew=SLEW, speed=-SLEW, kp=KP_ONE >> 4, ref_delay=16)
+    no_i = after_runs(speed_loop_clocks(profile_runs(10, **base))[0], 10)
+    got, model = speed_loop_clocks(profile_runs(10, kx=KX_ONE >> 8, int_hold=1, **base))
+    held = after_runs(got, 10)
+    assert [r for _, r in held][3:] == [4 * SLEW] * 7                # landed in run 4
+    assert held[:5] == no_i[:5]                                     # runs 1 … 5: held
+    assert all(h[0] > n[0] for h, n in zip(held[5:], no_i[5:]))     # then integrating
+    # Without the delay the hold ends with the profile: run 4 (the landing step) is held,
+    # run 5 integrates.
+    base.update(ref_delay=0)
+    no_i = after_runs(speed_loop_clocks(profile_runs(6, **base))[0], 6)
+    held = after_runs(speed_loop_clocks(profile_runs(6, kx=KX_ONE >> 8, int_hold=1,
+                                                     **base))[0], 6)
+    assert held[:4] == no_i[:4] and held[4][0] > no_i[4][0]
+
+
 def test_profile_clear_mid_ramp():
     # Leaving SPEED mode mid-ramp: output and feed-forward 0 at once, ref_int tracks the speed;
     # on re-entry the ramp restarts from the speed.

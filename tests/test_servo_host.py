@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from foc_servo.hdl.regmap import Mode
+from foc_servo.hdl.regmap import MAP_VERSION, Mode
 from foc_servo.hdl.scope import DEFAULT_SOURCES
 from foc_servo.host import host_cli
 from foc_servo.host.registers import REGISTERS
@@ -131,7 +131,9 @@ def test_load_checks_everything_before_writing(servo, tmp_path):
 def test_map_hash_mismatch_detected(monkeypatch):
     monkeypatch.setattr(REGISTERS["id_map_hash"], "reset", 0x12345678)
     with pytest.raises(MapMismatch, match=r"^register map mismatch: the drive's id_map_hash is "
-                                          r"0x[0-9A-F]{8} \(map version 2\.1\), this library's "
+                                          r"0x[0-9A-F]{8} \(map version "
+                                          rf"{MAP_VERSION >> 16}\.{MAP_VERSION & 0xFFFF}\), "
+                                          r"this library's "
                                           r"is 0x12345678"):
         Servo.sim()
 

@@ -209,6 +209,50 @@ def test_svpwm_q2_inputs_against_model_and_physics():
     assert err.max() <= 1.5 / scale
 
 
+def _boundary_commands(width, frac):
+    """Commands whose spread (largest line-to-line voltage) is exactly at, or one LSB of the
+    internal format above, the hexagon's edge ``2**F`` in each of the three min/max cases
+    (``A ≥ |S|``, ``A ≤ −|S|``, ``|A| < |S|``), found with the model's own integers."""
+    F, k_frac, k = model.svpwm_constants(width, frac)
+    one = 1 << F
+    lo, hi = -(1 << (width - 1)), (1 << (width - 1)) - 1
+    beta = np.arange(lo, hi + 1)
+    s = (beta * k + (1 << (k_frac - 1)) - (beta < 0)) >> k_frac        # S as the model has it
+    cmds = []
+    # |A| < |S|: spread = 2·|S|; the β nearest to 2·S = 2**F from both sides.
+    for target in (one, one + 2):
+        j = int(np.argmin(np.abs(2 * s - target)))
+        cmds += [(0, int(beta[j])), (0, -int(beta[j])), (1, int(beta[j])), (-1, int(beta[j]))]
+    # A ≥ |S| and A ≤ −|S|: spread = |A| + |S| = 2**F exactly where the grid allows it.
+    for b in (0, 1, -1, 100, -100, 3000):
+        sb = abs(int(s[b - lo]))
+        for target in (one, one + 256):
+            a = (target - sb) >> 8
+            if lo <= a <= hi and (target - sb) % 256 == 0:
+                cmds += [(a, b), (-a, b)]
+            cmds += [(min(hi, a + 1), b), (max(lo, -a - 1), b)]
+    return cmds
+
+
+@pytest.mark.parametrize("width, frac", [(16, 15), (17, 15)])
+def test_svpwm_overmod_flag_exactly_at_the_hexagon_edge(width, frac):
+    """On the edge (spread = 2**F) the command is still inside (``overmod`` 0, no division);
+    one LSB beyond it is outside: gateware and model agree in all three min/max cases."""
+    dut = SVPWM(width=width, frac=frac)
+    cmds = _boundary_commands(width, frac)
+    outs, _ = svpwm_outputs(dut, [(a, b, 2500) for a, b in cmds])
+    a, b = (np.array(x) for x in zip(*cmds))
+    exp = model.svpwm(a, b, 2500, width=width, frac=frac)
+    got = np.array(outs)
+    for i, key in enumerate(("a", "b", "c", "overmod")):
+        np.testing.assert_array_equal(got[:, i], exp[key], err_msg=key)
+    assert 0 < exp["overmod"].sum() < len(cmds)
+    if frac == width - 2:                   # Q2: α = ±1.0 exactly is representable
+        edge = model.svpwm(np.array([1 << frac, -(1 << frac)]), np.array([0, 0]), 2500,
+                           width=width, frac=frac)
+        assert list(edge["overmod"]) == [0, 0]
+
+
 def test_svpwm_random_commands_against_model_via_run():
     r = verify_svpwm._run_svpwm(1500, seed=3, progress=False, width=16, count_width=16,
                                 scale=2500)
@@ -274,8 +318,11 @@ def test_dcbus_gain_latency_and_latest_measurement_wins():
     assert lim == 1 and g == 2 << 16
 
 
-def test_dcbus_commands_scaled_saturated_latency_one():
+def test_dcbus_commands_scaled_saturated_pipelined():
+    """Back-to-back commands come out ``latency`` (2) clocks later, in order; a result not
+    taken is held and stops the pipeline."""
     dut = DCBusCompensation(out_width=17)
+    assert dut.latency == 2
     cmds = [(FS - 1, -FS), (1000, -1000), (1, -1), (0, 3)]
     got = []
 
@@ -287,14 +334,17 @@ def test_dcbus_commands_scaled_saturated_latency_one():
         ctx.set(dut.u_dc.valid, 0)
         await ctx.tick().repeat(dut.gain_latency)
         ctx.set(dut.o.ready, 1)
-        for a, b in cmds:
-            ctx.set(dut.i.payload, {"alpha": a, "beta": b})
-            ctx.set(dut.i.valid, 1)
-            assert not ctx.get(dut.o.valid) or ctx.get(dut.i.ready)
+        for n in range(len(cmds) + dut.latency - 1):
+            if n < len(cmds):
+                a, b = cmds[n]
+                ctx.set(dut.i.payload, {"alpha": a, "beta": b})
+            ctx.set(dut.i.valid, n < len(cmds))
+            assert ctx.get(dut.i.ready)
             await ctx.tick()
-            assert ctx.get(dut.o.valid)
-            p = ctx.get(dut.o.payload)
-            got.append((p.alpha, p.beta))
+            assert ctx.get(dut.o.valid) == (n >= dut.latency - 1), n
+            if ctx.get(dut.o.valid):
+                p = ctx.get(dut.o.payload)
+                got.append((p.alpha, p.beta))
         ctx.set(dut.i.valid, 0)
         ctx.set(dut.o.ready, 0)                         # not taken: held, input refused
         await ctx.tick()

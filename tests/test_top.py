@@ -233,6 +233,7 @@ def _wiring_table(top):
         "decouple_l": (cl.ff_l, same), "decouple_psi": (cl.ff_psi, same),
         "pwm_symmetric": (timer.symmetric, same), "pwm_sample_custom": (timer.sample_custom, same),
         "pwm_sample_point": (timer.sample_point, same), "dead_time": (gates.dead_time, same),
+        "dtc_clocks": (top._dtc.clocks, same), "dtc_band": (top._dtc.shift, same),
         "enc_lines": (enc.lines, same), "enc_pole_pairs": (enc.pole_pairs, same),
         "enc_z_offset": (enc.z_offset, same), "enc_hall_offset": (enc.hall_offset, same),
         "enc_filter": (enc.length, same), "enc_realign": (enc.realign, same),
@@ -266,7 +267,7 @@ def _status_sources(top):
         "st_speed": mt.o.payload.speed, "st_i_d": cl.i_d, "st_i_q": cl.i_q,
         "st_i_alpha": cl.i_alpha, "st_i_beta": cl.i_beta, "st_u_d": cl.u_d, "st_u_q": cl.u_q,
         "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": top._adc.o.payload.udc,
-        "st_current_loops": cl.count, "st_speed_loops": None, "st_overruns": None,
+        "st_current_loops": cl.count[:16], "st_speed_loops": None, "st_overruns": None,
         "st_adc_overruns": None, "st_loop_flags": None, "st_uv_armed": prot.uv_armed,
         "st_enc_config_error": enc.config_error, "st_enc_hall_error": enc.hall_error,
         **{f"st_link_{n}": getattr(top._link, n) for n in

@@ -13,8 +13,8 @@ from foc_servo.hdl.fixed import UQ
 from foc_servo.hdl.regmap import Scales
 from foc_servo.host.registers import REGISTERS
 from foc_servo.host.tuning import (CURRENT_KX_FORMAT, SPEED_KX_FORMAT, current_gains,
-                                   lead_angle, physical_from_registers, speed_gains, t_min_s,
-                                   to_raw, tune)
+                                   dead_time_comp, feedforward_registers, lead_angle,
+                                   physical_from_registers, speed_gains, t_min_s, to_raw, tune)
 from foc_servo.sim.motor import SGMSH_15A
 
 #: Other motors the rule must serve too: 10× inertia, small fast motor, slow big motor.
@@ -299,6 +299,41 @@ def test_lead_angle_register():
                                          r"electrical\), beyond the theta_lead register's "
                                          r"359\.9945°; at most 1249\.98 µs$"):
         lead_angle(SGMSH_15A, t_lead_s=2e-3)
+
+
+def test_dead_time_compensation_registers():
+    m = SGMSH_15A
+    # 1 µs at 50 MHz = 50 clocks; I_band = 310 V · 100 µs / (24 · 2.42 mH) = 0.534 A, i.e.
+    # 8.7 × 50 current LSBs (40 A / 32768): 2**3 (0.49 A).
+    regs = dead_time_comp(m)
+    assert regs == {"dtc_clocks": 50, "dtc_band": 3}
+    band_a = 310 * 1e-4 / (24 * m.l_q_h)
+    assert band_a == pytest.approx(0.534, abs=1e-3)
+    assert 50 * 2**3 * 40 / 32768 / band_a == pytest.approx(1, abs=math.sqrt(2) - 1)
+    # The physical value of dtc_clocks is the dead time.
+    assert REGISTERS["dtc_clocks"].from_raw(50, Scales()) == pytest.approx(1e-6)
+    # Other clocks, dead times and bands; 0 s acts as 1 clock (as the gates); off.
+    assert dead_time_comp(m, scales=Scales(clk_hz=33.333e6)) == {"dtc_clocks": 33,
+                                                                  "dtc_band": 4}
+    assert dead_time_comp(m, dead_time_s=0) == {"dtc_clocks": 1, "dtc_band": 9}
+    assert dead_time_comp(m, band_a=1e4)["dtc_band"] == 15
+    assert dead_time_comp(m, band_a=1e-4)["dtc_band"] == 0
+    assert dead_time_comp(m, dead_time_s=None) == {"dtc_clocks": 0, "dtc_band": 4}
+    # In the feed-forward that Servo.tune writes, and through tune().
+    ff = feedforward_registers(m, scales=Scales())
+    assert ff["dtc_clocks"] == 50 and ff["dtc_band"] == 3 and ff["theta_lead"] == 5243
+    assert tune(m, dead_time_s=2e-6).feedforward["dtc_clocks"] == 100
+    assert tune(m, dead_time_s=None).feedforward["dtc_clocks"] == 0
+    for name, raw in ff.items():
+        REGISTERS[name].to_words(raw)                       # each fits its register
+    with pytest.raises(ValueError, match=r"^dead_time_s 6 µs is 300 clocks at 5e\+07 Hz, "
+                                         r"beyond the dtc_clocks register's 255$"):
+        dead_time_comp(m, dead_time_s=6e-6)
+    with pytest.raises(ValueError, match=r"^dead_time_s must be a finite number at least 0 s, "
+                                         r"not -1e-06$"):
+        feedforward_registers(m, dead_time_s=-1e-6)
+    with pytest.raises(ValueError, match=r"^band_a must be a finite number above 0 A, not 0$"):
+        dead_time_comp(m, band_a=0)
 
 
 def test_default_formats_come_from_the_register_map():

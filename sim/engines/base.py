@@ -42,6 +42,7 @@ changes back into bytes (:class:`UartDecoder`), so the host link needs no UART g
 host side and no Python per clock.
 """
 
+import copy
 import dataclasses
 import math
 import numbers
@@ -117,10 +118,17 @@ class SimTop(wiring.Component):
         the init values); a port of the Verilog (:meth:`ports`).
     cycle : Signal(64)
         Clock edges so far (for testbenches; not a port, so Verilator drops it).
+    top_kwargs : dict or None
+        A copy of the parameters, taken at construction (the compiled engine's cache keys on
+        them); ``None`` if they cannot be copied.
     """
 
     def __init__(self, **top_kwargs):
         self._top = Top(**top_kwargs)
+        try:
+            self._top_kwargs = copy.deepcopy(top_kwargs)
+        except Exception:       # anything deepcopy cannot copy: no parameter-keyed cache
+            self._top_kwargs = None
         self._chip = AdcChip()
         self._domain = ClockDomain("sync", reset_less=True)
         self.cycle = Signal(64)
@@ -133,6 +141,11 @@ class SimTop(wiring.Component):
     top = property(lambda self: self._top)
     clk_hz = property(lambda self: self._top.clk_hz)
     clk = property(lambda self: self._domain.clk)
+
+    @property
+    def top_kwargs(self):
+        """A copy of the parameters given at construction (``None``: not copyable)."""
+        return None if self._top_kwargs is None else copy.deepcopy(self._top_kwargs)
 
     def ports(self):
         """The ports for ``verilog.convert`` / ``rtlil.convert``: the members and the clock."""

@@ -32,7 +32,7 @@ def _operand(name, value, shape, dtype):
     return v
 
 
-def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
+def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True, quotient_width=None):
     """Model of one division per element.
 
     Parameters
@@ -41,7 +41,7 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
         In the range of ``S(width)`` (``S`` = ``signed`` or ``unsigned`` per ``signed``).
     divisor : int or array of int
         In the range of ``S(divisor_width)``; broadcast against ``dividend``.
-    width, divisor_width, signed :
+    width, divisor_width, signed, quotient_width :
         As for :class:`~foc_servo.hdl.divider.Divider`.
 
     Returns
@@ -56,12 +56,13 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
     ValueError
         If an operand is outside its range.
     """
-    p = divider_params(width=width, divisor_width=divisor_width, signed=signed)
+    p = divider_params(width=width, divisor_width=divisor_width, signed=signed,
+                       quotient_width=quotient_width)
     width, divisor_width, signed = p["width"], p["divisor_width"], p["signed"]
     shape = _shape(signed)
-    q_shape = shape(width)
+    q_shape = shape(p["quotient_width"])
     dtype = _dtype(width, divisor_width)
-    n = _operand("dividend", dividend, q_shape, dtype)
+    n = _operand("dividend", dividend, shape(width), dtype)
     d = _operand("divisor", divisor, shape(divisor_width), dtype)
     n, d = np.broadcast_arrays(n, d)
 
@@ -76,7 +77,7 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
     r = np.where(neg_n, -r_mag, r_mag).astype(dtype)
 
     q_lo, q_hi = shape_range(q_shape)
-    ovf = ~div0 & (q > q_hi)                # only min / -1 (signed)
+    ovf = ~div0 & (q > q_hi)                # signed: only min / -1; unsigned: a narrow quotient
     q = np.asarray(saturate_np(q, q_shape), dtype=dtype)
     r = np.where(ovf, 0, r)
     q = np.where(div0, np.where(neg_n, q_lo, q_hi), q).astype(dtype)
@@ -87,9 +88,10 @@ def divide(dividend, divisor, *, width=32, divisor_width=None, signed=True):
     return out
 
 
-def latency(width):
-    """Clocks from accepting the operands to a valid result (see :attr:`Divider.latency`)."""
-    return width + 2
+def latency(quotient_width):
+    """Clocks from accepting the operands to a valid result (see :attr:`Divider.latency`):
+    ``quotient_width + 2`` (the quotient width is the dividend width unless narrowed)."""
+    return quotient_width + 2
 
 
 def _shape(is_signed):

@@ -99,13 +99,20 @@ class HallSensorModel:
 
 
 class HallPlausibilityModel:
-    """Model of :class:`~foc_servo.hdl.encoder.HallPlausibility`."""
+    """Model of :class:`~foc_servo.hdl.encoder.HallPlausibility`: the check as if it took all
+    its inputs in one clock, its outputs delayed by the gateware's pipeline (``latency − 1``
+    clocks)."""
+
+    #: Clocks from the inputs to the outputs (``HallPlausibility.latency``).
+    LATENCY = 3
 
     def __init__(self):
         self.bounds = hall_boundaries(ANGLE.width)
         self.sector_q = self.have_q = self.aligned_q = self.dir_q = self.d_q = 0
         self.ref_ok = self.count = 0
         self.edge = self.miss = self.fault = self.error = 0
+        self._pipe = [(0, 0, 0, 0)] * (self.LATENCY - 1)
+        self._error = 0
 
     def tick(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance=8192,
              misses=1):
@@ -130,13 +137,16 @@ class HallPlausibilityModel:
                   and not rel_miss)
 
         need = 1 if misses == 0 else misses
-        self.edge, self.miss = int(edge), int(miss)
-        self.fault = int(miss and self.count + 1 >= need)
+        error = self._error
+        if edge and adjacent:
+            error = d - turn if d >= half else d
+        self._error = error
+        self._pipe.append((int(edge), int(miss), int(miss and self.count + 1 >= need), error))
+        self.edge, self.miss, self.fault, self.error = self._pipe.pop(0)
         if edge:
             self.dir_q, self.ref_ok = int(fwd), int(adjacent and not restart)
             if adjacent:
                 self.d_q = d
-                self.error = d - turn if d >= half else d
         elif jump:
             self.ref_ok = 0
         if miss:
@@ -371,12 +381,12 @@ def front_end_changes(clocks, words, until, *, max_length=255, z_gate=None, **co
 
     The pins hold ``words[i]`` from clock ``clocks[i]`` on (``clocks`` increasing, the first 0:
     the levels at reset). With the configuration constant, once the pins have been still for
-    ``max(length, 1) + 6`` clocks (two synchroniser flops, the filter, the decoder, the
-    plausibility check and their strobes settle in ``max(length, 1) + 5``) and no configuration
-    change is in progress, no state changes until the next pin change: those clocks are
-    skipped. So the cost is ``max(length, 1) + 6`` model clocks per edge, not one per clock (a
-    1000 r/min run of a 5000-line encoder at 50 MHz at ``length`` 4: 10 model clocks per 150
-    real ones).
+    ``max(length, 1) + 8`` clocks (two synchroniser flops, the filter, the decoder, the
+    three-clock plausibility check and their strobes settle in ``max(length, 1) + 7``) and no
+    configuration change is in progress, no state changes until the next pin change: those
+    clocks are skipped. So the cost is ``max(length, 1) + 8`` model clocks per edge, not one
+    per clock (a 1000 r/min run of a 5000-line encoder at 50 MHz at ``length`` 4: 12 model
+    clocks per 150 real ones).
 
     Parameters
     ----------
@@ -402,7 +412,7 @@ def front_end_changes(clocks, words, until, *, max_length=255, z_gate=None, **co
     words = np.asarray(words, dtype=np.int64)
     if clocks.size == 0 or clocks[0] != 0 or np.any(np.diff(clocks) <= 0):
         raise ValueError("front_end_changes clocks must be increasing and start at 0")
-    settle = max(cfg["length"], 1) + 6
+    settle = max(cfg["length"], 1) + 5 + HallPlausibilityModel.LATENCY
     model = EncoderFrontEndModel(max_length=max_length, z_gate=z_gate)
     times, rows = [], []
 

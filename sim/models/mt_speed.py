@@ -81,20 +81,28 @@ class MTParams:
         return clk_hz / self.tclk_ratio
 
     @property
+    def quotient_width(self):
+        """Quotient bits of the unsigned divider: ``min(out_width − 1, k_width + m_width − 1)``."""
+        return min(self.out_width - 1, self.k_width + self.m_width - 1)
+
+    @property
     def divider_latency(self):
-        return divider_latency(self.k_width + self.m_width)
+        return divider_latency(self.quotient_width)
+
+    @property
+    def k_chunks(self):
+        """Clocks of the product ``k·|ΔM|``: one per 16 bits of ``k``."""
+        return -(-self.k_width // 16)
 
     @property
     def latency(self):
-        return self.divider_latency + 3
+        return self.divider_latency + self.k_chunks + 2
 
 
-def _trunc_div(n, d, width):
-    """The Divider's quotient (signed ``width``-bit dividend): truncated, saturating on d = 0."""
-    if d == 0:
-        return (1 << (width - 1)) - 1 if n >= 0 else -(1 << (width - 1))
-    q = abs(n) // abs(d)
-    return q if (n < 0) == (d < 0) else -q
+def _magnitude(n, d, s_max):
+    """The unsigned division ``n / d`` (n, d >= 0) truncated and saturated to ``s_max`` (the
+    divider's narrow quotient; ``d = 0`` saturates)."""
+    return s_max if d == 0 else min(n // d, s_max)
 
 
 def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_cycle=None):
@@ -125,7 +133,6 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
         for the others).
     """
     r, w, ow, mw = params.tclk_ratio, params.tc_width, params.out_width, params.m_width
-    dw = params.k_width + params.m_width
     span, wmask = 1 << w, (1 << w) - 1
     s_max = (1 << (ow - 1)) - 1
     m_lo, m_hi = -(1 << (mw - 1)), (1 << (mw - 1)) - 1
@@ -141,7 +148,8 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
     # State. t_ref / t_last are absolute tick numbers (floor(cycle / r)); the hardware keeps them
     # mod 2**w, which the differences below reproduce.
     have_ref = pending = prev_valid = busy = False
-    m_acc = t_last = t_ref = prev = 0
+    m_acc = t_last = t_ref = prev = 0       # prev: last fresh output, as magnitude and sign
+    prev_neg = False
     mode = snap_dm = snap_dt = snap_t = 0
     out_cycle = inf                 # clock in which the divider's o.valid is high
     up_cycle = 0
@@ -174,7 +182,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
         if start:
             busy = True
             up_cycle = c
-            out_cycle = c + 2 + lat_div   # divider o.valid: transfer (c + 2) + latency
+            out_cycle = c + 1 + params.k_chunks + lat_div   # divider o.valid
             if have_ref and pend_e:
                 mode, snap_dm, snap_dt, snap_t = FRESH, m_e, (tl_e - t_ref) & wmask, tl_e
             elif have_ref and prev_valid:
@@ -200,15 +208,17 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
             m_acc, t_last, pending = m_e, tl_e, pend_e
 
         if c == out_cycle:
-            q = _trunc_div(k * snap_dm, snap_dt, dw)
-            q_sat = min(max(q, -s_max), s_max)
+            # Unsigned division of k·|ΔM| by ΔT, then the sign of ΔM (of the last measurement
+            # when bounded).
+            q = _magnitude(k * abs(snap_dm), snap_dt, s_max)
             if mode == FRESH:
-                speed = 0 if snap_dm == 0 else q_sat
-                prev, prev_valid = speed, True
+                mag = 0 if snap_dm == 0 else q
+                speed = -mag if snap_dm < 0 else mag
+                prev, prev_neg, prev_valid = mag, snap_dm < 0, True
                 stopped, fresh = 0, 1
             elif mode == BOUND:
-                mag = min(q_sat, abs(prev))
-                speed = -mag if prev < 0 else mag
+                mag = min(q, prev)
+                speed = -mag if prev_neg else mag
                 stopped, fresh = 0, 0
             else:
                 speed, stopped, fresh = 0, 1, 0

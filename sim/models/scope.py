@@ -1,6 +1,8 @@
 # Ref: issue 5 item 3 (trace buffer)
 """Clock-by-clock golden model of :class:`~foc_servo.hdl.scope.Scope` (behaviour in
-``hdl/scope.py``): capture state machine, decimation, ring buffer and read-back window."""
+``hdl/scope.py``): capture state machine, decimation, ring buffer, the time-shared source
+multiplexer (channel ``c`` of a sample written ``c`` clocks after its strobe) and the read-back
+window."""
 
 import numpy as np
 
@@ -24,8 +26,9 @@ class ScopeModel:
     ----------
     mem : numpy.ndarray
         The ring, ``(depth, channels)`` raw samples.
-    state, done, wr_ptr, filled, post_left : int
-        The registers of the same names.
+    state, done, wr_ptr, filled, post_left, phase, slot : int
+        The registers of the same names (``phase``: the channel written this clock when
+        non-zero, ``slot`` its ring address).
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
@@ -38,23 +41,24 @@ class ScopeModel:
         self.state = ScopeState.IDLE.value
         self.done = 0
         self.wr_ptr = self.filled = self.post_left = self.dcount = 0
+        self.phase = self.slot = 0
         self.sel = [0] * channels
         self.decim = self.pre = 0
         self.trig_src = TriggerSource.HOST.value
         self.rd_data = 0
         self.captures = self.triggers_ignored = 0
 
+    def sample(self, src, channel):
+        """The sample ``channel`` records from the source values ``src`` (dict)."""
+        code = self.sel[channel]
+        if code < len(self.names):
+            name = self.names[code]
+            return align_sample(src[name], self.sources[name], self.width)
+        return 0
+
     def sample_word(self, src):
         """The samples each channel would record for the source values ``src`` (dict)."""
-        out = []
-        for c in range(self.channels):
-            code = self.sel[c]
-            if code < len(self.names):
-                name = self.names[code]
-                out.append(align_sample(src[name], self.sources[name], self.width))
-            else:
-                out.append(0)
-        return out
+        return [self.sample(src, c) for c in range(self.channels)]
 
     def read(self, index, channel):
         """The sample ``index`` (0 = oldest) of ``channel`` as the window shows it now."""
@@ -70,7 +74,8 @@ class ScopeModel:
         idle = ScopeState.IDLE.value
         pre_s, post_s = ScopeState.PRE.value, ScopeState.POST.value
         full = self.filled >= self.pre
-        out = {"state": self.state, "done": self.done,
+        busy = self.phase != 0
+        out = {"state": self.state, "done": int(self.done and not busy),
                "pre_full": int(self.state == pre_s and full), "rd_data": self.rd_data}
 
         # Read port: RAM word and channel registered; reads the ring before this clock's write.
@@ -80,8 +85,10 @@ class ScopeModel:
         self.rd_data = int(self.mem[phys, channel]) if channel < self.channels else 0
 
         capturing = self.state != idle
-        take = bool(inp["strobe"] and capturing and self.dcount == 0 and not inp["arm"])
+        strobe = bool(inp["strobe"]) and not busy       # ignored while a sample is written
+        take = strobe and capturing and self.dcount == 0 and not inp["arm"]
         if inp["arm"]:
+            self.phase = 0                               # channels not yet written are dropped
             self.state, self.done, self.filled, self.dcount = pre_s, 0, 0, 0
             self.sel = list(inp["sel"])
             self.decim, self.pre = inp["decim"], inp["pretrigger"]
@@ -89,10 +96,14 @@ class ScopeModel:
             return out
         event = bool(inp["force"] or
                      (inp["trigger"] and self.trig_src == TriggerSource.EXTERNAL.value))
-        if inp["strobe"] and capturing:
+        if strobe and capturing:
             self.dcount = 0 if self.dcount >= self.decim else self.dcount + 1
-        if take:
-            self.mem[self.wr_ptr] = self.sample_word(inp["src"])
+        if busy:                                        # channel `phase` of the last sample
+            self.mem[self.slot, self.phase] = self.sample(inp["src"], self.phase)
+            self.phase = (self.phase + 1) % self.channels
+        if take:                                        # channel 0 now, the others after
+            self.mem[self.wr_ptr, 0] = self.sample(inp["src"], 0)
+            self.slot, self.phase = self.wr_ptr, 1 % self.channels
             self.wr_ptr = (self.wr_ptr + 1) % self.depth
         if self.state == pre_s:
             if event and full:

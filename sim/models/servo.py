@@ -135,8 +135,13 @@ class SpeedLoopModel:
                         up, dn = speed_ref > self.hi_b, speed_ref < self.lo_b
                         plan = self.hi_b if up else self.lo_b if dn else speed_ref
                         ff = clamp_np(iq_ff if up else -iq_ff, lim_lo, lim_hi) if up or dn else 0
-                        hold = int(bool(int_hold) and (up or dn))
                         ref = self._to_pi(plan) if d_int == 0 else self.ref_pre
+                        # The PI's reference moves (a profile only): R has not reached
+                        # speed_ref, or the delayed reference has not reached R, before this run.
+                        moving = speed_slew != 0 and (
+                            self.ref_int != speed_ref
+                            or (d_int != 0 and self.ref_pre != self._to_pi(self.ref_int)))
+                        hold = int(bool(int_hold) and moving)
                         # The PI runs with the limits shifted by this run's feed-forward (the
                         # gateware's registered limits have it from the PI's third clock on).
                         lo_s, hi_s = (saturate_np((lim - ff) << s, signed(self.width))

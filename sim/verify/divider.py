@@ -45,7 +45,16 @@ def corner_cases(**params):
         return sorted(v for v in s if lo <= v <= hi)
 
     ns, ds = specials(nlo, nhi, p["width"]), specials(dlo, dhi, p["divisor_width"])
-    return [n for n in ns for _ in ds], [d for _ in ns for d in ds]
+    n, d = [n for n in ns for _ in ds], [d for _ in ns for d in ds]
+    qw = p["quotient_width"]
+    if qw < p["width"]:
+        # The saturation boundary of a narrow quotient: quotients 2**qw − 1 and 2**qw.
+        for dv in ds:
+            for nv in (dv << qw) - 1, dv << qw, (dv << qw) + dv - 1, ((dv + 1) << qw) - 1:
+                if dv and nlo <= nv <= nhi:
+                    n.append(nv)
+                    d.append(dv)
+    return n, d
 
 
 def _randbits(rng, bits, size, dtype):
@@ -72,6 +81,9 @@ def vectors(count, *, seed=0, **params):
     Mix: uniform over the full ranges (30 %), log-uniform magnitudes (20 %), small magnitudes
     (10 %), powers of two ± 1 (10 %), ``|dividend| < |divisor|`` (10 %), small divisor and full
     dividend (12 %), divisor ±1 (6 %), divisor 0 (1 %), ``min / -1`` (1 %; unsigned: ``max / 1``).
+    With a narrow quotient (``quotient_width < width``) a third of the pairs are then redrawn
+    with quotients around the saturation boundary ``2**quotient_width`` (the draws before are
+    unchanged: the same seed gives the same other pairs).
 
     Returns
     -------
@@ -128,6 +140,16 @@ def vectors(count, *, seed=0, **params):
     d = np.where((d == 0) & (kind != 7), signs(np.ones(count, dtype=dtype)), d)
     n = np.clip(n, nlo, nhi).astype(dtype)
     d = np.clip(d, dlo, dhi).astype(dtype)
+    qw = p["quotient_width"]
+    if qw < p["width"]:
+        # Quotient in [2**qw − 4, 2**qw + 4) (where the dividend range allows it), any remainder.
+        near = rng.random(count) < 1 / 3
+        dd = np.maximum(d, 1)
+        q = (1 << qw) - 4 + rng.integers(0, 8, size=count)
+        rem = _randbits(rng, min(p["divisor_width"], 62), count, dtype) % dd
+        nn = dd.astype(object) * q.astype(object) + rem.astype(object)
+        ok = near & (nn <= nhi)
+        n = np.where(ok, nn, n).astype(dtype)
     return n, d
 
 
@@ -173,7 +195,7 @@ class DividerBench(wiring.Component):
             "mismatches": range(depth),
             "late": range(depth),
             "first_bad": range(depth),
-            "got": self._p["width"] + self._p["divisor_width"] + 2,
+            "got": self._p["quotient_width"] + self._p["divisor_width"] + 2,
         })
         self.clocks = Signal(40)
         self.state = Signal(data.ArrayLayout(lane, len(self._rows)))
@@ -217,23 +239,24 @@ class DividerBench(wiring.Component):
 
 
 def _pack(n, d, q, r, z, v, p):
-    w, dw = p["width"], p["divisor_width"]
-    mw, md = (1 << w) - 1, (1 << dw) - 1
-    return [(int(a) & mw) | (int(b) & md) << w | (int(c) & mw) << (w + dw)
-            | (int(e) & md) << (2 * w + dw) | int(f) << (2 * w + 2 * dw)
-            | int(g) << (2 * w + 2 * dw + 1)
+    w, dw, qw = p["width"], p["divisor_width"], p["quotient_width"]
+    mw, md, mq = (1 << w) - 1, (1 << dw) - 1, (1 << qw) - 1
+    o = w + dw                          # the expected payload: quotient, remainder, div0, ovf
+    return [(int(a) & mw) | (int(b) & md) << w | (int(c) & mq) << o
+            | (int(e) & md) << (o + qw) | int(f) << (o + qw + dw)
+            | int(g) << (o + qw + dw + 1)
             for a, b, c, e, f, g in zip(n, d, q, r, z, v)]
 
 
 def _unpack_payload(bits, p):
-    w, dw = p["width"], p["divisor_width"]
+    qw, dw = p["quotient_width"], p["divisor_width"]
 
     def field(x, width):
         x &= (1 << width) - 1
         return x - (1 << width) if p["signed"] and x >> (width - 1) else x
 
-    return {"quotient": field(bits, w), "remainder": field(bits >> w, dw),
-            "div0": bits >> (w + dw) & 1, "ovf": bits >> (w + dw + 1) & 1}
+    return {"quotient": field(bits, qw), "remainder": field(bits >> qw, dw),
+            "div0": bits >> (qw + dw) & 1, "ovf": bits >> (qw + dw + 1) & 1}
 
 
 def run(count=100_000, *, seed=0, progress=False, lanes=16, **params):
@@ -251,7 +274,8 @@ def run(count=100_000, *, seed=0, progress=False, lanes=16, **params):
     lanes : int
         Dividers simulated side by side (a speed knob; the results do not depend on it).
     **params :
-        ``width``, ``divisor_width``, ``signed`` of :class:`~foc_servo.hdl.divider.Divider`.
+        ``width``, ``divisor_width``, ``signed``, ``quotient_width`` of
+        :class:`~foc_servo.hdl.divider.Divider`.
 
     Returns
     -------

@@ -224,19 +224,27 @@ def _run_dcbus(cases, *, seed, width, adc_width, gain_limit, out_width):
             await ctx.tick().repeat(dut.gain_latency)
             got_gain[k] = ctx.get(dut.gain)
             got_lim[k] = ctx.get(dut.limited)
-            ctx.set(dut.i.valid, 1)
-            for j in range(per_case):
-                ctx.set(dut.i.payload, {"alpha": int(cmd[k, j, 0]), "beta": int(cmd[k, j, 1])})
+            # Back to back: result j comes out `latency` clocks after command j goes in.
+            out = 0
+            for j in range(per_case + dut.latency):
+                ctx.set(dut.i.valid, j < per_case)
+                if j < per_case:
+                    ctx.set(dut.i.payload, {"alpha": int(cmd[k, j, 0]),
+                                            "beta": int(cmd[k, j, 1])})
                 await ctx.tick()
-                p = ctx.get(dut.o.payload)
-                got[k, j] = [p.alpha, p.beta]
+                if ctx.get(dut.o.valid):
+                    p = ctx.get(dut.o.payload)
+                    got[k, out] = [p.alpha, p.beta]
+                    out += 1
             ctx.set(dut.i.valid, 0)
+            if out != per_case or j + 1 - per_case != dut.latency:
+                got[k] = exp[k] + 1          # a lost or late result counts as a mismatch
 
     sim_s = simulate(dut, [testbench], name="dcbus")
     mism = (int(np.count_nonzero(np.any(got != exp, axis=-1)))
             + int(np.count_nonzero(got_gain != gain)) + int(np.count_nonzero(got_lim != limited)))
     return {"mismatches": mism, "vectors": cases * per_case + cases,
-            "clocks": cases * (dut.gain_latency + per_case + 1), "sim_s": sim_s,
+            "clocks": cases * (dut.gain_latency + per_case + dut.latency + 1), "sim_s": sim_s,
             "gain_latency": dut.gain_latency}
 
 

