@@ -4,6 +4,7 @@
 from .adc import AdcInterface
 from .clarke import Clarke
 from .cordic import Cordic
+from .deadtime_comp import DeadTimeComp
 from .divider import Divider
 from .encoder import EncoderFrontEnd
 from .foc import CurrentLoop
@@ -12,6 +13,7 @@ from .mt_speed import MTSpeed
 from .pi import PI
 from .protect import Protection
 from .regs import RegisterFile
+from .rotator import Rotator
 from .scope import Scope
 from .servo import Servo
 from .svpwm import SVPWM, DCBusCompensation, PWMTimer
@@ -22,6 +24,7 @@ __all__ = ["ARITH_BLOCKS", "IO_BLOCKS", "CONTROL_BLOCKS", "BLOCKS"]
 #: The foundation's arithmetic blocks, name -> factory of a fresh instance (defaults).
 ARITH_BLOCKS = {
     "cordic": lambda: Cordic(),
+    "rotator": lambda: Rotator(),
     "pi": lambda: PI(),
     "clarke": lambda: Clarke(),
     "divider": lambda: Divider(),
@@ -35,6 +38,7 @@ IO_BLOCKS = {
     "svpwm": lambda: SVPWM(),
     "pwm_timer": lambda: PWMTimer(),
     "gates": lambda: Gates(),
+    "deadtime_comp": lambda: DeadTimeComp(),
     "adc": lambda: AdcInterface(),
     "protect": lambda: Protection(),
 }

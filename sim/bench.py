@@ -62,6 +62,7 @@ def bench_arith(*, count=100_000, seed=1, area=True, progress=True, workers=2):
     common = {"seed": seed}
     jobs = {
         "cordic": ("cordic", "run", {"count": count, **common}),
+        "rotator": ("rotator", "run", {"count": count, **common}),
         "pi": ("pi", "run", {"count": count, **common}),
         "clarke": ("clarke", "run", {"count": count, **common}),
         "divider": ("divider", "run", {"count": count, **common}),
@@ -75,6 +76,10 @@ def bench_arith(*, count=100_000, seed=1, area=True, progress=True, workers=2):
         "cordic_latency_clk": c["latency_clk"],
         "cordic_throughput_per_clk": c["throughput_per_clk"],
         "cordic_mismatches": c["mismatches"],
+        "rotator_max_err_lsb": r["rotator"]["max_err_lsb"],
+        "rotator_rms_err_lsb": r["rotator"]["rms_err_lsb"],
+        "rotator_latency_clk": r["rotator"]["latency_clk"],
+        "rotator_mismatches": r["rotator"]["mismatches"],
         "pi_mismatches": p["mismatches"],
         "clarke_mismatches": k["mismatches"],
         "divider_mismatches": d["mismatches"],
