@@ -51,20 +51,24 @@ def test_cosim_host_link_identification_and_rw(cosim_factory):
 
 
 def test_current_step_rotor_held_reaches_reference(cosim_factory):
-    res = S.current_step(iq_a=10.0, duration_s=40e-3, t_step_s=1e-3)
+    res = S.current_step(iq_a=10.0, duration_s=6e-3, t_step_s=1e-3)
     s, m = res.series, res.metrics
     last = s["t_s"] > s["t_s"][-1] - 2e-3
     # The plant's true i_q within 0.5 % of the reference, i_d near 0, torque = 1.5·P·ψ·i_q.
-    # (The dead time's voltage error is a step disturbance that a PI tuned by pole-zero
-    # cancellation rejects with the plant's own L/R = 7.7 ms: hence the 40 ms.)
+    # (Without the dead-time compensation that Servo.tune enables, the dead time's ≈ 3 V is a
+    # step disturbance that the pole-cancelling PI rejects only with L/R = 7.7 ms: 9.82 A after
+    # 5 ms. With it: 9.99 A at 1 ms, 10.00 A at 2 and 5 ms.)
     assert np.mean(s["i_q_a"][last]) == pytest.approx(10.0, rel=0.005)
+    after_1ms = s["t_s"] > m["t0_s"] + 1e-3
+    assert np.max(np.abs(s["i_q_a"][after_1ms] - 10.0)) < 0.1
     assert abs(np.mean(s["i_d_a"][last])) < 0.2
     kt = DEFAULT_MOTOR.kt_nm_per_a
     assert np.mean(s["torque_nm"][last]) == pytest.approx(kt * np.mean(s["i_q_a"][last]),
                                                           rel=1e-3)
-    # Technical optimum: a fast, well-damped rise (a few PWM periods), no overshoot.
-    assert m["rise_s"] is not None and m["rise_s"] < 1.5e-3
-    assert m["overshoot_pct"] < 5.0
+    # Technical optimum with the PWM delay: a rise in a few PWM periods, its ≈ 4.3 % overshoot
+    # (measured 4.4 %).
+    assert m["rise_s"] is not None and m["rise_s"] < 0.5e-3
+    assert m["overshoot_pct"] < 6.0
 
 
 def test_speed_step_settles_without_trip(cosim_factory):
