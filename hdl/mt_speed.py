@@ -134,9 +134,9 @@ class MTSpeed(wiring.Component):
         One 1-clock ``valid`` strobe :attr:`latency` clocks after each accepted update; payload
         held until the next. ``speed``: signed Q1.(out_width−1) of N_M, truncated toward zero,
         symmetric saturation (division by ΔT = 0, more edges than one per TC tick, saturates with
-        the sign of ΔM, also when ``k = 0``). ``stopped``: no edge within the TC span (or no measurement yet since
-        reset); ``speed`` is then 0. ``fresh``: the window closed on a new edge this update
-        (``speed = k·ΔM/ΔT``); 0 = bounded previous measurement or stopped.
+        the sign of ΔM, also when ``k = 0``). ``stopped``: no edge within the TC span (or no
+        measurement yet since reset); ``speed`` is then 0. ``fresh``: the window closed on a new
+        edge this update (``speed = k·ΔM/ΔT``); 0 = bounded previous measurement or stopped.
 
     Attributes
     ----------
