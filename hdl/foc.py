@@ -3,8 +3,10 @@
 """The current loop: ADC sample → Clarke → Park → PI_d, PI_q → inverse Park → DC-bus
 compensation → SVPWM → duties, once per accepted ADC sample.
 
-One :class:`~.cordic.Cordic` serves both rotations (``tag`` 0: Park by −θ, ``tag`` 1: inverse
-Park by θ + θ_lead); the two passes are serial in time. Per accepted sample (``t`` = the clock
+One rotator serves both rotations (``tag`` 0: Park by −θ, ``tag`` 1: inverse Park by
+θ + θ_lead); the two passes are serial in time. It is the sine-table :class:`~.rotator.Rotator`
+(``rotator="table"``, default) or the unrolled :class:`~.cordic.Cordic` (``rotator="cordic"``);
+both take 8 clocks at the defaults (``L_cordic`` below) and have the same ports. Per accepted sample (``t`` = the clock
 ``i.valid`` is accepted; ``L_x`` the blocks' ``latency`` attributes)::
 
     t                     inputs latched (θ, θ_lead, references, mode bits, speed, U_dc)
@@ -51,6 +53,7 @@ from amaranth.lib.wiring import In, Out
 
 from .clarke import Clarke
 from .cordic import Cordic
+from .rotator import Rotator
 from .dsp import round_shift_signed, saturate_bits
 from .fixed import UQ, Q, QFormat, round_shift
 from .pi import PI
@@ -64,6 +67,9 @@ FF_FORMAT = UQ(16, 14)
 SPEED_WIDTH = 32
 #: Fields of the ADC sample stream (as :class:`~.adc.AdcInterface` produces it).
 ADC_CHANNELS = ("ia", "ib", "udc", "aux")
+
+#: The ``rotator`` choices of :class:`CurrentLoop`.
+ROTATORS = ("table", "cordic")
 
 #: Cordic ``tag`` values.
 TAG_PARK, TAG_INVERSE = 0, 1
@@ -92,8 +98,14 @@ class CurrentLoop(wiring.Component):
         Width of θ, a ``BinaryAngle(angle_width)`` (a full turn is ``2**angle_width``), 4 … 32.
     count_width : int
         Width of the SVPWM scale and the duties, 4 … 24.
+    rotator : str
+        The shared rotator of Park and inverse Park: ``"table"`` (default,
+        :class:`~.rotator.Rotator`: quarter-wave sine table in block RAM + 2 multipliers, 8 clocks,
+        registered for ≥ 110 MHz on ECP5; ≈ 480 LUT4) or ``"cordic"``
+        (:class:`~.cordic.Cordic`, unrolled, no RAM and no multiplier; ≈ 2 240 LUT4).
     iterations_per_stage : int
-        CORDIC iterations per pipeline register (3: 8 clocks per pass at 16 bits).
+        CORDIC iterations per pipeline register (3: 8 clocks per pass at 16 bits); used by
+        ``rotator="cordic"`` only.
     clarke_gain_format, kp_format, kx_format, int_guard, gain_limit
         Passed to :class:`~.clarke.Clarke` (``gain_format``), :class:`~.pi.PI` (both regulators)
         and :class:`~.svpwm.DCBusCompensation`.
@@ -186,14 +198,17 @@ class CurrentLoop(wiring.Component):
     """
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
-                 iterations_per_stage=3, clarke_gain_format=Q(18, 15), kp_format=UQ(16, 8),
-                 kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0):
+                 rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
+                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0):
         for name, value, lo, hi in (("width", width, 8, 23), ("adc_width", adc_width, 4, 24),
                                     ("angle_width", angle_width, 4, 32),
                                     ("count_width", count_width, 4, 24)):
             if not _is_int(value) or not lo <= value <= hi:
                 raise TypeError(f"CurrentLoop {name} must be an integer from {lo} to {hi}, "
                                 f"not {value!r}")
+        if rotator not in ROTATORS:
+            raise ValueError(f"CurrentLoop rotator must be one of {', '.join(ROTATORS)}, "
+                             f"not {rotator!r}")
         if not _is_int(iterations_per_stage) or iterations_per_stage < 1:
             raise TypeError(f"CurrentLoop iterations_per_stage must be a positive integer, "
                             f"not {iterations_per_stage!r}")
@@ -206,8 +221,13 @@ class CurrentLoop(wiring.Component):
         self._count_width = count_width
         self._clarke = Clarke(width=width, adc_shape=signed(adc_width),
                               gain_format=clarke_gain_format)
-        self._cordic = Cordic(width=width, angle_width=angle_width,
-                              iterations_per_stage=iterations_per_stage, tag_width=1)
+        self._rotator = rotator
+        if rotator == "table":
+            self._cordic = Rotator(width=width, angle_width=angle_width, tag_width=1,
+                                   registered=True)
+        else:
+            self._cordic = Cordic(width=width, angle_width=angle_width,
+                                  iterations_per_stage=iterations_per_stage, tag_width=1)
         self._pi_d = PI(width=width, kp_format=kp_format, kx_format=kx_format,
                         int_guard=int_guard)
         self._pi_q = PI(width=width, kp_format=kp_format, kx_format=kx_format,

@@ -81,6 +81,8 @@ def _model(samples, config=CONFIG):
      "CurrentLoop angle_width must be an integer from 4 to 32, not True"),
     ({"count_width": 25}, TypeError,
      "CurrentLoop count_width must be an integer from 4 to 24, not 25"),
+    ({"rotator": "lut"}, ValueError,
+     "CurrentLoop rotator must be one of table, cordic, not 'lut'"),
     ({"iterations_per_stage": 0}, TypeError,
      "CurrentLoop iterations_per_stage must be a positive integer, not 0"),
     ({"clarke_gain_format": 15}, TypeError,
@@ -98,7 +100,8 @@ def test_current_loop_latency_budget_per_stage():
                                  "inverse_park": 8, "dcbus": 2, "svpwm": 15}
     assert dut.latency == 46 <= 50
     assert dut.dq_latency == 15
-    slow = CurrentLoop(iterations_per_stage=1)
+    assert CurrentLoop(rotator="cordic").latency == 46          # same 8 clocks per rotation
+    slow = CurrentLoop(rotator="cordic", iterations_per_stage=1)
     Fragment.get(slow, None)
     assert slow.latency == 46 + 2 * (22 - 8)
 
@@ -307,6 +310,8 @@ def test_current_loop_random_sequences_against_model():
     r = verify_foc.run(40, seed=7)
     assert r["mismatches"] == 0, r
     assert r["latency_errors"] == 0 and r["overruns"] == 0
+    c = verify_foc.run(15, seed=8, rotator="cordic")            # the CORDIC alternative
+    assert c["mismatches"] == 0 and c["latency_errors"] == 0 and c["overruns"] == 0, c
     assert r["vectors"] > 150                               # random + corner cases
     assert min(r["closed_loop"], r["open_loop"], r["pi_saturated"], r["overmodulated"],
                r["dc_limited"]) > 0

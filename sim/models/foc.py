@@ -13,7 +13,8 @@ from amaranth.hdl import signed
 from ...hdl.fixed import Q, UQ, round_shift_np, saturate_np
 from ...hdl.foc import FF_FORMAT, SPEED_WIDTH
 from .clarke import clarke
-from .cordic import rotate
+from .cordic import rotate as cordic_rotate
+from .rotator import rotate as table_rotate
 from .pi import PIModel
 from .svpwm import dcbus_apply, dcbus_gain, svpwm
 
@@ -38,8 +39,8 @@ class CurrentLoopModel:
 
     Parameters
     ----------
-    width, adc_width, angle_width, iterations_per_stage, clarke_gain_format, kp_format,
-    kx_format, int_guard, gain_limit
+    width, adc_width, angle_width, rotator, iterations_per_stage, clarke_gain_format,
+    kp_format, kx_format, int_guard, gain_limit
         As for :class:`~foc_servo.hdl.foc.CurrentLoop` (``iterations_per_stage`` changes timing
         only).
 
@@ -51,10 +52,12 @@ class CurrentLoopModel:
         DC-bus gain (UQ2.16) the next sample will be compensated with.
     """
 
-    def __init__(self, *, width=16, adc_width=16, angle_width=16, iterations_per_stage=3,
+    def __init__(self, *, width=16, adc_width=16, angle_width=16, rotator="table",
+                 iterations_per_stage=3,
                  clarke_gain_format=Q(18, 15), kp_format=UQ(16, 8), kx_format=UQ(16, 16),
                  int_guard=8, gain_limit=2.0):
         self.width = width
+        self._rotate = {"table": table_rotate, "cordic": cordic_rotate}[rotator]
         self.adc_width = adc_width
         self.angle_width = angle_width
         self.clarke_gain_format = clarke_gain_format
@@ -98,7 +101,7 @@ class CurrentLoopModel:
         c = clarke(v["ia"], v["ib"], gain_a=v["gain_a"], gain_b=v["gain_b"],
                    offset_a=v["offset_a"], offset_b=v["offset_b"], width=w,
                    gain_frac=self.clarke_gain_format.frac)
-        i_d, i_q = rotate(c["alpha"], c["beta"], (-v["theta"]) % turn, **cordic)
+        i_d, i_q = self._rotate(c["alpha"], c["beta"], (-v["theta"]) % turn, **cordic)
 
         run = (v["enable"] != 0) & (v["ol_enable"] == 0)
         ol = v["ol_enable"] != 0
@@ -128,7 +131,7 @@ class CurrentLoopModel:
                        saturate_np(pi_out[0] + np.where(ff_run, ff_d, 0), sw))
         u_q = np.where(ol, v["ol_uq"],
                        saturate_np(pi_out[1] + np.where(ff_run, ff_q, 0), sw))
-        u_alpha, u_beta = rotate(u_d, u_q, (v["theta"] + v["theta_lead"]) % turn, **cordic)
+        u_alpha, u_beta = self._rotate(u_d, u_q, (v["theta"] + v["theta_lead"]) % turn, **cordic)
 
         # DC-bus compensation with the gain of the previous sample's bus voltage.
         gain, limited = dcbus_gain(v["u_rated"], np.maximum(v["udc"], 0),
