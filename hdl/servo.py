@@ -24,7 +24,8 @@ While ``clear`` is high (not in SPEED mode) ``R`` and its history track the meas
 ``R[n−1]`` and ``speed_ref``, so it never leaves signed(speed_width); the interpolated ``ref``
 lies between ``a`` and ``b`` (``|round(f·Δ/8)| ≤ |Δ|`` for ``f ≤ 7``). ``ref_delay`` makes the
 PI compare the speed with the reference as the plant can follow it (the delay of the closed
-current loop and of the M/T average, about 2.5 … 3 runs at 10 kHz with the default tuning),
+current loop and of the M/T average: about 2.5 runs at 10 kHz for a small current, 3.5 … 5 for a
+full-current step, whose rise is voltage-limited),
 while ``ff`` acts at once; ``int_hold`` keeps the integrator out of the acceleration, which ``ff``
 supplies, until the *delayed* reference has arrived (``mv``: the PI's reference still moves), so
 the lag of the plant behind the profile is never integrated. With ``ref_delay = 0`` and

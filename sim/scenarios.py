@@ -77,8 +77,8 @@ def current_limit_a(motor):
 
 
 def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, speed_a=3.0,
-          current_bandwidth_hz=None, ref_delay_runs=3.875, int_hold=True, tune_kw=None,
-          slew_frac=0.92, ff_iq_a=None):
+          current_bandwidth_hz=None, ref_delay_runs=3.5, int_hold=True, tune_kw=None,
+          slew_frac=0.92, ff_iq_a=None, move_rpm=None):
     """Configure the simulated drive over its host link for the speed and current modes.
 
     Writes: ``u_rated`` (the DC bus), the encoder (lines, pole pairs, Z offset, Hall offset), the
@@ -88,13 +88,21 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
     speed-loop update) from ``slew_rpm_per_s``, default ``slew_frac`` = 92 % of the
     current-limited acceleration α_max, and the acceleration feed-forward
     ``speed_ff_iq = J·α/K_t`` (``ff_iq_a`` overrides it, A), the PI's reference delayed by
-    ``ref_delay_runs`` (the largest the register holds, 3.875 runs: the speed lags the profile
-    by the current rise, ≈ 0.3 ms from standstill at U_dc = 310 V, plus the M/T average,
-    ≈ 0.1 ms) and its integrator held until the delayed reference has arrived (``int_hold``).
+    ``ref_delay_runs`` (3.5 runs: the speed lags the profile by the current's latency and
+    voltage-limited rise, ≈ 0.43 ms from standstill at U_dc = 310 V, the M/T average adds
+    ≈ 0.1 ms; a delay a little short of that lets the PI's share top the current up to the limit
+    during the acceleration) and its integrator held until the delayed reference has arrived
+    (``int_hold``).
 
-    The defaults are the best measured for the paper's step (docs/SIMULATION.md, "Tuning the
-    profile"): the PI's room above the feed-forward (8 % of the current limit) covers the
-    current loop's deficit at the limit. Returns the host library's Servo.
+    ``move_rpm`` (the speed change the scenario is about to command, r/min) turns on whole-run
+    planning, as a motion planner does: the slew is lowered to ``|Δ|/n`` for the smallest whole
+    number ``n`` of speed-loop runs, so the last step (which lands, and so carries no
+    feed-forward) is always a full one, and the response no longer depends on where in a run
+    the move happens to end. The step, reversal and load scenarios pass it.
+
+    The defaults are the best measured (docs/SIMULATION.md, "Closed-loop performance"): the PI's
+    room above the feed-forward (8 % of the current limit) covers the current loop's deficit at
+    the limit. Returns the host library's Servo.
     """
     servo = cosim.servo()
     motor, plant = cosim.motor, cosim.plant
@@ -122,6 +130,13 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
     if slew_rpm_per_s is None:
         slew_rpm_per_s = slew_frac * alpha_max * 60 / (2 * math.pi)
     f_speed = cosim.scales.pwm_hz / max(servo.get("speed_div"), 1)
+    if slew_rpm_per_s and move_rpm:
+        # Whole-run planning: the move takes a whole number n of speed-loop runs, the slew a
+        # hair above |Δ|/n so that the n-th step is the one that lands (it carries no
+        # feed-forward, as every landing step): the feed-forward then always stops one run
+        # before the profile ends, whatever the move.
+        runs = max(math.ceil(abs(move_rpm) * f_speed / slew_rpm_per_s - 1e-9), 1)
+        slew_rpm_per_s = abs(move_rpm) * f_speed / runs * (1 + 1e-6)
     if slew_rpm_per_s:
         alpha = slew_rpm_per_s * 2 * math.pi / 60
         servo.set_many({"speed_slew": slew_rpm_per_s / f_speed,
@@ -212,6 +227,7 @@ def step(*, speed_rpm=1667.0, duration_s=0.1, engine="compiled", motor=DEFAULT_M
         raise ValueError(f"duration_s must leave room for the step and the steady-state window "
                          f"(≥ {t_step_s + 3 * window_s:g} s), not {duration_s!r}")
     t0 = time.perf_counter()
+    setup_kw = dict({"move_rpm": speed_rpm}, **(setup_kw or {}))
     cosim, _, s, changes = _speed_run("step", [(t_step_s, speed_rpm)], duration_s=duration_s,
                                       engine=engine, motor=motor, pwm_hz=pwm_hz, clk_hz=clk_hz,
                                       progress=progress, setup_kw=setup_kw, **kw)
@@ -247,7 +263,9 @@ def ramp(*, speed_rpm=500.0, rate_rpm_per_sample=0.45, duration_s=None, engine="
         raise ValueError(f"duration_s must cover the ramp ({ramp_s * 1e3:.1f} ms) and the "
                          f"steady-state window: at least {t_step + ramp_s + window_s:g} s, "
                          f"not {duration_s!r}")
-    setup_kw = dict(setup_kw or {}, slew_rpm_per_s=rate * pwm_hz)
+    # The PI's reference delay of a small-current ramp: the closed current loop and the M/T
+    # average, ≈ 2.5 runs (a full-current step adds the voltage-limited current rise: setup()).
+    setup_kw = dict({"ref_delay_runs": 2.5}, **(setup_kw or {}), slew_rpm_per_s=rate * pwm_hz)
     t0 = time.perf_counter()
     cosim, _, s, changes = _speed_run("ramp", [(t_step, speed_rpm)], duration_s=duration_s,
                                       engine=engine, motor=motor, pwm_hz=pwm_hz, clk_hz=clk_hz,
@@ -296,7 +314,7 @@ def load(*, speed_rpm=1000.0, torque_nm=None, duration_s=0.06, t_load_s=0.025,
     cosim = _cosim("load", engine=engine, motor=motor, pwm_hz=pwm_hz, clk_hz=clk_hz,
                    direction=1 if speed_rpm >= 0 else -1, load_nm=load_nm, progress=progress,
                    **kw)
-    servo = setup(cosim, **(setup_kw or {}))
+    servo = setup(cosim, **dict({"move_rpm": speed_rpm}, **(setup_kw or {})))
     servo.set_many({"speed_ref": speed_rpm, "mode": Mode.SPEED})
     t_ref = cosim.t_s
     t_abs["t"] = t_ref + t_load_s
@@ -328,6 +346,7 @@ def reversal(*, speed_rpm=1000.0, duration_s=0.06, t_rev_s=0.02, engine="compile
     if speed_rpm == 0:
         raise ValueError("speed_rpm must be above 0 for a reversal")
     t0 = time.perf_counter()
+    setup_kw = dict({"move_rpm": 2 * speed_rpm}, **(setup_kw or {}))
     cosim, _, s, changes = _speed_run(
         "reversal", [(0.0, speed_rpm), (t_rev_s, -speed_rpm)], duration_s=duration_s,
         engine=engine, motor=motor, pwm_hz=pwm_hz, clk_hz=clk_hz, progress=progress,
