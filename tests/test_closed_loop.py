@@ -75,11 +75,10 @@ def test_speed_step_settles_without_trip(cosim_factory):
     res = S.step(speed_rpm=500.0, duration_s=0.06, t_step_s=1e-3, window_s=5e-3)
     m = res.metrics
     assert m["settle_s"] is not None, m
-    # Issue 6's target is < 0.5 % (at 1667 r/min); reached today: ~11 % at 500 r/min, ~3.6 % at
-    # 1667 r/min (the current loop responds about twice slower than its tuning rule predicts, so
-    # the speed lags the profile). This bound guards against regressions only.
-    assert m["overshoot_pct"] < 15.0
-    assert m["ss_err_pct"] < 0.1
+    # Measured ≈ 1.0 % overshoot and 0.0018 % steady-state error at 500 r/min (the paper's
+    # 1667 r/min step, below, meets the < 0.5 % target).
+    assert m["overshoot_pct"] < 2.0
+    assert m["ss_err_pct"] < 0.01
     assert res.cosim.trip_clock is None
     assert res.info["engine"] == "compiled"
 
@@ -109,10 +108,11 @@ def test_paper_step_1667_rpm():
     res = S.step()
     m = res.metrics
     assert m["t_min_s"] == pytest.approx(2.93e-3, rel=0.01)
-    # Targets (issue 6): settle_ratio ≤ 1.2, overshoot < 0.5 %; reached today 5.5 and 3.6 %
-    # (reported by `foc-servo sim step`); steady-state error < 0.01 % is met.
-    assert m["settle_ratio"] is not None and m["settle_ratio"] < 8, m
-    assert m["overshoot_pct"] < 6, m
+    # Targets (issue 6): settle_ratio ≤ 1.2, overshoot < 0.5 %, steady state < 0.01 %; measured
+    # 1.197, 0.455 % and 0.0015 % (`foc-servo sim step`). The bounds leave a little room: the
+    # ratio sits at the current-limited floor (docs/SIMULATION.md, "Closed-loop performance").
+    assert m["settle_ratio"] is not None and m["settle_ratio"] < 1.25, m
+    assert m["overshoot_pct"] < 0.6, m
     assert m["ss_err_pct"] < 0.01, m
 
 
@@ -120,10 +120,12 @@ def test_paper_step_1667_rpm():
 def test_paper_ramp():
     res = S.ramp()
     m = res.metrics
-    # Targets (issue 6): tracking < 1 %, steady state ≤ 0.02 %; reached today 1.82 % and
-    # 0.036 % (reported by `foc-servo sim ramp`); the paper's tracking error is 5 %.
-    assert m["track_err_pct"] < 5.0, m
-    assert m["ss_err_pct"] < 0.1, m
+    # Targets (issue 6): tracking < 1 %, steady state ≤ 0.02 %; measured 2.22 % (the first
+    # 10 ms: M/T's first reading and the small start-up current; 0.375 % after them) and
+    # 0.0086 % (`foc-servo sim ramp`); the paper's tracking error is 5 %.
+    assert m["track_err_pct"] < 2.5, m
+    assert m["track_err_after_10ms_pct"] < 0.6, m
+    assert m["ss_err_pct"] < 0.02, m
 
 
 @pytest.mark.slow
