@@ -438,7 +438,7 @@ def test_source_key_is_off_when_a_source_is_newer_than_the_process(compiled, mon
 
 @pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")
 def test_cached_model_skips_the_verilog_conversion(compiled, monkeypatch):
-    if compiled.source_key is None:
+    if compiled.source_key is None or compiled_mod.source_key(compiled.simtop) is None:
         pytest.skip("a source file changed after this test session started")
     def no_convert(*args, **kwargs):
         raise AssertionError("verilog.convert called for a cached model")

@@ -736,7 +736,10 @@ class CompiledEngine(Engine):
             self.lib_path, self.built = build_model(self._verilog, progress=progress)
             self.converted = True
             if self.source_key is not None:
-                _remember(self.source_key, self.lib_path)
+                try:
+                    _remember(self.source_key, self.lib_path)
+                except OSError:         # a read-only cache: the next engine converts again
+                    pass
         self.build_s = time.perf_counter() - start
         self._lib = _load(self.lib_path)
         self._handle = None
