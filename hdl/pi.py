@@ -36,16 +36,28 @@ leaves the limit on the first sample whose error has the other sign (as soon as
 ``round(P + I)`` is back inside). ``I`` is held, not clamped, by (b), and (a) is the backstop
 (it binds e.g. with ``kp = 0``).
 
-Schedule (clock 0 = the cycle ``i`` is accepted; one register stage per clock)::
+Schedule (clock 0 = the cycle ``i`` is accepted; one register stage per clock, each at most one
+hard multiplier or one carry chain deep, for 100 MHz on an ECP5)::
 
-    0  E                          3  I_c                        (lim_lo, lim_hi)
-    1  kp·E, kx·(E + E[n−1])      4  U_c, U with I[n−1]
-       (kp, kx; E[n−1] ← E)       5  hold, I, O, sat            (lim_lo, lim_hi)
-    2  P, dI                      6  o.valid, i.ready
+    0  E
+    1  kp·E, kx·E, kx·E[n−1] as registered partial products (hdl/dsp.py); E[n−1] ← E;
+       [E + E[n−1] < 0]
+    2  P, dI (rounded with the sign known from the factors); lim·2**g − I; thresholds of the
+       output comparisons                                                  (limits from here)
+    3  I + dI, I + dI ≷ lim·2**g (as dI ≷ lim·2**g − I); P + I for I = I[n−1], hi·2**g,
+       lo·2**g, I + dI
+    4  I_c (selected); U_c, U with I[n−1] and their comparisons with the limits, made on
+       P + I: ``round_shift(x, g) > H ⇔ x ≥ (H + 1)·2**g − 2**(g−1) + [x < 0]``
+    5  hold, I, O (clamped by selection: the saturation to signed(W) is a no-op), sat
+    6  o.valid, i.ready
 
-The unit is sequential, so one multiplier could serve both products: ``kx·(E + E[n−1])`` on clock
-1 and ``kp·E`` on clock 2 through an operand mux (``latency`` and ``interval`` + 1, one multiplier
-and a wider mux instead of two multipliers).
+``lim_lo`` and ``lim_hi`` are read from clock 2 on (the speed loop updates its limits from the
+feed-forward in clock 2). Pipeline invariants are asserted in the design (one sample in flight,
+each stage's registers consistent with the integrator and the limits): they make the limit proof
+of ``boards/prove.py`` inductive.
+
+The unit is sequential, so one multiplier could serve all products through an operand mux
+(``latency`` and ``interval`` + 2, one multiplier and a wider mux instead of three).
 """
 
 import numbers
@@ -235,14 +247,15 @@ class PI(wiring.Component):
                 t_hi.eq(t_hi_v),
                 t_lo.eq(t_lo_v),
             ]
-        # Clock 3: integrator candidate, clamped to the output limits (a):
-        # I_c = clamp(I + dI, lo·2**g, hi·2**g); P + I for each of its three cases and for the
-        # kept integrator.
+        # Clock 3: I + dI and its comparisons with the limits (a): I_c = clamp(I + dI,
+        # lo·2**g, hi·2**g) is selected in clock 4; P + I for each of the three cases of I_c
+        # and for the kept integrator.
+        i_sum = Signal(signed(wd["sum_i"]))
         with m.If(stage[2]):
             m.d.sync += [
                 gt.eq(di > hi_r),
                 lt.eq(di < lo_r),
-                i_c.eq(Mux(di > hi_r, hi_g, Mux(di < lo_r, lo_g, integ + di))),
+                i_sum.eq(integ + di),
                 x_k.eq(p + integ),
                 x_hi.eq(p + hi_g),
                 x_lo.eq(p + lo_g),
@@ -252,6 +265,8 @@ class PI(wiring.Component):
         # integrator, and their comparisons with the limits, made on P + I against thresholds
         # (u > H ⇔ x ≥ (H + 1)·2**g − 2**(g−1) + [x < 0]) so that they do not wait for U.
         x_c = Mux(gt, x_hi, Mux(lt, x_lo, x_s))
+        with m.If(stage[3]):
+            m.d.sync += i_c.eq(Mux(gt, hi_g, Mux(lt, lo_g, i_sum)))
         for k, x, u in (("c", x_c, u_c), ("k", x_k, u_k)):
             neg = x[-1] if g > 0 else 0
             with m.If(stage[3]):
@@ -277,7 +292,8 @@ class PI(wiring.Component):
         # what the module docstring's equations give for the integrator and limits of now
         # (limits stable from clock 2 to o.valid, integrator changed only in clock 5).
         s_all = Cat(*stage)
-        i_sum = integ + di
+        i_new = integ + di
+        clamped = Mux(i_new > hi_g, hi_g, Mux(i_new < lo_g, lo_g, i_new))
         m.d.comb += Assert((s_all & (s_all - 1)) == 0, "PI: two samples in flight")
         with m.If(stage[2]):
             m.d.comb += [Assert((hi_r == hi_g - integ) & (lo_r == lo_g - integ),
@@ -286,13 +302,13 @@ class PI(wiring.Component):
             m.d.comb += Assert((t_hi == t_hi_v) & (t_lo == t_lo_v), "PI: thresholds stale")
         with m.If(stage[3] | stage[4]):
             m.d.comb += [
-                Assert((gt == (i_sum > hi_g)) & (lt == (i_sum < lo_g)) &
-                       (i_c == Mux(i_sum > hi_g, hi_g, Mux(i_sum < lo_g, lo_g, i_sum))),
-                       "PI: integrator candidate inconsistent"),
+                Assert((gt == (i_new > hi_g)) & (lt == (i_new < lo_g)) & (i_sum == i_new),
+                       "PI: integrator sum inconsistent"),
                 Assert((x_k == p + integ) & (x_hi == p + hi_g) & (x_lo == p + lo_g) &
-                       (gt | lt | (x_s == p + i_sum)), "PI: output sums inconsistent"),
+                       (gt | lt | (x_s == p + i_new)), "PI: output sums inconsistent"),
             ]
         with m.If(stage[4]):
+            m.d.comb += Assert(i_c == clamped, "PI: integrator candidate inconsistent")
             for k, x, u in (("c", p + i_c, u_c), ("k", p + integ, u_k)):
                 m.d.comb += Assert((u == round_shift(x, g)) & (above[k] == (u > self.lim_hi)) &
                                    (below[k] == (u < self.lim_lo)),

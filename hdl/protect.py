@@ -155,10 +155,9 @@ class Protection(wiring.Component):
     def elaborate(self, platform):
         m = Module()
 
-        def above(v, limit):
-            # |v| > limit (limit ≥ 0, exact): v > limit or v < −limit, i.e. v + limit < 0. Two
-            # carry chains side by side instead of a negation feeding a comparison.
-            return (v > limit) | ((v + limit) < 0)
+        def magnitude(v):
+            # |v| exactly (one bit wider, so the most negative value does not wrap).
+            return Mux(v < 0, -v, v)
 
         # Sampled causes: the verdict of the current sample, else the held one.
         def sampled(name, valid, verdict):
@@ -179,15 +178,15 @@ class Protection(wiring.Component):
 
         cause = {
             "external": ~self.fault_n,
-            "overcurrent_a": sampled("oc_a", self.i.valid, above(i.a, self.oc_limit)),
-            "overcurrent_b": sampled("oc_b", self.i.valid, above(i.b, self.oc_limit)),
-            "overcurrent_c": sampled("oc_c", self.i.valid, above(i.c, self.oc_limit)),
+            "overcurrent_a": sampled("oc_a", self.i.valid, magnitude(i.a) > self.oc_limit),
+            "overcurrent_b": sampled("oc_b", self.i.valid, magnitude(i.b) > self.oc_limit),
+            "overcurrent_c": sampled("oc_c", self.i.valid, magnitude(i.c) > self.oc_limit),
             "overcurrent_comparator": self.oc_comp,
             "overvoltage": sampled("ov", self.udc.valid, udc > self.ov_limit),
             "undervoltage": self.uv_enable & armed
                             & sampled("uv", self.udc.valid, udc < self.uv_limit),
             "overspeed": sampled("os", self.speed.valid,
-                                 above(self.speed.payload, self.os_limit)),
+                                 magnitude(self.speed.payload) > self.os_limit),
             "encoder": self.encoder_illegal,
             "hall": self.hall_invalid,
             "encoder_hall": self.encoder_hall,

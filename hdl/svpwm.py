@@ -104,12 +104,15 @@ class SVPWM(wiring.Component):
         clock  1  A = α·2**8, partial products of β·k          (k = round(2**(8 + k_frac)/√3))
                2  S = round_shift(β·k, k_frac)
                3  −S, A + S, A − S, S − A, −A − S
-               4  spread, max + min, overmod (selected by the signs of S, A − T, −A − T)
-               5  D = overmod ? spread : 2**F;  N_x = D + 2·q_x − max − min
-               6  partial products of scale·N_x; N_x = 0 / N_x = 2·D; j·2·D for the divider
-               7  x_x = scale·N_x + D; duties: linear x_x >> (F + 1), extremes 0 / scale
-               8 … 7 + ⌈cw / radix_bits⌉   division of the middle phase's x by 2·D, its
-                                          quotient into its duty (all duties registered)
+               4  spread, max + min, overmod (selected by the signs of S, A − T, −A − T);
+                  which phase holds the max, which the middle
+               5  D = overmod ? spread : 2**F;  N_x = D + 2·q_x − max − min (over-modulating,
+                  lane a takes the middle phase's N)
+               6  partial products of scale·N_x; j·2·D for the divider
+               7  x_x = scale·N_x + D; duties: linear x_x >> (F + 1), else scale (max) or 0;
+                  lane a's x into the divider
+               8 … 7 + ⌈cw / radix_bits⌉   division by 2·D, the quotient into the middle
+                                          phase's duty (all duties registered)
 
     Parameters
     ----------
@@ -209,15 +212,21 @@ class SVPWM(wiring.Component):
         lat = self.latency
 
         # Sequencing: clock 0 takes the command, stage k's registers load in clock k − 1.
+        # ``i.ready`` and ``o.valid`` come straight from flip-flops (they steer the neighbours'
+        # pipeline enables).
         cyc = Signal(range(lat + 1))
-        take = self.i.valid & self.i.ready
-        m.d.comb += [self.i.ready.eq(cyc == 0), self.o.valid.eq(cyc == lat)]
+        idle = Signal(init=1)
+        done = Signal()
+        take = self.i.valid & idle
+        m.d.comb += [self.i.ready.eq(idle), self.o.valid.eq(done)]
         with m.If(take):
-            m.d.sync += cyc.eq(1)
+            m.d.sync += [cyc.eq(1), idle.eq(0)]
         with m.Elif((cyc != 0) & (cyc != lat)):
             m.d.sync += cyc.eq(cyc + 1)
-        with m.Elif(self.o.valid & self.o.ready):
-            m.d.sync += cyc.eq(0)
+            with m.If(cyc == lat - 1):
+                m.d.sync += done.eq(1)
+        with m.Elif(done & self.o.ready):
+            m.d.sync += [cyc.eq(0), idle.eq(1), done.eq(0)]
 
         # 1: A (as u_α), partial products of u_β·k, the rounding's sign.
         alpha1 = Signal(signed(self._width))

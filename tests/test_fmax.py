@@ -47,8 +47,9 @@ def test_signal_names_from_nextpnr_cells():
 
 
 def test_critical_path_of_a_report():
-    step = lambda kind, a, b, delay: {"type": kind, "from": {"cell": a}, "to": {"cell": b},  # noqa: E731
-                                      "delay": delay}
+    def step(kind, a, b, delay):
+        return {"type": kind, "from": {"cell": a}, "to": {"cell": b}, "delay": delay}
+
     report = {"critical_paths": [{"path": [
         step("clk-to-q", "dut.a_TRELLIS_FF_Q", "dut.a_TRELLIS_FF_Q", 0.5),
         step("routing", "dut.a_TRELLIS_FF_Q", "dut.s_LUT4_Z", 1.0),

@@ -26,6 +26,8 @@ FS = 1 << 15
     (SVPWM, {"width": 16.0}, TypeError, "SVPWM width must be an integer from 8 to 24, not 16.0"),
     (SVPWM, {"count_width": 3}, TypeError,
      "SVPWM count_width must be an integer from 4 to 24, not 3"),
+    (SVPWM, {"radix_bits": 5}, TypeError,
+     "SVPWM radix_bits must be an integer from 1 to 4, not 5"),
     (DCBusCompensation, {"width": 25}, TypeError,
      "DCBusCompensation width must be an integer from 8 to 24, not 25"),
     (DCBusCompensation, {"out_width": 18}, ValueError,
@@ -251,6 +253,28 @@ def test_svpwm_overmod_flag_exactly_at_the_hexagon_edge(width, frac):
         edge = model.svpwm(np.array([1 << frac, -(1 << frac)]), np.array([0, 0]), 2500,
                            width=width, frac=frac)
         assert list(edge["overmod"]) == [0, 0]
+
+
+@pytest.mark.parametrize("radix_bits, count_width, width, frac", [
+    (1, 16, 16, 15), (3, 13, 17, 15), (4, 24, 12, 11), (2, 5, 8, 6)])
+def test_svpwm_divider_radix_and_widths_against_model(radix_bits, count_width, width, frac):
+    """Other divider radices and odd widths (quotient bits not a multiple of the radix's):
+    random commands inside and outside the hexagon, random scales, bit for bit; the latency is
+    ``7 + ⌈count_width / radix_bits⌉``."""
+    dut = SVPWM(width=width, frac=frac, count_width=count_width, radix_bits=radix_bits)
+    assert dut.latency == 7 + -(-count_width // radix_bits)
+    rng = np.random.default_rng(radix_bits)
+    lo, hi = -(1 << (width - 1)), (1 << (width - 1)) - 1
+    a = np.concatenate([rng.integers(lo, hi + 1, 40), [lo, hi, 0, hi]])
+    b = np.concatenate([rng.integers(lo, hi + 1, 40), [lo, hi, 0, 0]])
+    sc = np.concatenate([rng.integers(0, 1 << count_width, 40), [(1 << count_width) - 1] * 4])
+    outs, lats = svpwm_outputs(dut, [(int(x), int(y), int(z)) for x, y, z in zip(a, b, sc)])
+    assert lats == [dut.latency] * len(a)
+    exp = model.svpwm(a, b, sc, width=width, frac=frac)
+    got = np.array(outs)
+    for i, key in enumerate(("a", "b", "c", "overmod")):
+        np.testing.assert_array_equal(got[:, i], exp[key], err_msg=key)
+    assert 0 < exp["overmod"].sum() < len(a)
 
 
 def test_svpwm_random_commands_against_model_via_run():
