@@ -42,7 +42,7 @@ from amaranth.lib.wiring import In, Out
 
 from .fixed import round_shift, saturate
 
-__all__ = ["CordicParams", "Cordic"]
+__all__ = ["CordicParams", "Cordic", "rotation_members"]
 
 
 def _is_int(value):
@@ -172,6 +172,18 @@ class CordicParams:
                 f"iterations_per_stage={self.iterations_per_stage}, tag_width={self.tag_width})")
 
 
+def rotation_members(width, angle_width, tag_width):
+    """Ports of a rotator (:class:`Cordic`, :class:`~.rotator.Rotator`): ``i`` a stream of
+    ``{x, y: signed(width), theta: unsigned(angle_width)[, tag]}``, ``o`` a stream of
+    ``{x, y[, tag]}``, both always ready."""
+    in_fields = {"x": signed(width), "y": signed(width), "theta": unsigned(angle_width)}
+    out_fields = {"x": signed(width), "y": signed(width)}
+    if tag_width:
+        in_fields["tag"] = out_fields["tag"] = unsigned(tag_width)
+    return {"i": In(stream.Signature(data.StructLayout(in_fields), always_ready=True)),
+            "o": Out(stream.Signature(data.StructLayout(out_fields), always_ready=True))}
+
+
 class Cordic(wiring.Component):
     """Pipelined CORDIC rotator: ``(x, y)`` rotated by θ, gain compensated, one per clock.
 
@@ -234,15 +246,7 @@ class Cordic(wiring.Component):
                          guard_bits=guard_bits, iterations_per_stage=iterations_per_stage,
                          tag_width=tag_width)
         self._params = p
-        in_fields = {"x": signed(p.width), "y": signed(p.width),
-                     "theta": unsigned(p.angle_width)}
-        out_fields = {"x": signed(p.width), "y": signed(p.width)}
-        if p.tag_width:
-            in_fields["tag"] = out_fields["tag"] = unsigned(p.tag_width)
-        super().__init__({
-            "i": In(stream.Signature(data.StructLayout(in_fields), always_ready=True)),
-            "o": Out(stream.Signature(data.StructLayout(out_fields), always_ready=True)),
-        })
+        super().__init__(rotation_members(p.width, p.angle_width, p.tag_width))
 
     params = property(lambda self: self._params)
     width = property(lambda self: self._params.width)

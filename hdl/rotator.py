@@ -85,10 +85,10 @@ import math
 import numbers
 
 from amaranth.hdl import Array, Assert, Cat, Const, Module, Mux, Signal, signed, unsigned
-from amaranth.lib import data, stream, wiring
+from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
-from amaranth.lib.wiring import In, Out
 
+from .cordic import rotation_members
 
 __all__ = ["RotatorParams", "Rotator"]
 
@@ -299,15 +299,7 @@ class Rotator(wiring.Component):
         p = RotatorParams(width=width, angle_width=angle_width, table_bits=table_bits,
                           tag_width=tag_width, registered=registered)
         self._params = p
-        in_fields = {"x": signed(p.width), "y": signed(p.width),
-                     "theta": unsigned(p.angle_width)}
-        out_fields = {"x": signed(p.width), "y": signed(p.width)}
-        if p.tag_width:
-            in_fields["tag"] = out_fields["tag"] = unsigned(p.tag_width)
-        super().__init__({
-            "i": In(stream.Signature(data.StructLayout(in_fields), always_ready=True)),
-            "o": Out(stream.Signature(data.StructLayout(out_fields), always_ready=True)),
-        })
+        super().__init__(rotation_members(p.width, p.angle_width, p.tag_width))
 
     params = property(lambda self: self._params)
     width = property(lambda self: self._params.width)

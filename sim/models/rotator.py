@@ -13,8 +13,9 @@ come from :class:`~foc_servo.hdl.rotator.RotatorParams`, shared with the gatewar
 import numpy as np
 from amaranth.hdl import signed
 
-from ...hdl.fixed import BinaryAngle, round_shift_np, saturate_np, shape_range
+from ...hdl.fixed import round_shift_np, saturate_np, shape_range
 from ...hdl.rotator import RotatorParams
+from .cordic import rotate_ideal  # the same ideal rotation for both rotators
 
 __all__ = ["rotate", "rotate_trace", "trig", "rotate_ideal"]
 
@@ -107,15 +108,3 @@ def rotate(x, y, theta, **params):
     arrays. Same arguments as :func:`rotate_trace`."""
     t = rotate_trace(x, y, theta, **params)
     return t["x"], t["y"]
-
-
-def rotate_ideal(x, y, theta, *, width=16, angle_width=None):
-    """Float64 rotation by the quantized angle ``θ_raw·2π/2**angle_width``, clipped to the
-    ``signed(width)`` range (saturation being the intended behaviour). Not rounded."""
-    angle_width = width if angle_width is None else angle_width
-    th = BinaryAngle(angle_width).to_rad(np.asarray(theta, dtype=np.int64))
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    c, s = np.cos(th), np.sin(th)
-    lo, hi = shape_range(signed(width))
-    return np.clip(x * c - y * s, lo, hi), np.clip(x * s + y * c, lo, hi)
