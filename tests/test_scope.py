@@ -219,4 +219,6 @@ def test_scope_random_sequences_vs_model():
 def test_scope_100k_clocks_vs_model():
     result = run_scope(100_000)
     assert result["mismatches"] == 0, result["first_mismatch"]
-    assert result["captures"] > 10 and result["wraps"] > 10
+    # Coverage: the time-shared source mux (one channel per clock) makes a capture a few clocks
+    # longer; 100 000 clocks hold 10 of them.
+    assert result["captures"] >= 10 and result["wraps"] > 10

@@ -503,4 +503,4 @@ def test_servo_and_scope_100k_clocks_vs_model():
     for figure in ("ramp_ends", "ramp_reversals", "ramp_cleared", "ff_full_scale_runs",
                    "ff_clamped_runs", "held_runs", "delayed_runs", "slew_max_runs"):
         assert result[f"servo_{figure}"] > 2, figure
-    assert result["scope_captures"] > 10 and result["scope_capture_order_errors"] == 0
+    assert result["scope_captures"] >= 10 and result["scope_capture_order_errors"] == 0
