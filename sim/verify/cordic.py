@@ -93,6 +93,35 @@ def _field(words, offset, width, signed):
     return v.astype(np.int64)
 
 
+def run_capture(bench, vectors, clocks, w, tw, *, name, progress):
+    """Run a rotator bench (``out_addr``, ``first_out``, ``last_out``, ``capture`` memory of
+    ``{x, y[, tag]}`` words) for ``clocks``; return ``(result, x, y, tag, sim_s)`` with the
+    captured outputs as int64 arrays. Shared by the CORDIC and the sine-table rotator."""
+    result = {}
+    bar = Progress(f"{name} {vectors} vectors", clocks, enabled=progress)
+
+    async def testbench(ctx):
+        step = max(1000, clocks // 100)
+        done = 0
+        while done < clocks:
+            chunk = min(step, clocks - done)
+            await ctx.tick().repeat(chunk)
+            done += chunk
+            bar.update(done)
+        result["outputs"] = ctx.get(bench.out_addr)
+        result["first_out"] = ctx.get(bench.first_out)
+        result["last_out"] = ctx.get(bench.last_out)
+        result["words"] = [ctx.get(bench.capture.data[j]) for j in range(vectors)]
+
+    sim_s = simulate(bench, [testbench], name=f"{name}_verify")
+    bar.close()
+    out = np.array(result["words"], dtype=object)
+    gx = _field(out, 0, w, True)
+    gy = _field(out, w, w, True)
+    gt = _field(out, 2 * w, tw, False) if tw else np.zeros(vectors, dtype=np.int64)
+    return result, gx, gy, gt, sim_s
+
+
 def run(count=100_000, *, seed=0, progress=False, **params):
     """Simulate :class:`Cordic` on the corner cases plus ``count`` seeded random vectors (x, y, θ
     uniform over their full ranges) fed one per clock; compare with the golden model.
@@ -137,29 +166,8 @@ def run(count=100_000, *, seed=0, progress=False, **params):
     bench = _Bench(dut, words)
 
     clocks = vectors + p.latency + 1
-    result = {}
-    bar = Progress(f"cordic {vectors} vectors", clocks, enabled=progress)
-
-    async def testbench(ctx):
-        step = max(1000, clocks // 100)
-        done = 0
-        while done < clocks:
-            chunk = min(step, clocks - done)
-            await ctx.tick().repeat(chunk)
-            done += chunk
-            bar.update(done)
-        result["outputs"] = ctx.get(bench.out_addr)
-        result["first_out"] = ctx.get(bench.first_out)
-        result["last_out"] = ctx.get(bench.last_out)
-        result["words"] = [ctx.get(bench.capture.data[j]) for j in range(vectors)]
-
-    sim_s = simulate(bench, [testbench], name="cordic_verify")
-    bar.close()
-
-    out = np.array(result["words"], dtype=object)
-    gx = _field(out, 0, w, True)
-    gy = _field(out, w, w, True)
-    gt = _field(out, 2 * w, tw, False) if tw else np.zeros(vectors, dtype=np.int64)
+    result, gx, gy, gt, sim_s = run_capture(bench, vectors, clocks, w, tw, name="cordic",
+                                            progress=progress)
     model = {k: v for k, v in params.items() if k not in ("iterations_per_stage", "tag_width")}
     ex, ey = rotate(x, y, theta, **model)
     produced = result["outputs"]

@@ -17,9 +17,8 @@ from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 
 from ...hdl.rotator import Rotator
-from ..harness import Progress, simulate
 from ..models.rotator import rotate, rotate_ideal
-from .cordic import corner_cases
+from .cordic import corner_cases, run_capture
 
 __all__ = ["run", "corner_cases"]
 
@@ -73,13 +72,6 @@ class _Bench(wiring.Component):
         return m
 
 
-def _field(words, offset, width, signed):
-    v = (words >> offset) & ((1 << width) - 1)
-    if signed:
-        v = np.where(v >= 1 << (width - 1), v - (1 << width), v)
-    return v.astype(np.int64)
-
-
 def run(count=100_000, *, seed=0, spacing=None, progress=False, **params):
     """Simulate :class:`Rotator` on the corner cases plus ``count`` seeded random vectors (x, y,
     θ uniform over their full ranges) fed one every ``spacing`` clocks; compare with the golden
@@ -130,29 +122,8 @@ def run(count=100_000, *, seed=0, spacing=None, progress=False, **params):
     bench = _Bench(dut, words, spacing)
 
     clocks = (vectors - 1) * spacing + p.latency + 2
-    result = {}
-    bar = Progress(f"rotator {vectors} vectors", clocks, enabled=progress)
-
-    async def testbench(ctx):
-        step = max(1000, clocks // 100)
-        done = 0
-        while done < clocks:
-            chunk = min(step, clocks - done)
-            await ctx.tick().repeat(chunk)
-            done += chunk
-            bar.update(done)
-        result["outputs"] = ctx.get(bench.out_addr)
-        result["first_out"] = ctx.get(bench.first_out)
-        result["last_out"] = ctx.get(bench.last_out)
-        result["words"] = [ctx.get(bench.capture.data[j]) for j in range(vectors)]
-
-    sim_s = simulate(bench, [testbench], name="rotator_verify")
-    bar.close()
-
-    out = np.array(result["words"], dtype=object)
-    gx = _field(out, 0, w, True)
-    gy = _field(out, w, w, True)
-    gt = _field(out, 2 * w, tw, False) if tw else np.zeros(vectors, dtype=np.int64)
+    result, gx, gy, gt, sim_s = run_capture(bench, vectors, clocks, w, tw, name="rotator",
+                                            progress=progress)
     model = {k: v for k, v in params.items() if k != "tag_width"}
     ex, ey = rotate(x, y, theta, **model)
     produced = result["outputs"]
