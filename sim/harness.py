@@ -73,6 +73,16 @@ class Progress:
             self.stream.write(f"\r{self.label}: {pct:3d} % ({done}/{self.total}, {elapsed:5.1f} s)")
             self.stream.flush()
 
+    async def ticks(self, ctx, clocks, *, step=5000):
+        """Advance the simulation ``clocks`` clocks in runs of ``step`` (one Python call each),
+        updating the indicator after each run."""
+        done = 0
+        while done < clocks:
+            k = min(step, clocks - done)
+            await ctx.tick().repeat(k)
+            done += k
+            self.update(min(done, self.total))
+
     def close(self):
         if self.enabled:
             self.update(self.total)

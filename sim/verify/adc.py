@@ -152,12 +152,7 @@ def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, par
     prog = Progress("adc", clocks, enabled=progress)
 
     async def testbench(ctx):
-        done = 0
-        while done < clocks:
-            k = min(5000, clocks - done)
-            await ctx.tick().repeat(k)
-            done += k
-            prog.update(done)
+        await prog.ticks(ctx, clocks)
         for name in ("received", "mismatches", "overruns", "first_mismatch"):
             result[name] = ctx.get(getattr(bench, name))
 

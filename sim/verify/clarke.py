@@ -199,13 +199,7 @@ def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_pha
     prog = Progress(label, clocks, enabled=progress)
 
     async def testbench(ctx):
-        chunk = 2000
-        done = 0
-        while done < clocks:
-            k = min(chunk, clocks - done)
-            await ctx.tick().repeat(k)
-            done += k
-            prog.update(done)
+        await prog.ticks(ctx, clocks, step=2000)
         result["received"] = ctx.get(bench.received)
         result["mismatches"] = ctx.get(bench.mismatches)
         result["first_mismatch"] = ctx.get(bench.first_mismatch)

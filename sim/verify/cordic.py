@@ -10,7 +10,7 @@ against :func:`~foc_servo.sim.models.cordic.rotate_ideal` for the error figures.
 import math
 
 import numpy as np
-from amaranth.hdl import Module, Signal, unsigned
+from amaranth.hdl import Module, Mux, Signal, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 
@@ -40,14 +40,16 @@ def corner_cases(width=16, angle_width=None):
     return x.ravel().astype(np.int64), y.ravel().astype(np.int64), theta.ravel().astype(np.int64)
 
 
-class _Bench(wiring.Component):
-    """Simulation-only wrapper: a stimulus ROM feeding the CORDIC one vector per clock, a RAM
-    capturing its outputs, and counters for latency and throughput."""
+class RotationBench(wiring.Component):
+    """Simulation-only wrapper: a stimulus ROM feeding a rotator (CORDIC or sine table) one vector
+    every ``spacing`` clocks, a RAM capturing its outputs, and counters for latency and
+    throughput."""
 
-    def __init__(self, dut, words):
+    def __init__(self, dut, words, spacing=1):
         self.dut = dut
         self.words = words
         self.count = len(words)
+        self.spacing = spacing
         super().__init__({})
 
     def elaborate(self, platform):
@@ -67,7 +69,8 @@ class _Bench(wiring.Component):
         self.cycle = cycle = Signal(32)
         self.first_out = first_out = Signal(32)
         self.last_out = last_out = Signal(32)
-        feeding = in_addr < n
+        phase = Signal(range(self.spacing))
+        feeding = (in_addr < n) & (phase == 0)
         m.d.comb += [
             rd.addr.eq(in_addr),
             dut.i.valid.eq(feeding),
@@ -76,7 +79,8 @@ class _Bench(wiring.Component):
             wr.data.eq(dut.o.payload.as_value()),
             wr.en.eq(dut.o.valid),
         ]
-        m.d.sync += cycle.eq(cycle + 1)
+        m.d.sync += [cycle.eq(cycle + 1),
+                     phase.eq(Mux(phase == self.spacing - 1, 0, phase + 1))]
         with m.If(feeding):
             m.d.sync += in_addr.eq(in_addr + 1)
         with m.If(dut.o.valid):
@@ -101,13 +105,7 @@ def run_capture(bench, vectors, clocks, w, tw, *, name, progress):
     bar = Progress(f"{name} {vectors} vectors", clocks, enabled=progress)
 
     async def testbench(ctx):
-        step = max(1000, clocks // 100)
-        done = 0
-        while done < clocks:
-            chunk = min(step, clocks - done)
-            await ctx.tick().repeat(chunk)
-            done += chunk
-            bar.update(done)
+        await bar.ticks(ctx, clocks, step=max(1000, clocks // 100))
         result["outputs"] = ctx.get(bench.out_addr)
         result["first_out"] = ctx.get(bench.first_out)
         result["last_out"] = ctx.get(bench.last_out)
@@ -163,7 +161,7 @@ def run(count=100_000, *, seed=0, progress=False, **params):
     mask = (1 << w) - 1
     words = [(int(a) & mask) | (int(b) & mask) << w | int(t) << 2 * w | int(g) << (2 * w + aw)
              for a, b, t, g in zip(x, y, theta, tag)]
-    bench = _Bench(dut, words)
+    bench = RotationBench(dut, words)
 
     clocks = vectors + p.latency + 1
     result, gx, gy, gt, sim_s = run_capture(bench, vectors, clocks, w, tw, name="cordic",

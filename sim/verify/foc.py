@@ -344,13 +344,7 @@ def run(count=100_000, *, seed=0, progress=False, **params):
     prog = Progress("current loop", clocks, enabled=progress)
 
     async def testbench(ctx):
-        chunk = 5000
-        done = 0
-        while done < clocks:
-            k = min(chunk, clocks - done)
-            await ctx.tick().repeat(k)
-            done += k
-            prog.update(done)
+        await prog.ticks(ctx, clocks)
         for name in ("received", "mismatches", "latency_errors", "first_mismatch"):
             result[name] = ctx.get(getattr(bench, name))
         result["overruns"] = ctx.get(dut.overruns)

@@ -283,12 +283,7 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
     prog = Progress("protect", count, enabled=progress)
 
     async def testbench(ctx):
-        done = 0
-        while done < count + 1:
-            k = min(5000, count + 1 - done)
-            await ctx.tick().repeat(k)
-            done += k
-            prog.update(min(done, count))
+        await prog.ticks(ctx, count + 1)
         result["mismatches"] = ctx.get(bench.mismatches)
         result["first_mismatch"] = ctx.get(bench.first_mismatch)
 

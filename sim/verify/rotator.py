@@ -12,64 +12,12 @@ CORDIC's (:func:`.cordic.corner_cases`).
 import math
 
 import numpy as np
-from amaranth.hdl import Module, Mux, Signal, unsigned
-from amaranth.lib import wiring
-from amaranth.lib.memory import Memory
 
 from ...hdl.rotator import Rotator
 from ..models.rotator import rotate, rotate_ideal
-from .cordic import corner_cases, run_capture
+from .cordic import RotationBench, corner_cases, run_capture
 
 __all__ = ["run", "corner_cases"]
-
-
-class _Bench(wiring.Component):
-    """Simulation-only wrapper: a stimulus ROM feeding the rotator one vector every ``spacing``
-    clocks, a RAM capturing its outputs, and counters for latency and throughput."""
-
-    def __init__(self, dut, words, spacing):
-        self.dut = dut
-        self.words = words
-        self.count = len(words)
-        self.spacing = spacing
-        super().__init__({})
-
-    def elaborate(self, platform):
-        m = Module()
-        dut, n = self.dut, self.count
-        m.submodules.dut = dut
-        in_bits = dut.i.payload.shape().size
-        out_bits = dut.o.payload.shape().size
-        m.submodules.stim = stim = Memory(shape=unsigned(in_bits), depth=n, init=self.words)
-        m.submodules.capture = self.capture = capture = Memory(shape=unsigned(out_bits), depth=n,
-                                                               init=[])
-        rd = stim.read_port(domain="comb")
-        wr = capture.write_port()
-
-        self.in_addr = in_addr = Signal(range(n + 1))
-        self.out_addr = out_addr = Signal(range(n + 1))
-        self.cycle = cycle = Signal(32)
-        self.first_out = first_out = Signal(32)
-        self.last_out = last_out = Signal(32)
-        phase = Signal(range(self.spacing))
-        feeding = (in_addr < n) & (phase == 0)
-        m.d.comb += [
-            rd.addr.eq(in_addr),
-            dut.i.valid.eq(feeding),
-            dut.i.payload.eq(rd.data),
-            wr.addr.eq(out_addr),
-            wr.data.eq(dut.o.payload.as_value()),
-            wr.en.eq(dut.o.valid),
-        ]
-        m.d.sync += [cycle.eq(cycle + 1),
-                     phase.eq(Mux(phase == self.spacing - 1, 0, phase + 1))]
-        with m.If(feeding):
-            m.d.sync += in_addr.eq(in_addr + 1)
-        with m.If(dut.o.valid):
-            m.d.sync += [out_addr.eq(out_addr + 1), last_out.eq(cycle)]
-            with m.If(out_addr == 0):
-                m.d.sync += first_out.eq(cycle)
-        return m
 
 
 def run(count=100_000, *, seed=0, spacing=None, progress=False, **params):
@@ -119,7 +67,7 @@ def run(count=100_000, *, seed=0, spacing=None, progress=False, **params):
     mask = (1 << w) - 1
     words = [(int(a) & mask) | (int(b) & mask) << w | int(t) << 2 * w | int(g) << (2 * w + aw)
              for a, b, t, g in zip(x, y, theta, tag)]
-    bench = _Bench(dut, words, spacing)
+    bench = RotationBench(dut, words, spacing)
 
     clocks = (vectors - 1) * spacing + p.latency + 2
     result, gx, gy, gt, sim_s = run_capture(bench, vectors, clocks, w, tw, name="rotator",
