@@ -1,0 +1,470 @@
+# Ref: paper eq. (1), (4)–(9), Fig. 7; SPEC.md §2, §2.5; AREA.md §4 stage 2; docs/ENGINE.md
+"""The current loop as a program of the loop engine (:mod:`.engine`): a drop-in alternative to
+:class:`~.foc.CurrentLoop` with the same ports and bit-identical results
+(:class:`~foc_servo.sim.models.foc.CurrentLoopModel`), one multiplier instead of ≈ 20, and a longer
+latency (:attr:`EngineCurrentLoop.latency`; docs/ENGINE.md).
+
+The program (:func:`current_loop_program`) follows ``hdl/foc.py`` step by step; the rotator's
+integer sine and cosine are computed from the same table and ``kd`` ROM as
+:class:`~.rotator.Rotator` (``RotatorParams``), the interpolation rewritten as one
+multiply-accumulate per term with floor shifts (the same integers as the model's
+``trig``). The DC-bus gain ``U_rated / U_dc`` keeps the DC-bus block's own divider
+(:class:`~.svpwm.DCBusCompensation`, its multiplier unused: the engine applies the gain);
+the gain in force is latched with each sample, so each sample is compensated with the previous
+sample's bus voltage, as in :class:`~.foc.CurrentLoop`.
+"""
+
+from amaranth.hdl import Module, Mux, Signal, signed, unsigned
+from amaranth.lib import data, stream, wiring
+from amaranth.lib.wiring import In, Out
+
+from .dsp import saturate_bits
+from .engine import SAT_W, SAT_W1, Assembler, Engine, Op
+from .fixed import Q, UQ, round_shift
+from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH
+from .rotator import RotatorParams
+from .svpwm import DCBusCompensation
+
+__all__ = ["EngineCurrentLoop", "current_loop_program", "SPECIALS", "BSPECIALS", "CONDS",
+           "OUTS", "ENGINE_WIDTH"]
+
+#: The only configuration the program is written for (validated by EngineCurrentLoop).
+ENGINE_WIDTH = 16
+
+#: User special operands: latched sample values and configuration ports.
+SPECIALS = ("ia", "ib", "theta", "lead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
+            "gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q",
+            "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "dcg")
+#: Specials that may be operand B.
+BSPECIALS = ("off_a", "off_b", "lead", "nspd", "dcg", "scale")
+#: User conditions.
+CONDS = ("RUN", "OL", "FF")
+#: Output registers and their widths (``ang`` is the engine's angle register).
+OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q": 16,
+        "u_d": 16, "u_q": 16, "u_alpha": 16, "u_beta": 16, "sat_d": 1, "sat_q": 1, "om": 1,
+        "da": 16, "db": 16, "dc": 16}
+
+
+def _trig(asm, rot, pending=None, filler=None):
+    """Integer |cos| / |sin| of the angle register into ``r.c1``, ``r.s1`` (signs: conditions
+    NEGC, NEGS). The table words must be valid (``ang`` written ≥ 3 instructions before).
+    ``pending`` emits a post of the caller's product (it fuses into the first MUL), ``filler``
+    one independent instruction (else a NOP goes there)."""
+    w, g = rot.width, rot.interp_guard
+    A = asm
+    A.alu(Op.ADD, "r.v", "s.TC", 1 << (w + 2))                      # C'' + 2**(w+2)
+    A.alu(Op.ADD, "r.us", "s.TS", 1 << (w + 1))                     # S'' + 2**(w+1)
+    A.alu(Op.ADD, "r.shi", "s.TS", 1 << (w + 1), sh=3)              # (S'' >> 3) + 2**(w−2)
+    A.alu(Op.ADD, "r.chi", "r.v", 0, sh=4)                          # (C'' >> 4) + 2**(w−2)
+    if pending is not None:
+        pending()
+    # c_t = c_o + 2**w = floor(((C'' + 2**(w+2))·2**g − (kd·S_hi >> shift_s)) / 2**(g+2))
+    A.mul("s.KD", "r.shi")
+    A.post("r.t", rot.shift_s, rnd=False)
+    # s_t = s_o + 2**(w−1) = floor((kd·C_hi + (S'' + 2**(w+1))·2**(g+shift_c)) / 2**(shift_c+g+2))
+    A.mul("s.KD", "r.chi")
+    A.mac("r.us", 1 << (g + rot.shift_c))
+    A.post("r.st", rot.shift_c + g + 2, rnd=False)
+    A.mul(1 << g, "r.v")
+    A.mac("r.t", -1)
+    A.post("r.ct", g + 2, rnd=False)
+    if filler is not None:
+        filler()
+    A.alu(Op.SEL, "r.c1", "r.ct", "r.st", cond="SWAP")
+    A.alu(Op.SEL, "r.s1", "r.st", "r.ct", cond="SWAP")
+
+
+def _rotate(asm, x, y, xo, yo, out_x, out_y, w):
+    """(xo, yo) = rotation of (x, y) by the angle register (after :func:`_trig`)."""
+    A = asm
+    A.mul(x, "r.c1", cond="NEGC")
+    A.mac(y, "r.s1", neg=True, cond="NEGS")
+    A.post(xo, w, sat=SAT_W, out=out_x)
+    A.mul(x, "r.s1", cond="NEGS")
+    A.mac(y, "r.c1", cond="NEGC")
+    A.post(yo, w, sat=SAT_W, out=out_y)
+
+
+def _pi_head(asm, ax, fb):
+    asm.alu(Op.SUB, f"r.e_{ax}", f"s.i{ax}_ref", fb, sat=SAT_W)
+
+
+def _pis(asm, *, kx_shift, filler):
+    """PI_d and PI_q (after :func:`_pi_head`), interleaved so that no instruction reads the
+    result of the one before it (the write back is one instruction late) and no flag test is
+    separated from its flag-setting instruction by another: ``r.o_d``, ``r.o_q``, ``sat_d``,
+    ``sat_q``, then the commands ``u_d = sat(o_d − ff_d)``, ``u_q = sat(o_q + ff_q)``.
+
+    Per axis (hdl/pi.py): ``sx = E + E[n−1]``; ``−dI = round_shift(−kx·sx)`` (rounding is odd);
+    ``p = kp·E``; ``I + dI`` clamped to the limits·2**g by MIN then MAX (``clamp`` exactly);
+    ``u_c``; hold = (u_c > hi and dI > 0) or (u_c < lo and dI < 0); ``u``; output clamp; sat.
+    ``filler()`` emits one independent instruction (no flags, no register the PIs use)."""
+    A = asm
+    g = A.guard
+    r = lambda name, ax: f"r.{name}_{ax}"
+    A.alu(Op.ADD, "r.sx_d", "r.e_d", "r.ep_d")
+    A.alu(Op.ADD, "r.sx_q", "r.e_q", "r.ep_q")
+    A.alu(Op.ADD, "r.ep_d", "r.e_d", 0)                               # E[n−1] = E
+    A.mul("s.kx_d", "r.sx_d", neg=True)
+    A.post("r.ndi_d", kx_shift)     # (each post fuses into the MUL after it: it sees the old P)
+    A.mul("s.kx_q", "r.sx_q", neg=True)
+    A.post("r.ndi_q", kx_shift)
+    A.mul("s.kp_d", "r.e_d")
+    A.post("r.pp_d", 0)
+    A.mul("s.kp_q", "r.e_q")
+    A.post("r.pp_q", 0)
+    for ax in "dq":
+        A.alu(Op.SUB, r("isum", ax), f"r.i_{ax}", r("ndi", ax))       # I + dI
+    A.alu(Op.MIN, "r.t_d", "s.hi_d", "r.isum_d", asl=True, setf=True)   # N: sum > hi·2**g
+    A.alu(Op.ADD, "r.ep_q", "r.e_q", 0)
+    A.alu(Op.MAX, "r.ic_d", "s.lo_d", "r.t_d", asl=True, cond="N")
+    A.alu(Op.MIN, "r.t_q", "s.hi_q", "r.isum_q", asl=True, setf=True)
+    A.alu(Op.ADD, "r.uc_d", "r.pp_d", "r.ic_d", sh=g, rnd=True)
+    A.alu(Op.MAX, "r.ic_q", "s.lo_q", "r.t_q", asl=True, cond="N")
+    A.alu(Op.SUB, None, "s.hi_d", "r.uc_d", setf=True)                # N: u_c > hi
+    A.alu(Op.ADD, "r.uc_q", "r.pp_q", "r.ic_q", sh=g, rnd=True)
+    for ax in "dq":
+        A.alu(Op.SEL, r("h1", ax), 0, r("ndi", ax), cond="N")          # h1 < 0: hold (1)
+        A.alu(Op.SUB, None, f"s.lo_{ax}", r("uc", ax), setf=True)     # !LE: u_c < lo
+        A.alu(Op.SEL, r("h2", ax), 0, r("ndi", ax), cond="!LE")        # h2 > 0: hold (2)
+        if ax == "d":
+            A.alu(Op.SUB, None, "s.hi_q", "r.uc_q", setf=True)
+    for ax in "dq":
+        A.alu(Op.ADD, None, r("h1", ax), 0, setf=True)
+        A.alu(Op.SEL, r("t", ax), r("ic", ax), f"r.i_{ax}", cond="N")
+        A.alu(Op.SUB, None, 0, r("h2", ax), setf=True)
+        A.alu(Op.SEL, f"r.i_{ax}", r("t", ax), f"r.i_{ax}", cond="N")  # I unless held
+    for ax in "dq":
+        A.alu(Op.ADD, r("u", ax), r("pp", ax), f"r.i_{ax}", sh=g, rnd=True)
+    A.alu(Op.MIN, "r.t_d", "s.hi_d", "r.u_d", setf=True)              # N: u > hi
+    filler()
+    A.alu(Op.MAX, "r.o_d", "s.lo_d", "r.t_d", cond="N", sat=SAT_W)    # clamp(u, lo, hi)
+    A.alu(Op.MIN, "r.t_q", "s.hi_q", "r.u_q", setf=True)
+    A.alu(Op.SUB, None, "r.o_d", "r.u_d", out="sat_d")                # sat = out ≠ u
+    A.alu(Op.MAX, "r.o_q", "s.lo_q", "r.t_q", cond="N", sat=SAT_W)
+    A.alu(Op.SUB, "r.ud", "r.o_d", "r.ffd", sat=SAT_W, out="u_d")
+    A.alu(Op.SUB, None, "r.o_q", "r.u_q", out="sat_q")
+    A.alu(Op.ADD, "r.uq", "r.o_q", "r.ffq", sat=SAT_W, out="u_q")
+
+
+def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
+                         count_width=16, rotator=None, fuse=True):
+    """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
+    ``fuse`` lets the assembler fuse posts into the following MUL (:meth:`Assembler.assemble`).
+
+    Returns
+    -------
+    Program
+    """
+    rot = rotator if rotator is not None else RotatorParams(width=width, angle_width=16,
+                                                            tag_width=1)
+    w = width
+    A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
+    A.guard = int_guard
+    # Clarke constants (sim/models/clarke.py) and SVPWM constants (svpwm.py, width w + 1).
+    import math
+    c_frac = w + 2
+    k_beta = math.floor(2.0 ** c_frac / math.sqrt(3.0) + 0.5)
+    sv_frac = (w - 1) + 8                    # F of SVPWM(width=w+1, frac=w−1)
+    sv_kfrac = (w + 1) + 2
+    sv_k = math.floor(2.0 ** (8 + sv_kfrac) / math.sqrt(3.0) + 0.5)
+
+    # --- Park angle, Clarke ------------------------------------------------------------------------
+    A.alu(Op.RSUB, None, "s.theta", 0, out="ang")                     # −θ
+    A.alu(Op.SUB, "r.ta", "s.ia", "b.off_a")
+    A.alu(Op.SUB, "r.tb", "s.ib", "b.off_b")
+    A.mul("s.gain_a", "r.ta")
+    A.post("r.a", clarke_gain_frac, sat=SAT_W, out="pa")   # (posts fuse into the next MUL)
+    A.mul("s.gain_b", "r.tb")
+    A.post("r.b", clarke_gain_frac, sat=SAT_W, out="pb")
+    A.alu(Op.RSUB, "r.mina", "r.a", 0)
+    A.mul("r.b", 2 * k_beta)
+    A.mac("r.a", k_beta)
+    # --- Park ----------------------------------------------------------------------------------
+    _trig(A, rot, pending=lambda: A.post("r.beta", c_frac, sat=SAT_W, out="i_beta"),
+          filler=lambda: A.alu(Op.SUB, "r.c", "r.mina", "r.b", sat=SAT_W, out="pc"))
+    _rotate(A, "r.a", "r.beta", "r.id", "r.iq", "i_d", "i_q", w)
+    A.alu(Op.ADD, None, "s.theta", "b.lead", out="ang")               # θ + θ_lead
+    # --- Run or clear ------------------------------------------------------------------------------
+    A.br("!RUN", "off")
+    A.alu(Op.ADD, "r.ffd", 0, 0)                                      # delay slots: ff = 0
+    A.alu(Op.ADD, "r.ffq", 0, 0)
+    A.br("!FF", "noff")
+    _pi_head(A, "d", "r.id")                                          # delay slots
+    _pi_head(A, "q", "r.iq")
+    # Decoupling feed-forward (hdl/foc.py).
+    A.mul("s.ff_psi", "b.nspd")
+    A.post("r.emf", FF_FORMAT.frac)
+    A.mul("s.ff_l", "b.nspd")
+    A.post("r.wl", FF_FORMAT.frac)
+    A.mul("r.wl", "r.iq")
+    A.post("r.ffd", w - 1)                                            # subtracted below
+    A.mul("r.wl", "r.id")
+    A.post("r.t", w - 1)
+    A.alu(Op.ADD, "r.ffq", "r.t", "r.emf")
+    A.label("noff")
+    if kp_frac != int_guard:
+        raise ValueError("engine program: kp_format.frac must equal int_guard")
+    _pis(A, kx_shift=kx_frac - int_guard,
+         filler=lambda: A.alu(Op.ADD, "r.v", "s.TC", 1 << (w + 2)))     # of the trig below
+    # --- Inverse Park, DC-bus compensation -----------------------------------------------------------
+    A.label("inv")
+    _trig(A, rot)
+    _rotate(A, "r.ud", "r.uq", "r.ua", "r.ub", "u_alpha", "u_beta", w)
+    A.mul("r.ua", "b.dcg")                    # (u_β's post fuses into it)
+    A.post("r.ca", 16, sat=SAT_W1)
+    A.mul("r.ub", "b.dcg")
+    A.post("r.cb", 16, sat=SAT_W1)
+    # --- SVPWM (width w + 1, frac w − 1: hdl/svpwm.py, min–max injection) --------------------------
+    if int_guard != 8:
+        raise ValueError("engine program: int_guard must be 8 (the SVPWM guard shift uses it)")
+    A.alu(Op.ADD, "r.qa", "r.ca", 0, asl=True)                       # α·2**8
+    A.mul("r.cb", sv_k)
+    A.post("r.qs", sv_kfrac)                                         # round(β·k, k_frac)
+    A.alu(Op.ADD, "r.ta2", "r.qa", "r.qa")
+    A.alu(Op.RSUB, "r.qn", "r.qs", 0)
+    A.alu(Op.MAX, "r.mx", "r.qa", "r.qs")
+    A.alu(Op.MIN, "r.mn", "r.qa", "r.qs")
+    A.alu(Op.MAX, "r.mx", "r.mx", "r.qn")
+    A.alu(Op.MIN, "r.mn", "r.mn", "r.qn")
+    A.alu(Op.ADD, "r.tb2", "r.qs", "r.qs")
+    A.alu(Op.SUB, "r.sp", "r.mx", "r.mn")
+    A.alu(Op.ADD, "r.smm", "r.mx", "r.mn")
+    A.alu(Op.ADD, "r.tc2", "r.qn", "r.qn")
+    A.alu(Op.MAX, "r.d", "r.sp", 1 << sv_frac, setf=True)            # !LE: over-modulation
+    A.alu(Op.SEL, None, 0, 1, cond="!LE", out="om")
+    A.alu(Op.SUB, "r.bs", "r.d", "r.smm")                            # D − max − min
+    A.alu(Op.ADD, "r.d2", "r.d", "r.d")                              # 2D (over-modulation)
+    for ph in "abc":                                                  # n = D + 2q − max − min
+        A.alu(Op.ADD, f"r.n{ph}", "r.bs", f"r.t{ph}2")
+    A.br("!LE", "om")                                                 # flags of D − 2**F
+    for ph in "abc":        # D = 2**F: (scale·n + 2**F) >> (F + 1) = round_shift (scale·n ≥ 0)
+        A.mul("s.scale", f"r.n{ph}")
+        A.emit(Op.ADD, a="s.P", b=0, sh=sv_frac + 1, rnd=True, out=f"d{ph}")
+    A.end()
+    # Over-modulation: the largest phase has n = 2D (duty = scale), the smallest n = 0 (duty 0),
+    # the middle one n = Σn − 2D: one division.
+    A.label("om")
+    A.alu(Op.ADD, "r.t", "r.na", "r.nb")
+    A.mul("s.scale", "r.nc")                                          # scale·(Σn − 2D) + D
+    A.mac("s.scale", "r.t")
+    A.mac("s.scale", "r.d2", neg=True)
+    A.mac(1, "r.d")
+    for _ in range(count_width):
+        A.emit(Op.DIV, b="r.d2")
+    A.alu(Op.ADD, "r.qm", "s.PQ", 0)
+    for ph in "abc":
+        A.alu(Op.SUB, None, f"r.n{ph}", "r.d2", setf=True)
+        A.alu(Op.SEL, "r.t", "r.qm", "b.scale", cond="Z")
+        A.alu(Op.ADD, None, f"r.n{ph}", 0, setf=True)
+        A.alu(Op.SEL, None, "r.t", 0, cond="Z", out=f"d{ph}")
+    A.end()
+    # --- PIs cleared (enable low or open loop) ---------------------------------------------------
+    A.label("off")
+    for ax in "dq":
+        A.alu(Op.ADD, f"r.i_{ax}", 0, 0)
+        A.alu(Op.ADD, f"r.ep_{ax}", 0, 0)
+        A.alu(Op.ADD, None, 0, 0, out=f"sat_{ax}")
+    A.br("!F", "inv")
+    A.alu(Op.SEL, "r.ud", "s.ol_ud", 0, cond="!OL", out="u_d")
+    A.alu(Op.SEL, "r.uq", "s.ol_uq", 0, cond="!OL", out="u_q")
+    return A.assemble(fuse=fuse)
+
+
+def path_lengths(program):
+    """Executed instructions of every path through ``program`` (it has no loops): a sorted list
+    of distinct counts (each branch taken or not; delay slots counted)."""
+    instrs = program.instrs
+    counts = set()
+
+    def walk(queue, count):
+        queue = list(queue)
+        while True:
+            pc = queue.pop(0)
+            ins = instrs[pc]
+            count += 1
+            if ins.op == Op.END:
+                counts.add(count)
+                return
+            nxt = queue[-1] + 1
+            if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
+                always = ins.cond == 0 and ins.inv
+                walk(queue + [ins.tgt], count)
+                if always:
+                    return
+            queue.append(nxt)
+
+    walk([0, 1, 2], 0)
+    return sorted(counts)
+
+
+#: Clocks from ``start`` to the first executed instruction, and from END to ``o.valid``.
+PIPELINE_CLOCKS = 3
+
+
+class EngineCurrentLoop(wiring.Component):
+    """The current loop of :class:`~.foc.CurrentLoop` as a program of the loop engine.
+
+    Same parameters, same signature (ports, streams, status outputs) and bit-identical results
+    (:class:`~foc_servo.sim.models.foc.CurrentLoopModel`); only the timing differs: the whole
+    computation runs on one multiplier and one ALU in sequence (:attr:`latency`). The program is
+    written for the default formats; other values raise :exc:`ValueError`.
+
+    Status outputs update when the program writes them; ``done`` (and ``o.valid``) mark the
+    sample's end as in :class:`~.foc.CurrentLoop`. ``dc_limited`` is the DC-bus block's flag as
+    there. ``phase.valid`` strobes the clock after the program wrote phase c.
+
+    Attributes
+    ----------
+    latency : int
+        Clocks from the accepted sample to ``o.valid``, worst case (over-modulation with
+        feed-forward).
+    latencies : list of int
+        Every possible latency (per program path).
+    program : Program
+    """
+
+    def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
+                 rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
+                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0):
+        defaults = (("width", width, 16), ("adc_width", adc_width, 16),
+                    ("angle_width", angle_width, 16), ("count_width", count_width, 16),
+                    ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
+                    ("kp_format", kp_format, UQ(16, 8)), ("kx_format", kx_format, UQ(16, 16)),
+                    ("int_guard", int_guard, 8))
+        for name, value, allowed in defaults:
+            if type(value) is not type(allowed) or value != allowed:
+                raise ValueError(f"EngineCurrentLoop {name} must be {allowed!r} (the program "
+                                 f"is written for it), not {value!r}")
+        if rotator not in ("table", "cordic"):
+            raise ValueError(f"EngineCurrentLoop rotator must be one of table, cordic (both mean "
+                             f"the engine's sine table), not {rotator!r}")
+        self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
+        self._program = current_loop_program(rotator=self._rot)
+        self._dcbus = DCBusCompensation(width=width, out_width=width + 1, adc_width=adc_width,
+                                        gain_limit=gain_limit)
+        self._latencies = [n + PIPELINE_CLOCKS for n in path_lengths(self._program)]
+        w, aw, cw = width, angle_width, count_width
+        sw = signed(w)
+        super().__init__({
+            "i": In(stream.Signature(data.StructLayout(
+                {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
+            "theta": In(unsigned(aw)), "theta_lead": In(unsigned(aw)),
+            "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
+            "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
+            "speed": In(signed(SPEED_WIDTH)),
+            "ff_l": In(FF_FORMAT.shape), "ff_psi": In(FF_FORMAT.shape),
+            "gain_a": In(clarke_gain_format.shape), "gain_b": In(clarke_gain_format.shape),
+            "offset_a": In(signed(adc_width + 1)), "offset_b": In(signed(adc_width + 1)),
+            "kp_d": In(kp_format.shape), "kx_d": In(kx_format.shape),
+            "lim_lo_d": In(sw), "lim_hi_d": In(sw),
+            "kp_q": In(kp_format.shape), "kx_q": In(kx_format.shape),
+            "lim_lo_q": In(sw), "lim_hi_q": In(sw),
+            "u_rated": In(unsigned(adc_width)), "scale": In(unsigned(cw)),
+            "o": Out(stream.Signature(data.StructLayout({p: unsigned(cw) for p in "abc"}))),
+            "overmod": Out(1),
+            "phase": Out(stream.Signature(data.StructLayout({p: sw for p in "abc"}),
+                                          always_ready=True)),
+            "udc": Out(stream.Signature(signed(adc_width), always_ready=True)),
+            **{name: Out(sw) for name in ("i_alpha", "i_beta", "i_d", "i_q",
+                                          "u_d", "u_q", "u_alpha", "u_beta")},
+            "sat_d": Out(1), "sat_q": Out(1), "dc_limited": Out(1), "busy": Out(1),
+            "overrun": Out(1), "overruns": Out(16), "count": Out(32), "done": Out(1),
+        })
+
+    program = property(lambda self: self._program)
+    width = property(lambda self: ENGINE_WIDTH)
+    adc_width = property(lambda self: 16)
+    angle_width = property(lambda self: 16)
+    count_width = property(lambda self: 16)
+    latency = property(lambda self: max(self._latencies))
+    latencies = property(lambda self: list(self._latencies))
+
+    def elaborate(self, platform):
+        m = Module()
+        w = ENGINE_WIDTH
+        sw = signed(w)
+        shapes = {
+            "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "lead": unsigned(16),
+            "id_ref": sw, "iq_ref": sw, "ol_ud": sw, "ol_uq": sw, "nspd": sw,
+            "gain_a": self.gain_a.shape(), "gain_b": self.gain_b.shape(),
+            "off_a": self.offset_a.shape(), "off_b": self.offset_b.shape(),
+            "kp_d": self.kp_d.shape(), "kx_d": self.kx_d.shape(), "lo_d": sw, "hi_d": sw,
+            "kp_q": self.kp_q.shape(), "kx_q": self.kx_q.shape(), "lo_q": sw, "hi_q": sw,
+            "ff_l": self.ff_l.shape(), "ff_psi": self.ff_psi.shape(),
+            "scale": self.scale.shape(), "dcg": unsigned(18),
+        }
+        m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
+                                           out_widths=OUTS, width=w, guard=8,
+                                           div_bits=16, rotator=self._rot)
+        m.submodules.dcbus = dcbus = self._dcbus
+
+        # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
+        done = self.o.valid & self.o.ready
+        accept = self.i.valid & (~self.busy | done)
+        m.d.comb += [self.done.eq(done), self.overrun.eq(self.i.valid & ~accept)]
+        with m.If(accept):
+            m.d.sync += self.busy.eq(1)
+        with m.Elif(done):
+            m.d.sync += self.busy.eq(0)
+        with m.If(done):
+            m.d.sync += [self.count.eq(self.count + 1), self.overmod.eq(eng.o_om)]
+        with m.If(self.overrun & (self.overruns != 0xFFFF)):
+            m.d.sync += self.overruns.eq(self.overruns + 1)
+        with m.If(eng.end):
+            m.d.sync += self.o.valid.eq(1)
+        with m.Elif(done):
+            m.d.sync += self.o.valid.eq(0)
+
+        # --- Per-sample inputs, latched with the sample ------------------------------------------
+        lat = {name: Signal(shapes[name], name=f"l_{name}")
+               for name in ("ia", "ib", "theta", "lead", "id_ref", "iq_ref", "ol_ud", "ol_uq",
+                            "nspd", "dcg")}
+        run, ol, ff = Signal(), Signal(), Signal()
+        with m.If(accept):
+            m.d.sync += [
+                lat["ia"].eq(self.i.payload.ia), lat["ib"].eq(self.i.payload.ib),
+                lat["theta"].eq(self.theta), lat["lead"].eq(self.theta_lead),
+                lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
+                lat["ol_ud"].eq(self.ol_ud), lat["ol_uq"].eq(self.ol_uq),
+                lat["nspd"].eq(saturate_bits(round_shift(self.speed, SPEED_WIDTH - w), sw)),
+                lat["dcg"].eq(dcbus.gain),
+                run.eq(self.enable & ~self.ol_enable), ol.eq(self.ol_enable),
+                ff.eq(self.ff_enable & self.enable & ~self.ol_enable),
+                self.udc.payload.eq(self.i.payload.udc),
+            ]
+        m.d.sync += self.udc.valid.eq(accept)
+        config = {"gain_a": self.gain_a, "gain_b": self.gain_b, "off_a": self.offset_a,
+                  "off_b": self.offset_b, "kp_d": self.kp_d, "kx_d": self.kx_d,
+                  "lo_d": self.lim_lo_d, "hi_d": self.lim_hi_d, "kp_q": self.kp_q,
+                  "kx_q": self.kx_q, "lo_q": self.lim_lo_q, "hi_q": self.lim_hi_q,
+                  "ff_l": self.ff_l, "ff_psi": self.ff_psi, "scale": self.scale}
+        for name, sig in list(lat.items()) + list(config.items()):
+            m.d.comb += getattr(eng, f"s_{name}").eq(sig)
+        m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff), eng.start.eq(accept)]
+
+        # --- DC-bus gain: the DC-bus block's divider (its multiplier is not used) -----------------
+        udc = self.i.payload.udc
+        m.d.comb += [
+            dcbus.u_rated.eq(self.u_rated),
+            dcbus.u_dc.valid.eq(accept),
+            dcbus.u_dc.payload.eq(Mux(udc[-1], 0, udc)),
+            dcbus.i.valid.eq(0),
+            dcbus.o.ready.eq(1),
+            self.dc_limited.eq(dcbus.limited),
+        ]
+
+        # --- Outputs --------------------------------------------------------------------------------
+        m.d.comb += [
+            self.o.payload.a.eq(eng.o_da), self.o.payload.b.eq(eng.o_db),
+            self.o.payload.c.eq(eng.o_dc),
+            self.phase.payload.a.eq(eng.o_pa), self.phase.payload.b.eq(eng.o_pb),
+            self.phase.payload.c.eq(eng.o_pc),
+            self.i_alpha.eq(eng.o_pa), self.i_beta.eq(eng.o_i_beta),
+            self.i_d.eq(eng.o_i_d), self.i_q.eq(eng.o_i_q),
+            self.u_d.eq(eng.o_u_d), self.u_q.eq(eng.o_u_q),
+            self.u_alpha.eq(eng.o_u_alpha), self.u_beta.eq(eng.o_u_beta),
+            self.sat_d.eq(eng.o_sat_d), self.sat_q.eq(eng.o_sat_q),
+        ]
+        m.d.sync += self.phase.valid.eq(eng.o_pc_we)
+        return m

@@ -1,0 +1,284 @@
+# Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
+"""Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
+clock (one instruction per clock, two branch delay slots) with the gateware's timing where a
+program can see it: register and output writes land one instruction late (the X2 stage), the
+fold flags follow the angle register at once, ``KD`` a clock later, the table words two (the
+special operands are registered in the R stage); flags
+and P are sequential. It records, per executed instruction, what the gateware shows on its
+``trace_*`` ports in that instruction's X2 clock.
+
+Every value is checked against the widths the gateware gives it (multiplier operands
+``signed(MUL_A)`` × ``signed(MUL_B)``, register file and ``P`` ``signed(WORD)``): a program that
+would overflow raises :exc:`OverflowError` here instead of wrapping there.
+"""
+
+import collections
+
+from ...hdl.engine import BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD, Op
+from ...hdl.rotator import RotatorParams
+
+__all__ = ["EngineModel"]
+
+ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
+
+
+def _fits(value, bits, what):
+    lo, hi = -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    if not lo <= value <= hi:
+        raise OverflowError(f"engine {what} {value} does not fit signed({bits})")
+    return value
+
+
+class EngineModel:
+    """The engine's architectural state and an interpreter of its program.
+
+    Parameters
+    ----------
+    program : foc_servo.hdl.engine.Program
+    out_widths : dict of str to int
+        As for :class:`~foc_servo.hdl.engine.Engine`.
+    width, guard, div_bits, rotator
+        As for :class:`~foc_servo.hdl.engine.Engine`.
+
+    Attributes
+    ----------
+    rf : list of int
+        Register file.
+    p : int
+        Product register.
+    outs : dict of str to int
+        Output registers.
+    """
+
+    def __init__(self, program, *, out_widths, width=16, guard=8, div_bits=16, rotator=None):
+        self.program = program
+        self.instrs = program.instrs
+        self.out_widths = dict(out_widths)
+        self.width = width
+        self.guard = guard
+        self.div_bits = div_bits
+        self.rot = rotator if rotator is not None else RotatorParams(width=16, angle_width=16)
+        self.rf = list(program.rf_init)
+        self.p = 0
+        self.n = self.z = 0
+        self.outs = {name: 0 for name in self.out_widths}
+        self.tbl = self._table_word(0)
+        self.sreg = self.tbl + (self._fold(0)[1],)
+
+    # --- angle unit ------------------------------------------------------------------------------
+    def _fold(self, ang):
+        r = self.rot
+        aw, mb, n = r.angle_width, r.interp_bits, r.table_bits
+        quad = ang >> (aw - 2)
+        mu = (ang >> (aw - 3)) & 1
+        k = (ang >> mb) & ((1 << n) - 1)
+        if mu:
+            k ^= (1 << n) - 1
+        low = ang & ((1 << mb) - 1)
+        kd = r.kd_rom[(mu << mb) | low]
+        return k, kd, (quad & 1) ^ mu, (quad & 1) ^ (quad >> 1), quad >> 1
+
+    def _table_word(self, ang):
+        r = self.rot
+        return r.table_s[self._fold(ang)[0]], r.table_c[self._fold(ang)[0]]
+
+    def _write(self, writes):
+        for kind, where, y in writes:
+            if kind == "rf":
+                self.rf[where] = y
+            else:
+                self.outs[where] = y & ((1 << self.out_widths[where]) - 1)
+
+    # --- one program run -------------------------------------------------------------------------
+    def run(self, specials, conds):
+        """Run the program from address 0 to its END.
+
+        Parameters
+        ----------
+        specials : dict of str to int
+            Values of the user special operands.
+        conds : dict of str to bool
+            Values of the user conditions.
+
+        Returns
+        -------
+        list of dict
+            One entry per executed instruction (= per clock of the execute stage): ``pc``,
+            ``wen``, ``dst``, ``y`` (the post-processed result), ``p`` (P before the
+            instruction); ``outs`` holds the output registers afterwards.
+        """
+        prog = self.program
+        q = self.div_bits
+        trace = []
+        queue = collections.deque([0, 1, 2])
+        fetch = 3
+        pending = []
+        ang = self.outs["ang"]                      # steady state after the idle clocks
+        self.tbl = self._table_word(ang)
+        self.sreg = self.tbl + (self._fold(ang)[1],)
+        while True:
+            pc = queue.popleft()
+            ins = self.instrs[pc]
+            ang = self.outs["ang"]
+            _, kd_now, swap, negc, negs = self._fold(ang)
+            ts, tc, kd = self.sreg                  # selected and registered in R
+            spec = [self.p, self.p & ((1 << q) - 1), ts, tc, kd] + [
+                int(specials[name]) for name in prog.specials[len(BUILTIN_SPECIALS):]]
+            cvals = [0, self.n, self.z, self.n | self.z, swap, negc, negs] + [
+                int(bool(conds[name])) for name in prog.conds[len(BUILTIN_CONDS):]]
+            a = spec[ins.a] if ins.asp else self.rf[ins.a]
+            if ins.asl:
+                a <<= self.guard
+            b = int(specials[prog.bspecials[ins.b]]) if ins.bsp else self.rf[ins.b]
+            c = cvals[ins.cond] ^ ins.inv
+            op = Op(ins.op)
+            s = a + b if op == Op.ADD else (b - a if op == Op.RSUB else a - b)
+            if op == Op.MIN:
+                x = b if (c or s >= 0) else a
+            elif op == Op.MAX:
+                x = b if (c or s <= 0) else a
+            elif op == Op.SEL:
+                x = b if c else a
+            elif ins.asp and ins.a in (0, 1):
+                x = a                   # P or PQ (read in X2; B is 0)
+            else:
+                x = s
+            sh = ins.sh
+            if ins.rnd and sh:
+                y = (x + (1 << (sh - 1)) - (x < 0)) >> sh
+            else:
+                y = x >> sh
+            if ins.sat in (SAT_W, SAT_W1):
+                sw = self.width + (ins.sat == SAT_W1)
+                y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
+            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": self.p}
+            writes = []                 # applied one instruction later (the X2 stage)
+            taken = False
+            if op in ALU:
+                entry["y"] = y
+                if ins.wen:
+                    writes.append(("rf", ins.dst, _fits(y, WORD, f"result at pc {pc}")))
+                    entry["wen"] = 1
+                if ins.setf:
+                    self.n, self.z = int(s < 0), int(s == 0)
+                if ins.out:
+                    writes.append(("out", prog.outs[ins.out], int(x != 0)
+                                   if self.out_widths[prog.outs[ins.out]] == 1 else y))
+            elif op == Op.MUL:
+                if ins.wen or ins.out:                  # fused post of the old P
+                    x = self.p
+                    y = (x + (1 << (sh - 1)) - (x < 0)) >> sh if (ins.rnd and sh) else x >> sh
+                    if ins.sat in (SAT_W, SAT_W1):
+                        sw = self.width + (ins.sat == SAT_W1)
+                        y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
+                    entry["y"] = y
+                    if ins.wen:
+                        writes.append(("rf", ins.dst, _fits(y, WORD, f"result at pc {pc}")))
+                        entry["wen"] = 1
+                    if ins.out:
+                        if self.out_widths[prog.outs[ins.out]] == 1:
+                            raise ValueError(f"engine: 1-bit output from a MUL at pc {pc}")
+                        writes.append(("out", prog.outs[ins.out], y))
+                _fits(a, MUL_A, f"multiplier A at pc {pc}")
+                _fits(b, MUL_B, f"multiplier B at pc {pc}")
+                prod = -(a * b) if (ins.neg ^ c) else a * b
+                self.p = _fits((self.p if ins.acc else 0) + prod, WORD, f"P at pc {pc}")
+            elif op == Op.DIV:
+                t2 = self.p << 1
+                if (t2 >> q) >= b:
+                    t2 = t2 - (b << q) + 1
+                self.p = _fits(t2, WORD, f"P (DIV) at pc {pc}")
+            elif op == Op.BR:
+                taken = bool(c)
+            trace.append(entry)
+            # The table read port follows the angle register one clock behind; then the
+            # previous instruction's write back (X2) lands.
+            self.sreg = self.tbl + (kd_now,)
+            self.tbl = self._table_word(ang)
+            self._write(pending)
+            pending = writes
+            if op == Op.END:
+                self._write(pending)
+                break
+            if taken:
+                fetch = ins.tgt
+            queue.append(fetch)
+            fetch += 1
+        return trace
+
+
+def _signed(v, bits):
+    v &= (1 << bits) - 1
+    return v - (1 << bits) if v >> (bits - 1) else v
+
+
+class EngineLoopModel:
+    """The current-loop program (:func:`foc_servo.hdl.foc_engine.current_loop_program`) on
+    :class:`EngineModel`, with the ports of :class:`~foc_servo.sim.models.foc.CurrentLoopModel`:
+    :meth:`run` takes and returns the same dictionaries, so the two can be compared directly.
+
+    Attributes
+    ----------
+    engine : EngineModel
+    dc_gain : int
+        DC-bus gain (UQ2.16) the next sample will be compensated with.
+    traces : list
+        The instruction trace of every sample of the last :meth:`run`.
+    """
+
+    def __init__(self, *, gain_limit=2.0, program=None):
+        from ...hdl.foc_engine import OUTS, current_loop_program
+        self.program = program if program is not None else current_loop_program()
+        self.engine = EngineModel(self.program, out_widths=OUTS)
+        self.gain_limit_raw = round(gain_limit * (1 << 16))
+        self.dc_gain = 1 << 16
+        self.traces = []
+
+    @staticmethod
+    def specials_of(v, k, dc_gain):
+        """Special operands and conditions of sample ``k`` of the input arrays ``v``."""
+        from ...hdl.fixed import round_shift_np, saturate_np
+        from amaranth.hdl import signed
+        g = lambda name: int(v[name][k])
+        nspd = int(saturate_np(round_shift_np(g("speed"), 32 - 16), signed(16)))
+        spec = {"ia": g("ia"), "ib": g("ib"), "theta": g("theta") % (1 << 16),
+                "lead": g("theta_lead") % (1 << 16), "id_ref": g("id_ref"),
+                "iq_ref": g("iq_ref"), "ol_ud": g("ol_ud"), "ol_uq": g("ol_uq"), "nspd": nspd,
+                "gain_a": g("gain_a"), "gain_b": g("gain_b"), "off_a": g("offset_a"),
+                "off_b": g("offset_b"), "kp_d": g("kp_d"), "kx_d": g("kx_d"),
+                "lo_d": g("lim_lo_d"), "hi_d": g("lim_hi_d"), "kp_q": g("kp_q"),
+                "kx_q": g("kx_q"), "lo_q": g("lim_lo_q"), "hi_q": g("lim_hi_q"),
+                "ff_l": g("ff_l"), "ff_psi": g("ff_psi"), "scale": g("scale"), "dcg": dc_gain}
+        en, ol, ff = g("enable") != 0, g("ol_enable") != 0, g("ff_enable") != 0
+        conds = {"RUN": en and not ol, "OL": ol, "FF": ff and en and not ol}
+        return spec, conds
+
+    def run(self, **inputs):
+        import numpy as np
+        from .foc import CONFIG_FIELDS, OUTPUT_FIELDS, SAMPLE_FIELDS
+        from .svpwm import dcbus_gain
+        arrays = np.broadcast_arrays(*(np.asarray(inputs[k], dtype=np.int64)
+                                       for k in SAMPLE_FIELDS + CONFIG_FIELDS))
+        v = dict(zip(SAMPLE_FIELDS + CONFIG_FIELDS, (np.atleast_1d(a) for a in arrays)))
+        n = v["ia"].size
+        out = {k: np.zeros(n, dtype=np.int64) for k in OUTPUT_FIELDS}
+        self.traces = []
+        for k in range(n):
+            spec, conds = self.specials_of(v, k, self.dc_gain)
+            self.traces.append(self.engine.run(spec, conds))
+            o = self.engine.outs
+            gain, limited = dcbus_gain(v["u_rated"][k], max(int(v["udc"][k]), 0),
+                                       gain_limit_raw=self.gain_limit_raw)
+            res = {"a": _signed(o["pa"], 16), "b": _signed(o["pb"], 16),
+                   "c": _signed(o["pc"], 16), "i_alpha": _signed(o["pa"], 16),
+                   "i_beta": _signed(o["i_beta"], 16), "i_d": _signed(o["i_d"], 16),
+                   "i_q": _signed(o["i_q"], 16), "u_d": _signed(o["u_d"], 16),
+                   "u_q": _signed(o["u_q"], 16), "u_alpha": _signed(o["u_alpha"], 16),
+                   "u_beta": _signed(o["u_beta"], 16), "duty_a": o["da"], "duty_b": o["db"],
+                   "duty_c": o["dc"], "overmod": o["om"], "sat_d": o["sat_d"],
+                   "sat_q": o["sat_q"], "dc_gain": self.dc_gain, "dc_limited": int(limited),
+                   "udc": int(v["udc"][k])}
+            for name, val in res.items():
+                out[name][k] = val
+            self.dc_gain = int(gain)
+        return out

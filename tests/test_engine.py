@@ -1,0 +1,321 @@
+# Tests of hdl/engine.py (loop engine), hdl/foc_engine.py (the current loop as its program) and
+# sim/models/engine.py (the interpreter): program vs CurrentLoopModel (bit-identical), gateware vs
+# interpreter (cycle by cycle), EngineCurrentLoop vs CurrentLoopModel (through the CurrentLoop
+# verification bench).
+import dataclasses
+import gc
+import warnings
+
+import numpy as np
+import pytest
+from amaranth.hdl import UnusedElaboratable, signed
+
+from foc_servo.hdl.engine import Assembler, Engine, Op, SAT_W
+from foc_servo.hdl.foc import CurrentLoop
+from foc_servo.hdl.foc_engine import (OUTS, SPECIALS, EngineCurrentLoop, current_loop_program,
+                                      path_lengths)
+from foc_servo.sim.harness import simulate
+from foc_servo.sim.models.engine import EngineLoopModel, EngineModel
+from foc_servo.sim.models.foc import OUTPUT_FIELDS, CurrentLoopModel
+from foc_servo.sim.models.rotator import rotate_ideal
+from foc_servo.sim.verify import foc as verify_foc
+
+
+def _compare(vec, program=None):
+    exp = CurrentLoopModel().run(**vec)
+    em = EngineLoopModel(program=program)
+    got = em.run(**vec)
+    bad = {k: int(np.sum(np.asarray(exp[k]) != np.asarray(got[k]))) for k in OUTPUT_FIELDS}
+    return exp, got, {k: v for k, v in bad.items() if v}, em
+
+
+# --- the program on the interpreter against the current loop's golden model ---------------------
+
+def test_program_bit_identical_to_current_loop_model():
+    vec = verify_foc.stimulus(1500, seed=11)            # random segments + the corner cases
+    exp, got, bad, em = _compare(vec)
+    assert bad == {}
+    # Coverage: every path of the program ran, every flag was seen both ways.
+    assert {len(t) for t in em.traces} == set(path_lengths(em.program))
+    for k in ("overmod", "sat_d", "sat_q", "dc_limited"):
+        assert 0 < exp[k].sum() < len(exp[k]), k
+
+
+def test_program_corners():
+    """Saturating references, limits hit, inverted and zero-width limits, zero and negative U_dc,
+    over-modulation, θ wrap, ff on/off, open loop, enable low (PI cleared)."""
+    vec = verify_foc.stimulus(0, seed=3)
+    n = vec["ia"].size
+    rng = np.random.default_rng(5)
+    extra = {k: np.copy(v) for k, v in vec.items()}
+    extra["theta"] = np.where(rng.random(n) < 0.5, 0xFFFF, 0)
+    extra["theta_lead"] = np.full(n, 1)                   # θ + θ_lead wraps
+    extra["udc"] = np.where(rng.random(n) < 0.5, -1, 0)
+    extra["ff_enable"] = 1 - vec["ff_enable"]
+    for v in (vec, extra):
+        _, _, bad, _ = _compare(v)
+        assert bad == {}
+
+
+def test_program_breaks_when_changed():
+    """The comparison can fail: one rounding flag flipped in the program shows up."""
+    prog = current_loop_program()
+    words = list(prog.words)
+    k = next(i for i, ins in enumerate(prog.instrs) if ins.rnd and ins.sh == 15)   # Clarke a
+    words[k] = dataclasses.replace(prog.instrs[k], rnd=0).encode()
+    broken = dataclasses.replace(prog, words=words)
+    _, _, bad, _ = _compare(verify_foc.stimulus(100, seed=2), program=broken)
+    assert bad.get("a", 0) > 0
+
+
+def test_fused_posts_change_nothing_but_length():
+    """The assembler's peephole (a post fused into the next MUL) against the plain program."""
+    plain = current_loop_program(fuse=False)
+    fused = current_loop_program()
+    assert len(fused.words) < len(plain.words) - 10
+    assert max(path_lengths(fused)) < max(path_lengths(plain))
+    vec = verify_foc.stimulus(200, seed=6)
+    a = EngineLoopModel(program=plain).run(**vec)
+    b = EngineLoopModel(program=fused).run(**vec)
+    for k in OUTPUT_FIELDS:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_program_park_against_float_rotation():
+    """Independent check: i_d, i_q against the float Park of the engine's own α, β."""
+    vec = verify_foc.stimulus(300, seed=4)
+    _, got, _, _ = _compare(vec)
+    xf, yf = rotate_ideal(got["i_alpha"], got["i_beta"], (-vec["theta"]) % (1 << 16),
+                          width=16, angle_width=16)
+    sat = (np.abs(xf) > 32767) | (np.abs(yf) > 32767)
+    assert np.max(np.abs(got["i_d"] - xf)[~sat]) < 1.2
+    assert np.max(np.abs(got["i_q"] - yf)[~sat]) < 1.2
+
+
+# --- ISA details on small programs ------------------------------------------------------------
+
+def _small(build):
+    A = Assembler(specials=("x", "y"), bspecials=("y",), conds=(), outs=("ang", "r"))
+    A.guard = 8
+    build(A)
+    A.end()
+    prog = A.assemble()
+    return prog, EngineModel(prog, out_widths={"ang": 16, "r": 48})
+
+
+def test_div_step_is_floor_division():
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        d = int(rng.integers(1, 1 << 26))
+        num = int(rng.integers(0, d << 16))             # quotient < 2**16
+
+        def build(A):
+            for _ in range(16):
+                A.emit(Op.DIV, b=f"k.{d}")
+            A.alu(Op.ADD, None, "s.PQ", 0, out="r")
+        _, em = _small(build)
+        em.p = num                                      # P is architectural state
+        em.run({"x": 0, "y": 0}, {})
+        assert em.outs["r"] == num // d
+        assert em.p >> 16 == num % d
+
+
+def test_rounding_saturation_and_overflow_check():
+    def build(A):
+        A.alu(Op.ADD, None, "s.x", 0, sh=4, rnd=True, sat=SAT_W, out="r")
+    _, em = _small(build)
+    for x in (-24, -8, 8, 24, -(1 << 30), 1 << 30):
+        em.run({"x": x, "y": 0}, {})
+        r = em.outs["r"]
+        r = r - (1 << 48) if r >> 47 else r
+        want = int(np.sign(x)) * ((abs(x) + 8) >> 4)           # half away from zero
+        assert r == max(-32768, min(32767, want))
+
+    def build2(A):
+        A.mul("s.x", "b.y")
+    _, em = _small(build2)
+    with pytest.raises(OverflowError, match="multiplier A"):
+        em.run({"x": 1 << 18, "y": 1}, {})
+
+
+def test_assembler_errors():
+    A = Assembler(specials=("x",), conds=(), outs=("ang",))
+    with pytest.raises(ValueError, match=r"^Assembler: special operand s.x only on A"):
+        A.alu(Op.ADD, "r.t", 0, "s.x")
+    with pytest.raises(ValueError, match=r"^Assembler: destination must be a register"):
+        A.alu(Op.ADD, "s.x", 0, 0)
+    A.alu(Op.ADD, "r.t", 1 << 50, 0)
+    with pytest.raises(ValueError, match=r"^Assembler: constant \d+ does not fit 48 bits"):
+        A.assemble()
+
+
+def test_assembler_inserts_nops_and_rejects_slot_hazards():
+    def build(A):
+        A.alu(Op.ADD, "r.x", "s.x", 0)
+        A.alu(Op.ADD, None, "r.x", 1, out="r")                # reads x at once: a NOP between
+    prog, em = _small(build)
+    assert [Op(i.op) for i in prog.instrs] == [Op.ADD, Op.NOP, Op.ADD, Op.END]
+    em.run({"x": 5, "y": 0}, {})
+    assert em.outs["r"] == 6
+    A = Assembler(specials=("x",), conds=(), outs=("ang",))
+    A.br("!F", "l")
+    A.alu(Op.ADD, "r.x", "s.x", 0)
+    A.alu(Op.ADD, "r.y", "r.x", 0)                            # in the second delay slot
+    A.label("l")
+    A.end()
+    with pytest.raises(ValueError, match=r"^Assembler: hazard in a branch delay slot at 2"):
+        A.assemble()
+
+
+# --- gateware against the interpreter, cycle by cycle ------------------------------------------
+
+def test_engine_hdl_matches_interpreter_cycle_by_cycle():
+    prog = current_loop_program()
+    dut = Engine(program=prog, special_shapes={n: signed(20) for n in SPECIALS},
+                 out_widths=OUTS)
+    model = EngineModel(prog, out_widths=OUTS)
+    vec = verify_foc.stimulus(60, seed=9)
+    rng = np.random.default_rng(9)
+    idx = np.concatenate([np.arange(60), rng.choice(np.arange(60, vec["ia"].size), 40,
+                                                    replace=False)])
+    samples = [EngineLoopModel.specials_of(vec, int(k), int(rng.integers(0, 1 << 17)))
+               for k in idx]
+    errors, clocks = [], [0]
+
+    async def testbench(ctx):
+        for k, (spec, conds) in enumerate(samples):
+            for name, val in spec.items():
+                ctx.set(getattr(dut, f"s_{name}"), val)
+            for name, val in conds.items():
+                ctx.set(getattr(dut, f"c_{name}"), int(val))
+            trace = model.run(spec, conds)
+            ctx.set(dut.start, 1)
+            await ctx.tick()
+            ctx.set(dut.start, 0)
+            i = cyc = 0
+            while True:
+                await ctx.tick()
+                cyc += 1
+                if cyc > 400:
+                    errors.append((k, "no END"))
+                    return
+                if not ctx.get(dut.trace_valid):
+                    continue
+                e = trace[i]
+                got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
+                       "wen": ctx.get(dut.trace_wen)}
+                if e["wen"]:
+                    got.update(dst=ctx.get(dut.trace_dst), y=ctx.get(dut.trace_y))
+                want = {key: e[key] for key in got}
+                if got != want:
+                    errors.append((k, i, want, got))
+                    return
+                i += 1
+                if i == len(trace):
+                    break
+            clocks[0] += cyc
+            await ctx.tick()
+            if i != len(trace):
+                errors.append((k, "length", i, len(trace)))
+            for name in OUTS:
+                if ctx.get(getattr(dut, f"o_{name}")) != model.outs[name]:
+                    errors.append((k, name))
+
+    simulate(dut, [testbench], name="engine")
+    assert errors == []
+    assert clocks[0] > 100 * 90
+
+
+# --- EngineCurrentLoop ---------------------------------------------------------------------------
+
+def test_engine_current_loop_signature_and_parameters():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
+        _check_signature_and_parameters()
+        gc.collect()
+
+
+def _check_signature_and_parameters():
+    dut = EngineCurrentLoop()
+    assert dut.signature == CurrentLoop().signature
+    assert dut.latencies == [n + 3 for n in path_lengths(dut.program)]
+    assert dut.latency == max(dut.latencies) <= 180
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop width must be 16 \(the program is "
+                                         r"written for it\), not 12$"):
+        EngineCurrentLoop(width=12)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop int_guard must be 8 "):
+        EngineCurrentLoop(int_guard=True)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop rotator must be one of table, "):
+        EngineCurrentLoop(rotator="lut")
+
+
+def test_engine_current_loop_against_model():
+    """The CurrentLoop verification bench (sample ROM → dut → every output compared with
+    CurrentLoopModel one clock after each transfer), with EngineCurrentLoop as the dut."""
+    from amaranth.lib import data
+    dut = EngineCurrentLoop()
+    vec = verify_foc.stimulus(40, seed=21)
+    n = vec["ia"].size
+    exp = CurrentLoopModel().run(**vec)
+    in_layout = data.StructLayout(verify_foc._input_shapes(dut))
+    out_layout = data.StructLayout(verify_foc._output_shapes(dut))
+    bench = verify_foc._CurrentLoopBench(dut, in_layout, verify_foc._pack(in_layout, vec, n),
+                                         out_layout, verify_foc._pack(out_layout, exp, n))
+    result = {}
+
+    async def testbench(ctx):
+        clocks = 0
+        while ctx.get(bench.received) < n and clocks < n * (dut.latency + 2):
+            await ctx.tick()
+            clocks += 1
+        for name in ("received", "mismatches", "first_mismatch"):
+            result[name] = ctx.get(getattr(bench, name))
+        result["overruns"] = ctx.get(dut.overruns)
+        result["count"] = ctx.get(dut.count)
+
+    simulate(bench, [testbench], name="engine_loop")
+    assert result["received"] == n and result["count"] == n
+    assert result["mismatches"] == 0, result
+    assert result["overruns"] == 0
+
+
+def test_engine_current_loop_overrun_and_stalled_duties():
+    dut = EngineCurrentLoop()
+    seen = {}
+
+    async def testbench(ctx):
+        for name, value in {"gain_a": 1 << 15, "gain_b": 1 << 15, "kp_d": 256, "kp_q": 256,
+                            "lim_lo_d": -1000, "lim_hi_d": 1000, "lim_lo_q": -1000,
+                            "lim_hi_q": 1000, "u_rated": 20000, "scale": 2500,
+                            "enable": 1, "iq_ref": 3000}.items():
+            ctx.set(getattr(dut, name), value)
+        ctx.set(dut.i.payload, {"ia": 100, "ib": -50, "udc": 20000, "aux": 0})
+        ctx.set(dut.i.valid, 1)
+        await ctx.tick()
+        assert ctx.get(dut.busy)
+        for _ in range(10):
+            await ctx.tick()
+        seen["overrun"] = ctx.get(dut.overrun)          # a sample while busy: dropped
+        await ctx.tick()
+        ctx.set(dut.i.valid, 0)
+        clocks = 12
+        while not ctx.get(dut.o.valid):
+            await ctx.tick()
+            clocks += 1
+        seen["latency"] = clocks
+        duties = ctx.get(dut.o.payload)
+        for _ in range(20):                             # o.ready low: duties held, still busy
+            await ctx.tick()
+            assert ctx.get(dut.o.valid) and ctx.get(dut.busy)
+            assert ctx.get(dut.o.payload) == duties
+        ctx.set(dut.o.ready, 1)
+        assert ctx.get(dut.done)
+        await ctx.tick()
+        ctx.set(dut.o.ready, 0)
+        seen.update(count=ctx.get(dut.count), busy=ctx.get(dut.busy),
+                    overruns=ctx.get(dut.overruns), valid=ctx.get(dut.o.valid))
+
+    simulate(dut, [testbench], name="engine_overrun")
+    assert seen == {"overrun": 1, "latency": seen["latency"], "count": 1, "busy": 0,
+                    "overruns": 11, "valid": 0}     # i.valid held 11 clocks while busy
+    assert seen["latency"] in dut.latencies
