@@ -248,11 +248,13 @@ class QuadratureDecoder(wiring.Component):
     theta : Out(BinaryAngle(16))
         Encoder electrical angle ``floor(e·2**16 / cpr)``, exact (no rounding, no drift).
     step : Out(1)
-        Strobe: one count, in the direction ``up``.
+        Strobe: one count, in the direction ``up`` (the M/T speed counter's edges in the
+        default ×4 build, ``Top(mt_edges="x4")``).
     up : Out(1)
         Direction of the last count: 1 forward (A leads B), 0 backward.
     a_rise : Out(1)
-        Strobe: the count was a rising edge of A (for the M/T speed counter; direction ``up``).
+        Strobe: the count was a rising edge of A (the M/T speed counter's edges with
+        ``Top(mt_edges="a_rising")``; direction ``up``).
     illegal : Out(1)
         Strobe (one clock per event): A and B changed together. The protection block latches it.
     index : Out(1)
@@ -325,9 +327,12 @@ class QuadratureDecoder(wiring.Component):
         valid = Signal(init=valid0)
         cpr = Signal(CPR_WIDTH, init=4 * lines0)
         # cpr − Rz, cpr − z, cpr − Rp, cpr − pole_pairs, cpr − 1: the wrap tests of the
-        # position steps and of the output sums as one comparison each, on registers.
+        # position steps and of the output sums as one comparison each, on registers. The
+        # remainders Rz, Rp are below cpr (0 for cpr = 0), but z and pole_pairs may exceed cpr
+        # in an invalid configuration: cpr − z and cpr − pole_pairs are signed, so that
+        # em ≥ cpr − z stays em + z ≥ cpr there too (an unsigned difference would wrap).
         cpr_rz = Signal(CPR_WIDTH + 1, init=4 * lines0 - rz0)
-        cpr_z = Signal(CPR_WIDTH + 1, init=4 * lines0 - z0)
+        cpr_z = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - z0)
         cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
         cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
         cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)

@@ -39,6 +39,7 @@ from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
 from .fixed import saturate
+from .regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
 
@@ -54,7 +55,7 @@ class EdgeMode(enum.Enum):
 
     @property
     def edges_per_line(self):
-        return 1 if self is EdgeMode.A_RISING else 4
+        return MT_EDGES_PER_LINE[self.value]
 
 
 class WindowMode(lib_enum.Enum, shape=2):

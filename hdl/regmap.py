@@ -47,7 +47,8 @@ __all__ = [
     "Access", "Mode", "AngleMode", "TriggerSource", "ScopeState", "FAULT_FIELDS",
     "SCOPE_STATUS_FIELDS", "LOOP_FLAG_FIELDS", "LINK_COUNTERS", "LINK_COUNTER_WIDTH",
     "SCALE_NAMES", "Scales", "Register", "Window", "RegMap", "build_regmap", "REGMAP",
-    "WORD_WIDTH", "MAGIC", "MAP_VERSION", "scale_factor", "mt_k_for",
+    "WORD_WIDTH", "MAGIC", "MAP_VERSION", "scale_factor", "mt_k_for", "MT_EDGES",
+    "MT_EDGES_PER_LINE",
 ]
 
 #: Bits per bus word (``hdl.bus.DATA_WIDTH``; repeated here so that host code need not import the
@@ -59,8 +60,9 @@ MAGIC = 0x464F4353
 #: (2.0: ``pi_speed_kx`` UQ(24, 24) → UQ(24, 20), I_FS 20 A → 40 A; status registers, theta_lead;
 #: 2.1: the ``encoder_hall`` fault, ``prot_eh_tolerance``, ``prot_eh_misses``,
 #: ``st_enc_hall_error``; 2.2: dead-time compensation ``dtc_clocks``, ``dtc_band``; the status
-#: counters ``st_current_loops``, ``st_speed_loops``, ``st_overruns``, ``st_adc_overruns`` 16 bit).
-MAP_VERSION = (2 << 16) | 2
+#: counters ``st_current_loops``, ``st_speed_loops``, ``st_overruns``, ``st_adc_overruns`` 16 bit; 2.3: the M/T block counts four
+#: edges per line by default, ``mt_k``'s reset value is a quarter of 2.2's).
+MAP_VERSION = (2 << 16) | 3
 
 #: Fault causes in bit order (bit 0 first), as ``hdl.protect.FAULTS`` (a test checks they agree).
 FAULT_FIELDS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c",
@@ -208,9 +210,21 @@ def scale_factor(expr, scales):
     return factor
 
 
-def mt_k_for(scales, *, lines=5000, edges_per_line=1, out_width=32):
+#: Encoder edges the M/T speed block counts, per line, for each edge mode (``MTSpeed``'s
+#: ``edge_mode``, ``Top``'s ``mt_edges``): ``"x4"`` every quadrature state change,
+#: ``"a_rising"`` the A-rising position only. The one table of edges per line.
+MT_EDGES_PER_LINE = {"a_rising": 1, "x4": 4}
+#: The edge mode of the default build (``Top(mt_edges=...)``), which the ``mt_k`` reset value and
+#: the host's ``mt_k`` assume.
+MT_EDGES = "x4"
+
+
+def mt_k_for(scales, *, lines=5000, edges_per_line=None, out_width=32):
     """M/T ``k`` for f_TCLK = ``clk_hz``: ``round(60·2**(out_width−1)·clk_hz / (lines·
-    edges_per_line·N_FS))`` (as :func:`foc_servo.sim.models.mt_speed.k_for`)."""
+    edges_per_line·N_FS))`` (as :func:`foc_servo.sim.models.mt_speed.k_for`);
+    ``edges_per_line=None``: the default build's, ``MT_EDGES_PER_LINE[MT_EDGES]`` (4)."""
+    if edges_per_line is None:
+        edges_per_line = MT_EDGES_PER_LINE[MT_EDGES]
     return round(60 * (1 << (out_width - 1)) * scales.clk_hz /
                  (lines * edges_per_line * scales.n_fs_rpm))
 
@@ -693,7 +707,8 @@ def build_regmap(scales=Scales()):
             "speed loop every speed_div PWM periods (0 acts as 1)", unit="periods",
             shadow="speed"),
         reg("mt_k", 0x0205, UQ(48, 0), RW, k,
-            "M/T scale k = 60·2^31·f_TCLK / (lines·N_FS), f_TCLK = clk_hz", unit="",
+            "M/T scale k = 60·2^31·f_TCLK / (lines·edges·N_FS), f_TCLK = clk_hz, edges per "
+            "line 4 (x4 build; 1 for mt_edges='a_rising')", unit="",
             shadow="speed"),
         # Reference profile (hdl/servo.py): off at reset (slew 0, no feed-forward).
         reg("speed_slew", 0x0207, UQ(32, 31), RW, 0,

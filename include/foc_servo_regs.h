@@ -8,7 +8,7 @@
 #define FOC_SERVO_REGS_H
 
 #define FOC_MAGIC 0x464F4353u
-#define FOC_MAP_VERSION 0x00020002u
+#define FOC_MAP_VERSION 0x00020003u
 #define FOC_MAP_HASH 0x1F4E7B9Bu
 
 #define FOC_ACCESS_RW 0
@@ -32,7 +32,7 @@
 #define FOC_ID_VERSION_FRAC 0
 #define FOC_ID_VERSION_SIGNED 0
 #define FOC_ID_VERSION_ACCESS FOC_ACCESS_CONST
-#define FOC_ID_VERSION_RESET 0x20002u
+#define FOC_ID_VERSION_RESET 0x20003u
 
 /* id_map_hash: CRC-32 of the register map layout (host and gateware must agree). uint32 */
 #define FOC_ID_MAP_HASH_ADDR 0x0002u
@@ -437,14 +437,14 @@
 #define FOC_SPEED_DIV_ACCESS FOC_ACCESS_RW
 #define FOC_SPEED_DIV_RESET 0x1u
 
-/* mt_k: M/T scale k = 60·2^31·f_TCLK / (lines·N_FS), f_TCLK = clk_hz. uint48 */
+/* mt_k: M/T scale k = 60·2^31·f_TCLK / (lines·edges·N_FS), f_TCLK = clk_hz, edges per line 4 (x4 build; 1 for mt_edges='a_rising'). uint48 */
 #define FOC_MT_K_ADDR 0x0205u
 #define FOC_MT_K_WORDS 2u
 #define FOC_MT_K_WIDTH 48u
 #define FOC_MT_K_FRAC 0
 #define FOC_MT_K_SIGNED 0
 #define FOC_MT_K_ACCESS FOC_ACCESS_RW
-#define FOC_MT_K_RESET 0x1900000000ULL
+#define FOC_MT_K_RESET 0x640000000ULL
 
 /* speed_slew: largest change of the speed loop's reference per speed-loop run (0: steps). UQ1.31 * N_FS [r/min] */
 #define FOC_SPEED_SLEW_ADDR 0x0207u

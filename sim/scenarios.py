@@ -25,7 +25,7 @@ import numpy as np
 from . import metrics as M
 from .closed_loop import CoSim
 from .engines.base import IN_BITS
-from ..hdl.regmap import Mode
+from ..hdl.regmap import MT_EDGES_PER_LINE, Mode, mt_k_for
 from .motor import DEFAULT_MOTOR
 
 __all__ = ["Result", "SCENARIOS", "FAULTS", "step", "ramp", "load", "reversal", "lowspeed",
@@ -81,7 +81,8 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
           slew_frac=0.92, ff_iq_a=None, move_rpm=None):
     """Configure the simulated drive over its host link for the speed and current modes.
 
-    Writes: ``u_rated`` (the DC bus), the encoder (lines, pole pairs, Z offset, Hall offset), the
+    Writes: ``u_rated`` (the DC bus), the encoder (lines, pole pairs, Z offset, Hall offset) and
+    the M/T scale ``mt_k`` for those lines and the build's counted edges per line, the
     speed loop's current limit, the PI gains (:meth:`~foc_servo.host.servo.Servo.tune`), the
     protection limits (over-current 1.25 × the current limit, over-voltage 1.3 × U_dc,
     over-speed 1.2 × the motor's maximum) and the reference profile: ``speed_slew`` (r/min per
@@ -116,6 +117,8 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
         "enc_pole_pairs": motor.pole_pairs,
         "enc_z_offset": plant.z_offset_register(),
         "enc_hall_offset": plant.hall_offset_register() * 360.0 / 65536,
+        "mt_k": mt_k_for(cosim.scales, lines=motor.encoder_lines,
+                         edges_per_line=MT_EDGES_PER_LINE[cosim.top.mt_edges]),
     })
     servo.set_many({"pi_speed_lim_lo": -i_max, "pi_speed_lim_hi": i_max})
     servo.tune(motor, current_bandwidth_hz=current_bandwidth_hz, speed_a=speed_a,
@@ -154,7 +157,7 @@ def _info(cosim, name, wall_s, **extra):
             "clk_per_s": clocks / max(cosim.wall_s, 1e-9),
             "engine_s": cosim.engine_s, "plant_s": cosim.plant_s, "sim_wall_s": cosim.wall_s,
             "build_s": getattr(cosim.engine, "build_s", 0.0) or 0.0, "clk_hz": cosim.clk_hz,
-            "pwm_hz": cosim.scales.pwm_hz}
+            "pwm_hz": cosim.scales.pwm_hz, "current_loop": cosim.top.current_loop}
     info.update(extra)
     return info
 
@@ -279,7 +282,8 @@ def ramp(*, speed_rpm=500.0, rate_rpm_per_sample=0.45, duration_s=None, engine="
                         full_scale=abs(speed_rpm))
     met = rm.as_dict()
     # Also, stated as such, the tracking error after a 10 ms start-up allowance (the M/T block
-    # has no measurement until the rotor has passed two encoder lines).
+    # has no measurement until the rotor has passed two counted edges: half a line with the
+    # default ×4 counting, two lines with mt_edges="a_rising").
     allow = 10e-3
     met["track_err_after_10ms_pct"] = (M.ramp_tracking_error(
         s["t_s"], s["speed_rpm"], ref, t_start=rm.t_start_s, t_end=rm.t_end_s,
@@ -367,7 +371,8 @@ def lowspeed(*, speed_rpm=0.2, duration_s=0.5, engine="compiled", motor=DEFAULT_
     over the last half of the run (:func:`~foc_servo.sim.metrics.speed_ripple`), the ripple also
     in % of the reference (``ripple_pkpk_pct``, ``ripple_rms_pct``), ``ss_err_pct`` (mean error,
     % of the reference), and what the speed measurement can see: ``mt_edges_per_s`` (the M/T
-    block's counted edges per second, one per encoder line) and ``mt_edges_in_window``.
+    block's counted edges per second: four per encoder line with the default ``mt_edges="x4"``,
+    one with ``"a_rising"``) and ``mt_edges_in_window``.
     """
     speed_rpm = _finite("speed_rpm", speed_rpm, "r/min", -100, 100)
     if speed_rpm == 0:
@@ -380,9 +385,10 @@ def lowspeed(*, speed_rpm=0.2, duration_s=0.5, engine="compiled", motor=DEFAULT_
                                 progress=progress, setup_kw=setup_kw, **kw)
     rp = M.speed_ripple(s["t_s"], s["speed_rpm"], window_s=window_s)
     ss = M.steady_state_error(s["t_s"], s["speed_rpm"], speed_rpm, window_s=window_s)
-    # What the M/T block can know: it counts A-rising edges (one per line), so at this speed it
-    # gets a new measurement every 1/edges_per_s s at best.
-    edges_per_s = abs(speed_rpm) / 60.0 * motor.encoder_lines
+    # What the M/T block can know: it counts the build's edges (MT_EDGES_PER_LINE per line), so
+    # at this speed it gets a new measurement every 1/edges_per_s s at best.
+    edges_per_s = (abs(speed_rpm) / 60.0 * motor.encoder_lines
+                   * MT_EDGES_PER_LINE[cosim.top.mt_edges])
     met = {"speed_rpm": speed_rpm, "ripple_pkpk_rpm": rp.pkpk, "ripple_rms_rpm": rp.rms,
            "ripple_pkpk_pct": 100.0 * rp.pkpk / abs(speed_rpm),
            "ripple_rms_pct": 100.0 * rp.rms / abs(speed_rpm),

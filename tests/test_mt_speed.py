@@ -293,3 +293,120 @@ def test_mt_error_table_targets():
     rpm_min = verify.min_resolvable_rpm(tol_rpm=4e-3, phases=(0.3,))
     assert 60e6 / (5000 * 2 ** 16) <= rpm_min <= 0.2
     assert verify.error_run(0.9 * 60e6 / (5000 * 2 ** 16), config="1mhz") == 100.0   # stopped
+
+
+# --- through the top's wiring (the encoder front end's strobes into MTSpeed) ------------------
+
+def _top_pin_schedule(rng):
+    """Quadrature state changes (clock, position) of a walk: still, forward, a pause longer than
+    two PWM periods (bounded outputs), backward, fast forward."""
+    plan = [(100, 0, 0)] + [(int(rng.integers(25, 46)), 1, 0) for _ in range(40)]
+    plan += [(600, 0, 0)] + [(int(rng.integers(25, 46)), -1, 0) for _ in range(30)]
+    plan += [(int(rng.integers(8, 16)), 1, 0) for _ in range(24)]
+    clock, pos, changes = 0, 0, []
+    for dwell, step, _ in plan:
+        clock += dwell
+        if step:
+            pos += step
+            changes.append((clock, pos))
+    return changes, clock + 400
+
+
+@pytest.mark.parametrize("mt_edges", ["x4", "a_rising"])
+def test_mt_through_top_wiring_matches_model(mt_edges):
+    """The Top's encoder pins → EncoderFrontEnd → MTSpeed: the edge strobes are exactly the
+    counted pin changes (x4: every quadrature state change; a_rising: A rising in time) a fixed
+    latency later, with the direction; the top's ``mt_k`` reset is the model's ``k_for`` for
+    that edge mode; every M/T output (speed, stopped, fresh, clock) equals the golden model's for
+    those strobes and the top's update strobes."""
+    from foc_servo.hdl.encoder import EncoderFrontEnd
+    from foc_servo.hdl.regmap import MT_EDGES_PER_LINE
+    from foc_servo.hdl.top import Top
+
+    top = Top(pwm_hz=250e3, mt_edges=mt_edges)
+    mt = top._mt
+    assert top.mt_edges == mt.edge_mode == mt_edges
+    assert mt.edges_per_line == MT_EDGES_PER_LINE[mt_edges]
+    k = top.regmap["mt_k"].reset
+    assert k == model.k_for(5000, mt.tclk_hz, top.scales.n_fs_rpm, edge_mode=mt_edges,
+                            k_width=mt.k_width)
+    changes, end = _top_pin_schedule(np.random.default_rng(11))
+    at = dict(changes)
+    ab = ((0, 0), (1, 0), (1, 1), (0, 1))
+    rec = {"step": [], "neg": [], "update": [], "valid": [], "speed": [], "stopped": [],
+           "fresh": []}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, 0b101)
+        pos = 0
+        for c in range(end):
+            pos = at.get(c, pos)
+            a, b = ab[pos % 4]
+            ctx.set(top.enc_a, a)
+            ctx.set(top.enc_b, b)
+            p = ctx.get(mt.o.payload)
+            for key, v in (("step", mt.edge.step), ("neg", mt.edge.neg), ("update", mt.update),
+                           ("valid", mt.o.valid)):
+                rec[key].append(ctx.get(v))
+            rec["speed"].append(p.speed)
+            rec["stopped"].append(p.stopped)
+            rec["fresh"].append(p.fresh)
+            await ctx.tick()
+
+    simulate(top, [testbench], name=f"mt_top_{mt_edges}")
+    r = {key: np.array(v, dtype=np.int64) for key, v in rec.items()}
+    # The counted edges, from the pin schedule alone.
+    delay = EncoderFrontEnd.latency + top.regmap["enc_filter"].reset - 1
+    want_c, want_neg, prev = [], [], 0
+    for c, pos in changes:
+        a_rise = ab[pos % 4][0] == 1 and ab[prev % 4][0] == 0
+        if mt_edges == "x4" or a_rise:
+            want_c.append(c + delay)
+            want_neg.append(int(pos < prev))
+        prev = pos
+    got_c = np.flatnonzero(r["step"])
+    np.testing.assert_array_equal(got_c, want_c)
+    np.testing.assert_array_equal(r["neg"][got_c], want_neg)
+    assert len(want_c) == (94 if mt_edges == "x4" else 24) and 0 < sum(want_neg) < len(want_c)
+    ups = np.flatnonzero(r["update"])
+    want = model.simulate(want_c, np.array(want_neg, dtype=bool), ups, k=k,
+                          params=model.MTParams.of(mt), end_cycle=end)
+    got_v = np.flatnonzero(r["valid"])
+    np.testing.assert_array_equal(got_v, want["cycle"])
+    for f in ("speed", "stopped", "fresh"):
+        np.testing.assert_array_equal(r[f][got_v], want[f], err_msg=f)
+    assert want["fresh"].sum() >= 10 and (want["speed"] < 0).any() and (want["speed"] > 0).any()
+    # The forward run: ≈ 60·f_clk/(35 clocks · 4 edges · 5000 lines) = 4286 r/min (x4 sees it
+    # from each quadrature state change).
+    fs = top.scales.n_fs_rpm / 2 ** 31
+    fwd = (want["fresh"] == 1) & (want["update"] > want_c[2]) & (want["update"] < 40 * 25)
+    assert fwd.any()
+    assert np.all(np.abs(want["speed"][fwd] * fs - 4286) < 0.3 * 4286)
+
+
+def test_mt_x4_quadrature_phase_error_at_low_speed():
+    """Physics of ×4 counting with an encoder whose B is φ = +10° (electrical, of the 360° line
+    period) late: the state changes sit at 0°, 100°, 180°, 280° of each line, so the edge
+    intervals are 100° and 80° instead of 90°. At a speed so low that each window spans one
+    edge, M/T reads 90/100 and 90/80 of the true speed in turn (−10 %, +12.5 %); over a whole
+    line (4 edges) the error cancels. (The plant's encoder has no phase-error parameter; the
+    edges are built here.)"""
+    lines, clk_hz, rpm, fs_rpm, phi_deg = 100, 1e6, 6.0, 60.0, 10.0
+    k = model.k_for(lines, clk_hz, fs_rpm, edge_mode="x4")
+    line_s = 60.0 / (rpm * lines)
+    frac = np.array([0.0, 90.0 + phi_deg, 180.0, 270.0 + phi_deg]) / 360.0
+    t = (np.arange(6)[:, None] + frac[None, :]).ravel() * line_s + 1e-3
+    edges = np.ceil(t * clk_hz).astype(np.int64)
+    ups = np.arange(500, edges[-1] + 2000, 1000)
+    out = model.simulate(edges, np.zeros(len(edges), dtype=bool), ups, k=k,
+                         params=model.MTParams.config(clk_hz=clk_hz))
+    fresh = out["fresh"] == 1
+    ratio = out["speed"][fresh] * fs_rpm / 2 ** 31 / rpm
+    assert fresh.sum() == len(edges) - 1 and np.all(out["dm"][fresh] == 1)
+    # Interval after an A edge (0° → 100°, 180° → 280°): 100°; after a B edge: 80°.
+    want = np.where(np.arange(1, len(edges)) % 2 == 1, 90 / (90 + phi_deg), 90 / (90 - phi_deg))
+    np.testing.assert_allclose(ratio, want, atol=1e-3)
+    # Over every whole line the mean of the time intervals is exact.
+    dt = np.diff(edges)
+    whole = dt[:len(dt) // 4 * 4].reshape(-1, 4).sum(axis=1)
+    np.testing.assert_allclose(whole / clk_hz, line_s, rtol=1e-4)

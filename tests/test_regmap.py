@@ -14,9 +14,9 @@ from foc_servo.hdl.gates import Gates
 from foc_servo.hdl.mt_speed import MTSpeed
 from foc_servo.hdl.pi import PI
 from foc_servo.hdl.protect import Protection
-from foc_servo.hdl.regmap import (GROUPS, LINK_COUNTER_WIDTH, LINK_COUNTERS, REGMAP, WORD_WIDTH,
-                                  Access, Mode, RegMap, Register, Scales, Window, build_regmap,
-                                  scale_factor)
+from foc_servo.hdl.regmap import (GROUPS, LINK_COUNTER_WIDTH, LINK_COUNTERS, MT_EDGES,
+                                  MT_EDGES_PER_LINE, REGMAP, WORD_WIDTH, Access, Mode, RegMap,
+                                  Register, Scales, Window, build_regmap, scale_factor)
 from foc_servo.hdl.regs import RegisterFile
 from foc_servo.hdl.svpwm import DCBusCompensation, PWMTimer
 from foc_servo.host import codegen
@@ -90,8 +90,11 @@ def test_regmap_names_and_resets_match_the_blocks():
     for name, port in (("prot_oc_limit", prot.oc_limit), ("prot_ov_limit", prot.ov_limit),
                        ("prot_uv_limit", prot.uv_limit), ("prot_os_limit", prot.os_limit)):
         assert REGMAP[name].reset == port.init, name
+    # The default build counts MT_EDGES (x4: 4 edges per line).
+    assert MT_EDGES == "x4" and MT_EDGES_PER_LINE == {"a_rising": 1, "x4": 4}
     assert REGMAP["mt_k"].reset == k_for(lines=5000, tclk_hz=SCALES.clk_hz,
-                                         full_scale_rpm=SCALES.n_fs_rpm, out_width=32)
+                                         full_scale_rpm=SCALES.n_fs_rpm, out_width=32,
+                                         edge_mode=MT_EDGES)
     assert REGMAP["pi_d_lim_hi"].reset == round(math.sqrt(3) / 2 * 2**15)
 
 
@@ -301,7 +304,7 @@ def test_c_header_has_include_guard_and_every_register():
     assert h.rstrip().endswith("#endif /* FOC_SERVO_REGS_H */")
     for r in REGMAP:
         assert f"#define FOC_{r.name.upper()}_ADDR 0x{r.addr:04X}u" in h
-    assert "#define FOC_MT_K_RESET 0x1900000000ULL" in h
+    assert "#define FOC_MT_K_RESET 0x640000000ULL" in h          # x4: 4 edges per line
     assert "#define FOC_PI_D_LIM_LO_RESET (-28378)" in h
     assert "#define FOC_MODE_SPEED 3" in h
     assert "#define FOC_SCOPE_WINDOW_ADDR 0x1000u" in h

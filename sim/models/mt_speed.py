@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .divider import latency as divider_latency
+from ...hdl.regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTParams", "k_for", "simulate", "ideal_encoder_edges", "STOPPED", "BOUND", "FRESH"]
 
@@ -44,7 +45,7 @@ def k_for(lines=5000, tclk_hz=1e6, full_scale_rpm=6000, *, out_width=32, edge_mo
                         ("full_scale_rpm", full_scale_rpm)):
         if not value > 0:
             raise ValueError(f"{name} must be positive, not {value!r}")
-    epl = 1 if edge_mode == "a_rising" else 4
+    epl = MT_EDGES_PER_LINE[edge_mode]
     k = round(60 * (1 << (out_width - 1)) * tclk_hz / (lines * epl * full_scale_rpm))
     if k < 1:
         raise ValueError(f"k for {lines} lines, f_TCLK {tclk_hz:g} Hz, {full_scale_rpm:g} r/min "
@@ -256,7 +257,7 @@ def ideal_encoder_edges(segments, *, clk_hz, lines=5000, edge_mode="a_rising", p
     ValueError
         If two strobes fall in one clock (speed above one edge per clock).
     """
-    epl = 1 if edge_mode == "a_rising" else 4
+    epl = MT_EDGES_PER_LINE[edge_mode]
     per_rev = lines * epl
     # Breakpoints of the piecewise-linear position u(t), in counted edges.
     times, pos = [0.0], [float(phase)]

@@ -123,9 +123,12 @@ def _segment(rng, n, max_length):
             {k: np.full(n, v, dtype=np.int64) for k, v in cols.items()})
 
 
-def stimulus(count, *, seed=0, max_length=255):
-    """Seeded pin waveforms and configuration, ``count`` clocks: segments of 1 000 … 8 000 clocks,
-    the first with the default configuration (5000 lines, 4 pole pairs).
+def stimulus(count, *, seed=0, max_length=255, segment_clocks=(1000, 8000)):
+    """Seeded pin waveforms and configuration, ``count`` clocks: segments of
+    ``segment_clocks`` = (shortest, longest) clocks (1 000 … 8 000), the first with the default
+    configuration (5000 lines, 4 pole pairs). Shorter segments make a short run see many
+    configurations (invalid ones included: 5 % of the segments have a random 18-bit Z offset,
+    mostly ≥ cpr).
 
     Returns
     -------
@@ -140,7 +143,7 @@ def stimulus(count, *, seed=0, max_length=255):
     done = 0
     first = True
     while done < count:
-        n = min(int(rng.integers(1000, 8001)), count - done)
+        n = min(int(rng.integers(segment_clocks[0], segment_clocks[1] + 1)), count - done)
         pins, realign, cols = _segment(rng, n, max_length)
         if first:
             cols["lines"][:] = 5000
@@ -262,11 +265,14 @@ def _compare(vec, *, max_length=255, z_gate=None, name="encoder_random", progres
     return result
 
 
-def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=None):
-    """Random pin waveforms against :func:`~foc_servo.sim.models.encoder.front_end`, every
-    output on every clock. Returns ``mismatches``, ``vectors`` (clocks compared), ``clocks``,
-    ``sim_s``, ``clocks_per_s``, ``first_mismatch`` and event tallies (gateware and model)."""
-    vec = stimulus(count, seed=seed, max_length=max_length)
+def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=None,
+               segment_clocks=(1000, 8000)):
+    """Random pin waveforms (:func:`stimulus`) against
+    :func:`~foc_servo.sim.models.encoder.front_end`, every output on every clock. Returns
+    ``mismatches``, ``vectors`` (clocks compared), ``clocks``, ``sim_s``, ``clocks_per_s``,
+    ``first_mismatch``, event tallies (gateware and model) and ``invalid_z_clocks`` (clocks
+    with a committed Z offset ≥ cpr)."""
+    vec = stimulus(count, seed=seed, max_length=max_length, segment_clocks=segment_clocks)
     r = _compare(vec, max_length=max_length, z_gate=z_gate, progress=progress)
     exp = r["exp"]
     return {
@@ -288,6 +294,8 @@ def run_random(count=100_000, *, seed=0, progress=False, max_length=255, z_gate=
         "index_strobes_model": int(exp["index"].sum()),
         "align_events_model": int(np.sum(np.diff(exp["aligned"]) == 1)),
         "config_commits_model": int(np.sum(np.diff(exp["busy"]) == -1)),
+        "invalid_z_clocks": int(np.sum((exp["busy"][1:] == 0)
+                                       & (vec["z_offset"] >= 4 * vec["lines"]))),
     }
 
 

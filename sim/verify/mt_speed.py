@@ -24,6 +24,7 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import Out
 
 from ...hdl.mt_speed import MTSpeed
+from ...hdl.regmap import MT_EDGES_PER_LINE
 from ..harness import Progress, simulate
 from ..models.mt_speed import MTParams, ideal_encoder_edges, k_for, simulate as model_simulate
 
@@ -210,7 +211,7 @@ def error_run(rpm, *, config="sysclk", phase=0.0, out_width=ERR_OUT_WIDTH, lines
     params = MTParams.config(out_width=out_width, **cfg)
     k = k_for(lines, params.tclk_hz(clk_hz), full_scale_rpm, out_width=out_width,
               edge_mode=edge_mode, k_width=params.k_width)
-    t_edge = 60.0 / (abs(rpm) * lines * (1 if edge_mode == "a_rising" else 4))
+    t_edge = 60.0 / (abs(rpm) * lines * MT_EDGES_PER_LINE[edge_mode])
     t_u = 1.0 / update_hz
     duration = 2 * t_edge + 2 * t_u + max(20 * t_u, 4 * t_edge)
     edges, neg = ideal_encoder_edges([(duration, rpm)], clk_hz=clk_hz, lines=lines,
