@@ -53,8 +53,8 @@ from ..hdl.top import Top
 from . import area
 from .platforms import MOTOR_PORTS, get_board
 
-__all__ = ["PAPER", "CLOCK_RANGE_HZ", "PllConfig", "pll_config", "BoardTop", "synthesis_verilog",
-           "prepare", "build", "report_lines"]
+__all__ = ["PAPER", "CLOCK_RANGE_HZ", "MUL_WIDTH", "PllConfig", "pll_config", "BoardTop",
+           "synthesis_verilog", "prepare", "build", "report_lines"]
 
 #: The paper's chip (Table 1: Xilinx Spartan-IIE at 33.333 MHz).
 PAPER = {"lut4": 5077, "ff": 3326, "bram_bits": 64 * 1024, "clock_mhz": 33.333}
@@ -67,6 +67,12 @@ NAME = "foc_servo"
 
 #: Reset hold after PLL lock, s (module docstring).
 POR_DELAY_S = 15e-6
+
+#: ``Top(mul_width=…)`` per FPGA family: the signed operand width of its hard multiplier (ECP5
+#: ``MULT18X18D`` 18 × 18; Spartan-7 ``DSP48E1`` 25 × 18 and Spartan-6 ``DSP48A1`` 18 × 18: 18);
+#: iCE40 ``None``: products not split (yosys maps whole products onto the 16 × 16 ``SB_MAC16``
+#: better than a 16-bit split can: ``hdl/dsp.py``, docs/AREA.md §7.4).
+MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": 18, "xc6s": 18}
 
 
 # --- PLL settings ---------------------------------------------------------------------------------
@@ -247,7 +253,8 @@ class BoardTop(Elaboratable):
         A :data:`~.platforms.BOARDS` name.
     clk_hz : float or None
         System clock asked for, Hz, within :data:`CLOCK_RANGE_HZ`; ``None``: 50 MHz. The PLL
-        gives the nearest it can (:attr:`pll`); Top runs at that actual frequency.
+        gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
+        family's multiplier width (:data:`MUL_WIDTH`).
 
     Attributes
     ----------
@@ -277,7 +284,7 @@ class BoardTop(Elaboratable):
                              f"not {clk_hz!r} Hz")
         _, f_in = self._board.clock
         self._pll = pll_config(self._board.family, f_in, clk_hz)
-        self._top = Top(clk_hz=self._pll.f_out_hz)
+        self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

@@ -18,7 +18,7 @@ from amaranth.hdl import Const, Module, Shape, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .dsp import partial_sum, registered_products, saturate_bits
+from .dsp import MUL_WIDTH, check_mul_width, partial_sum, registered_products, saturate_bits
 from .fixed import Q, QFormat, round_shift
 
 __all__ = ["Clarke", "clarke_constants"]
@@ -66,6 +66,10 @@ class Clarke(wiring.Component):
     three_phase : bool
         Three measured phases (α from all three, zero sequence rejected) instead of two
         (``i_c = −i_a − i_b``).
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx; ``None`` iCE40: products not split). The products are split into
+        partial products that fit it; the results do not depend on it.
 
     Members
     -------
@@ -104,7 +108,7 @@ class Clarke(wiring.Component):
     latency = 6
 
     def __init__(self, *, width=16, adc_shape=signed(16), gain_format=Q(18, 15),
-                 three_phase=False):
+                 three_phase=False, mul_width=MUL_WIDTH):
         if not isinstance(width, int) or isinstance(width, bool) or not 8 <= width <= 28:
             raise TypeError(f"Clarke width must be an integer from 8 to 28, not {width!r}")
         if not isinstance(adc_shape, Shape):
@@ -123,6 +127,7 @@ class Clarke(wiring.Component):
         if not isinstance(three_phase, bool):
             raise TypeError(f"Clarke three_phase must be a bool, not {three_phase!r}")
 
+        self._mul_width = check_mul_width("Clarke", mul_width)
         self._width = width
         self._adc_shape = adc
         self._gain_format = gain_format
@@ -148,6 +153,7 @@ class Clarke(wiring.Component):
     adc_shape = property(lambda self: self._adc_shape)
     gain_format = property(lambda self: self._gain_format)
     three_phase = property(lambda self: self._three_phase)
+    mul_width = property(lambda self: self._mul_width)
     const_frac = property(lambda self: self._const_frac)
     k_beta = property(lambda self: self._k_beta)
     k_alpha = property(lambda self: self._k_alpha)
@@ -184,7 +190,8 @@ class Clarke(wiring.Component):
 
         # Stage 2: exact product (gain width + n + 2 bits) as registered partial products, each
         # one hard multiplier (hdl/dsp.py): their sum is left to stage 3.
-        p2 = {p: registered_products(m, g1[p], d1[p], enable=valid[1], name=f"prod_{p}")
+        p2 = {p: registered_products(m, g1[p], d1[p], enable=valid[1], name=f"prod_{p}",
+                                     mul_width=self._mul_width)
               for p in phases}
 
         # Stage 3: scaled phase currents, Q1.(w-1), rounded and saturated.
@@ -214,10 +221,10 @@ class Clarke(wiring.Component):
         with m.If(valid[4]):
             m.d.sync += [a5.eq(a4), b5.eq(b4), c5.eq(c4)]
         m_beta5 = registered_products(m, s_beta4, Const(self._k_beta), enable=valid[4],
-                                      name="m_beta")
+                                      name="m_beta", mul_width=self._mul_width)
         if self._three_phase:
             m_alpha5 = registered_products(m, s_alpha4, Const(self._k_alpha), enable=valid[4],
-                                           name="m_alpha")
+                                           name="m_alpha", mul_width=self._mul_width)
 
         # Stage 6: sum, round and saturate to Q1.(w-1).
         a6, b6, c6, alpha6, beta6 = (Signal(out, name=f"{p}6")

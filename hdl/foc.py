@@ -6,22 +6,23 @@ compensation → SVPWM → duties, once per accepted ADC sample.
 One rotator serves both rotations (``tag`` 0: Park by −θ, ``tag`` 1: inverse Park by
 θ + θ_lead); the two passes are serial in time. It is the sine-table :class:`~.rotator.Rotator`
 (``rotator="table"``, default) or the unrolled :class:`~.cordic.Cordic` (``rotator="cordic"``);
-both take 8 clocks at the defaults (``L_cordic`` below) and have the same ports. Per accepted sample (``t`` = the clock
+both have the same ports; the table rotator takes 9 clocks (``L_cordic`` below), the CORDIC 8
+at the defaults (the offsets below are for the table). Per accepted sample (``t`` = the clock
 ``i.valid`` is accepted; ``L_x`` the blocks' ``latency`` attributes)::
 
     t                     inputs latched (θ, θ_lead, references, mode bits, speed, U_dc)
     t + 1                 −θ and θ + θ_lead from the latched angles
     t + L_clarke          i_a, i_b, i_c, i_α, i_β                      → Cordic, tag 0, angle −θ
     t + 6 + L_cordic      i_d, i_q                                     → PI_d, PI_q
-    t + 14 + L_pi         PI outputs; command stage (one register):
+    t + 15 + L_pi         PI outputs; command stage (one register):
                               u_d = ol_ud                              if ol
                                     sat(PI_d + [ff]·(−ω·L·i_q))        otherwise
                               u_q = ol_uq                              if ol
                                     sat(PI_q + [ff]·(ω·(L·i_d + ψ)))   otherwise
-    t + 21                u_d, u_q                                     → Cordic, tag 1, θ + θ_lead
-    t + 21 + L_cordic     u_α, u_β                                     → DCBusCompensation
-    t + 29 + L_dcbus      u_α·U_rated/U_dc (Q2.15: no angle error below 2)  → SVPWM
-    t + 31 + L_svpwm      duties on ``o``                              (46 clocks with defaults)
+    t + 22                u_d, u_q                                     → Cordic, tag 1, θ + θ_lead
+    t + 22 + L_cordic     u_α, u_β                                     → DCBusCompensation
+    t + 31 + L_dcbus      u_α·U_rated/U_dc (Q2.15: no angle error below 2)  → SVPWM
+    t + 33 + L_svpwm      duties on ``o``                              (48 clocks with defaults)
 
 Every stage puts at most one multiplier or about one carry chain between registers (100 MHz on
 an ECP5, issue 7); the budget of issue 5 is ≤ 50 clocks.
@@ -41,7 +42,7 @@ with ``ff_l = ω_e(N_FS)·L·I_FS / U_base`` and ``ff_psi = ω_e(N_FS)·ψ / U_b
 DC-bus compensation, ``ω_e(N_FS)`` the electrical angular speed at the full-scale speed).
 
 The DC-bus gain ``U_rated/U_dc`` takes ``DCBusCompensation.gain_latency`` (38) clocks to compute,
-longer than the path to the compensation (29): each sample is compensated with the bus voltage of
+longer than the path to the compensation (31): each sample is compensated with the bus voltage of
 the *previous* accepted sample (1.0 before the first one).
 """
 
@@ -54,7 +55,7 @@ from amaranth.lib.wiring import In, Out
 from .clarke import Clarke
 from .cordic import Cordic
 from .rotator import Rotator
-from .dsp import round_shift_signed, saturate_bits
+from .dsp import MUL_WIDTH, check_mul_width, round_shift_signed, saturate_bits
 from .fixed import UQ, Q, QFormat, round_shift
 from .pi import PI
 from .svpwm import SVPWM, DCBusCompensation
@@ -100,8 +101,8 @@ class CurrentLoop(wiring.Component):
         Width of the SVPWM scale and the duties, 4 … 24.
     rotator : str
         The shared rotator of Park and inverse Park: ``"table"`` (default,
-        :class:`~.rotator.Rotator`: quarter-wave sine table in block RAM + 2 multipliers, 8 clocks,
-        registered for ≥ 110 MHz on ECP5; ≈ 480 LUT4) or ``"cordic"``
+        :class:`~.rotator.Rotator`: quarter-wave sine table in block RAM + 2 multipliers, 9 clocks,
+        registered for ≥ 100 MHz on ECP5; ≈ 480 LUT4) or ``"cordic"``
         (:class:`~.cordic.Cordic`, unrolled, no RAM and no multiplier; ≈ 2 240 LUT4).
     iterations_per_stage : int
         CORDIC iterations per pipeline register (3: 8 clocks per pass at 16 bits); used by
@@ -109,6 +110,11 @@ class CurrentLoop(wiring.Component):
     clarke_gain_format, kp_format, kx_format, int_guard, gain_limit
         Passed to :class:`~.clarke.Clarke` (``gain_format``), :class:`~.pi.PI` (both regulators)
         and :class:`~.svpwm.DCBusCompensation`.
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx, the default; ``None`` iCE40: products not split), passed to Clarke, the
+        PIs, the DC-bus compensation and the SVPWM: it chooses how their products are split into
+        partial products, never a result.
 
     Members
     -------
@@ -199,7 +205,8 @@ class CurrentLoop(wiring.Component):
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
-                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0):
+                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
+                 mul_width=MUL_WIDTH):
         for name, value, lo, hi in (("width", width, 8, 23), ("adc_width", adc_width, 4, 24),
                                     ("angle_width", angle_width, 4, 32),
                                     ("count_width", count_width, 4, 24)):
@@ -215,12 +222,13 @@ class CurrentLoop(wiring.Component):
         if not isinstance(clarke_gain_format, QFormat):
             raise TypeError(f"CurrentLoop clarke_gain_format must be a QFormat, "
                             f"not {clarke_gain_format!r}")
+        mw = self._mul_width = check_mul_width("CurrentLoop", mul_width)
         self._width = width
         self._adc_width = adc_width
         self._angle_width = angle_width
         self._count_width = count_width
         self._clarke = Clarke(width=width, adc_shape=signed(adc_width),
-                              gain_format=clarke_gain_format)
+                              gain_format=clarke_gain_format, mul_width=mw)
         self._rotator = rotator
         if rotator == "table":
             self._cordic = Rotator(width=width, angle_width=angle_width, tag_width=1,
@@ -229,12 +237,13 @@ class CurrentLoop(wiring.Component):
             self._cordic = Cordic(width=width, angle_width=angle_width,
                                   iterations_per_stage=iterations_per_stage, tag_width=1)
         self._pi_d = PI(width=width, kp_format=kp_format, kx_format=kx_format,
-                        int_guard=int_guard)
+                        int_guard=int_guard, mul_width=mw)
         self._pi_q = PI(width=width, kp_format=kp_format, kx_format=kx_format,
-                        int_guard=int_guard)
+                        int_guard=int_guard, mul_width=mw)
         self._dcbus = DCBusCompensation(width=width, out_width=width + 1, adc_width=adc_width,
-                                        gain_limit=gain_limit)
-        self._svpwm = SVPWM(width=width + 1, frac=width - 1, count_width=count_width)
+                                        gain_limit=gain_limit, mul_width=mw)
+        self._svpwm = SVPWM(width=width + 1, frac=width - 1, count_width=count_width,
+                            mul_width=mw)
         self._stage_latency = {
             "clarke": self._clarke.latency,
             "park": self._cordic.latency,
@@ -299,6 +308,7 @@ class CurrentLoop(wiring.Component):
     adc_width = property(lambda self: self._adc_width)
     angle_width = property(lambda self: self._angle_width)
     count_width = property(lambda self: self._count_width)
+    mul_width = property(lambda self: self._mul_width)
     stage_latency = property(lambda self: dict(self._stage_latency))
     latency = property(lambda self: sum(self._stage_latency.values()))
     cordic_params = property(lambda self: self._cordic.params)

@@ -315,8 +315,18 @@ class LinkCore(wiring.Component):
         # Comb values used by other comb logic are expressions, not signals: pysim evaluates a
         # fragment's comb statements from committed values, so each signal-to-signal link costs
         # another delta cycle every clock.
-        dend = REPLY_HEADER + 4 * nwords        # index of the first CRC byte
-        rlen = dend + CRC_BYTES
+        # Index of the first CRC byte, and the reply length: registers following ``nwords``
+        # (set in the last ACCESS clock; read from the CRC state on, two clocks later), so no
+        # adder sits in front of the reply's byte selection and buffer address (100 MHz).
+        dend = Signal.like(j)
+        rlen = Signal.like(j)
+        m.d.sync += [dend.eq(REPLY_HEADER + 4 * nwords),
+                     rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES)]
+        # p + blk and p + blk + 1 likewise: p and blk are set in REPLY / NEXT and SCAN, and read
+        # back in DATA and NEXT, at least one clock (CODE) later.
+        pb = Signal.like(j)
+        pb1 = Signal.like(j)
+        m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1)]
 
         # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
         # addresses the buffer with v at once.
@@ -339,6 +349,11 @@ class LinkCore(wiring.Component):
         # Address checks of word `idx`, decoded from the address bits.
         a_full = addr_in + idx                  # ADDR_WIDTH + 1 bits: no wrap
         a_exists, a_writable = address_decode(a_full, self._address_map)
+        # The bus address, registered: idx does not change in SETUP, the clock before every
+        # ACCESS, so the register holds word idx's address there (no adder in front of the
+        # register file's address decode: 100 MHz).
+        a_bus = Signal(ADDR_WIDTH)
+        m.d.sync += a_bus.eq(a_full[:ADDR_WIDTH])
 
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)
@@ -456,7 +471,7 @@ class LinkCore(wiring.Component):
                 m.d.comb += [
                     bus.lock.eq(1),
                     bus.stb.eq(1),
-                    bus.addr.eq(a_full[:ADDR_WIDTH]),
+                    bus.addr.eq(a_bus),
                     bus.we.eq(is_write),
                     bus.w_data.eq(rd.data),
                 ]
@@ -532,19 +547,19 @@ class LinkCore(wiring.Component):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
                 with m.If(self.o.ready):
                     next_j(j + 1)
-                    with m.If(j + 1 == p + blk):
+                    with m.If(j + 1 == pb):
                         m.next = "NEXT"
                 with m.Else():
                     next_j(j)
 
             with m.State("NEXT"):
                 with m.If(blk_zero):
-                    m.d.sync += p.eq(p + blk + 1)
-                    next_j(p + blk + 1)
+                    m.d.sync += p.eq(pb1)
+                    next_j(pb1)
                     m.next = "SCAN"
-                with m.Elif((blk == 254) & (p + blk != rlen)):
-                    m.d.sync += p.eq(p + blk)
-                    next_j(p + blk)
+                with m.Elif((blk == 254) & (pb != rlen)):
+                    m.d.sync += p.eq(pb)
+                    next_j(pb)
                     m.next = "SCAN"
                 with m.Else():
                     m.next = "END"

@@ -66,7 +66,8 @@ from amaranth.hdl import Assert, Cat, Module, Mux, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .dsp import partial_sum, registered_products, round_shift_signed, saturate_bits
+from .dsp import (MUL_WIDTH, check_mul_width, partial_sum, registered_products,
+                  round_shift_signed, saturate_bits)
 from .fixed import QFormat, UQ, round_shift
 
 __all__ = ["PI", "pi_widths", "round_shift_width"]
@@ -100,6 +101,10 @@ class PI(wiring.Component):
     int_guard : int
         Extra fraction bits ``g`` of the integrator (and of ``P``) below the output LSB, so that
         small ``kx·E`` contributions accumulate instead of rounding away.
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx; ``None`` iCE40: products not split). The products are split into
+        partial products that fit it; the results do not depend on it.
 
     Members
     -------
@@ -143,8 +148,10 @@ class PI(wiring.Component):
         If an intermediate product would exceed 62 bits (limit of the int64 golden model).
     """
 
-    def __init__(self, *, width=16, kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8):
+    def __init__(self, *, width=16, kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8,
+                 mul_width=MUL_WIDTH):
         widths = pi_widths(width, kp_format, kx_format, int_guard)
+        self._mul_width = check_mul_width("PI", mul_width)
         self._width = width
         self._kp_format = kp_format
         self._kx_format = kx_format
@@ -169,6 +176,7 @@ class PI(wiring.Component):
     kp_format = property(lambda self: self._kp_format)
     kx_format = property(lambda self: self._kx_format)
     int_guard = property(lambda self: self._int_guard)
+    mul_width = property(lambda self: self._mul_width)
     latency = property(lambda self: 6)
     interval = property(lambda self: 6)
 
@@ -226,9 +234,11 @@ class PI(wiring.Component):
             m.d.sync += e.eq(saturate_bits(self.i.payload.ref - self.i.payload.fb, signed(w)))
         # Clock 1: products as registered partial products (one hard multiplier each),
         # kx·(E + E[n−1]) as kx·E + kx·E[n−1]; E[n] becomes E[n−1] for the next sample.
-        prod_p = registered_products(m, self.kp, e, enable=stage[0], name="prod_p")
-        prod_x = (registered_products(m, self.kx, e, enable=stage[0], name="prod_x")
-                  + registered_products(m, self.kx, e_prev, enable=stage[0], name="prod_xp"))
+        mw = self._mul_width
+        prod_p = registered_products(m, self.kp, e, enable=stage[0], name="prod_p", mul_width=mw)
+        prod_x = (registered_products(m, self.kx, e, enable=stage[0], name="prod_x", mul_width=mw)
+                  + registered_products(m, self.kx, e_prev, enable=stage[0], name="prod_xp",
+                                        mul_width=mw))
         with m.If(stage[0]):
             m.d.sync += [e_prev.eq(e), es_neg.eq((e + e_prev)[-1])]
         # Clock 2: products rounded to integrator precision (a product's sign is its factors'),

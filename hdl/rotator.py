@@ -55,7 +55,7 @@ Notation: ``W`` = ``width`` (x, y and the trigonometric operands), ``AW`` = ``an
 
 Schedule (clock 0 = the clock ``i.valid`` is high; registers written at the end of each clock;
 in brackets the clocks with ``registered``, which adds a register after the table and splits the
-final sum over two clocks, for clocks above ≈ 70 MHz on an ECP5)::
+final sum, rounding and saturation over three clocks, for clocks above ≈ 70 MHz on an ECP5)::
 
     0      θ folded: table address, kd; x, y, flags, tag latched
     1      table word out                                    [1: into a register]
@@ -63,10 +63,11 @@ final sum over two clocks, for clocks above ≈ 70 MHz on an ECP5)::
     2 [3]  s_o, c_o
     3 [4]  pass 1 products (the x' pair), base
     4 [5]  pass 2 products (the y' pair), base; o.tag;
-           x' = Σ1 of pass 1, rounded, saturated → o.x       [5: Σ1 registered; 6: → o.x]
-    5 [6]  y' likewise → o.y; o.valid                         [6: Σ1; 7: → o.y]
+           x' = Σ1 of pass 1, rounded, saturated → o.x       [5: Σ1 registered; 6: rounded
+                                                              (registered); 7: saturated → o.x]
+    5 [6]  y' likewise → o.y; o.valid                         [6: Σ1; 7: rounded; 8: → o.y]
 
-``latency`` 6 [8]; the multipliers are busy on clocks 1, 3, 4 [2, 4, 5] and x, y are held
+``latency`` 6 [9]; the multipliers are busy on clocks 1, 3, 4 [2, 4, 5] and x, y are held
 until clock 4 [5], so a new vector may come every ``interval`` = 4 [5] clocks.
 
 Error against the float rotation by the quantized angle: the integer sine and cosine are within
@@ -141,7 +142,7 @@ class RotatorParams:
     registered : bool
         The parameter.
     latency : int
-        Clocks from ``i.valid`` to ``o.valid``: 6, or 8 if ``registered``.
+        Clocks from ``i.valid`` to ``o.valid``: 6, or 9 if ``registered``.
     interval : int
         Fewest clocks between two vectors: 4, or 5 if ``registered``.
     """
@@ -190,7 +191,7 @@ class RotatorParams:
         self.table_bits = n = int(table_bits)
         self.tag_width = int(tag_width)
         self.registered = registered
-        self.latency = 8 if registered else 6
+        self.latency = 9 if registered else 6
         self.interval = 5 if registered else 4
         self.interp_bits = mb = aw - 3 - n
         self.table_frac = ft = w + TABLE_GUARD
@@ -255,10 +256,12 @@ class Rotator(wiring.Component):
     tag_width : int
         Width of an opaque ``tag`` carried alongside the data (0: no tag field).
     registered : bool
-        Register the table output and split the final sum over two clocks (latency 8 and
-        interval 5 instead of 6 and 4), for fast clocks. Rotator alone on an ECP5-85 (nextpnr,
-        seeds 1–3): 69–71 MHz without (the table's clock-to-output, then a multiplier),
-        111–120 MHz with.
+        Register the table output, and the final sum and its rounding increment each in a
+        clock of their own (latency 9 and interval 5 instead of 6 and 4), for fast clocks.
+        Rotator alone on an ECP5-85 (nextpnr, seeds 1–3): 69–71 MHz without (the table's
+        clock-to-output, then a multiplier), 111–120 MHz with the table register and the sum
+        register (then latency 8); the rounding register (session 4) takes the sum → round →
+        saturate path out of the current loop's critical path (94.4 MHz).
 
     Members
     -------
@@ -280,7 +283,7 @@ class Rotator(wiring.Component):
     registered : bool
         The parameter.
     latency : int
-        Clocks from ``i.valid`` to ``o.valid``: 6 (8 if ``registered``).
+        Clocks from ``i.valid`` to ``o.valid``: 6 (9 if ``registered``).
     interval : int
         Fewest clocks between two vectors: 4 (5 if ``registered``).
     params : RotatorParams
@@ -450,16 +453,21 @@ class Rotator(wiring.Component):
             m.d.sync += sigma1.eq(sum3)
         else:
             m.d.comb += sigma1.eq(sum3)
-        r = Signal(signed(w + 5))
-        m.d.comb += r.eq(sigma1[w:].as_signed() + (sigma1[:w].all() & ~sigma1[-1]))
+        # The rounding increment and the saturation test (registered between them if split).
+        r = Signal(signed(w + 5), reset_less=p.registered)
+        rounded = sigma1[w:].as_signed() + (sigma1[:w].all() & ~sigma1[-1])
+        if p.registered:
+            m.d.sync += r.eq(rounded)
+        else:
+            m.d.comb += r.eq(rounded)
         top = r[w - 1:]                         # in range iff these bits are all equal
         out = Mux(top.all() | ~top.any(), r[:w].as_signed(), Mux(r[-1], -(1 << (w - 1)),
                                                                  (1 << (w - 1)) - 1))
         with m.If(valid[c_pass2]):
             if p.tag_width:
                 m.d.sync += self.o.payload.tag.eq(tag_r)
-        with m.If(valid[c_pass2 + t]):
+        with m.If(valid[c_pass2 + 2 * t]):
             m.d.sync += self.o.payload.x.eq(out)
-        with m.If(valid[c_pass2 + t + 1]):
+        with m.If(valid[c_pass2 + 2 * t + 1]):
             m.d.sync += self.o.payload.y.eq(out)
         return m

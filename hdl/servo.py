@@ -34,9 +34,11 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 
 Timing: a run compares ``speed_ref`` with bounds ``R ± S`` registered in the clock before from
 that clock's ``speed_slew``, and for ``d ≥ 1`` takes the interpolation registered in the clock
-before from that clock's ``ref_delay``, so the path into the PI gains only a comparison and a
-multiplexer; ``ff``, the hold and the shifted PI limits are registers loaded by the run. In the
-top the registers change at the loop boundary, tens of clocks before a run.
+before from that clock's ``ref_delay``; ``to_pi`` of the bounds, of ``speed_ref`` and of the
+speed are computed beside the comparisons, so a run only selects, and the PI's two operands
+are registered in the run's clock and taken by the PI in the next (100 MHz on an ECP5: latency
+8, interval 7). ``ff``, the hold and the shifted PI limits are registers loaded by the run. In
+the top the registers change at the loop boundary, tens of clocks before a run.
 
 **PI and feed-forward**, with the anti-windup working against the room the feed-forward leaves::
 
@@ -64,6 +66,7 @@ from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
 from .fixed import UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
 from .mt_speed import output_layout as mt_output_layout
 from .pi import PI, pi_widths
@@ -146,6 +149,10 @@ class SpeedLoop(wiring.Component):
     delay_width : int
         Width of ``ref_delay``, UQ(delay_width, 3): ``4 … 7`` (largest delay 1.875 … 15.875
         runs; the default 5 gives 0 … 3.875 and stores 3 past references).
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx; ``None`` iCE40: products not split), for the speed PI's partial
+        products; never changes a result.
 
     Members
     -------
@@ -195,17 +202,19 @@ class SpeedLoop(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from a valid speed sample that runs the loop to ``o.valid``: PI latency + 1 = 7.
+        Clocks from a valid speed sample that runs the loop to ``o.valid``: PI latency + 2 = 8
+        (the run's operands are registered before the PI takes them, for 100 MHz on the ECP5).
     interval : int
-        Minimum clocks between runs (the PI's).
+        Minimum clocks between runs: the PI's + 1 = 7.
     max_delay : int
         Largest integer part of ``ref_delay``: ``2**(delay_width − 3) − 1``.
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5):
+                 int_guard=16, div_width=8, delay_width=5, mul_width=MUL_WIDTH):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
+        self._mul_width = check_mul_width("SpeedLoop", mul_width)
         self._speed_width = speed_width
         self._width = width
         self._kp_format = kp_format
@@ -238,9 +247,10 @@ class SpeedLoop(wiring.Component):
     int_guard = property(lambda self: self._int_guard)
     div_width = property(lambda self: self._div_width)
     delay_width = property(lambda self: self._delay_width)
+    mul_width = property(lambda self: self._mul_width)
     max_delay = property(lambda self: (1 << (self._delay_width - DELAY_FRAC)) - 1)
-    latency = property(lambda self: 6 + 1)
-    interval = property(lambda self: 6)
+    latency = property(lambda self: 6 + 2)
+    interval = property(lambda self: 6 + 1)
 
     def elaborate(self, platform):
         m = Module()
@@ -248,12 +258,14 @@ class SpeedLoop(wiring.Component):
         shift_in = sw - w
         shift_out = w - IQ_WIDTH
         m.submodules.pi = pi = PI(width=w, kp_format=self._kp_format,
-                                  kx_format=self._kx_format, int_guard=self._int_guard)
-        if pi.latency + 1 != self.latency:
+                                  kx_format=self._kx_format, int_guard=self._int_guard,
+                                  mul_width=self._mul_width)
+        if pi.latency + 2 != self.latency:
             raise RuntimeError(f"PI latency {pi.latency} changed; update SpeedLoop.latency")
 
         def to_pi(value):
-            return saturate(round_shift(value, shift_in), signed(w))
+            # saturate by bit tests (no comparator behind the rounding adder).
+            return saturate_bits(round_shift(value, shift_in).as_signed(), signed(w))
 
         count = Signal(unsigned(self._div_width))
         run = Signal()
@@ -262,25 +274,35 @@ class SpeedLoop(wiring.Component):
             m.d.sync += count.eq(0)
         with m.Elif(self.i.valid):
             m.d.sync += count.eq(Mux(count >= self.rate_div, 0, count + 1))
+        # A run accepted in clock t hands its registered operands to the PI in t + 1 (``start``),
+        # which is busy from t + 2: no second run may be accepted in t + 1.
+        start = Signal()
         accept = Signal()
-        m.d.comb += accept.eq(run & pi.i.ready)
+        m.d.comb += accept.eq(run & pi.i.ready & ~start)
+        m.d.sync += start.eq(accept)
 
         # Profile. The bounds R ± S (signed(sw + 2), unsaturated) are registers, so a run only
         # compares ``speed_ref`` with them and selects (no adder before the PI's rounding).
-        # They are loaded every clock from ``base`` (the tracked value while clear, else R):
+        # They are loaded every clock from the tracked value while clear, else from R:
         # stale only in the clock after a run, when the PI is busy and no run can be accepted.
         # S = 0 opens them beyond any speed_ref. A bound is selected only when speed_ref lies
         # beyond it, so it lies between R and speed_ref: the truncation of ``plan`` to
         # signed(sw) is exact.
         b_lo, b_hi = shape_range(signed(sw + 2))
         ref_int = Signal(signed(sw))
+        # to_pi of each candidate (bounds, speed_ref, speed) side by side with the comparisons:
+        # a run then selects among them (no rounding adder behind the bound comparison).
+        tp_ref = Signal(signed(w))
+        tp_speed = Signal(signed(w))
+        tp_lo = Signal(signed(w))
+        tp_hi = Signal(signed(w))
+        tp_plan = Signal(signed(w))
         lo_b = Signal(signed(sw + 2), init=b_lo)
         hi_b = Signal(signed(sw + 2), init=b_hi)
         up = Signal()
         dn = Signal()
         plan = Signal(signed(sw))
         track = Signal(signed(sw))
-        base = Signal(signed(sw))
         ref_next = Signal(signed(sw))
         ref_next_pi = Signal(signed(w))
         ref_pi = Signal(signed(w))                      # to_pi(ref_int)
@@ -289,17 +311,24 @@ class SpeedLoop(wiring.Component):
             dn.eq(self.speed_ref < lo_b),
             plan.eq(Mux(up, hi_b, Mux(dn, lo_b, self.speed_ref))),
             track.eq(Mux(self.speed_slew == 0, self.speed_ref, self.i.payload.speed)),
-            base.eq(Mux(self.clear, track, ref_int)),
             self.ref_int.eq(ref_int),
+            tp_ref.eq(to_pi(self.speed_ref)),
+            tp_speed.eq(to_pi(self.i.payload.speed)),
+            # A bound is selected only when it lies within signed(sw): to_pi of the wider
+            # value is then to_pi(plan).
+            tp_lo.eq(to_pi(lo_b)),
+            tp_hi.eq(to_pi(hi_b)),
+            tp_plan.eq(Mux(up, tp_hi, Mux(dn, tp_lo, tp_ref))),
         ]
         with m.If(self.clear):
-            m.d.comb += ref_next.eq(track)
+            m.d.comb += [ref_next.eq(track),
+                         ref_next_pi.eq(Mux(self.speed_slew == 0, tp_ref, tp_speed))]
         with m.Elif(accept):
-            m.d.comb += ref_next.eq(plan)
+            m.d.comb += [ref_next.eq(plan), ref_next_pi.eq(tp_plan)]
         with m.Else():
-            m.d.comb += ref_next.eq(ref_int)
-        m.d.comb += ref_next_pi.eq(to_pi(ref_next))
+            m.d.comb += [ref_next.eq(ref_int), ref_next_pi.eq(ref_pi)]
         m.d.sync += [ref_int.eq(ref_next), ref_pi.eq(ref_next_pi)]
+        base = Mux(self.clear, track, ref_int)
         with m.If(self.speed_slew == 0):
             m.d.sync += [lo_b.eq(b_lo), hi_b.eq(b_hi)]
         with m.Else():
@@ -307,40 +336,50 @@ class SpeedLoop(wiring.Component):
 
         # Delayed reference: hist[k] = to_pi(R) k runs before the last; the interpolation for
         # the next run is registered in ``ref_pre`` (its inputs change only at runs and clear).
+        # The tap differences b − a are registered first (``tap_diff``, zeroed while clear):
+        # after a run they are one clock late, so ``ref_pre`` is right from the third clock
+        # after a run on, long before the PI can take the next one.
         d_int = self.ref_delay[DELAY_FRAC:]
         d_frac = self.ref_delay[:DELAY_FRAC]
         hist = [Signal(signed(w), name=f"hist{k}") for k in range(1, self.max_delay + 1)]
         taps = [ref_pi] + hist
+        tap_diff = [Signal(signed(w + 1), name=f"tap_diff{k}")
+                    for k in range(1, self.max_delay + 1)]
         a = Signal(signed(w))
-        b = Signal(signed(w))
+        diff = Signal(signed(w + 1))
         with m.Switch(d_int):
             for k in range(1, self.max_delay + 1):
                 with m.Case(k):
-                    m.d.comb += [a.eq(taps[k - 1]), b.eq(taps[k])]
+                    m.d.comb += [a.eq(taps[k - 1]), diff.eq(tap_diff[k - 1])]
         ref_pre = Signal(signed(w))
-        # f·(b − a) by shift-and-add (f has DELAY_FRAC bits: no multiplier). a + round(f·(b − a)
-        # / 8) lies between a and b: the truncation to signed(w) is exact.
-        diff = b - a
+        # a + round_shift(f·(b − a), 3) = (8a + f·(b − a) + 4 − [f·(b − a) < 0]) >> 3 (8a has no
+        # low bits), f·(b − a) by shift-and-add (f has DELAY_FRAC bits: no multiplier). It lies
+        # between a and b: the truncation to signed(w) is exact.
         prod = sum(Mux(d_frac[k], diff << k, 0) for k in range(DELAY_FRAC))
-        interp = a + round_shift(prod, DELAY_FRAC)
+        neg = diff[-1] & d_frac.any()
+        interp = ((a << DELAY_FRAC) + prod + ((1 << (DELAY_FRAC - 1)) - neg)) >> DELAY_FRAC
         with m.If(self.clear):
             m.d.sync += [h.eq(ref_next_pi) for h in hist]
+            m.d.sync += [d.eq(0) for d in tap_diff]
             m.d.sync += ref_pre.eq(ref_next_pi)
         with m.Else():
             with m.If(accept):
                 m.d.sync += [dst.eq(src) for dst, src in zip(hist, taps)]
+            m.d.sync += [d.eq(taps[k + 1] - taps[k]) for k, d in enumerate(tap_diff)]
             m.d.sync += ref_pre.eq(interp)
 
         # The PI's reference this run, and whether it still moves (a profile only): R has not
         # reached speed_ref before this run, or the delayed reference has not reached R
-        # (registers and inputs only: no comparison after the profile's multiplexer).
+        # (registers and inputs only: no comparison after the profile's multiplexer). Both
+        # operands are registered in the run's clock; the PI takes them in the next (``start``).
         pi_ref = Signal(signed(w))
+        pi_fb = Signal(signed(w))
         moving = Signal()
-        m.d.comb += [
-            pi_ref.eq(Mux(d_int == 0, to_pi(plan), ref_pre)),
-            moving.eq((self.speed_slew != 0)
-                      & ((ref_int != self.speed_ref) | ((d_int != 0) & (ref_pre != ref_pi)))),
-        ]
+        m.d.comb += moving.eq((self.speed_slew != 0)
+                              & ((ref_int != self.speed_ref)
+                                 | ((d_int != 0) & (ref_pre != ref_pi))))
+        with m.If(accept):
+            m.d.sync += [pi_ref.eq(Mux(d_int == 0, tp_plan, ref_pre)), pi_fb.eq(tp_speed)]
 
         # Feed-forward and integrator hold of the run in flight (held until the next run).
         # The feed-forward is clamped to the current limits, so lim − ff never leaves the PI's
@@ -350,8 +389,9 @@ class SpeedLoop(wiring.Component):
         with m.If(self.clear):
             m.d.sync += [ff.eq(0), hold.eq(0)]
         with m.Elif(accept):
-            m.d.sync += [ff.eq(Mux(up | dn, clamp(Mux(up, self.iq_ff, -self.iq_ff),
-                                                  self.lim_lo, self.lim_hi), 0)),
+            # Both clamped candidates are ready before ``up``/``dn`` select one.
+            m.d.sync += [ff.eq(Mux(up, clamp(self.iq_ff, self.lim_lo, self.lim_hi),
+                                   Mux(dn, clamp(-self.iq_ff, self.lim_lo, self.lim_hi), 0))),
                          hold.eq(self.int_hold & moving)]
 
         # PI limits shifted by −ff (registered: the PI reads them from its third clock on).
@@ -363,9 +403,9 @@ class SpeedLoop(wiring.Component):
         ]
 
         m.d.comb += [
-            pi.i.valid.eq(run),
+            pi.i.valid.eq(start),
             pi.i.payload.ref.eq(pi_ref),
-            pi.i.payload.fb.eq(to_pi(self.i.payload.speed)),
+            pi.i.payload.fb.eq(pi_fb),
             pi.kp.eq(self.kp),
             pi.kx.eq(Mux(hold, 0, self.kx)),
             pi.lim_lo.eq(pi_lo),
@@ -373,13 +413,27 @@ class SpeedLoop(wiring.Component):
             pi.clear.eq(self.clear),
         ]
 
+        # i_q = saturate(round_shift(O + ff·2**s, s), signed(16)), s = shift_out, in one adder:
+        # with O = H0·2**s + lo (0 ≤ lo < 2**s) the sum is H·2**s + lo, H = H0 + ff, negative
+        # iff H is, and the rounding adds [lo ≥ 2**(s−1) + neg] to H. H and H + 1 are formed side
+        # by side and saturated by bit tests; H's sign and lo choose.
+        h0 = pi.o.payload[shift_out:].as_signed()
+        h = Signal(signed(w - shift_out + 2))
+        h1 = Signal(signed(w - shift_out + 2))
+        m.d.comb += [h.eq(h0 + ff), h1.eq(h0 + ff + 1)]
+        if shift_out:
+            lo = pi.o.payload[:shift_out]
+            half = lo[shift_out - 1]
+            inc = Mux(h[-1], half & lo[:shift_out - 1].any(), half)
+        else:
+            inc = 0
+        iq = Mux(inc, saturate_bits(h1, signed(IQ_WIDTH)), saturate_bits(h, signed(IQ_WIDTH)))
         m.d.sync += self.o.valid.eq(pi.o.valid & ~self.clear)
         with m.If(self.clear):
             m.d.sync += [self.o.payload.eq(0), self.sat.eq(0)]
         with m.Elif(pi.o.valid):
             m.d.sync += [
-                self.o.payload.eq(saturate(round_shift(pi.o.payload + (ff << shift_out),
-                                                       shift_out), signed(IQ_WIDTH))),
+                self.o.payload.eq(iq),
                 self.sat.eq(pi.sat),
             ]
         return m
@@ -433,7 +487,7 @@ class Servo(wiring.Component):
 
     Parameters
     ----------
-    speed_width, width, kp_format, kx_format, int_guard, div_width, delay_width
+    speed_width, width, kp_format, kx_format, int_guard, div_width, delay_width, mul_width
         Of the :class:`SpeedLoop`.
     phase_width : int
         Width of the open-loop phase accumulator, 16 … 48.
@@ -492,15 +546,16 @@ class Servo(wiring.Component):
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5, phase_width=32):
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32, mul_width=MUL_WIDTH):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
+        mul_width = check_mul_width("Servo", mul_width)
         if not _is_int(phase_width) or not 16 <= phase_width <= 48:
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
                             f"not {phase_width!r}")
         self._loop_params = dict(speed_width=speed_width, width=width, kp_format=kp_format,
                                  kx_format=kx_format, int_guard=int_guard, div_width=div_width,
-                                 delay_width=delay_width)
+                                 delay_width=delay_width, mul_width=mul_width)
         self._phase_width = phase_width
         a = ANGLE.shape
         q = signed(IQ_WIDTH)
@@ -545,7 +600,7 @@ class Servo(wiring.Component):
 
     loop_params = property(lambda self: dict(self._loop_params))
     phase_width = property(lambda self: self._phase_width)
-    speed_loop_latency = property(lambda self: 6 + 1)
+    speed_loop_latency = property(lambda self: 6 + 2)
 
     def elaborate(self, platform):
         m = Module()

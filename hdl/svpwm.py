@@ -34,7 +34,7 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .dsp import partial_products, partial_sum, saturate_bits
+from .dsp import MUL_WIDTH, check_mul_width, partial_products, partial_sum, saturate_bits
 
 __all__ = ["svpwm_constants", "SVPWM", "DCBusCompensation", "PWMTimer", "pwm_half_period"]
 
@@ -128,6 +128,10 @@ class SVPWM(wiring.Component):
     radix_bits : int
         Quotient bits per clock of the over-modulation divider, 1 … 4 (radix 2 … 16; radix
         ``2**r`` compares with ``2**r − 1`` multiples of the divisor in parallel).
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx; ``None`` iCE40: products not split). The products are split into
+        partial products that fit it; the results do not depend on it.
 
     Members
     -------
@@ -160,7 +164,8 @@ class SVPWM(wiring.Component):
     #: Clocks before the division (clock 7 above holds x_x).
     PREPARE = 7
 
-    def __init__(self, *, width=16, frac=None, count_width=16, radix_bits=2):
+    def __init__(self, *, width=16, frac=None, count_width=16, radix_bits=2, mul_width=MUL_WIDTH):
+        self._mul_width = check_mul_width("SVPWM", mul_width)
         _check_width("SVPWM", "width", width, 8, 24)
         _check_width("SVPWM", "count_width", count_width, 4, 24)
         _check_width("SVPWM", "radix_bits", radix_bits, 1, 4)
@@ -186,6 +191,7 @@ class SVPWM(wiring.Component):
     width = property(lambda self: self._width)
     count_width = property(lambda self: self._count_width)
     radix_bits = property(lambda self: self._radix_bits)
+    mul_width = property(lambda self: self._mul_width)
     frac = property(lambda self: self._frac)
     in_frac = property(lambda self: self._frac - SVPWM_GUARD_BITS)
 
@@ -234,7 +240,8 @@ class SVPWM(wiring.Component):
         scale = Signal(unsigned(cw))
         k = Const(self._k, unsigned(self._k.bit_length()))
         pp1 = []
-        for n, (p, s) in enumerate(partial_products(self.i.payload.beta, k)):
+        for n, (p, s) in enumerate(partial_products(self.i.payload.beta, k,
+                                                       mul_width=self._mul_width)):
             reg = Signal(p.shape(), name=f"pp_s{n}")
             pp1.append((reg, s))
             with m.If(take):
@@ -315,7 +322,8 @@ class SVPWM(wiring.Component):
             m.d.sync += d6.eq(d5)
             for p in phases:
                 pp6[p] = []
-                for n, (prod, s) in enumerate(partial_products(scale, n5[p])):
+                for n, (prod, s) in enumerate(partial_products(scale, n5[p],
+                                                                 mul_width=self._mul_width)):
                     reg = Signal(prod.shape(), name=f"pp_{p}{n}")
                     pp6[p].append((reg, s))
                     m.d.sync += reg.eq(prod)
@@ -391,6 +399,10 @@ class DCBusCompensation(wiring.Component):
     gain_limit : float
         Largest gain, 1.0 ≤ limit < 4.0 (rounded to 2**-16): the compensation stops when the bus
         drops below ``U_rated / gain_limit``.
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
+        18 ECP5 / Xilinx; ``None`` iCE40: products not split). The products are split into
+        partial products that fit it; the results do not depend on it.
 
     Members
     -------
@@ -432,7 +444,9 @@ class DCBusCompensation(wiring.Component):
     latency = 2
     gain_frac = 16
 
-    def __init__(self, *, width=16, out_width=None, adc_width=16, gain_limit=2.0):
+    def __init__(self, *, width=16, out_width=None, adc_width=16, gain_limit=2.0,
+                 mul_width=MUL_WIDTH):
+        self._mul_width = check_mul_width("DCBusCompensation", mul_width)
         _check_width("DCBusCompensation", "width", width, 8, 24)
         if out_width is None:
             out_width = width
@@ -467,6 +481,7 @@ class DCBusCompensation(wiring.Component):
 
     width = property(lambda self: self._width)
     out_width = property(lambda self: self._out_width)
+    mul_width = property(lambda self: self._mul_width)
     adc_width = property(lambda self: self._adc_width)
     gain_limit_raw = property(lambda self: self._limit_raw)
 
@@ -510,7 +525,8 @@ class DCBusCompensation(wiring.Component):
         for f in ("alpha", "beta"):
             neg = Signal(name=f"neg_{f}")
             parts[f] = []
-            for n, (prod, s) in enumerate(partial_products(self.i.payload[f], self.gain)):
+            for n, (prod, s) in enumerate(partial_products(self.i.payload[f], self.gain,
+                                                           mul_width=self._mul_width)):
                 reg = Signal(prod.shape(), name=f"pp_{f}{n}")
                 parts[f].append((reg, s))
                 with m.If(self.i.ready & self.i.valid):

@@ -25,8 +25,8 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, NAME, BoardTop, _tool, build, pll_config,
-                                    prepare, synthesis_verilog)
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, MUL_WIDTH, NAME, BoardTop, _tool, build,
+                                    pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -225,6 +225,18 @@ def test_top_runs_at_the_actual_pll_frequency(name, clk_hz, actual):
                       lambda top: (top.clk_hz, top.top.clk_hz, top.pll.f_out_hz))
     assert clocks[0] == pytest.approx(actual)
     assert clocks[0] == clocks[1] == clocks[2]
+
+
+@pytest.mark.parametrize("name, mul_width", [("icebreaker", None), ("ulx3s", 18),
+                                             ("arty_s7", 18), ("atlys", 18)])
+def test_board_top_uses_the_family_multiplier_width(name, mul_width):
+    """ECP5, Spartan-7, Spartan-6: 18-bit multiplier operands; iCE40: products not split
+    (hdl/dsp.py)."""
+    widths = _inspect(lambda: BoardTop(name),
+                      lambda top: (top.top.mul_width, top.top._loop.mul_width,
+                                   top.top._servo.loop_params["mul_width"]))
+    assert widths == (mul_width,) * 3
+    assert MUL_WIDTH[get_board(name).family] == mul_width
 
 
 # --- vendor build trees ---------------------------------------------------------------------------

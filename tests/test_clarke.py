@@ -308,6 +308,17 @@ def test_clarke_random_vs_model(three_phase):
     assert r["mismatches"] == 0, r
 
 
+@pytest.mark.parametrize("mul_width", [None, 16, 12])
+def test_clarke_random_vs_model_at_other_multiplier_widths(mul_width):
+    """Unsplit products (the iCE40's setting), 16 and a narrower split: other partial products,
+    the same bits."""
+    dut = Clarke(mul_width=mul_width)
+    assert dut.mul_width == mul_width
+    r = verify_clarke.run(1500, seed=3, mul_width=mul_width)
+    assert r["mismatches"] == 0, r
+    assert r["saturated_vectors"] > 50
+
+
 def test_clarke_bench_detects_a_wrong_output(monkeypatch):
     # The verification must be able to fail: corrupt one expected bit of one vector.
     real = verify_clarke.clarke_model

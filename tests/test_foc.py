@@ -96,11 +96,11 @@ def test_current_loop_parameter_validation(kwargs, exc, message):
 def test_current_loop_latency_budget_per_stage():
     dut = CurrentLoop()
     Fragment.get(dut, None)
-    assert dut.stage_latency == {"clarke": 6, "park": 8, "pi": 6, "command": 1,
-                                 "inverse_park": 8, "dcbus": 2, "svpwm": 15}
-    assert dut.latency == 46 <= 50
-    assert dut.dq_latency == 15
-    assert CurrentLoop(rotator="cordic").latency == 46          # same 8 clocks per rotation
+    assert dut.stage_latency == {"clarke": 6, "park": 9, "pi": 6, "command": 1,
+                                 "inverse_park": 9, "dcbus": 2, "svpwm": 15}
+    assert dut.latency == 48 <= 50
+    assert dut.dq_latency == 16
+    assert CurrentLoop(rotator="cordic").latency == 46          # 8 clocks per rotation
     slow = CurrentLoop(rotator="cordic", iterations_per_stage=1)
     Fragment.get(slow, None)
     assert slow.latency == 46 + 2 * (22 - 8)
@@ -117,8 +117,8 @@ def test_current_loop_converts_to_verilog():
 
 def test_current_loop_latency_cycle_by_cycle():
     """One sample accepted in clock t: phase currents at t + 6, i_d/i_q visible at
-    t + dq_latency, duties valid in clock t + latency (46) exactly, busy from t + 1; the loop
-    accepts the next sample in its done clock (back to back), whose duties come at t + 92."""
+    t + dq_latency, duties valid in clock t + latency (48) exactly, busy from t + 1; the loop
+    accepts the next sample in its done clock (back to back), whose duties come at t + 96."""
     dut = CurrentLoop()
     lat = dut.latency
     seen = {}

@@ -84,7 +84,7 @@ def test_rotator_defaults_and_attributes():
     assert (r.width, r.angle_width, r.table_bits, r.tag_width) == (16, 16, 9, 0)
     assert (r.latency, r.interval, r.registered) == (6, 4, False)
     r2 = Rotator(registered=True)
-    assert (r2.latency, r2.interval, r2.registered) == (8, 5, True)
+    assert (r2.latency, r2.interval, r2.registered) == (9, 5, True)
     p = r.params
     assert p.interp_bits == 4 and p.table_frac == 18
     assert len(p.table_words) == 512 and max(p.table_words) < 1 << 36
@@ -324,7 +324,7 @@ def test_rotator_rounding_ties_and_limits_gateware_bit_exact(registered):
     np.testing.assert_array_equal(np.array(out), np.stack([t["x"], t["y"]], axis=1))
 
 
-@pytest.mark.parametrize("registered, latency, interval", [(False, 6, 4), (True, 8, 5)])
+@pytest.mark.parametrize("registered, latency, interval", [(False, 6, 4), (True, 9, 5)])
 def test_rotator_random_vectors_gateware_vs_model(registered, latency, interval):
     r = run(3000, seed=1, registered=registered)
     assert r["mismatches"] == 0 and r["outputs_missing"] == 0

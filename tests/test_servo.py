@@ -1,5 +1,7 @@
 # amaranth: UnusedElaboratable=no
 # Ref: paper eq. (7)–(9) (speed PI); SPEC.md §2.5, §4 (operating modes)
+import math
+
 import pytest
 from amaranth.back import verilog
 from amaranth.hdl import Const, Value
@@ -129,7 +131,7 @@ def test_servo_and_speed_loop_convert_to_verilog():
 
 def test_speed_loop_latency_cycle_by_cycle():
     dut = SpeedLoop()
-    assert dut.latency == 7 and dut.interval == 6
+    assert dut.latency == 8 and dut.interval == 7
     seq = [loop_inputs() for _ in range(30)]
     seq[3] = loop_inputs(valid=1, speed=-(1 << 20))             # E = 2^12 LSB of Q1.23
     got, _ = speed_loop_clocks(seq)
@@ -145,6 +147,7 @@ def test_speed_loop_rounds_speed_and_output():
     seq = []
     for fb in (-(1 << 7), (1 << 7) - 1, -(2 ** 31), 2 ** 31 - 1, 3 << 15, -(3 << 15)):
         seq += [loop_inputs(valid=1, speed=fb)] + [loop_inputs() for _ in range(7)]
+    seq += [loop_inputs()]                                        # the last result's clock
     got, _ = speed_loop_clocks(seq)
     outs = [g[1] for g in got if g[0]]
     # fb -128 → E = round(128/256) = 1 (half away from zero) → O = 1 → i_q = round(1/256) = 0;
@@ -181,9 +184,10 @@ def test_speed_loop_rate_divider_and_clear():
         seq += [loop_inputs(valid=1, speed=-(1 << 20), rate_div=2)]
         seq += [loop_inputs(rate_div=2) for _ in range(7)]
     seq[8 * 7 + 2] = loop_inputs(rate_div=2, clear=1)             # clear between samples 7, 8
+    seq += [loop_inputs(rate_div=2)]                              # the last result's clock
     got, model = speed_loop_clocks(seq)
     strobes = [t for t, g in enumerate(got) if g[0]]
-    assert strobes == [t + 7 for t in (0, 24, 48, 64, 88)]
+    assert strobes == [t + 8 for t in (0, 24, 48, 64, 88)]
     assert got[8 * 7 + 3][:3] == (0, 0, 0)                        # cleared output
     assert model.runs == 5
 
@@ -192,10 +196,11 @@ def test_speed_loop_drops_runs_while_busy():
     seq = [loop_inputs() for _ in range(20)]
     seq[0] = loop_inputs(valid=1, speed=-(1 << 20))
     seq[3] = loop_inputs(valid=1, speed=-(1 << 22))               # PI busy: dropped
-    seq[6] = loop_inputs(valid=1, speed=-(1 << 21))               # PI ready again: runs
+    seq[6] = loop_inputs(valid=1, speed=-(1 << 22))               # still busy (interval 7)
+    seq[7] = loop_inputs(valid=1, speed=-(1 << 21))               # PI ready again: runs
     got, model = speed_loop_clocks(seq)
-    assert [t for t, g in enumerate(got) if g[0]] == [7, 13]
-    assert model.dropped == 1 and model.runs == 2
+    assert [t for t, g in enumerate(got) if g[0]] == [8, 15]
+    assert model.dropped == 2 and model.runs == 2
 
 
 def test_speed_loop_integrates_an_error_of_0_01_percent():
@@ -218,14 +223,15 @@ SLEW = 1 << 22                   # Q1.31: 2^14 LSB of the Q1.23 PI scale, 64 LSB
 
 def profile_runs(n, period=8, per_run=None, **kw):
     """``n`` speed-loop runs ``period`` clocks apart (the sample in each period's first clock),
-    one clock of set-up before them (the profile uses the slew of the clock before a run).
+    one clock of set-up before them (the profile uses the slew of the clock before a run) and
+    one after them (the last run's result comes ``latency`` = 8 clocks after it).
     ``per_run(k)`` may return extra inputs for the clocks of run ``k``."""
     seq = [loop_inputs(**kw)]
     for k in range(n):
         extra = per_run(k) if per_run else {}
         seq += [loop_inputs(**dict(kw, **extra, valid=1))]
         seq += [loop_inputs(**dict(kw, **extra)) for _ in range(period - 1)]
-    return seq
+    return seq + [loop_inputs(**dict(kw, **extra))]
 
 
 def after_runs(got, n, period=8):
@@ -246,7 +252,7 @@ def test_profile_ramps_by_the_slew_and_lands_exactly():
     assert [iq for iq, _ in out] == [1234] * 5 + [0] * 4
     assert [g[0] for g in got].count(1) == 9
     # The strobe comes latency clocks after the run, as without a profile.
-    assert [t for t, g in enumerate(got) if g[0]] == [1 + 8 * k + 7 for k in range(9)]
+    assert [t for t, g in enumerate(got) if g[0]] == [1 + 8 * k + 8 for k in range(9)]
 
 
 def test_profile_reverses_through_zero_from_the_measured_speed():
@@ -301,7 +307,7 @@ def test_profile_pi_limits_leave_room_for_the_feed_forward():
                            iq_ff=1000, kx=kx, lim_lo=-3000, lim_hi=3000)
         got, model = speed_loop_clocks(seq)
         out = after_runs(got, 16)
-        sats = [got[1 + k * 8 + 7][2] for k in range(16)]
+        sats = [got[1 + k * 8 + 8][2] for k in range(16)]
         assert [iq for iq, _ in out[:12]] == [sign * 3000] * 12 and all(sats[:12])
         assert abs(out[12][0]) < 3000 and not sats[12]
         assert model.pi.integrator * sign <= (3000 << 8 << 16)
@@ -359,10 +365,10 @@ def test_profile_clear_mid_ramp():
     seq += profile_runs(2, speed=7 * SLEW, speed_ref=20 * SLEW, speed_slew=SLEW, iq_ff=500,
                         kp=0)
     got, _ = speed_loop_clocks(seq)
-    assert got[25][1:] == (500, 0, 3 * SLEW)                      # the clock clear rises
-    assert got[26] == (0, 0, 0, 7 * SLEW)                           # cleared, tracking
-    assert got[29][3] == 7 * SLEW
-    assert after_runs(got[29:], 2) == [(500, 8 * SLEW), (500, 9 * SLEW)]
+    assert got[26][1:] == (500, 0, 3 * SLEW)                      # the clock clear rises
+    assert got[27] == (0, 0, 0, 7 * SLEW)                           # cleared, tracking
+    assert got[30][3] == 7 * SLEW
+    assert after_runs(got[30:], 2) == [(500, 8 * SLEW), (500, 9 * SLEW)]
 
 
 def test_profile_run_in_the_first_clock_after_clear():
@@ -378,7 +384,38 @@ def test_profile_run_in_the_first_clock_after_clear():
                         ref_delay=8) for _ in range(8)]
     got, _ = speed_loop_clocks(seq)
     assert got[5][3] == b + SLEW
-    assert got[4 + 7][:2] == (1, 100)
+    assert got[4 + 8][:2] == (1, 100)
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_profile_bounds_round_to_the_pi_scale_exactly(sign):
+    # A slew of 897 Q1.31 LSB (3.504 LSB of the Q1.23 PI scale) with kp = 256: i_q is the PI's
+    # reference itself, to_pi(R_n) = round(n·897 / 256) half away from zero, so the rounding of
+    # each bound (registered beside the bound) shows to the last bit, up and down.
+    slew = 897
+    n = 12
+    seq = profile_runs(n, speed_ref=sign * 40 * slew, speed_slew=slew, kp=KP_ONE << 8)
+    got, _ = speed_loop_clocks(seq)
+    want = [int(math.copysign(math.floor(abs(sign * k * slew) / 256 + 0.5), sign))
+            for k in range(1, n + 1)]
+    assert [iq for iq, _ in after_runs(got, n)] == want
+
+
+def test_profile_run_in_the_second_clock_after_a_one_clock_clear():
+    # Mid-ramp (the delay taps differ), one clock of clear at speed b loads every tap with
+    # to_pi(b); the interpolation's registered tap differences are zeroed with them, so a run
+    # two clocks later with a fractional delay (1.5 runs) sees exactly b: E = 0, i_q = 0.
+    b = 5 * SLEW
+    kw = dict(speed_slew=SLEW, ref_delay=8 + 4)
+    seq = profile_runs(4, speed=0, speed_ref=20 * SLEW, **kw)
+    seq += [loop_inputs(clear=1, speed=b, **kw), loop_inputs(speed=b, **kw)]
+    run = len(seq)
+    seq += [loop_inputs(valid=1, speed=b, speed_ref=b + 10 * SLEW, **kw)]
+    seq += [loop_inputs(speed=b, speed_ref=b + 10 * SLEW, **kw) for _ in range(9)]
+    got, _ = speed_loop_clocks(seq)
+    assert [iq for _, iq, _, _ in got[run - 8:run]] != [0] * 8       # the ramp ran before
+    assert got[run + SpeedLoop().latency][:2] == (1, 0)
+    assert got[run + 1][3] == b + SLEW
 
 
 def test_servo_mode_changes_at_loop_boundary():
@@ -476,7 +513,7 @@ def test_servo_enters_speed_mode_from_a_spinning_motor_with_a_profile():
     assert all(g["speed_ref_int"] == spd for g in got[1:6])
     runs = [t for t in range(60) if t % 8 == 6 and t > 4]
     assert [got[t + 1]["speed_ref_int"] for t in runs] == [2 * SLEW, SLEW] + [SLEW // 2] * 5
-    assert [got[t + 7]["iq_ref"] for t in runs[:5]] == [-321, -321, 0, 0, 0]
+    assert [got[t + SpeedLoop().latency]["iq_ref"] for t in runs[:5]] == [-321, -321, 0, 0, 0]
 
 
 def test_servo_random_sequences_vs_model():

@@ -14,8 +14,9 @@ the interpolation stays between its two taps) and raises :exc:`AssertionError` i
 Both are stateful and sequential, so they step one clock at a time: :meth:`~ServoModel.clock`
 takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
 the combinational paths from the inputs), then advances the state to clock ``t + 1``. The speed
-PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the PI's timing (a run accepted in clock
-``t`` shows at its output in ``t + 6``, busy until then) around it.
+PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the gateware's timing around it (a run
+accepted in clock ``t`` hands its registered operands to the PI in ``t + 1``; the PI's result
+shows in ``t + 7``, the loop busy until then, and the i_q reference in ``t + 8``).
 """
 
 from amaranth.hdl import signed
@@ -148,7 +149,8 @@ class SpeedLoopModel:
                                       for lim in (lim_lo, lim_hi))
                         pi_out, pi_sat = self.pi.step(ref, self._to_pi(speed), kp,
                                                       0 if hold else kx, lo_s, hi_s)
-                        self.pending = (self.t + PI_LATENCY, pi_out, pi_sat, lim_lo, lim_hi, ff)
+                        self.pending = (self.t + 1 + PI_LATENCY, pi_out, pi_sat, lim_lo, lim_hi,
+                                        ff)
                         self.runs += 1
                         self.hist = [self._to_pi(self.ref_int)] + self.hist[:-1]
                         self.ff, self.hold = ff, hold

@@ -157,7 +157,8 @@ class _ClarkeBench(wiring.Component):
         return m
 
 
-def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_phase):
+def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_phase,
+              mul_width=18):
     phases = "abc" if three_phase else "ab"
     adc = Shape.cast(adc_shape)
     vec = stimulus(count, seed=seed, width=width, adc_shape=adc, gain_format=gain_format,
@@ -189,7 +190,8 @@ def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_pha
         **{f"gain_{p}": gain_format.shape for p in phases},
         **{f"offset_{p}": signed(adc.width + 1) for p in phases},
     })
-    dut = Clarke(width=width, adc_shape=adc, gain_format=gain_format, three_phase=three_phase)
+    dut = Clarke(width=width, adc_shape=adc, gain_format=gain_format, three_phase=three_phase,
+                 mul_width=mul_width)
     out_layout = dut.o.payload.shape()
     bench = _ClarkeBench(dut, pack_words(stim_layout, cols, slots), stim_layout,
                          pack_words(out_layout, exp, n))
@@ -223,7 +225,7 @@ def _run_mode(count, *, seed, progress, width, adc_shape, gain_format, three_pha
 
 
 def run(count=100_000, *, seed=0, progress=False, width=16, adc_shape=signed(16),
-        gain_format=Q(18, 15), three_phase=None):
+        gain_format=Q(18, 15), three_phase=None, mul_width=18):
     """Simulate :class:`Clarke` on ``count`` seeded random vectors plus the corner cases, in each
     mode, and compare all five outputs with the golden model.
 
@@ -233,6 +235,9 @@ def run(count=100_000, *, seed=0, progress=False, width=16, adc_shape=signed(16)
         Random vectors per mode (the corner cases come on top).
     three_phase : bool or None
         One mode, or both (``None``, the default: ``count`` vectors each).
+    mul_width : int or None
+        The gateware's multiplier width (:mod:`foc_servo.hdl.dsp`; the model has none: the
+        results must not depend on it).
 
     Returns
     -------
@@ -246,7 +251,7 @@ def run(count=100_000, *, seed=0, progress=False, width=16, adc_shape=signed(16)
     for tp in modes:
         per_mode["three_phase" if tp else "two_phase"] = _run_mode(
             count, seed=seed, progress=progress, width=width, adc_shape=adc_shape,
-            gain_format=gain_format, three_phase=tp)
+            gain_format=gain_format, three_phase=tp, mul_width=mul_width)
     total = {k: sum(r[k] for r in per_mode.values())
              for k in ("mismatches", "vectors", "clocks", "sim_s", "saturated_vectors")}
     total["clocks_per_s"] = total["clocks"] / total["sim_s"] if total["sim_s"] > 0 else 0.0
