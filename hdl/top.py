@@ -4,7 +4,7 @@
 ::
 
     uart_rx/tx ─ HostLink ─ bus ─ RegisterFile ─ (every register ↔ its block port)
-    enc_a/b/z, hall ─ EncoderFrontEnd (own 2-flop sync + filter) ─ θ_e, count, a_rise ─ MTSpeed
+    enc_a/b/z, hall ─ EncoderFrontEnd (own 2-flop sync + filter) ─ θ_e, count, step/up ─ MTSpeed
     PWMTimer ─ sample ─ AdcInterface (adc_cs_n, adc_sclk, adc_sdo) ─ CurrentLoop ─ duties ─
         DeadTimeComp (+ trapezoid of CurrentLoop.phase, combinational) ─ PWMTimer
     PWMTimer.pwm ─ Gates (dead time, enable = Servo.enable, trip) ─ gate_h, gate_l
@@ -22,7 +22,8 @@ Timing within one PWM period (``period_start`` = ``pos`` 0):
 
 So the control parameters change only while the current loop is idle, as its inputs require,
 provided the loop finishes before the period ends (``pwm_sample_custom`` must not put the sample
-within ``AdcInterface.latency + CurrentLoop.latency`` clocks of the period end).
+within :attr:`Top.loop_latency` = ``AdcInterface.latency`` + the current loop's latency clocks of
+the period end: 95 with the pipelined loop, 216 with ``current_loop="engine"``, at 50 MHz).
 
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
@@ -55,14 +56,18 @@ from amaranth.lib.wiring import In, Out
 
 from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
+from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
 from .fixed import round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
+from .foc_engine import PIPELINE_CLOCKS, EngineCurrentLoop
+from .foc_engine import OUTS as ENGINE_OUTS
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
 from .protect import FAULTS, Protection
-from .regmap import LINK_COUNTERS, LOOP_FLAG_FIELDS, Access, Scales, build_regmap
+from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
+                     build_regmap, mt_k_for)
 from .regs import RegisterFile
 from .scope import Scope
 from .servo import Servo
@@ -74,11 +79,32 @@ __all__ = ["Top", "LeadAngle", "regmap_address_map"]
 COUNT_WIDTH = 16
 #: Synchroniser flops on ``fault_n`` and ``oc_comp``.
 SYNC_STAGES = 2
+#: Values of ``Top(current_loop=...)``: :class:`~.foc.CurrentLoop`,
+#: :class:`~.foc_engine.EngineCurrentLoop`.
+CURRENT_LOOPS = ("pipelined", "engine")
 
 
 def _raw(port):
     """The plain bits of a port (a data View / EnumView, or a Value)."""
     return port.as_value() if hasattr(port, "as_value") else Value.cast(port)
+
+
+def _latencies(loop):
+    """Every sample → ``o.valid`` latency of a current loop (one for :class:`CurrentLoop`, one
+    per program path for :class:`EngineCurrentLoop`)."""
+    return loop.latencies if isinstance(loop, EngineCurrentLoop) else [loop.latency]
+
+
+def _phase_latency(loop):
+    """Clocks from the accepted sample to the current loop's ``phase`` transfer: Clarke's stage,
+    or for the engine the program's (straight-line) write of phase c, executed in X2 two clocks
+    after its fetch, plus the start pipeline and ``phase.valid``'s register (measured: 24)."""
+    if not isinstance(loop, EngineCurrentLoop):
+        return loop.stage_latency["clarke"]
+    outs = list(ENGINE_OUTS)
+    pc = next(i for i, ins in enumerate(loop.program.instrs)
+              if ins.out and outs[ins.out - 1] == "pc")
+    return pc + 2 + PIPELINE_CLOCKS
 
 
 def _is_hz(value):
@@ -177,10 +203,28 @@ class Top(wiring.Component):
     max_words : int
         Longest host-link burst (:class:`~.hostlink.HostLink`); PING reports it and the host
         library splits longer transfers. 16 (was 64: −80 LUT4 of frame buffer addressing).
+    mt_edges : str
+        Encoder edges the M/T speed block counts: ``"x4"`` (default, :data:`~.regmap.MT_EDGES`)
+        every quadrature state change (the encoder's ``step``/``up``: 4 edges per line, exact
+        through reversals), or ``"a_rising"`` the A-rising position (``a_rise``: 1 edge per
+        line). Sets the ``mt_k`` reset value (:func:`~.regmap.mt_k_for` with its edges per line)
+        unless ``resets`` gives one.
     resets : mapping of str to int, optional
         Reset (power-up) values of ``rw`` registers, raw, e.g. ``{"theta_lead": 5243}``: a build
         that starts with tuned gains, or a simulation that starts configured without host writes.
         Each value must fit its register's format.
+    mul_width : int
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None``: 18 (default;
+        ECP5 ``MULT18X18D``, Xilinx ``DSP48``); ``None`` for the iCE40 (products not split: yosys
+        maps them onto 16 × 16 ``SB_MAC16`` better than a split can, :mod:`~.dsp`). Passed to the
+        current loop and the speed loop, whose wide products are split into partial products of
+        this size; it changes the netlist, never a result.
+    current_loop : str
+        The current loop's implementation: ``"pipelined"`` (default, :class:`~.foc.CurrentLoop`:
+        one pipeline stage per operation, 46–48 clocks) or ``"engine"``
+        (:class:`~.foc_engine.EngineCurrentLoop`: the same results from a program on one
+        micro-sequenced datapath, 91–169 clocks, ≈ 1/3 of the LUTs, 4 multipliers; docs/ENGINE.md).
+        Only the timing differs (:attr:`loop_latency`); ``mul_width`` does not apply to the engine.
 
     Members
     -------
@@ -218,7 +262,14 @@ class Top(wiring.Component):
         ``t + fault_latency``): 2 synchroniser flops + :attr:`Protection.latency` +
         :attr:`Gates.trip_latency` = 4.
     loop_latency : int
-        Clocks from the ``sample`` strobe to the duties: ADC + current loop.
+        Clocks from the ``sample`` strobe to the duties: ADC + current loop (its worst case: the
+        engine's latency depends on the program path, 91 … 169).
+    mt_edges : str
+        The M/T edge mode (the parameter).
+    mul_width : int
+        The parameter.
+    current_loop : str
+        The parameter.
 
     Raises
     ------
@@ -229,7 +280,9 @@ class Top(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
-                 sclk_hz=25e6, max_words=16, resets=None):
+                 sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
+                 mt_edges=MT_EDGES, current_loop="pipelined"):
+        mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
             if not _is_hz(value):
@@ -271,6 +324,19 @@ class Top(wiring.Component):
         if (not isinstance(max_words, int) or isinstance(max_words, bool)
                 or not 1 <= max_words <= 255):
             raise TypeError(f"Top max_words must be an integer from 1 to 255, not {max_words!r}")
+        if not isinstance(mt_edges, str):
+            raise TypeError(f"Top mt_edges must be a string, not {mt_edges!r}")
+        if mt_edges not in MT_EDGES_PER_LINE:
+            raise ValueError(f"Top mt_edges must be one of "
+                             f"{', '.join(map(repr, MT_EDGES_PER_LINE))}, not {mt_edges!r}")
+        if mt_edges != MT_EDGES:
+            regmap = regmap.with_constants(
+                {"mt_k": mt_k_for(scales, edges_per_line=MT_EDGES_PER_LINE[mt_edges])})
+        if not isinstance(current_loop, str):
+            raise TypeError(f"Top current_loop must be a string, not {current_loop!r}")
+        if current_loop not in CURRENT_LOOPS:
+            raise ValueError(f"Top current_loop must be one of "
+                             f"{', '.join(map(repr, CURRENT_LOOPS))}, not {current_loop!r}")
         if resets is not None:
             if not isinstance(resets, Mapping):
                 raise TypeError(f"Top resets must be a mapping of register names to raw values "
@@ -293,14 +359,18 @@ class Top(wiring.Component):
                               counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
-        self._loop = CurrentLoop(count_width=COUNT_WIDTH)
+        self._mul_width = mul_width
+        self._current_loop = current_loop
+        self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
+                      if current_loop == "pipelined" else
+                      EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
                                  shift_width=regmap["dtc_band"].width)
         self._encoder = EncoderFrontEnd()
-        self._mt = MTSpeed(clk_hz=clk_hz)
+        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
-                            kx_format=regmap["pi_speed_kx"].fmt)
+                            kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width)
         self._lead = LeadAngle()
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
@@ -328,8 +398,11 @@ class Top(wiring.Component):
     regmap = property(lambda self: self._regmap)
     pwm_period = property(lambda self: self._timer.period)
     pwm_hz_actual = property(lambda self: self._clk_hz / self._timer.period)
+    mt_edges = property(lambda self: self._mt.edge_mode)
     fault_latency = property(lambda self: SYNC_STAGES + Protection.latency + Gates.trip_latency)
     loop_latency = property(lambda self: self._adc.latency + self._loop.latency)
+    mul_width = property(lambda self: self._mul_width)
+    current_loop = property(lambda self: self._current_loop)
 
     def elaborate(self, platform):
         m = Module()
@@ -371,7 +444,7 @@ class Top(wiring.Component):
         wiring.connect(m, adc=adc.o, current_loop=cl.i)
         # Dead-time compensation between the duties and the timer's shadow register (no added
         # latency); its currents (Clarke) must be ready before this sample's duties.
-        assert cl.stage_latency["clarke"] + dtc.comp_latency < cl.latency
+        assert _phase_latency(cl) + dtc.comp_latency < min(_latencies(cl))
         wiring.connect(m, current_loop=cl.o, dtc=dtc.i)
         wiring.connect(m, dtc=dtc.o, timer=timer.duty)
         wiring.connect(m, current_loop=cl.phase, protect=prot.i)
@@ -387,7 +460,8 @@ class Top(wiring.Component):
             adc.sample.eq(timer.sample),
             cl.scale.eq(timer.full_scale),
 
-            mt.edge.step.eq(enc.a_rise),
+            # x4: every count of the decoder; a_rising: the counts that are an A rising edge.
+            mt.edge.step.eq(enc.step if mt.edge_mode == "x4" else enc.a_rise),
             mt.edge.neg.eq(~enc.up),
             servo.speed.valid.eq(mt.o.valid),
             servo.speed.payload.eq(mt.o.payload),

@@ -64,3 +64,43 @@ def test_prove_json_keys(capsys):
 def test_prove_rejects_unknown_name():
     with pytest.raises(SystemExit, match=r"^foc-servo prove: unknown proof 'nosuch'; choose from "):
         main(["prove", "nosuch"])
+
+
+@pytest.mark.parametrize("args, passed", [([], None), (["--current-loop", "engine"], "engine"),
+                                          (["--current-loop", "pipelined"], None)])
+def test_sim_current_loop_option_reaches_the_scenario(capsys, monkeypatch, args, passed):
+    """`foc-servo sim ... --current-loop engine` passes ``current_loop`` on to the scenario (and
+    from there ``CoSim`` → ``make_engine`` → ``SimTop`` → ``Top``), only when not the default (the
+    default top's compiled-model source key stays the cached one); the JSON names it."""
+    from foc_servo.sim import scenarios
+    seen = {}
+
+    def fake_step(**kw):
+        seen.update(kw)
+        info = dict.fromkeys(("motor_time_s", "wall_s", "sim_wall_s", "engine_s", "plant_s",
+                              "clk_per_s", "clocks", "build_s"), 1.0)
+        info.update(engine=kw["engine"], current_loop=kw.get("current_loop", "pipelined"))
+        return scenarios.Result("step", {}, {"settle_s": 0.01}, info, None)
+
+    monkeypatch.setattr(scenarios, "step", fake_step)
+    main(["sim", "step", "--quiet", "--json", *args])
+    fig = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert seen.get("current_loop") == passed
+    assert fig["current_loop"] == (passed or "pipelined")
+
+
+def test_sim_current_loop_option_rejects_unknown(capsys):
+    with pytest.raises(SystemExit):
+        main(["sim", "step", "--current-loop", "cordic"])
+    assert "invalid choice: 'cordic'" in capsys.readouterr().err
+
+
+@pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # only inspected
+def test_simtop_builds_the_chosen_current_loop():
+    """The SimTop of the simulation engines takes ``current_loop`` as a Top parameter, so it is in
+    ``top_kwargs`` (the compiled model's source key) and in the Verilog (the model key)."""
+    from foc_servo.hdl.foc_engine import EngineCurrentLoop
+    from foc_servo.sim.engines.base import SimTop
+    simtop = SimTop(current_loop="engine")
+    assert simtop.top_kwargs == {"current_loop": "engine"}
+    assert isinstance(simtop.top._loop, EngineCurrentLoop)
