@@ -34,19 +34,14 @@ The same block serves Park (feed −θ) and inverse Park (feed +θ). The arithme
 """
 
 import math
-import numbers
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import round_shift, saturate
+from .fixed import is_int, round_shift, saturate
 
 __all__ = ["CordicParams", "Cordic", "rotation_members"]
-
-
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _csd(value):
@@ -104,27 +99,27 @@ class CordicParams:
 
     def __init__(self, *, width=16, stages=None, angle_width=None, guard_bits=None,
                  iterations_per_stage=1, tag_width=0):
-        if not _is_int(width) or width < 8:
+        if not is_int(width) or width < 8:
             raise TypeError(f"Cordic width must be an integer of at least 8, not {width!r}")
         if stages is None:
             stages = width + 2
-        if not _is_int(stages) or stages < 4:
+        if not is_int(stages) or stages < 4:
             raise TypeError(f"Cordic stages must be None or an integer of at least 4, "
                             f"not {stages!r}")
         if angle_width is None:
             angle_width = width
-        if not _is_int(angle_width) or angle_width < 4:
+        if not is_int(angle_width) or angle_width < 4:
             raise TypeError(f"Cordic angle_width must be None or an integer of at least 4, "
                             f"not {angle_width!r}")
         if guard_bits is None:
             guard_bits = (stages - 1).bit_length() + 1
-        if not _is_int(guard_bits) or guard_bits < 0:
+        if not is_int(guard_bits) or guard_bits < 0:
             raise TypeError(f"Cordic guard_bits must be None or a non-negative integer, "
                             f"not {guard_bits!r}")
-        if not _is_int(iterations_per_stage) or iterations_per_stage < 1:
+        if not is_int(iterations_per_stage) or iterations_per_stage < 1:
             raise TypeError(f"Cordic iterations_per_stage must be a positive integer, "
                             f"not {iterations_per_stage!r}")
-        if not _is_int(tag_width) or tag_width < 0:
+        if not is_int(tag_width) or tag_width < 0:
             raise TypeError(f"Cordic tag_width must be a non-negative integer, not {tag_width!r}")
         if iterations_per_stage > stages:
             raise ValueError(f"Cordic iterations_per_stage must be at most stages = {stages}, "

@@ -39,17 +39,14 @@ register, so the block adds no current-loop latency. In the top the phase curren
 so each period's duties are corrected with its own sample's currents.
 """
 
-import numbers
 
 from amaranth.hdl import Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from .fixed import check_param
+
 __all__ = ["DeadTimeComp"]
-
-
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 class DeadTimeComp(wiring.Component):
@@ -112,9 +109,7 @@ class DeadTimeComp(wiring.Component):
         for name, value, lo, hi in (("width", width, 8, 23), ("count_width", count_width, 4, 24),
                                     ("clocks_width", clocks_width, 1, 16),
                                     ("shift_width", shift_width, 1, 5)):
-            if not _is_int(value) or not lo <= value <= hi:
-                raise TypeError(f"DeadTimeComp {name} must be an integer from {lo} to {hi}, "
-                                f"not {value!r}")
+            check_param("DeadTimeComp", name, value, lo, hi)
         self._width = width
         self._count_width = count_width
         self._clocks_width = clocks_width

@@ -25,7 +25,7 @@ from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .fixed import BinaryAngle
+from .fixed import check_param, BinaryAngle
 
 __all__ = [
     "GlitchFilter", "QuadratureDecoder", "HallSensor", "HallPlausibility", "EncoderFrontEnd",
@@ -91,13 +91,6 @@ def angle_constants(lines, pole_pairs, z_offset):
     return qp, rp, qz, rz, bool(valid)
 
 
-def _check_int(owner, name, value, minimum, maximum):
-    if not isinstance(value, int) or isinstance(value, bool) or not minimum <= value <= maximum:
-        raise TypeError(f"{owner} {name} must be an integer from {minimum} to {maximum}, "
-                        f"not {value!r}")
-    return value
-
-
 def _divider():
     """The decoder's divider: ``pole_pairs·2**16`` or ``z_offset·2**16`` by ``cpr``."""
     return Divider(width=CPR_WIDTH + ANGLE.width, divisor_width=CPR_WIDTH, signed=False)
@@ -156,8 +149,8 @@ class GlitchFilter(wiring.Component):
     latency = 1
 
     def __init__(self, *, width=1, max_length=255):
-        self._width = _check_int("GlitchFilter", "width", width, 1, 64)
-        self._max_length = _check_int("GlitchFilter", "max_length", max_length, 1, 65535)
+        self._width = check_param("GlitchFilter", "width", width, 1, 64)
+        self._max_length = check_param("GlitchFilter", "max_length", max_length, 1, 65535)
         super().__init__({
             "i": In(width),
             "length": In(range(max_length + 1)),
@@ -776,7 +769,7 @@ class EncoderFrontEnd(wiring.Component):
     sync_stages = 2
 
     def __init__(self, *, max_length=255, z_gate=None):
-        self._max_length = _check_int("EncoderFrontEnd", "max_length", max_length, 1, 65535)
+        self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
         self._decoder = QuadratureDecoder(z_gate=z_gate)
         self._filter = GlitchFilter(width=6, max_length=max_length)

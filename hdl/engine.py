@@ -38,13 +38,13 @@ special operands are selected and registered in R).
 
 import dataclasses
 import enum
-import numbers
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
+from .fixed import check_param
 from .rotator import RotatorParams
 
 __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
@@ -427,10 +427,6 @@ class Assembler:
                        outs=self.outs)
 
 
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
 class Engine(wiring.Component):
     """The loop engine's datapath and sequencer (see the module docstring).
 
@@ -488,9 +484,7 @@ class Engine(wiring.Component):
                              f"not {tuple(out_widths)}")
         for name, value, lo, hi in (("width", width, 4, 32), ("guard", guard, 0, 16),
                                     ("div_bits", div_bits, 1, 24)):
-            if not _is_int(value) or not lo <= value <= hi:
-                raise TypeError(f"Engine {name} must be an integer from {lo} to {hi}, "
-                                f"not {value!r}")
+            check_param("Engine", name, value, lo, hi)
         if rotator is None:
             rotator = RotatorParams(width=16, angle_width=16)
         self._program = program

@@ -40,7 +40,22 @@ __all__ = [
     "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
     "saturate", "clamp", "round_shift", "sat_add", "sat_sub", "mul_round",
     "saturate_np", "clamp_np", "round_shift_np", "mul_round_np", "shape_range",
+    "is_int", "check_param",
 ]
+
+
+def is_int(value):
+    """An integer that is not a bool (the blocks' constructor parameters)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def check_param(owner, name, value, lo, hi):
+    """The blocks' constructor-parameter check: ``value`` an integer from ``lo`` to ``hi``, else
+    ``TypeError("<owner> <name> must be an integer from <lo> to <hi>, not <value>")`` (the
+    project's convention for structural parameters). Returns ``value``."""
+    if not is_int(value) or not lo <= value <= hi:
+        raise TypeError(f"{owner} {name} must be an integer from {lo} to {hi}, not {value!r}")
+    return int(value)
 
 
 def _check_int(name, value, minimum, maximum=None):

@@ -46,7 +46,6 @@ longer than the path to the compensation (31): each sample is compensated with t
 the *previous* accepted sample (1.0 before the first one).
 """
 
-import numbers
 
 from amaranth.hdl import Assert, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
@@ -56,7 +55,7 @@ from .clarke import Clarke
 from .cordic import Cordic
 from .rotator import Rotator
 from .dsp import MUL_WIDTH, check_mul_width, round_shift_signed, saturate_bits
-from .fixed import UQ, Q, QFormat, round_shift
+from .fixed import is_int, check_param, UQ, Q, QFormat, round_shift
 from .pi import PI
 from .svpwm import SVPWM, DCBusCompensation
 
@@ -74,10 +73,6 @@ ROTATORS = ("table", "cordic")
 
 #: Cordic ``tag`` values.
 TAG_PARK, TAG_INVERSE = 0, 1
-
-
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 class CurrentLoop(wiring.Component):
@@ -210,13 +205,11 @@ class CurrentLoop(wiring.Component):
         for name, value, lo, hi in (("width", width, 8, 23), ("adc_width", adc_width, 4, 24),
                                     ("angle_width", angle_width, 4, 32),
                                     ("count_width", count_width, 4, 24)):
-            if not _is_int(value) or not lo <= value <= hi:
-                raise TypeError(f"CurrentLoop {name} must be an integer from {lo} to {hi}, "
-                                f"not {value!r}")
+            check_param("CurrentLoop", name, value, lo, hi)
         if rotator not in ROTATORS:
             raise ValueError(f"CurrentLoop rotator must be one of {', '.join(ROTATORS)}, "
                              f"not {rotator!r}")
-        if not _is_int(iterations_per_stage) or iterations_per_stage < 1:
+        if not is_int(iterations_per_stage) or iterations_per_stage < 1:
             raise TypeError(f"CurrentLoop iterations_per_stage must be a positive integer, "
                             f"not {iterations_per_stage!r}")
         if not isinstance(clarke_gain_format, QFormat):

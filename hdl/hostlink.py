@@ -180,7 +180,6 @@ def crc16_byte(crc, byte):
     return Cat(*bits)
 
 
-
 #: Status counters of the link, in port order.
 COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")
 

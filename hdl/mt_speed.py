@@ -38,7 +38,7 @@ from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .fixed import saturate
+from .fixed import check_param, saturate
 from .regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
@@ -72,12 +72,6 @@ def output_layout(out_width):
         "stopped": 1,
         "fresh": 1,
     })
-
-
-def _check_int(name, value, lo, hi):
-    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
-        raise TypeError(f"MTSpeed {name} must be an integer from {lo} to {hi}, not {value!r}")
-    return value
 
 
 def _check_hz(name, value):
@@ -173,12 +167,12 @@ class MTSpeed(wiring.Component):
         tclk_hz = clk_hz if tclk_hz is None else _check_hz("tclk_hz", tclk_hz)
         if tclk_hz > clk_hz:
             raise ValueError(f"MTSpeed tclk_hz must be at most clk_hz {clk_hz!r}, not {tclk_hz!r}")
-        self._tc_width = _check_int("tc_width", tc_width, 8, 48)
-        self._out_width = _check_int("out_width", out_width, 8, 48)
+        self._tc_width = check_param("MTSpeed", "tc_width", tc_width, 8, 48)
+        self._out_width = check_param("MTSpeed", "out_width", out_width, 8, 48)
         if k_width is None:
             k_width = out_width + 16
-        self._k_width = _check_int("k_width", k_width, 2, 64)
-        self._m_width = _check_int("m_width", m_width, 2, 32)
+        self._k_width = check_param("MTSpeed", "k_width", k_width, 2, 64)
+        self._m_width = check_param("MTSpeed", "m_width", m_width, 2, 32)
         try:
             self._edge_mode = EdgeMode(edge_mode)
         except ValueError:

@@ -60,7 +60,6 @@ The unit is sequential, so one multiplier could serve all products through an op
 (``latency`` and ``interval`` + 2, one multiplier and a wider mux instead of three).
 """
 
-import numbers
 
 from amaranth.hdl import Assert, Cat, Module, Mux, Signal, signed
 from amaranth.lib import data, stream, wiring
@@ -68,7 +67,7 @@ from amaranth.lib.wiring import In, Out
 
 from .dsp import (MUL_WIDTH, check_mul_width, partial_sum, registered_products,
                   round_shift_signed, saturate_bits)
-from .fixed import QFormat, UQ, round_shift
+from .fixed import is_int, QFormat, UQ, round_shift
 
 __all__ = ["PI", "pi_widths", "round_shift_width"]
 
@@ -336,10 +335,6 @@ class PI(wiring.Component):
         return m
 
 
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
 def pi_widths(width, kp_format, kx_format, int_guard):
     """Validate the :class:`PI` parameters and return the widths of its internal values.
 
@@ -351,13 +346,13 @@ def pi_widths(width, kp_format, kx_format, int_guard):
         ``prod_p``, ``prod_x``, ``p``, ``di``, ``integrator``, ``sum_i`` (``I + dI``) and ``u``
         (``U_c``, ``U``), in bits, all signed; formulas in the module docstring.
     """
-    if not _is_int(width) or width < 4:
+    if not is_int(width) or width < 4:
         raise TypeError(f"PI width must be an integer of at least 4, not {width!r}")
     if not isinstance(kp_format, QFormat):
         raise TypeError(f"PI kp_format must be a QFormat, not {kp_format!r}")
     if not isinstance(kx_format, QFormat):
         raise TypeError(f"PI kx_format must be a QFormat, not {kx_format!r}")
-    if not _is_int(int_guard) or int_guard < 0:
+    if not is_int(int_guard) or int_guard < 0:
         raise TypeError(f"PI int_guard must be a non-negative integer, not {int_guard!r}")
     widths = {
         "prod_p": kp_format.width + width,

@@ -33,7 +33,7 @@ from amaranth.hdl import Module, Mux, Shape, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import shape_range
+from .fixed import check_param, shape_range
 
 __all__ = ["FAULTS", "FAULT_LAYOUT", "Protection"]
 
@@ -114,9 +114,7 @@ class Protection(wiring.Component):
 
     def __init__(self, *, current_width=16, udc_shape=signed(16), speed_width=16):
         for name, value in (("current_width", current_width), ("speed_width", speed_width)):
-            if not isinstance(value, int) or isinstance(value, bool) or not 4 <= value <= 32:
-                raise TypeError(f"Protection {name} must be an integer from 4 to 32, "
-                                f"not {value!r}")
+            check_param("Protection", name, value, 4, 32)
         if not isinstance(udc_shape, Shape) or not 2 <= udc_shape.width <= 32:
             raise TypeError(f"Protection udc_shape must be a Shape of 2 to 32 bits such as "
                             f"signed(16), not {udc_shape!r}")

@@ -83,12 +83,12 @@ trigonometric operands cost ≈ 0.1 LSB of peak error.
 """
 
 import math
-import numbers
 
 from amaranth.hdl import Array, Assert, Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 
+from .fixed import is_int
 from .cordic import rotation_members
 
 __all__ = ["RotatorParams", "Rotator"]
@@ -99,10 +99,6 @@ TABLE_GUARD = 2
 INTERP_GUARD = 4
 #: Largest number of interpolation bits (the ``kd`` ROM has ``2**(m+1)`` entries, in LUTs).
 MAX_INTERP_BITS = 6
-
-
-def _is_int(value):
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def _round(v):
@@ -151,11 +147,11 @@ class RotatorParams:
 
     def __init__(self, *, width=16, angle_width=None, table_bits=None, tag_width=0,
                  registered=False):
-        if not _is_int(width) or not 8 <= width <= 24:
+        if not is_int(width) or not 8 <= width <= 24:
             raise TypeError(f"Rotator width must be an integer from 8 to 24, not {width!r}")
         if angle_width is None:
             angle_width = width
-        if not _is_int(angle_width) or angle_width < 4:
+        if not is_int(angle_width) or angle_width < 4:
             raise TypeError(f"Rotator angle_width must be None or an integer of at least 4, "
                             f"not {angle_width!r}")
         # First-order interpolation leaves δ²/2 ≤ ((π/4)/2**n)²/2: keep it below 2**−(W+3).
@@ -167,10 +163,10 @@ class RotatorParams:
                              f"{width}, not {angle_width!r}")
         if table_bits is None:
             table_bits = max(min_bits, angle_width - 3 - MAX_INTERP_BITS)
-        if not _is_int(table_bits) or table_bits < 1:
+        if not is_int(table_bits) or table_bits < 1:
             raise TypeError(f"Rotator table_bits must be None or a positive integer, "
                             f"not {table_bits!r}")
-        if not _is_int(tag_width) or tag_width < 0:
+        if not is_int(tag_width) or tag_width < 0:
             raise TypeError(f"Rotator tag_width must be a non-negative integer, "
                             f"not {tag_width!r}")
         if not isinstance(registered, bool):

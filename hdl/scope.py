@@ -53,6 +53,8 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
+from .fixed import is_int
+
 __all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES"]
 
 #: Default source list (select code = position): the top drives these members of ``src``.
@@ -87,10 +89,6 @@ class TriggerSource(enum.Enum, shape=1):
     EXTERNAL = 1    # the ``trigger`` input (e.g. the Servo's reference step) or ``force``
 
 
-def _is_int(value):
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
 def check_scope(sources, channels, depth, width, decim_width):
     """Validate the :class:`Scope` parameters; returns the sources as a dict of shapes."""
     ok = isinstance(sources, Mapping) and len(sources) > 0
@@ -109,13 +107,13 @@ def check_scope(sources, channels, depth, width, decim_width):
     if not ok:
         raise TypeError(f"Scope sources must be a non-empty dict of names to shapes of 1 to 64 "
                         f"bits, not {sources!r}")
-    if not _is_int(channels) or not 1 <= channels <= 16:
+    if not is_int(channels) or not 1 <= channels <= 16:
         raise TypeError(f"Scope channels must be an integer from 1 to 16, not {channels!r}")
-    if (not _is_int(depth) or not 16 <= depth <= 65536) or depth & (depth - 1):
+    if (not is_int(depth) or not 16 <= depth <= 65536) or depth & (depth - 1):
         raise TypeError(f"Scope depth must be a power of two from 16 to 65536, not {depth!r}")
-    if not _is_int(width) or not 1 <= width <= 32:
+    if not is_int(width) or not 1 <= width <= 32:
         raise TypeError(f"Scope width must be an integer from 1 to 32, not {width!r}")
-    if not _is_int(decim_width) or not 1 <= decim_width <= 32:
+    if not is_int(decim_width) or not 1 <= decim_width <= 32:
         raise TypeError(f"Scope decim_width must be an integer from 1 to 32, "
                         f"not {decim_width!r}")
     return shapes

@@ -67,7 +67,7 @@ from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
-from .fixed import UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
+from .fixed import is_int, UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
 from .mt_speed import output_layout as mt_output_layout
 from .pi import PI, pi_widths
 
@@ -80,10 +80,6 @@ IQ_WIDTH = 16
 ANGLE = BinaryAngle(16)
 #: Fraction bits of ``ref_delay`` (steps of 1/8 speed-loop run).
 DELAY_FRAC = 3
-
-
-def _is_int(value):
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 class Mode(enum.Enum, shape=2):
@@ -105,19 +101,19 @@ class AngleSource(enum.Enum, shape=2):
 def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                      delay_width=5):
     """Validate the :class:`SpeedLoop` parameters (shared with the golden model)."""
-    if not _is_int(speed_width) or not 16 <= speed_width <= 48:
+    if not is_int(speed_width) or not 16 <= speed_width <= 48:
         raise TypeError(f"SpeedLoop speed_width must be an integer from 16 to 48, "
                         f"not {speed_width!r}")
-    if not _is_int(width) or width < IQ_WIDTH:
+    if not is_int(width) or width < IQ_WIDTH:
         raise TypeError(f"SpeedLoop width must be an integer of at least {IQ_WIDTH}, "
                         f"not {width!r}")
     if width > speed_width:
         raise ValueError(f"SpeedLoop width must be at most speed_width {speed_width}, "
                          f"not {width!r}")
-    if not _is_int(div_width) or not 1 <= div_width <= 16:
+    if not is_int(div_width) or not 1 <= div_width <= 16:
         raise TypeError(f"SpeedLoop div_width must be an integer from 1 to 16, "
                         f"not {div_width!r}")
-    if not _is_int(delay_width) or not DELAY_FRAC + 1 <= delay_width <= DELAY_FRAC + 4:
+    if not is_int(delay_width) or not DELAY_FRAC + 1 <= delay_width <= DELAY_FRAC + 4:
         raise TypeError(f"SpeedLoop delay_width must be an integer from {DELAY_FRAC + 1} to "
                         f"{DELAY_FRAC + 4}, not {delay_width!r}")
     pi_widths(width, kp_format, kx_format, int_guard)
@@ -550,7 +546,7 @@ class Servo(wiring.Component):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
         mul_width = check_mul_width("Servo", mul_width)
-        if not _is_int(phase_width) or not 16 <= phase_width <= 48:
+        if not is_int(phase_width) or not 16 <= phase_width <= 48:
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
                             f"not {phase_width!r}")
         self._loop_params = dict(speed_width=speed_width, width=width, kp_format=kp_format,

@@ -33,6 +33,7 @@ from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed,
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from .fixed import check_param
 from .divider import Divider
 from .dsp import MUL_WIDTH, check_mul_width, partial_products, partial_sum, saturate_bits
 
@@ -59,12 +60,6 @@ def svpwm_constants(width, frac=None):
     n = math.isqrt((1 << e) // 3)
     k = n + 1 if 3 * (2 * n + 1) ** 2 < (1 << (e + 2)) else n
     return frac + SVPWM_GUARD_BITS, k_frac, k
-
-
-def _check_width(owner, name, value, lo, hi):
-    if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
-        raise TypeError(f"{owner} {name} must be an integer from {lo} to {hi}, not {value!r}")
-    return value
 
 
 def _check_hz(owner, name, value):
@@ -166,9 +161,9 @@ class SVPWM(wiring.Component):
 
     def __init__(self, *, width=16, frac=None, count_width=16, radix_bits=2, mul_width=MUL_WIDTH):
         self._mul_width = check_mul_width("SVPWM", mul_width)
-        _check_width("SVPWM", "width", width, 8, 24)
-        _check_width("SVPWM", "count_width", count_width, 4, 24)
-        _check_width("SVPWM", "radix_bits", radix_bits, 1, 4)
+        check_param("SVPWM", "width", width, 8, 24)
+        check_param("SVPWM", "count_width", count_width, 4, 24)
+        check_param("SVPWM", "radix_bits", radix_bits, 1, 4)
         if frac is None:
             frac = width - 1
         if not isinstance(frac, int) or isinstance(frac, bool) or frac not in (width - 2,
@@ -447,7 +442,7 @@ class DCBusCompensation(wiring.Component):
     def __init__(self, *, width=16, out_width=None, adc_width=16, gain_limit=2.0,
                  mul_width=MUL_WIDTH):
         self._mul_width = check_mul_width("DCBusCompensation", mul_width)
-        _check_width("DCBusCompensation", "width", width, 8, 24)
+        check_param("DCBusCompensation", "width", width, 8, 24)
         if out_width is None:
             out_width = width
         elif not isinstance(out_width, int) or isinstance(out_width, bool):
@@ -456,7 +451,7 @@ class DCBusCompensation(wiring.Component):
         if out_width not in (width, width + 1):
             raise ValueError(f"DCBusCompensation out_width must be width ({width}) or "
                              f"width + 1, not {out_width!r}")
-        _check_width("DCBusCompensation", "adc_width", adc_width, 4, 24)
+        check_param("DCBusCompensation", "adc_width", adc_width, 4, 24)
         if (not isinstance(gain_limit, (int, float)) or isinstance(gain_limit, bool)
                 or not math.isfinite(gain_limit)):
             raise TypeError(f"DCBusCompensation gain_limit must be a number, not {gain_limit!r}")
@@ -610,7 +605,7 @@ class PWMTimer(wiring.Component):
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16):
         clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
         pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
-        _check_width("PWMTimer", "count_width", count_width, 4, 24)
+        check_param("PWMTimer", "count_width", count_width, 4, 24)
         n = pwm_half_period(clk_hz, pwm_hz)
         if n < 4:
             raise ValueError(f"PWMTimer pwm_hz {pwm_hz:g} Hz is too high for clk_hz {clk_hz:g} Hz: "
