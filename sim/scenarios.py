@@ -77,8 +77,8 @@ def current_limit_a(motor):
 
 
 def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, speed_a=3.0,
-          current_bandwidth_hz=None, ref_delay_runs=3.5, int_hold=True, tune_kw=None,
-          slew_frac=0.92, ff_iq_a=None, move_rpm=None):
+          current_bandwidth_hz=None, ref_delay_runs=3.25, int_hold=True, tune_kw=None,
+          slew_frac=0.92, ff_iq_a=None, move_rpm=None, uq_limit=0.999):
     """Configure the simulated drive over its host link for the speed and current modes.
 
     Writes: ``u_rated`` (the DC bus), the encoder (lines, pole pairs, Z offset, Hall offset) and
@@ -89,11 +89,19 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
     speed-loop update) from ``slew_rpm_per_s``, default ``slew_frac`` = 92 % of the
     current-limited acceleration α_max, and the acceleration feed-forward
     ``speed_ff_iq = J·α/K_t`` (``ff_iq_a`` overrides it, A), the PI's reference delayed by
-    ``ref_delay_runs`` (3.5 runs: the speed lags the profile by the current's latency and
-    voltage-limited rise, ≈ 0.43 ms from standstill at U_dc = 310 V, the M/T average adds
+    ``ref_delay_runs`` (3.25 runs: the speed lags the profile by the current's latency and
+    voltage-limited rise, ≈ 0.4 ms from standstill at U_dc = 310 V, the M/T average adds
     ≈ 0.1 ms; a delay a little short of that lets the PI's share top the current up to the limit
     during the acceleration) and its integrator held until the delayed reference has arrived
     (``int_hold``).
+
+    ``uq_limit`` is the q-axis current PI's output limit ``±pi_q_lim`` in its per-unit of
+    (2/3)·U_dc (the register's reset is the linear-modulation circle √3/2 = 0.866): 0.999 lets
+    the q voltage reach the hexagon, over-modulating (the SVPWM keeps the vector's angle and puts
+    it on the hexagon's edge) while the current is voltage-limited — the start and the end of a
+    current-limited acceleration — so the current rises and falls ≈ 5 % faster on average over
+    the rotor angle. In steady state below the base speed the loop stays linear. The d axis keeps
+    the linear limit.
 
     ``move_rpm`` (the speed change the scenario is about to command, r/min) turns on whole-run
     planning, as a motion planner does: the slew is lowered to ``|Δ|/n`` for the smallest whole
@@ -120,9 +128,14 @@ def setup(cosim, *, current_limit=None, slew_rpm_per_s=None, accel_ff=True, spee
         "mt_k": mt_k_for(cosim.scales, lines=motor.encoder_lines,
                          edges_per_line=MT_EDGES_PER_LINE[cosim.top.mt_edges]),
     })
+    if (not isinstance(uq_limit, (int, float)) or isinstance(uq_limit, bool)
+            or not 0 < uq_limit < 1):
+        raise ValueError(f"uq_limit must be a number of (2/3)·U_dc above 0 and below 1, "
+                         f"not {uq_limit!r}")
     servo.set_many({"pi_speed_lim_lo": -i_max, "pi_speed_lim_hi": i_max})
     servo.tune(motor, current_bandwidth_hz=current_bandwidth_hz, speed_a=speed_a,
                **(tune_kw or {}))
+    servo.set_many({"pi_q_lim_lo": -uq_limit, "pi_q_lim_hi": uq_limit})
     servo.set_many({
         "prot_oc_limit": min(1.25 * i_max, 0.999 * i_fs),
         "prot_ov_limit": 1.3 * plant.udc_v,
