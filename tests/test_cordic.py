@@ -7,40 +7,15 @@ import math
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Const, Fragment, Module, Value, signed
+from amaranth.hdl import Fragment, signed
 
 from foc_servo.hdl.cordic import Cordic, CordicParams
-from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.cordic import rotate, rotate_ideal, rotate_trace
 from foc_servo.sim.verify.cordic import corner_cases, run
 
-FS = 1 << 15
-
-
-def _random(n, seed, width=16, angle_width=None):
-    angle_width = width if angle_width is None else angle_width
-    rng = np.random.default_rng(seed)
-    fs = 1 << (width - 1)
-    return (rng.integers(-fs, fs, n), rng.integers(-fs, fs, n),
-            rng.integers(0, 1 << angle_width, n))
-
-
-def _simulate_vectors(dut, vectors):
-    """Feed ``vectors`` (dicts of payload fields) one per clock; return the outputs in order."""
-    outputs = []
-
-    async def testbench(ctx):
-        for k in range(len(vectors) + dut.latency + 1):
-            if k < len(vectors):
-                ctx.set(dut.i.payload, vectors[k])
-            ctx.set(dut.i.valid, k < len(vectors))
-            await ctx.tick()
-            if ctx.get(dut.o.valid):
-                p = ctx.get(dut.o.payload)
-                outputs.append((p.x, p.y, p.tag) if dut.tag_width else (p.x, p.y))
-
-    simulate(dut, [testbench], name="cordic_test")
-    return outputs
+from rotation_common import (FS, check_latency_cycle_by_cycle,
+                             check_park_inverse_park_round_trip, signal_ports,
+                             random_vectors as _random, simulate_vectors as _simulate_vectors)
 
 
 # --- parameter validation --------------------------------------------------------------------
@@ -183,33 +158,7 @@ def test_cordic_park_inverse_park_round_trip_model():
 
 @pytest.mark.parametrize("kwargs", [{}, {"width": 12, "iterations_per_stage": 2, "tag_width": 2}])
 def test_cordic_latency_cycle_by_cycle(kwargs):
-    dut = Cordic(**kwargs)
-    turn = 1 << dut.angle_width
-    fs = 1 << (dut.width - 1)
-    vector = {"x": fs // 2, "y": -fs // 3, "theta": turn // 6}
-    if dut.tag_width:
-        vector["tag"] = 2
-    ex, ey = rotate([vector["x"]], [vector["y"]], [vector["theta"]], **kwargs)
-    seen = []
-
-    async def testbench(ctx):
-        ctx.set(dut.i.payload, vector)
-        ctx.set(dut.i.valid, 1)
-        await ctx.tick()
-        ctx.set(dut.i.valid, 0)
-        ctx.set(dut.i.payload, {"x": 0, "y": 0, "theta": 0})
-        for clock in range(1, dut.latency + 4):
-            # Before the edge of clock `clock` + 1, o reflects `clock` clocks after i.valid.
-            seen.append((clock, ctx.get(dut.o.valid)))
-            if clock == dut.latency:
-                p = ctx.get(dut.o.payload)
-                assert (p.x, p.y) == (ex[0], ey[0])
-                if dut.tag_width:
-                    assert p.tag == 2
-            await ctx.tick()
-
-    simulate(dut, [testbench], name="cordic_latency")
-    assert [c for c, v in seen if v] == [dut.latency]
+    check_latency_cycle_by_cycle(Cordic(**kwargs), lambda x, y, t: rotate(x, y, t, **kwargs))
 
 
 def test_cordic_named_corners_gateware_bit_exact():
@@ -256,47 +205,12 @@ def test_cordic_other_configurations_vs_model(params):
 
 
 def test_cordic_park_inverse_park_round_trip_gateware():
-    # Park CORDIC (θ negated) feeds the inverse-Park CORDIC; θ travels in the first one's tag.
-    park, inverse = Cordic(tag_width=16), Cordic()
-    m = Module()
-    m.submodules.park, m.submodules.inverse = park, inverse
-    m.d.comb += [
-        inverse.i.valid.eq(park.o.valid),
-        inverse.i.payload.x.eq(park.o.payload.x),
-        inverse.i.payload.y.eq(park.o.payload.y),
-        inverse.i.payload.theta.eq(park.o.payload.tag),
-    ]
-    rng = np.random.default_rng(14)
-    n = 150
-    r = rng.uniform(0, FS - 1, n)
-    phi = rng.uniform(-math.pi, math.pi, n)
-    x, y = np.round(r * np.cos(phi)).astype(int), np.round(r * np.sin(phi)).astype(int)
-    theta = rng.integers(0, 1 << 16, n)
-    got = []
-
-    async def testbench(ctx):
-        for k in range(n + park.latency + inverse.latency + 1):
-            if k < n:
-                ctx.set(park.i.payload, {"x": int(x[k]), "y": int(y[k]),
-                                         "theta": int(-theta[k]) % (1 << 16),
-                                         "tag": int(theta[k])})
-            ctx.set(park.i.valid, k < n)
-            await ctx.tick()
-            if ctx.get(inverse.o.valid):
-                p = ctx.get(inverse.o.payload)
-                got.append((p.x, p.y))
-
-    simulate(m, [testbench], name="cordic_round_trip")
-    got = np.array(got)
-    assert len(got) == n
-    assert np.max(np.abs(got - np.stack([x, y], axis=1))) <= 2
+    check_park_inverse_park_round_trip(Cordic(tag_width=16), Cordic(), n=150)
 
 
 def test_cordic_converts_to_verilog():
-    # The always-ready streams' `ready` members are constants, which `convert` cannot take as
-    # ports (amaranth-lang/amaranth#1574): list the signal ports explicitly.
     dut = Cordic(width=12, tag_width=2)
-    ports = [Value.cast(v) for _, _, v in dut.signature.flatten(dut) if not isinstance(v, Const)]
+    ports = signal_ports(dut)
     text = verilog.convert(dut, name="cordic", ports=ports)
     assert "module cordic" in text
     for port in ("i__payload", "i__valid", "o__payload", "o__valid"):

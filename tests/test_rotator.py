@@ -7,44 +7,19 @@ import math
 import numpy as np
 import pytest
 from amaranth.back import rtlil, verilog
-from amaranth.hdl import Const, Fragment, Module, Value, signed
+from amaranth.hdl import Fragment, signed
 
 from foc_servo.hdl.rotator import Rotator, RotatorParams
-from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.rotator import rotate, rotate_ideal, rotate_trace, trig
 from foc_servo.sim.verify.rotator import corner_cases, run
 
-FS = 1 << 15
-
-
-def _random(n, seed, width=16, angle_width=None):
-    angle_width = width if angle_width is None else angle_width
-    rng = np.random.default_rng(seed)
-    fs = 1 << (width - 1)
-    return (rng.integers(-fs, fs, n), rng.integers(-fs, fs, n),
-            rng.integers(0, 1 << angle_width, n))
-
+from rotation_common import (FS, check_latency_cycle_by_cycle,
+                             check_park_inverse_park_round_trip, signal_ports,
+                             random_vectors as _random, simulate_vectors)
 
 def _simulate_vectors(dut, vectors, spacing=None):
-    """Feed ``vectors`` (dicts of payload fields) one every ``spacing`` clocks (default the
-    rotator's interval); return the outputs in order."""
-    spacing = dut.interval if spacing is None else spacing
-    outputs = []
-
-    async def testbench(ctx):
-        for k in range(len(vectors) * spacing + dut.latency + 1):
-            j, feed = divmod(k, spacing)
-            feed = feed == 0 and j < len(vectors)
-            if feed:
-                ctx.set(dut.i.payload, vectors[j])
-            ctx.set(dut.i.valid, feed)
-            await ctx.tick()
-            if ctx.get(dut.o.valid):
-                p = ctx.get(dut.o.payload)
-                outputs.append((p.x, p.y, p.tag) if dut.tag_width else (p.x, p.y))
-
-    simulate(dut, [testbench], name="rotator_test")
-    return outputs
+    """One vector every ``spacing`` clocks, default the rotator's interval."""
+    return simulate_vectors(dut, vectors, dut.interval if spacing is None else spacing)
 
 
 # --- parameter validation --------------------------------------------------------------------
@@ -256,33 +231,8 @@ def test_rotator_model_trace_sums_exact():
 @pytest.mark.parametrize("kwargs", [{}, {"width": 12, "tag_width": 2},
                                     {"registered": True, "tag_width": 2}])
 def test_rotator_latency_cycle_by_cycle(kwargs):
-    dut = Rotator(**kwargs)
-    turn = 1 << dut.angle_width
-    fs = 1 << (dut.width - 1)
-    vector = {"x": fs // 2, "y": -fs // 3, "theta": turn // 6}
-    if dut.tag_width:
-        vector["tag"] = 2
     model = {k: v for k, v in kwargs.items() if k != "tag_width"}
-    ex, ey = rotate([vector["x"]], [vector["y"]], [vector["theta"]], **model)
-    seen = []
-
-    async def testbench(ctx):
-        ctx.set(dut.i.payload, vector)
-        ctx.set(dut.i.valid, 1)
-        await ctx.tick()
-        ctx.set(dut.i.valid, 0)
-        ctx.set(dut.i.payload, {"x": 0, "y": 0, "theta": 0})
-        for clock in range(1, dut.latency + 4):
-            seen.append((clock, ctx.get(dut.o.valid)))
-            if clock == dut.latency:
-                p = ctx.get(dut.o.payload)
-                assert (p.x, p.y) == (ex[0], ey[0])
-                if dut.tag_width:
-                    assert p.tag == 2
-            await ctx.tick()
-
-    simulate(dut, [testbench], name="rotator_latency")
-    assert [c for c, v in seen if v] == [dut.latency]
+    check_latency_cycle_by_cycle(Rotator(**kwargs), lambda x, y, t: rotate(x, y, t, **model))
 
 
 def test_rotator_named_corners_gateware_bit_exact():
@@ -360,49 +310,14 @@ def test_rotator_rejects_vectors_closer_than_the_interval(registered):
 
 
 def test_rotator_park_inverse_park_round_trip_gateware():
-    # Park rotator (θ negated) feeds the inverse-Park rotator; θ travels in the first one's tag.
-    park, inverse = Rotator(tag_width=16), Rotator()
-    m = Module()
-    m.submodules.park, m.submodules.inverse = park, inverse
-    m.d.comb += [
-        inverse.i.valid.eq(park.o.valid),
-        inverse.i.payload.x.eq(park.o.payload.x),
-        inverse.i.payload.y.eq(park.o.payload.y),
-        inverse.i.payload.theta.eq(park.o.payload.tag),
-    ]
-    rng = np.random.default_rng(14)
-    n = 100
-    r = rng.uniform(0, FS - 1, n)
-    phi = rng.uniform(-math.pi, math.pi, n)
-    x, y = np.round(r * np.cos(phi)).astype(int), np.round(r * np.sin(phi)).astype(int)
-    theta = rng.integers(0, 1 << 16, n)
-    got = []
-
-    async def testbench(ctx):
-        for k in range(n * 4 + park.latency + inverse.latency + 1):
-            j, phase = divmod(k, 4)
-            feed = phase == 0 and j < n
-            if feed:
-                ctx.set(park.i.payload, {"x": int(x[j]), "y": int(y[j]),
-                                         "theta": int(-theta[j]) % (1 << 16),
-                                         "tag": int(theta[j])})
-            ctx.set(park.i.valid, feed)
-            await ctx.tick()
-            if ctx.get(inverse.o.valid):
-                p = ctx.get(inverse.o.payload)
-                got.append((p.x, p.y))
-
-    simulate(m, [testbench], name="rotator_round_trip")
-    got = np.array(got)
-    assert len(got) == n
-    assert np.max(np.abs(got - np.stack([x, y], axis=1))) <= 2
+    check_park_inverse_park_round_trip(Rotator(tag_width=16), Rotator(), n=100, spacing=4)
 
 
 def test_rotator_table_is_a_synchronous_memory():
     # One memory of 2**table_bits words, read through a synchronous port: what yosys maps to
     # SB_RAM40_4K / DP16KD / RAMB18 (the area runs in docs/AREA.md check the mapping).
     dut = Rotator(tag_width=1)
-    ports = [Value.cast(v) for _, _, v in dut.signature.flatten(dut) if not isinstance(v, Const)]
+    ports = signal_ports(dut)
     text = rtlil.convert(dut, name="rotator", ports=ports)
     assert text.count("cell $memrd_v2") == 1 and "parameter \\CLK_ENABLE 1\n" in text
     assert "memory width 36 size 512 \\table\n" in text
@@ -410,7 +325,7 @@ def test_rotator_table_is_a_synchronous_memory():
 
 def test_rotator_converts_to_verilog():
     dut = Rotator(width=12, tag_width=2)
-    ports = [Value.cast(v) for _, _, v in dut.signature.flatten(dut) if not isinstance(v, Const)]
+    ports = signal_ports(dut)
     text = verilog.convert(dut, name="rotator", ports=ports)
     assert "module rotator" in text
     for port in ("i__payload", "i__valid", "o__payload", "o__valid"):
