@@ -137,13 +137,16 @@ class MTSpeed(wiring.Component):
     ----------
     latency : int
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
-        ``o.valid`` high in clock ``u + latency``): 1 (snapshot) + :attr:`k_chunks` (product)
-        + 1 (divider input) + the divider's ``latency`` + 1 (output register) =
+        ``o.valid`` high in clock ``u + latency``): 1 (snapshot) + :attr:`k_chunks` (partial
+        products; each one's carry add runs a clock later, the last one straight into the
+        divider's input) + 1 (divider input) + the divider's ``latency`` + 1 (output register) =
         ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the defaults).
     k_chunks : int
         ``ceil(k_width / 16)``: ``k·|ΔM|`` is computed as ``k_chunks`` products of 16 bits of
         ``k`` and ``|ΔM|``, one per clock, least significant first (one 16 × ``m_width``
-        multiplier instead of ``k_chunks``; the result is the exact product).
+        multiplier instead of ``k_chunks``; the result is the exact product). Each partial
+        product is registered before its carry add (ECP5 Fmax: the multiplier and the adder
+        chain in separate clocks), without adding a clock to :attr:`latency`.
     tclk_ratio : int
         System clocks per TC tick.
     tclk_hz : float
@@ -252,8 +255,7 @@ class MTSpeed(wiring.Component):
         t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
         have_ref = Signal()             # a reference edge younger than the TC span exists
-        prev_mag = Signal(ow - 1)       # last fresh measurement: magnitude
-        prev_neg = Signal()             # and sign
+        prev = Signal(signed(ow))       # last fresh measurement, |prev| <= s_max
         prev_valid = Signal()           # a measurement since reset / the last expiry
         busy = Signal()                 # a computation is in flight
 
@@ -272,19 +274,29 @@ class MTSpeed(wiring.Component):
         expire = have_ref & tick & ((tc + 1)[:w] == t_ref)
         start = self.update & ~busy
 
-        with m.If(~have_ref):
-            with m.If(step):                    # the first edge becomes the reference
-                m.d.sync += [t_ref.eq(tc), t_last.eq(tc), have_ref.eq(1)]
-        with m.Elif(start & pend_e):            # close the window on its last edge
-            m.d.sync += [t_ref.eq(tl_e), t_last.eq(tl_e), m_acc.eq(0), pending.eq(0)]
-        with m.Elif(expire):
+        # The window's next state, written as flat enables (the expiry compare is the longest
+        # path into them; ECP5 Fmax):
+        # * no reference: the first edge becomes the reference;
+        # * update, or expiry (update period > span), with edges since the reference: close the
+        #   window on its last edge, which becomes the new reference;
+        # * expiry without edges: the reference is dropped; any expiry not at a closing update
+        #   also invalidates the last measurement;
+        # * otherwise the edge of this clock (if any) is counted.
+        # t_last is always the last edge's T (no edge: unchanged); m_acc and pending are 0 while
+        # there is no reference, and at an expiry without edges.
+        first = ~have_ref & step
+        close = have_ref & pend_e & (start | expire)
+        m.d.sync += t_last.eq(tl_e)
+        with m.If(first | close):
+            m.d.sync += t_ref.eq(tl_e)
+        with m.If(have_ref):
+            m.d.sync += [m_acc.eq(Mux(close, 0, m_e)), pending.eq(pend_e & ~close)]
+        with m.If(have_ref & expire & ~(start & pend_e)):
             m.d.sync += prev_valid.eq(0)
-            with m.If(pend_e):                  # (update period > span) re-anchor on the last edge
-                m.d.sync += [t_ref.eq(tl_e), t_last.eq(tl_e), m_acc.eq(0), pending.eq(0)]
-            with m.Else():
-                m.d.sync += have_ref.eq(0)
-        with m.Else():
-            m.d.sync += [m_acc.eq(m_e), t_last.eq(tl_e), pending.eq(pend_e)]
+        with m.If(first):
+            m.d.sync += have_ref.eq(1)
+        with m.Elif(expire & ~pend_e):
+            m.d.sync += have_ref.eq(0)
 
         # --- Computation: snapshot at the update, product, divide, select. The window's ΔM is
         # kept as magnitude and sign: the divider is unsigned, the sign goes on the result.
@@ -309,25 +321,42 @@ class MTSpeed(wiring.Component):
                 m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_neg.eq(0),
                              snap_dt.eq(1)]
 
-        # k·|ΔM| on 16-bit chunks of k, least significant first, one per clock: t = k_c·|ΔM| +
-        # carry; t's low 16 bits are bits 16c … 16c + 15 of the product (shifted into `low`),
-        # the rest is the next carry. After the last chunk the product is Cat(low, carry).
+        # k·|ΔM| on 16-bit chunks of k, least significant first, in two stages (the multiplier
+        # and the carry adder in separate clocks: ECP5 Fmax). Clock u + 1 + c (c = 0 … nk − 1):
+        # `pp` = k_c·|ΔM|. Clock u + 2 + c: t = pp + carry; t's low 16 bits are bits 16c … 16c + 15
+        # of the product (shifted into `low`), the rest is the next carry. The last t (clock
+        # u + nk + 1, `ready`) goes straight into the divider, unregistered: the product is
+        # Cat(low, t), ready in the same clock as with a single stage.
         nk = self.k_chunks
-        low = Signal(16 * nk)
-        carry = Signal(mw)                              # (k_c·|ΔM| + carry) >> 16 < 2**mw
-        prod = Cat(low, carry)[:self._k_width + mw - 1]  # k·|ΔM| < 2**(k_width + mw - 1)
+        low = Signal(16 * (nk - 1))                     # bits 0 … 16(nk − 1) − 1 of the product
+        carry = Signal(mw)                              # (pp + carry) >> 16 < 2**mw
+        # The registered partial product k_c·|ΔM|: no reset (it is rewritten every clock and
+        # only read while `adding`), so that iCE40 synthesis takes it into the SB_MAC16's own
+        # pipeline register and keeps the carry add in the SB_MAC16's adder.
+        pp = Signal(16 + mw, reset_less=True)
+        t = Signal(16 + mw)                             # pp + carry < 2**(16 + mw)
+        prod = Cat(low, t)[:self._k_width + mw - 1]     # k·|ΔM| < 2**(k_width + mw - 1)
         left = Signal(range(nk + 1))                    # chunks still to multiply
+        adding = Signal()                               # pp holds a partial product
         ready = Signal()                                # prod is complete: divider input
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
         # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
         k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
-        t = Signal(16 + mw)
-        m.d.comb += t.eq(k_rev.word_select(left, 16) * snap_dm + carry)
-        m.d.sync += ready.eq(left == 1)
+        m.d.comb += t.eq(pp + carry)
+        m.d.sync += [
+            pp.eq(k_rev.word_select(left, 16) * snap_dm),
+            adding.eq(left != 0),
+            ready.eq(left == 1),
+        ]
         with m.If(start):
             m.d.sync += [carry.eq(0), left.eq(nk)]
-        with m.Elif(left != 0):
-            m.d.sync += [low.eq(Cat(low[16:], t[:16])), carry.eq(t[16:]), left.eq(left - 1)]
+        with m.Else():
+            with m.If(left != 0):
+                m.d.sync += left.eq(left - 1)
+            with m.If(adding & ~ready):
+                m.d.sync += carry.eq(t[16:])
+                if nk > 1:
+                    m.d.sync += low.eq(Cat(low[16:], t[:16]))
         m.d.comb += [
             div.i.valid.eq(ready),                      # the divider is idle: one at a time
             div.i.payload.dividend.eq(prod),
@@ -340,22 +369,37 @@ class MTSpeed(wiring.Component):
         q = div.o.payload.quotient
         if self._quotient_width < ow - 1:
             q = Mux(div.o.payload.div0, s_max, q)
-        mag = Signal(ow - 1)
-        neg = Signal()
-        with m.Switch(mode):
-            with m.Case(WindowMode.FRESH):              # 0/0 (net-zero window, ΔT = 0) is 0
-                m.d.comb += [mag.eq(Mux(snap_dm == 0, 0, q)), neg.eq(snap_neg)]
-            with m.Case(WindowMode.BOUND):              # never above the last measurement
-                m.d.comb += [mag.eq(Mux(q < prev_mag, q, prev_mag)), neg.eq(prev_neg)]
+        # The result, with the sign applied beside the bound's compare rather than after it
+        # (ECP5 Fmax): two carry chains side by side from the quotient register, then one LUT
+        # per bit. `sq` = ±q with the sign of ΔM (fresh) or of the last measurement (bounded),
+        # as (q ^ −s) + s; `lt` = q < |prev| from the sign of q − |prev|, formed as
+        # q + (prev ^ −p) + p, p = (prev >= 0), in ow + 1 bits (the second operand sign-extended:
+        # its top bit is always 1), the carry-in p entering through a low bit set to 1: one
+        # adder chain.
+        sgn = Signal()
+        m.d.comb += sgn.eq(Mux(mode == WindowMode.FRESH, snap_neg, prev[-1]))
+        q_x = Signal(ow)                                # q zero-extended (q <= s_max)
+        m.d.comb += q_x.eq(q)
+        sq = Signal(signed(ow))
+        m.d.comb += sq.eq((q_x ^ sgn.replicate(ow)) + sgn)
+        pos = ~prev[-1]
+        diff = Signal(ow + 2)
+        m.d.comb += diff.eq(Cat(Const(1, 1), q_x, Const(0, 1))
+                            + Cat(pos, prev.as_unsigned() ^ pos.replicate(ow), Const(1, 1)))
+        lt = diff[-1]                                   # q − |prev| < 0
+        use_prev = (mode == WindowMode.BOUND) & ~lt     # never above the last measurement
+        kill = (mode == WindowMode.STOPPED) | ((mode == WindowMode.FRESH) & (snap_dm == 0))
+        speed = Signal(signed(ow))                      # 0/0 (net-zero window, ΔT = 0) is 0
+        m.d.comb += speed.eq(Mux(kill, 0, Mux(use_prev, prev, sq)))
         p = self.o.payload
         m.d.sync += self.o.valid.eq(div.o.valid)
         with m.If(div.o.valid):
             m.d.sync += [
                 busy.eq(0),
-                p.speed.eq(Mux(neg, -mag, mag)),
+                p.speed.eq(speed),
                 p.stopped.eq(mode == WindowMode.STOPPED),
                 p.fresh.eq(mode == WindowMode.FRESH),
             ]
             with m.If(mode == WindowMode.FRESH):
-                m.d.sync += [prev_mag.eq(mag), prev_neg.eq(neg), prev_valid.eq(1)]
+                m.d.sync += [prev.eq(speed), prev_valid.eq(1)]
         return m

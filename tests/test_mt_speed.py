@@ -1,6 +1,8 @@
 # amaranth: UnusedElaboratable=no
 # Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
+import math
 import re
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -10,19 +12,48 @@ import foc_servo.sim.verify.mt_speed as verify
 from foc_servo.boards.area import ports
 from foc_servo.hdl.mt_speed import MTSpeed
 from foc_servo.sim.harness import simulate
+from foc_servo.sim.models import divider as divider_model
 from foc_servo.sim.models import mt_speed as model
 
 FIELDS = ("cycle", "speed", "stopped", "fresh")
 
 
+def exact_speed(k, dm, dt, out_width):
+    """Independent reference of a fresh window's speed: k·ΔM/ΔT as an exact rational, truncated
+    toward zero, saturated to ±(2**(out_width − 1) − 1); ΔT = 0 reads full scale with the sign of
+    ΔM (whatever k), ΔM = 0 reads 0 (whatever ΔT)."""
+    s_max = 2 ** (out_width - 1) - 1
+    if dm == 0:
+        return 0
+    if dt == 0:
+        return s_max if dm > 0 else -s_max
+    return max(-s_max, min(s_max, math.trunc(Fraction(k * dm, dt))))
+
+
+def signed_divider_speeds(ops, p):
+    """The pre-session-2 data path (``6e4c613``) for a list of (k, ΔM, ΔT): k·ΔM into a *signed*
+    Divider(width=k_width + m_width, divisor_width=tc_width + 1), its quotient clamped to
+    ±s_max, ΔM = 0 → 0."""
+    s_max = 2 ** (p.out_width - 1) - 1
+    q, _, _, _ = divider_model.divide(np.array([k * dm for k, dm, _ in ops], dtype=object),
+                                      np.array([dt for _, _, dt in ops], dtype=object),
+                                      width=p.k_width + p.m_width,
+                                      divisor_width=p.tc_width + 1, signed=True)
+    return [0 if dm == 0 else max(-s_max, min(s_max, int(x))) for (_, dm, _), x in zip(ops, q)]
+
+
 def both(dut, edges, neg, ups, *, k, end_cycle):
-    """Gateware and model outputs for the same strobes; asserts they are identical."""
+    """Gateware and model outputs for the same strobes; asserts they are identical, and that
+    every fresh output is the exact k·ΔM/ΔT (:func:`exact_speed`) of its operands."""
     got = verify.run_gateware(dut, edges, neg, ups, k=k, end_cycle=end_cycle)
     want = model.simulate(edges, neg, ups, k=k, params=model.MTParams.of(dut),
                           end_cycle=end_cycle)
     assert got["received"] == len(want["cycle"])
     for f in FIELDS:
         np.testing.assert_array_equal(got[f], want[f], err_msg=f)
+    fresh = np.flatnonzero(want["fresh"])
+    ref = [exact_speed(k, int(want["dm"][i]), int(want["dt"][i]), dut.out_width) for i in fresh]
+    np.testing.assert_array_equal(got["speed"][fresh], ref, err_msg="exact k·ΔM/ΔT")
     return want
 
 
@@ -207,6 +238,121 @@ def test_mt_zero_dt_saturates_with_the_sign_of_dm(out_width, k):
     out = both(dut, edges, neg, [105, 205, 300], k=k, end_cycle=400)
     assert out["speed"].tolist() == [s_max, -(k * 2 // 10), -s_max]
     assert out["dt"].tolist() == [0, 10, 0] and out["fresh"].tolist() == [1, 1, 1]
+
+
+def _division_operands(rng, p, n_random):
+    """Corner and random (k, ΔM, ΔT) within the ranges the gateware can produce: k < 2**k_width,
+    |ΔM| <= 2**(m_width − 1) (ΔM saturates at −2**(m_width − 1) … 2**(m_width − 1) − 1),
+    0 <= ΔT < 2**tc_width; plus quotients at the saturation boundary and exact divisions."""
+    k_max, m_lo, m_hi, t_max = 2 ** p.k_width - 1, -2 ** (p.m_width - 1), 2 ** (p.m_width - 1) - 1, \
+        2 ** p.tc_width - 1
+    s_max = 2 ** (p.out_width - 1) - 1
+    ks = {0, 1, 2, 3, k_max, k_max - 1, k_max // 2, min(k_max, 2 ** 16 - 1), min(k_max, 2 ** 16)}
+    dms = {m_lo, m_lo + 1, -2, -1, 0, 1, 2, m_hi - 1, m_hi}
+    dts = {0, 1, 2, 3, t_max, t_max - 1, t_max // 2 + 1}
+    ops = [(k, dm, dt) for k in ks for dm in dms for dt in dts]
+    for _ in range(n_random):
+        k = int(rng.integers(0, k_max + 1)) >> int(rng.integers(0, p.k_width))
+        dm = int(rng.integers(m_lo, m_hi + 1)) >> int(rng.integers(0, p.m_width))
+        dt = int(rng.integers(0, t_max + 1)) >> int(rng.integers(0, p.tc_width))
+        ops.append((k, dm, dt))
+        if dm != 0 and dt != 0:
+            # |k·ΔM| / ΔT around s_max (saturation boundary) and exact multiples (remainder 0).
+            for target in (s_max * dt - 1, s_max * dt, s_max * dt + dt - 1, s_max * dt + dt,
+                           (s_max // 3) * dt, 7 * dt):
+                for kk in (target // abs(dm), target // abs(dm) + 1):
+                    if 0 <= kk <= k_max:
+                        ops.append((kk, dm, dt))
+    return ops
+
+
+@pytest.mark.parametrize("config", [
+    {},                                                 # the top's: Q1.31, k 48, ΔM 16, TC 32
+    {"out_width": 16, "k_width": 24, "m_width": 8, "tc_width": 12},
+    {"out_width": 32, "k_width": 8, "m_width": 4, "tc_width": 8},   # quotient 11 < 31 bits
+])
+def test_mt_unsigned_division_is_the_signed_truncating_division(config):
+    """The M/T data path divides k·|ΔM| by ΔT unsigned (``out_width − 1`` or fewer quotient
+    bits) and applies the sign of ΔM after. Over corner and random operands it equals (a) the
+    exact rational k·ΔM/ΔT truncated toward zero and saturated symmetrically, and (b) the signed
+    Divider path it replaced (truncation toward zero, C99), bit for bit, except the one documented
+    degenerate case k = 0, ΔT = 0, ΔM < 0 (signed: 0/0 saturates positive; now: −full scale, the
+    sign of ΔM like every other ΔT = 0) and, in narrow instances (k_width + m_width < out_width;
+    not the top's), ΔT = 0 at all, which the signed divider saturated to its dividend's range
+    (±(2**(k_width + m_width − 1) − 1)) instead of full scale."""
+    p = model.MTParams.config(**config)
+    ops = _division_operands(np.random.default_rng(5), p, 3000)
+    assert len(ops) > 4000
+    s_max = 2 ** (p.out_width - 1) - 1
+    seen = {"sat": 0, "neg_inexact": 0, "div0": 0}
+    for (k, dm, dt), old in zip(ops, signed_divider_speeds(ops, p)):
+        want = exact_speed(k, dm, dt, p.out_width)
+        assert model.fresh_speed(k, dm, dt, out_width=p.out_width) == want, (k, dm, dt)
+        if dt == 0 and dm != 0:
+            # Division by zero: the signed divider saturated to the limit of its dividend's
+            # width with the sign of k·ΔM (0 counts as positive), then the clamp to ±s_max.
+            n = p.k_width + p.m_width - 1
+            assert old == (min(s_max, 2 ** n - 1) if k * dm >= 0 else max(-s_max, -2 ** n))
+            assert want == (s_max if dm > 0 else -s_max)
+            differs = old != want
+            assert differs == ((k == 0 and dm < 0) or n < p.out_width - 1), (k, dm)
+        else:
+            assert old == want, (k, dm, dt)
+        seen["sat"] += abs(want) == s_max and dt != 0
+        seen["neg_inexact"] += dm < 0 and dt != 0 and (k * dm) % dt != 0 and abs(want) < s_max
+        seen["div0"] += dt == 0 and dm != 0
+    if p.k_width + p.m_width - 1 <= p.out_width - 1:    # |k·ΔM| / ΔT cannot reach s_max
+        del seen["sat"]
+    assert min(seen.values()) > 20, seen
+    # Truncation toward zero, not floor: −7/2 reads −3.
+    assert model.fresh_speed(7, -1, 2, out_width=16) == -3 == exact_speed(7, -1, 2, 16)
+
+
+@pytest.mark.parametrize("out_width", [12, 32])     # quotient 11 bits = out_width − 1; 23 < 31
+@pytest.mark.parametrize("k", [0, 1, 2 ** 20 - 1, 12345])
+def test_mt_division_corners_through_the_gateware(out_width, k):
+    """Windows built edge by edge on a small instance (4-bit ΔM, 8-bit TC, 32 clocks per TC
+    tick) reach the corners: ΔM saturated at −8 and +7, net-zero windows, ΔT = 0 (edges in the
+    reference's tick), 1, 2 and near the span, full-scale k; gateware == model == exact."""
+    dut = MTSpeed(clk_hz=3.2e6, tclk_hz=1e5, tc_width=8, out_width=out_width, k_width=20,
+                  m_width=4)
+    r, lat = dut.tclk_ratio, dut.latency
+    assert r == 32
+    windows = [(1, 1), (-1, 1), (10, 0), (-1, 2), (-12, 0), (3, 250), (0, 0), (0, 3), (-8, 1),
+               (7, 2), (-3, 0), (2, 5), (-12, 250), (1, 0)]     # (edges, signed; ΔT ticks)
+    edges, neg, ups = [], [], []
+    c_ref = 4 * r                                       # reference edge: tick 4, offset 0
+    edges.append(c_ref)
+    neg.append(False)
+    c_up = c_ref + 1
+    ups.append(c_up)                                    # STOPPED (no measurement yet)
+    want_ops = []
+    for n, dt in windows:
+        t_ref = c_ref // r
+        seq = [n < 0] * abs(n) if n else [False, True]
+        if dt == 0:                                     # all in the reference's tick
+            first = max(c_ref, c_up) + 1
+            assert first + len(seq) <= (t_ref + 1) * r
+        else:
+            first = (t_ref + dt) * r
+            assert first > c_up
+        cs = list(range(first, first + len(seq)))
+        edges += cs
+        neg += seq
+        c_ref = cs[-1]
+        c_up = max(c_ref + 1, c_up + lat)
+        ups.append(c_up)
+        m = sum(-1 if x else 1 for x in seq)
+        want_ops.append((max(-8, min(7, m)) if abs(n) <= 12 else None, dt))
+    out = both(dut, edges, neg, ups, k=k, end_cycle=c_up + lat + 2)
+    fresh = out["fresh"] == 1
+    assert fresh.sum() == len(windows)
+    assert out["dt"][fresh].tolist() == [dt for _, dt in want_ops]
+    dms = out["dm"][fresh].tolist()
+    assert dms[2] == 7 and dms[4] == -8 and dms[6] == 0 and -8 in dms and 7 in dms
+    s_max = 2 ** (out_width - 1) - 1
+    speeds = out["speed"][fresh].tolist()
+    assert speeds[2] == s_max and speeds[4] == -s_max and speeds[6] == 0    # ΔT = 0, 0/0
 
 
 def test_mt_reversal_random_profile_x4():

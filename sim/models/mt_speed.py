@@ -20,7 +20,8 @@ import numpy as np
 from .divider import latency as divider_latency
 from ...hdl.regmap import MT_EDGES_PER_LINE
 
-__all__ = ["MTParams", "k_for", "simulate", "ideal_encoder_edges", "STOPPED", "BOUND", "FRESH"]
+__all__ = ["MTParams", "k_for", "fresh_speed", "simulate", "ideal_encoder_edges", "STOPPED",
+           "BOUND", "FRESH"]
 
 STOPPED, BOUND, FRESH = 0, 1, 2     # WindowMode values
 
@@ -104,6 +105,15 @@ def _magnitude(n, d, s_max):
     """The unsigned division ``n / d`` (n, d >= 0) truncated and saturated to ``s_max`` (the
     divider's narrow quotient; ``d = 0`` saturates)."""
     return s_max if d == 0 else min(n // d, s_max)
+
+
+def fresh_speed(k, dm, dt, *, out_width):
+    """The ``speed`` of a fresh window with operands ``k``, ``ΔM = dm``, ``ΔT = dt`` (all
+    integers, ``k, dt >= 0``), as the gateware computes it: the unsigned division of ``k·|ΔM|``
+    by ΔT, truncated and saturated to ``2**(out_width − 1) − 1`` (ΔT = 0 saturates), then the sign
+    of ΔM; a net-zero window (ΔM = 0) reads 0 whatever ΔT."""
+    mag = 0 if dm == 0 else _magnitude(k * abs(dm), dt, (1 << (out_width - 1)) - 1)
+    return -mag if dm < 0 else mag
 
 
 def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_cycle=None):
@@ -213,9 +223,8 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
             # when bounded).
             q = _magnitude(k * abs(snap_dm), snap_dt, s_max)
             if mode == FRESH:
-                mag = 0 if snap_dm == 0 else q
-                speed = -mag if snap_dm < 0 else mag
-                prev, prev_neg, prev_valid = mag, snap_dm < 0, True
+                speed = fresh_speed(k, snap_dm, snap_dt, out_width=ow)
+                prev, prev_neg, prev_valid = abs(speed), snap_dm < 0, True
                 stopped, fresh = 0, 1
             elif mode == BOUND:
                 mag = min(q, prev)
