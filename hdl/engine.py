@@ -24,16 +24,17 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     END  o.valid, halt
 
 Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``), R (operand
-RF read, transparent for the write port), X1 (operand select, ALU adder, flags, branch; MUL and
-DIV operands registered), X2 (round/shift/saturate, write back to the RF and the output
-registers; product and P update; P is read only here). Hence: an instruction does not see the
-register written by the instruction just before it (the assembler inserts a NOP where a program
-would, and checks every branch path); flags and P behave sequentially (an ALU operation on P or
-PQ is an ADD with B = 0 and reads P in X2). A branch resolves in X1: the two instructions behind
-it (the delay slots) always execute. The angle register ``ang`` (an output, written in X2)
-addresses the sine table: the fold flags are valid from the second instruction after the one
-writing ``ang``, ``KD`` from the third, the table words ``TS``, ``TC`` from the fourth (the
-special operands are selected and registered in R).
+RF read, transparent for the write port; special operands, adder mode and result select decoded
+and registered), X1 (operand select, ALU adder, flags, branch; MUL and DIV operands and the
+rounding constant registered), X2 (P read, rounding add; product and P update), X3 (shift,
+saturate, write back to the RF and the output registers). Hence: a register written by
+instruction i is seen from instruction i + 3 on (``HAZARD_RF``; the assembler schedules
+straight-line code to fill the gap, inserts NOPs where it cannot, and checks every branch path);
+flags and P behave sequentially (an ALU operation on P or PQ is an ADD with B = 0 and reads P
+in X2). A branch resolves in X1: the two instructions behind it (the delay slots) always
+execute. The angle register ``ang`` (an output, written in X3) addresses the sine table: after
+instruction i writes ``ang``, the fold flags are valid from i + 3, ``KD`` from i + 4, the table
+words ``TS``, ``TC`` from i + 5 (the special operands are selected and registered in R).
 """
 
 import dataclasses
@@ -48,7 +49,8 @@ from .fixed import check_param
 from .rotator import RotatorParams
 
 __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
-           "RF_DEPTH", "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
+           "RF_DEPTH", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD", "HAZARD_TABLE", "WRITE_DELAY",
+           "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
 #: Width of the register file words, the ALU and the product register ``P``.
 WORD = 48
@@ -56,6 +58,13 @@ WORD = 48
 MUL_A, MUL_B = 19, 28
 #: Register-file words.
 RF_DEPTH = 128
+#: Hazard distances of the three-stage execute (in instructions from the writer): a register
+#: written by instruction i is read correctly from i + HAZARD_RF on; after a write of the angle
+#: register ``ang``, the fold flags are valid from i + HAZARD_FOLD, ``KD`` from i + HAZARD_KD,
+#: the table words ``TS``, ``TC`` from i + HAZARD_TABLE.
+HAZARD_RF, HAZARD_FOLD, HAZARD_KD, HAZARD_TABLE = 3, 3, 4, 5
+#: Execute stages after X1 (X2, X3): an instruction writes back this many clocks after its X1.
+WRITE_DELAY = 2
 #: Saturation choices.
 SAT_NONE, SAT_W, SAT_W1 = 0, 1, 2
 
@@ -303,9 +312,112 @@ class Assembler:
         self._instrs = out
         self._labels = {k: index[v] for k, v in self._labels.items()}
 
-    # --- hazards of the two-stage execute (write back one instruction late) --------------------
-    def _needs(self, prev1, prev2, cur, prev3=None):
-        """NOPs needed between ``prev1`` (the previous instruction) and ``cur``."""
+    # --- list scheduling of straight-line code ----------------------------------------------------
+    def _effects(self, entry):
+        """What one instruction reads and writes, for :meth:`_schedule`: sets of resources
+        (``("r", name)`` registers, ``"flags"``, ``"P"``, ``"ang"``, ``("out", n)``)."""
+        f, a_ref, b_ref, dst, _ = entry
+        op = f["op"]
+        writer = op in ALU_OPS or op == Op.MUL
+        reads, writes = set(), set()
+        for ref, sp, use in ((a_ref, f["asp"], writer), (b_ref, f["bsp"], writer or op == Op.DIV)):
+            if use and not sp and ref[0] == "r":
+                reads.add(ref)
+        if writer and f["asp"] and a_ref in (("s", 0), ("s", 1)):
+            reads.add("P")                                      # a post of P or PQ
+        if writer and f["asp"] and a_ref in (("s", self.specials.index(n))
+                                             for n in ("TS", "TC", "KD")):
+            reads.add("ang")
+        cond = self.conds[f["cond"]] if f["cond"] < len(self.conds) else None
+        if cond in ("N", "Z", "LE"):
+            reads.add("flags")
+        if cond in ("SWAP", "NEGC", "NEGS"):
+            reads.add("ang")
+        if op == Op.MUL:
+            writes.add("P")
+            if f["acc"] or f["wen"] or f["out"]:
+                reads.add("P")                                  # MAC, or a fused post
+        if op == Op.DIV:
+            reads.add("P")
+            writes.add("P")
+        if op in ALU_OPS and f["setf"]:
+            writes.add("flags")
+        if writer and f["wen"]:
+            writes.add(dst)
+        if writer and f["out"]:
+            writes.add(("out", f["out"]))
+            if f["out"] == self.outs.index("ang"):
+                writes.add("ang")
+        return reads, writes
+
+    def _schedule(self):
+        """Reorder each straight-line region (between labels, branches with their two delay
+        slots and ENDs, which stay in place) by list scheduling: every dependence (a register,
+        the flags, P, the angle register; read after write, write after read, write after write)
+        keeps its order; writes of the output registers keep theirs (the outside sees them in
+        program order); among the instructions free to go, the one needing the fewest NOPs
+        (:meth:`_needs`, given what was placed before it) goes first, then the one heading the
+        longest dependence chain, then program order."""
+        instrs = self._instrs
+        fixed = set(self._labels.values())      # region starts
+        pinned = set()
+        for i, (f, *_r) in enumerate(instrs):
+            if f["op"] in (Op.BR, Op.END):
+                pinned.update((i, i + 1, i + 2) if f["op"] == Op.BR else (i,))
+        out = []
+        i = 0
+        while i < len(instrs):
+            if i in pinned:
+                out.append(instrs[i])
+                i += 1
+                continue
+            j = i + 1
+            while j < len(instrs) and j not in pinned and j not in fixed:
+                j += 1
+            out.extend(self._schedule_region(instrs[i:j], out))
+            i = j
+        self._instrs = out
+
+    def _schedule_region(self, region, before):
+        n = len(region)
+        eff = [self._effects(e) for e in region]
+        preds = [set() for _ in range(n)]
+        for i in range(n):
+            ri, wi = eff[i]
+            for j in range(i):
+                rj, wj = eff[j]
+                if (ri & wj) or (wi & rj) or (wi & wj):
+                    preds[i].add(j)
+        # Longest chain of dependences from each instruction (weighted by the RF distance
+        # where a register is passed on).
+        height = [0] * n
+        for i in reversed(range(n)):
+            for k in range(i + 1, n):
+                if i in preds[k]:
+                    regs = {r for r in eff[i][1] & eff[k][0] if isinstance(r, tuple) and
+                            r[0] == "r"}
+                    height[i] = max(height[i], height[k] + (HAZARD_RF if regs else 1))
+        seq = list(before[-HAZARD_TABLE:])
+        done, order = set(), []
+        while len(order) < n:
+            best = None
+            for i in range(n):
+                if i in done or not preds[i] <= done:
+                    continue
+                key = (self._needs(seq, region[i]), -height[i], i)
+                if best is None or key < best:
+                    best = key
+            nops, _, i = best
+            seq.extend([None] * nops)
+            seq.append(region[i])
+            done.add(i)
+            order.append(region[i])
+        return order
+
+    # --- hazards of the three-stage execute (write back two instructions late) ------------------
+    def _needs(self, hist, cur):
+        """NOPs needed in front of ``cur``; ``hist`` holds the instructions before it, the
+        latest last (``None`` for none)."""
         def info(entry):
             f, a_ref, b_ref, dst, _ = entry
             op = f["op"]
@@ -323,15 +435,20 @@ class Assembler:
             }
         c = info(cur)
         n = 0
-        if prev1 is not None:
-            p1 = info(prev1)
-            if p1["writes"] is not None and p1["writes"] in c["reads"]:
-                n = 1
-        # ang written k instructions before: fold flags need k ≥ 2, KD k ≥ 3, the table k ≥ 4.
-        for k, prev in ((1, prev1), (2, prev2), (3, prev3)):
-            if prev is not None and info(prev)["ang"]:
-                n = max(n, 2 - k if c["fold"] else 0, 3 - k if c["kd"] else 0,
-                        4 - k if c["table"] else 0)
+        for k in range(1, HAZARD_TABLE):
+            if k > len(hist):
+                break
+            if hist[-k] is None:                                # a NOP
+                continue
+            p = info(hist[-k])
+            # A register written k instructions before is read from k ≥ HAZARD_RF on; after
+            # a write of ang: fold flags k ≥ HAZARD_FOLD, KD k ≥ HAZARD_KD, the table
+            # k ≥ HAZARD_TABLE.
+            if p["writes"] is not None and p["writes"] in c["reads"]:
+                n = max(n, HAZARD_RF - k)
+            if p["ang"]:
+                n = max(n, HAZARD_FOLD - k if c["fold"] else 0,
+                        HAZARD_KD - k if c["kd"] else 0, HAZARD_TABLE - k if c["table"] else 0)
         return n
 
     def _insert_nops(self):
@@ -342,10 +459,7 @@ class Assembler:
                     inv=0, neg=0, acc=0, asl=0, out=0), ("k", 0), ("k", 0), None, None)
         self.const(0)
         for i, entry in enumerate(instrs):
-            prev1 = out[-1] if out else None
-            prev2 = out[-2] if len(out) > 1 else None
-            prev3 = out[-3] if len(out) > 2 else None
-            n = self._needs(prev1, prev2, entry, prev3)
+            n = self._needs(out, entry)
             if n:
                 if i in slots:
                     raise ValueError(f"Assembler: hazard in a branch delay slot at {i}: "
@@ -356,7 +470,27 @@ class Assembler:
         index[len(instrs)] = len(out)
         self._instrs = out
         self._labels = {k: index[v] for k, v in self._labels.items()}
-        # Check every execution path (branch targets follow the second delay slot).
+        # Every execution path (a branch target follows the second delay slot): where a path
+        # still has a hazard (at a branch target), a NOP goes in front of it (the label then
+        # points to the NOP, so both paths execute it); repeated until no path has one.
+        for _ in range(HAZARD_TABLE * len(out) + 1):
+            errors = self._path_hazards()
+            if not errors:
+                return
+            pc = min(errors)
+            out = self._instrs
+            slots = {i + k for i, (f, *_r) in enumerate(out) if f["op"] == Op.BR
+                     for k in (1, 2)}
+            if pc in slots:
+                raise ValueError(f"Assembler: hazard in a branch delay slot at {pc} on a branch "
+                                 f"path: reorder by hand")
+            out.insert(pc, nop)
+            self._labels = {k: v + 1 if v > pc else v for k, v in self._labels.items()}
+        raise ValueError("Assembler: hazards on a branch path do not converge")  # pragma: no cover
+
+    def _path_hazards(self):
+        """Addresses where an execution path meets a hazard (the first on each path)."""
+        out = self._instrs
         errors = []
 
         def walk(queue, hist):
@@ -366,10 +500,10 @@ class Assembler:
                 if pc >= len(out):
                     return
                 entry = out[pc]
-                if self._needs(hist[-1], hist[-2], entry, hist[-3]):
+                if self._needs(hist, entry):
                     errors.append(pc)
                     return
-                hist = [hist[-2], hist[-1], entry]
+                hist = hist[1:] + [entry]
                 f = entry[0]
                 if f["op"] == Op.END:
                     return
@@ -380,13 +514,24 @@ class Assembler:
                         return
                 queue.append(nxt)
 
-        walk([0, 1, 2], [None, None, None])
-        if errors:
-            raise ValueError(f"Assembler: hazards on a branch path at {sorted(set(errors))}")
+        walk([0, 1, 2], [None] * (HAZARD_TABLE - 1))
+        return sorted(set(errors))
 
-    def assemble(self, *, fuse=True):
+    def assemble(self, *, fuse=True, schedule=True):
+        """The program: posts fused into the next MUL (``fuse``), straight-line code reordered
+        to fill the hazard distances (``schedule``, :meth:`_schedule`; then fused again), NOPs
+        inserted where a hazard remains, every branch path checked.
+
+        Returns
+        -------
+        Program
+        """
         if fuse:
             self._fuse()
+        if schedule:
+            self._schedule()
+            if fuse:
+                self._fuse()
         self._insert_nops()
         regs = {}
         for name in self._regs:
@@ -455,7 +600,8 @@ class Engine(wiring.Component):
     running : Out(1)
         The program runs (from the clock after ``start`` to its END).
     end : Out(1)
-        One-clock strobe: END executed.
+        One-clock strobe: END in X2 (the instruction before it writes back in this clock;
+        from the next clock on every result is in place).
     <special> : In(shape)
         One port per user special operand.
     <cond> : In(1)
@@ -463,9 +609,9 @@ class Engine(wiring.Component):
     <out> : Out(width), <out>_we : Out(1)
         Output registers (held) and their one-clock write strobes.
     trace_* : Out
-        Per-clock view of the instruction in X2, for the tests: ``trace_valid``,
-        ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value written back),
-        ``trace_p`` (P before this instruction's update).
+        Per-clock view of the instruction in X3 (write back), for the tests:
+        ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
+        written back), ``trace_p`` (P as this instruction read it in X2, before its update).
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
@@ -538,6 +684,8 @@ class Engine(wiring.Component):
         ir = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))   # the instruction in X1
         ir2 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X2
         x2_valid = Signal()
+        ir3 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X3
+        x3_valid = Signal()
         ir1 = data.View(INSTR_LAYOUT, rom_r.data)
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
         m.d.sync += [ir.as_value().eq(rom_r.data), r_valid.eq(f_valid), x_valid.eq(r_valid)]
@@ -581,8 +729,15 @@ class Engine(wiring.Component):
         b = Signal(signed(WORD))
         m.d.comb += b.eq(Mux(ir.bsp, bspec, rf_b.data))
 
-        flag_n = Signal()
+        # Flags: the sum itself is registered (``flag_sum``) and tested where the flags are read,
+        # which keeps the 49-bit zero test out of X1's adder path; N of a MAX (which adds
+        # B − A) is derived there too.
+        flag_sum = Signal(signed(WORD + 1))
+        flag_max = Signal()
         flag_z = Signal()
+        flag_n = Signal()
+        m.d.comb += [flag_z.eq(flag_sum == 0),
+                     flag_n.eq(Mux(flag_max, ~flag_sum[-1] & ~flag_z, flag_sum[-1]))]
         conds = [Const(0), flag_n, flag_z, flag_n | flag_z, quad[0] ^ mu, quad[0] ^ quad[1],
                  quad[1]] + [getattr(self, f"c_{name}") for name in prog.conds[len(BUILTIN_CONDS):]]
         cond_raw = Signal()
@@ -593,39 +748,36 @@ class Engine(wiring.Component):
         c = cond_raw ^ ir.inv
 
         # --- ALU ---------------------------------------------------------------------------------
-        is_add = ir.op == Op.ADD
-        is_rsub = ir.op == Op.RSUB
+        # The adder's mode and the result select are decoded in R (registered with the operands).
+        d_inv_a = Signal()          # ~A + B + 1 = B − A (RSUB, MAX)
+        d_inv_b = Signal()          # A + ~B + 1 = A − B (SUB, MIN, SEL)
+        d_mm = Signal()             # MIN or MAX: X = B if (c or sign of the sum clear) else A
+        d_sel = Signal()            # SEL: X = B if c else A
+        d_max = Signal()
+        m.d.sync += [
+            d_inv_a.eq((ir1.op == Op.RSUB) | (ir1.op == Op.MAX)),
+            d_inv_b.eq((ir1.op == Op.SUB) | (ir1.op == Op.MIN) | (ir1.op == Op.SEL)),
+            d_mm.eq((ir1.op == Op.MIN) | (ir1.op == Op.MAX)),
+            d_sel.eq(ir1.op == Op.SEL),
+            d_max.eq(ir1.op == Op.MAX),
+        ]
         s = Signal(signed(WORD + 1))
-        # One adder: A + B, A + ~B + 1 (A − B) or ~A + B + 1 (B − A).
-        inv_b = ~is_add & ~is_rsub
-        m.d.comb += s.eq(Mux(is_rsub, ~a, a) + Mux(inv_b, ~b, b) + ~is_add)
-        ge = ~s[-1]
-        le = s[-1] | (s == 0)
+        # One adder: A + B, A − B or B − A. MAX computes B − A, so that both MIN (A − B ≥ 0) and
+        # MAX (A − B ≤ 0, i.e. B − A ≥ 0) select on the sum's sign alone.
+        m.d.comb += s.eq(Mux(d_inv_a, ~a, a) + Mux(d_inv_b, ~b, b) + (d_inv_a | d_inv_b))
         x = Signal(signed(WORD + 1))
-        with m.Switch(ir.op):
-            with m.Case(Op.MIN):
-                m.d.comb += x.eq(Mux(c | ge, b, a))
-            with m.Case(Op.MAX):
-                m.d.comb += x.eq(Mux(c | le, b, a))
-            with m.Case(Op.SEL):
-                m.d.comb += x.eq(Mux(c, b, a))
-            with m.Default():
-                m.d.comb += x.eq(s)
-        # --- X2: post (shift, rounded half away from zero or floor; saturate), write back ------
+        m.d.comb += x.eq(Mux(d_mm | d_sel, Mux((d_mm & ~s[-1]) | c, b, a), s))
+        # --- X2: rounding add (P read here); X3: shift, saturate, write back ------------------
         x2 = Signal(signed(WORD + 1))
-        x2_nz = Signal()                        # 1-bit outputs take X ≠ 0, known in X1
-        m.d.sync += [x2.eq(x), x2_nz.eq(x != 0), ir2.as_value().eq(ir.as_value())]
+        m.d.sync += [x2.eq(x), ir2.as_value().eq(ir.as_value())]
         # P is read in X2 only (MUL and DIV update it at the end of X2): by a MUL's fused post
-        # and by an ALU operation whose A is P or PQ (B ignored).
+        # and by an ALU operation whose A is P or PQ (B ignored); the choice is decoded in X1.
+        d_p = Signal()
+        d_pq = Signal()
+        m.d.sync += [d_p.eq((ir.op == Op.MUL) | (ir.asp & (ir.a == 0))),
+                     d_pq.eq((ir.op != Op.MUL) & ir.asp & (ir.a == 1))]
         xp = Signal(signed(WORD + 1))
-        with m.If(ir2.op == Op.MUL):
-            m.d.comb += xp.eq(p)
-        with m.Elif(ir2.asp & (ir2.a == 0)):
-            m.d.comb += xp.eq(p)
-        with m.Elif(ir2.asp & (ir2.a == 1)):
-            m.d.comb += xp.eq(p[:q])
-        with m.Else():
-            m.d.comb += xp.eq(x2)
+        m.d.comb += xp.eq(Mux(d_p, p, Mux(d_pq, p[:q], x2)))
         # Rounding constant 2**(sh−1) (− 1 for negative X), prepared in X1: no carry chain
         # in front of the rounding adder.
         h_one = Signal(unsigned(WORD))
@@ -635,10 +787,14 @@ class Engine(wiring.Component):
                      h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0))]
         half = Signal(signed(WORD + 1))
         m.d.comb += half.eq(Mux(xp[-1], h_mask, h_one))
+        # X3: the rounded sum registered; shift by sh (floor), saturate, write back.
+        r3 = Signal(signed(WORD + 2))
+        x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
+        m.d.sync += [r3.eq(xp + half), x3_nz.eq(x2 != 0), ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(WORD + 2))
-        m.d.comb += shifted.eq((xp + half) >> ir2.sh)
+        m.d.comb += shifted.eq(r3 >> ir3.sh)
         y = Signal(signed(WORD))
-        with m.Switch(ir2.sat):
+        with m.Switch(ir3.sat):
             for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
                 with m.Case(code):
                     lo, hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
@@ -665,37 +821,41 @@ class Engine(wiring.Component):
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL)
         execute = x_valid & self.running
-        m.d.sync += x2_valid.eq(execute)
-        writes2 = x2_valid & ((ir2.op == Op.ADD) | (ir2.op == Op.SUB) | (ir2.op == Op.RSUB) |
-                              (ir2.op == Op.MIN) | (ir2.op == Op.MAX) | (ir2.op == Op.SEL) |
-                              (ir2.op == Op.MUL))
+        m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid)]
+        writes3 = x3_valid & ((ir3.op == Op.ADD) | (ir3.op == Op.SUB) | (ir3.op == Op.RSUB) |
+                              (ir3.op == Op.MIN) | (ir3.op == Op.MAX) | (ir3.op == Op.SEL) |
+                              (ir3.op == Op.MUL))
+        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it (trace only)
+        m.d.sync += p3.eq(p)
         m.d.comb += [
-            rf_w.addr.eq(ir2.dst),
+            rf_w.addr.eq(ir3.dst),
             rf_w.data.eq(y),
-            rf_w.en.eq(writes2 & ir2.wen),
-            self.trace_valid.eq(x2_valid),
+            rf_w.en.eq(writes3 & ir3.wen),
+            self.trace_valid.eq(x3_valid),
             self.trace_wen.eq(rf_w.en),
-            self.trace_dst.eq(ir2.dst),
+            self.trace_dst.eq(ir3.dst),
             self.trace_y.eq(y),
-            self.trace_p.eq(p),
+            self.trace_p.eq(p3),
         ]
         x_pc = Signal(8)
         r_pc = Signal(8)
         x2_pc = Signal(8)
-        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc)]
-        m.d.comb += self.trace_pc.eq(x2_pc)
+        x3_pc = Signal(8)
+        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc)]
+        m.d.comb += self.trace_pc.eq(x3_pc)
 
-        # Outputs (written in X2, like the register file).
+        # Outputs (written in X3, like the register file).
         for i, (name, ow) in enumerate(self._out_widths.items(), start=1):
             reg = getattr(self, f"o_{name}")
             we = getattr(self, f"o_{name}_we")
-            m.d.comb += we.eq(writes2 & (ir2.out == i))
+            m.d.comb += we.eq(writes3 & (ir3.out == i))
             with m.If(we):
-                m.d.sync += reg.eq(x2_nz if ow == 1 else y[:ow])
+                m.d.sync += reg.eq(x3_nz if ow == 1 else y[:ow])
 
         with m.If(execute):
             with m.If(is_alu & ir.setf):
-                m.d.sync += [flag_n.eq(s[-1]), flag_z.eq(s == 0)]
+                # The sum (MAX: B − A); N, Z of A − B are derived from it where read.
+                m.d.sync += [flag_sum.eq(s), flag_max.eq(d_max)]
         with m.If(x2_valid & (ir2.op == Op.MUL)):
             # P ± prod: one adder, the carry-in negates.
             m.d.sync += p.eq(Mux(ir2.acc, p, 0) + Mux(m_neg, ~prod, prod) + m_neg)
@@ -703,11 +863,14 @@ class Engine(wiring.Component):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 
         # --- Sequencer -------------------------------------------------------------------------
-        m.d.comb += self.end.eq(execute & (ir.op == Op.END))
+        # END stops the fetch in X1; ``end`` strobes with END in X2, when the instruction before
+        # it writes back (X3): from the next clock on every result is in place.
+        halt = execute & (ir.op == Op.END)
+        m.d.comb += self.end.eq(x2_valid & (ir2.op == Op.END))
         with m.If(self.start & ~self.running):
             m.d.sync += [self.running.eq(1), pc.eq(0), f_valid.eq(1),
                          r_valid.eq(0), x_valid.eq(0)]
-        with m.Elif(self.end):
+        with m.Elif(halt):
             m.d.sync += [self.running.eq(0), f_valid.eq(0), r_valid.eq(0), x_valid.eq(0)]
         with m.Elif(self.running):
             with m.If(execute & (ir.op == Op.BR) & c):

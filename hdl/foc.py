@@ -59,7 +59,7 @@ from .fixed import is_int, check_param, UQ, Q, QFormat, round_shift
 from .pi import PI
 from .svpwm import SVPWM, DCBusCompensation
 
-__all__ = ["CurrentLoop", "FF_FORMAT", "SPEED_WIDTH", "ADC_CHANNELS"]
+__all__ = ["CurrentLoop", "FF_FORMAT", "SPEED_WIDTH", "ADC_CHANNELS", "sample_handshake"]
 
 #: Format of the decoupling scale inputs ``ff_l`` and ``ff_psi``.
 FF_FORMAT = UQ(16, 14)
@@ -73,6 +73,33 @@ ROTATORS = ("table", "cordic")
 
 #: Cordic ``tag`` values.
 TAG_PARK, TAG_INVERSE = 0, 1
+
+
+def sample_handshake(m, loop):
+    """The sample handshake of a current loop (:class:`CurrentLoop`, and
+    :class:`~.foc_engine.EngineCurrentLoop`): a sample on ``loop.i`` is accepted unless ``busy``
+    (or in the clock its duties are taken, ``done``); one arriving while busy is dropped and
+    strobes ``overrun``, counted (saturating) in ``overruns``; ``count`` counts the ``done``
+    transfers. Drives ``done``, ``overrun``, ``busy``, ``count``, ``overruns`` into ``m``.
+
+    Returns
+    -------
+    (accept, done) : (Value, Value)
+        The clock a sample is accepted; the clock the duties are taken (``o.valid & o.ready``).
+    """
+    done = loop.o.valid & loop.o.ready
+    accept = loop.i.valid & (~loop.busy | done)
+    m.d.comb += [loop.done.eq(done), loop.overrun.eq(loop.i.valid & ~accept)]
+    with m.If(accept):
+        m.d.sync += loop.busy.eq(1)
+    with m.Elif(done):
+        m.d.sync += loop.busy.eq(0)
+    with m.If(done):
+        m.d.sync += loop.count.eq(loop.count + 1)
+    overruns_max = (1 << len(loop.overruns)) - 1
+    with m.If(loop.overrun & (loop.overruns != overruns_max)):
+        m.d.sync += loop.overruns.eq(loop.overruns + 1)
+    return accept, done
 
 
 class CurrentLoop(wiring.Component):
@@ -191,6 +218,8 @@ class CurrentLoop(wiring.Component):
         ``clarke``, ``park``, ``pi``, ``command``, ``inverse_park``, ``dcbus``, ``svpwm``.
     dq_latency : int
         Clocks from the accepted sample to ``i_d``/``i_q`` being updated (visible).
+    phase_latency : int
+        Clocks from the accepted sample to the ``phase`` transfer (the Clarke stage).
 
     Raises
     ------
@@ -308,6 +337,10 @@ class CurrentLoop(wiring.Component):
     pi_widths = property(lambda self: self._pi_d.widths)
 
     @property
+    def phase_latency(self):
+        return self._stage_latency["clarke"]
+
+    @property
     def dq_latency(self):
         s = self._stage_latency
         return s["clarke"] + s["park"] + 1
@@ -324,17 +357,7 @@ class CurrentLoop(wiring.Component):
         m.submodules.svpwm = svpwm = self._svpwm
 
         # --- Trigger, busy, overrun, loop counter ------------------------------------------------
-        done = self.o.valid & self.o.ready
-        accept = self.i.valid & (~self.busy | done)
-        m.d.comb += [self.done.eq(done), self.overrun.eq(self.i.valid & ~accept)]
-        with m.If(accept):
-            m.d.sync += self.busy.eq(1)
-        with m.Elif(done):
-            m.d.sync += self.busy.eq(0)
-        with m.If(done):
-            m.d.sync += self.count.eq(self.count + 1)
-        with m.If(self.overrun & (self.overruns != 0xFFFF)):
-            m.d.sync += self.overruns.eq(self.overruns + 1)
+        accept, done = sample_handshake(m, self)
 
         # --- Per-sample inputs, latched with the sample -------------------------------------------
         theta = Signal(unsigned(aw))

@@ -19,14 +19,14 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .dsp import saturate_bits
-from .engine import SAT_W, SAT_W1, Assembler, Engine, Op
+from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
 from .fixed import Q, UQ, round_shift
-from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH
+from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 from .svpwm import DCBusCompensation
 
-__all__ = ["EngineCurrentLoop", "current_loop_program", "SPECIALS", "BSPECIALS", "CONDS",
-           "OUTS", "ENGINE_WIDTH"]
+__all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "phase_latency",
+           "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "ENGINE_WIDTH", "PIPELINE_CLOCKS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -47,7 +47,7 @@ OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q":
 
 def _trig(asm, rot, pending=None, filler=None):
     """Integer |cos| / |sin| of the angle register into ``r.c1``, ``r.s1`` (signs: conditions
-    NEGC, NEGS). The table words must be valid (``ang`` written ≥ 3 instructions before).
+    NEGC, NEGS). The assembler keeps the table reads ``HAZARD_TABLE`` after the ``ang`` write.
     ``pending`` emits a post of the caller's product (it fuses into the first MUL), ``filler``
     one independent instruction (else a NOP goes there)."""
     w, g = rot.width, rot.interp_guard
@@ -89,16 +89,17 @@ def _pi_head(asm, ax, fb):
     asm.alu(Op.SUB, f"r.e_{ax}", f"s.i{ax}_ref", fb, sat=SAT_W)
 
 
-def _pis(asm, *, kx_shift, filler):
-    """PI_d and PI_q (after :func:`_pi_head`), interleaved so that no instruction reads the
-    result of the one before it (the write back is one instruction late) and no flag test is
-    separated from its flag-setting instruction by another: ``r.o_d``, ``r.o_q``, ``sat_d``,
+def _pis(asm, *, kx_shift, filler=None):
+    """PI_d and PI_q (after :func:`_pi_head`), written interleaved (the assembler's scheduler
+    reorders further to fill the write-back distance) with no flag test separated from its
+    flag-setting instruction by another: ``r.o_d``, ``r.o_q``, ``sat_d``,
     ``sat_q``, then the commands ``u_d = sat(o_d − ff_d)``, ``u_q = sat(o_q + ff_q)``.
 
     Per axis (hdl/pi.py): ``sx = E + E[n−1]``; ``−dI = round_shift(−kx·sx)`` (rounding is odd);
     ``p = kp·E``; ``I + dI`` clamped to the limits·2**g by MIN then MAX (``clamp`` exactly);
     ``u_c``; hold = (u_c > hi and dI > 0) or (u_c < lo and dI < 0); ``u``; output clamp; sat.
-    ``filler()`` emits one independent instruction (no flags, no register the PIs use)."""
+    ``filler()`` emits one independent instruction (no flags, no register the PIs use); the
+    assembler's scheduler reorders the whole anyway (:meth:`Assembler.assemble`)."""
     A = asm
     g = A.guard
     r = lambda name, ax: f"r.{name}_{ax}"
@@ -137,7 +138,8 @@ def _pis(asm, *, kx_shift, filler):
     for ax in "dq":
         A.alu(Op.ADD, r("u", ax), r("pp", ax), f"r.i_{ax}", sh=g, rnd=True)
     A.alu(Op.MIN, "r.t_d", "s.hi_d", "r.u_d", setf=True)              # N: u > hi
-    filler()
+    if filler is not None:
+        filler()
     A.alu(Op.MAX, "r.o_d", "s.lo_d", "r.t_d", cond="N", sat=SAT_W)    # clamp(u, lo, hi)
     A.alu(Op.MIN, "r.t_q", "s.hi_q", "r.u_q", setf=True)
     A.alu(Op.SUB, None, "r.o_d", "r.u_d", out="sat_d")                # sat = out ≠ u
@@ -148,9 +150,10 @@ def _pis(asm, *, kx_shift, filler):
 
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
-                         count_width=16, rotator=None, fuse=True):
+                         count_width=16, rotator=None, fuse=True, schedule=True):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
-    ``fuse`` lets the assembler fuse posts into the following MUL (:meth:`Assembler.assemble`).
+    ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
+    straight-line code (:meth:`Assembler.assemble`).
 
     Returns
     -------
@@ -187,11 +190,11 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.alu(Op.ADD, None, "s.theta", "b.lead", out="ang")               # θ + θ_lead
     # --- Run or clear ------------------------------------------------------------------------------
     A.br("!RUN", "off")
-    A.alu(Op.ADD, "r.ffd", 0, 0)                                      # delay slots: ff = 0
-    A.alu(Op.ADD, "r.ffq", 0, 0)
-    A.br("!FF", "noff")
     _pi_head(A, "d", "r.id")                                          # delay slots
     _pi_head(A, "q", "r.iq")
+    A.br("!FF", "noff")
+    A.alu(Op.ADD, "r.ffd", 0, 0)                                      # delay slots: ff = 0
+    A.alu(Op.ADD, "r.ffq", 0, 0)
     # Decoupling feed-forward (hdl/foc.py).
     A.mul("s.ff_psi", "b.nspd")
     A.post("r.emf", FF_FORMAT.frac)
@@ -205,11 +208,13 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.label("noff")
     if kp_frac != int_guard:
         raise ValueError("engine program: kp_format.frac must equal int_guard")
-    _pis(A, kx_shift=kx_frac - int_guard,
-         filler=lambda: A.alu(Op.ADD, "r.v", "s.TC", 1 << (w + 2)))     # of the trig below
+    _pis(A, kx_shift=kx_frac - int_guard)
+    # The inverse Park's sine and cosine (ang = θ + θ_lead since before the branch) in the same
+    # straight-line region as the PIs, so that the scheduler interleaves the two chains (the
+    # path with the PIs cleared has its own copy, below).
+    _trig(A, rot)
     # --- Inverse Park, DC-bus compensation -----------------------------------------------------------
     A.label("inv")
-    _trig(A, rot)
     _rotate(A, "r.ud", "r.uq", "r.ua", "r.ub", "u_alpha", "u_beta", w)
     A.mul("r.ua", "b.dcg")                    # (u_β's post fuses into it)
     A.post("r.ca", 16, sat=SAT_W1)
@@ -263,12 +268,14 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.label("off")
     for ax in "dq":
         A.alu(Op.ADD, f"r.i_{ax}", 0, 0)
-        A.alu(Op.ADD, f"r.ep_{ax}", 0, 0)
         A.alu(Op.ADD, None, 0, 0, out=f"sat_{ax}")
-    A.br("!F", "inv")
     A.alu(Op.SEL, "r.ud", "s.ol_ud", 0, cond="!OL", out="u_d")
     A.alu(Op.SEL, "r.uq", "s.ol_uq", 0, cond="!OL", out="u_q")
-    return A.assemble(fuse=fuse)
+    _trig(A, rot)
+    A.br("!F", "inv")
+    A.alu(Op.ADD, "r.ep_d", 0, 0)                 # delay slots: nothing at inv reads these
+    A.alu(Op.ADD, "r.ep_q", 0, 0)
+    return A.assemble(fuse=fuse, schedule=schedule)
 
 
 def path_lengths(program):
@@ -298,8 +305,27 @@ def path_lengths(program):
     return sorted(counts)
 
 
-#: Clocks from ``start`` to the first executed instruction, and from END to ``o.valid``.
-PIPELINE_CLOCKS = 3
+#: Clocks from the accepted sample (``start``) to the first instruction in X1.
+START_CLOCKS = 3
+#: Clocks from the accepted sample to ``o.valid`` beyond the executed instructions: the start,
+#: then END's X1 clock is the last instruction's; the write back of the instruction before
+#: END (X3) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
+PIPELINE_CLOCKS = START_CLOCKS + WRITE_DELAY - 1
+
+
+def phase_latency(program):
+    """Clocks from the accepted sample to ``phase.valid`` of :class:`EngineCurrentLoop` running
+    ``program``: the write of phase c (output ``pc``) must be on the straight-line start of
+    the program (before its first branch), executed as instruction ``k`` in X1 ``START_CLOCKS
+    + k`` clocks after the sample, written back ``WRITE_DELAY`` later, ``phase.valid``
+    registered."""
+    outs = ("",) + tuple(OUTS)
+    for k, ins in enumerate(program.instrs):
+        if ins.op == Op.BR or ins.op == Op.END:
+            break
+        if ins.out and outs[ins.out] == "pc":
+            return START_CLOCKS + k + WRITE_DELAY + 1
+    raise ValueError("engine program: no write of phase c before the first branch")
 
 
 class EngineCurrentLoop(wiring.Component):
@@ -321,6 +347,9 @@ class EngineCurrentLoop(wiring.Component):
         feed-forward).
     latencies : list of int
         Every possible latency (per program path).
+    phase_latency : int
+        Clocks from the accepted sample to the ``phase`` transfer (the program's write of
+        phase c, :func:`phase_latency`).
     program : Program
     """
 
@@ -344,6 +373,7 @@ class EngineCurrentLoop(wiring.Component):
         self._dcbus = DCBusCompensation(width=width, out_width=width + 1, adc_width=adc_width,
                                         gain_limit=gain_limit)
         self._latencies = [n + PIPELINE_CLOCKS for n in path_lengths(self._program)]
+        self._phase_latency = phase_latency(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
         super().__init__({
@@ -379,6 +409,7 @@ class EngineCurrentLoop(wiring.Component):
     count_width = property(lambda self: 16)
     latency = property(lambda self: max(self._latencies))
     latencies = property(lambda self: list(self._latencies))
+    phase_latency = property(lambda self: self._phase_latency)
 
     def elaborate(self, platform):
         m = Module()
@@ -400,17 +431,9 @@ class EngineCurrentLoop(wiring.Component):
         m.submodules.dcbus = dcbus = self._dcbus
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
-        done = self.o.valid & self.o.ready
-        accept = self.i.valid & (~self.busy | done)
-        m.d.comb += [self.done.eq(done), self.overrun.eq(self.i.valid & ~accept)]
-        with m.If(accept):
-            m.d.sync += self.busy.eq(1)
-        with m.Elif(done):
-            m.d.sync += self.busy.eq(0)
+        accept, done = sample_handshake(m, self)
         with m.If(done):
-            m.d.sync += [self.count.eq(self.count + 1), self.overmod.eq(eng.o_om)]
-        with m.If(self.overrun & (self.overruns != 0xFFFF)):
-            m.d.sync += self.overruns.eq(self.overruns + 1)
+            m.d.sync += self.overmod.eq(eng.o_om)
         with m.If(eng.end):
             m.d.sync += self.o.valid.eq(1)
         with m.Elif(done):

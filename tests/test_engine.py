@@ -12,8 +12,8 @@ from amaranth.hdl import UnusedElaboratable, signed
 
 from foc_servo.hdl.engine import Assembler, Engine, Op, SAT_W
 from foc_servo.hdl.foc import CurrentLoop
-from foc_servo.hdl.foc_engine import (OUTS, SPECIALS, EngineCurrentLoop, current_loop_program,
-                                      path_lengths)
+from foc_servo.hdl.foc_engine import (OUTS, PIPELINE_CLOCKS, SPECIALS, EngineCurrentLoop,
+                                      current_loop_program, path_lengths)
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.engine import EngineLoopModel, EngineModel
 from foc_servo.sim.models.foc import OUTPUT_FIELDS, CurrentLoopModel
@@ -77,6 +77,19 @@ def test_fused_posts_change_nothing_but_length():
     vec = verify_foc.stimulus(200, seed=6)
     a = EngineLoopModel(program=plain).run(**vec)
     b = EngineLoopModel(program=fused).run(**vec)
+    for k in OUTPUT_FIELDS:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_scheduled_program_changes_nothing_but_length():
+    """The assembler's list scheduling (straight-line code reordered to fill the hazard
+    distances) against the program in written order: same outputs, fewer clocks."""
+    plain = current_loop_program(schedule=False)
+    sched = current_loop_program()
+    assert all(a < b for a, b in zip(path_lengths(sched), path_lengths(plain)))
+    vec = verify_foc.stimulus(200, seed=8)
+    a = EngineLoopModel(program=plain).run(**vec)
+    b = EngineLoopModel(program=sched).run(**vec)
     for k in OUTPUT_FIELDS:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
 
@@ -154,9 +167,35 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
         A.alu(Op.ADD, "r.x", "s.x", 0)
         A.alu(Op.ADD, None, "r.x", 1, out="r")                # reads x at once: a NOP between
     prog, em = _small(build)
-    assert [Op(i.op) for i in prog.instrs] == [Op.ADD, Op.NOP, Op.ADD, Op.END]
+    assert [Op(i.op) for i in prog.instrs] == [Op.ADD, Op.NOP, Op.NOP, Op.ADD, Op.END]
     em.run({"x": 5, "y": 0}, {})
     assert em.outs["r"] == 6
+    # Three-stage execute: a result is read from the third instruction after its writer on.
+    def build2(A):
+        A.alu(Op.ADD, "r.x", "s.x", 0)
+        A.alu(Op.ADD, "r.y", "s.y", 0)
+        A.alu(Op.ADD, "r.z", "r.x", "r.y", out="r")           # x: one NOP, y: two
+    prog, em = _small(build2)
+    assert [Op(i.op) for i in prog.instrs] == [Op.ADD, Op.ADD, Op.NOP, Op.NOP, Op.ADD, Op.END]
+    em.run({"x": 5, "y": 7}, {})
+    assert em.outs["r"] == 12
+
+    # A hazard only on the branch path (the target reads a delay slot's result): the NOP goes
+    # in front of the target, which both paths then execute.
+    def build3(A):
+        A.br("!F", "l")
+        A.alu(Op.ADD, "r.x", "s.x", 0)
+        A.alu(Op.ADD, "r.y", "s.y", 0)
+        A.alu(Op.ADD, "r.x", "r.x", 1)                        # not taken: x written again
+        A.alu(Op.ADD, "r.w", "s.y", 0)
+        A.alu(Op.ADD, "r.w", "s.y", 1)
+        A.label("l")
+        A.alu(Op.ADD, None, "r.x", 0, out="r")
+    prog, em = _small(build3)
+    target = prog.labels["l"]
+    assert Op(prog.instrs[target].op) == Op.NOP
+    em.run({"x": 5, "y": 7}, {})
+    assert em.outs["r"] == 5
     A = Assembler(specials=("x",), conds=(), outs=("ang",))
     A.br("!F", "l")
     A.alu(Op.ADD, "r.x", "s.x", 0)
@@ -238,8 +277,8 @@ def test_engine_current_loop_signature_and_parameters():
 def _check_signature_and_parameters():
     dut = EngineCurrentLoop()
     assert dut.signature == CurrentLoop().signature
-    assert dut.latencies == [n + 3 for n in path_lengths(dut.program)]
-    assert dut.latency == max(dut.latencies) <= 180
+    assert dut.latencies == [n + PIPELINE_CLOCKS for n in path_lengths(dut.program)]
+    assert dut.latency == max(dut.latencies) <= 190
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop width must be 16 \(the program is "
                                          r"written for it\), not 12$"):
         EngineCurrentLoop(width=12)
@@ -319,3 +358,34 @@ def test_engine_current_loop_overrun_and_stalled_duties():
     assert seen == {"overrun": 1, "latency": seen["latency"], "count": 1, "busy": 0,
                     "overruns": 11, "valid": 0}     # i.valid held 11 clocks while busy
     assert seen["latency"] in dut.latencies
+
+
+@pytest.mark.parametrize("loop", ["pipelined", "engine"])
+def test_phase_latency_attribute(loop):
+    """``phase_latency`` of both loops (the top's dead-time compensation relies on it) against
+    the clocks from the accepted sample to ``phase.valid`` in simulation."""
+    dut = CurrentLoop() if loop == "pipelined" else EngineCurrentLoop()
+    seen = {}
+
+    async def testbench(ctx):
+        ctx.set(dut.gain_a, 1 << 15)
+        ctx.set(dut.gain_b, 1 << 15)
+        ctx.set(dut.i.payload, {"ia": 100, "ib": -50, "udc": 20000, "aux": 0})
+        ctx.set(dut.i.valid, 1)
+        await ctx.tick()
+        ctx.set(dut.i.valid, 0)
+        clocks = 1
+        while not ctx.get(dut.phase.valid):
+            await ctx.tick()
+            clocks += 1
+            assert clocks < 300
+        seen["clocks"] = clocks
+        seen["phase"] = ctx.get(dut.phase.payload)
+
+    simulate(dut, [testbench], name=f"phase_latency_{loop}")
+    assert seen["clocks"] == dut.phase_latency
+    assert seen["phase"] == {"a": 100, "b": -50, "c": -50}
+    if loop == "pipelined":
+        assert dut.phase_latency == dut.stage_latency["clarke"]
+    else:
+        assert dut.phase_latency + 20 < min(dut.latencies)

@@ -1,11 +1,11 @@
 # Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
 """Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
 clock (one instruction per clock, two branch delay slots) with the gateware's timing where a
-program can see it: register and output writes land one instruction late (the X2 stage), the
-fold flags follow the angle register at once, ``KD`` a clock later, the table words two (the
-special operands are registered in the R stage); flags
-and P are sequential. It records, per executed instruction, what the gateware shows on its
-``trace_*`` ports in that instruction's X2 clock.
+program can see it: register and output writes land ``WRITE_DELAY`` (2) instructions late (the
+X3 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
+words two (the special operands are registered in the R stage); flags and P are sequential.
+It records, per executed instruction, what the gateware shows on its ``trace_*`` ports in that
+instruction's X3 clock.
 
 Every value is checked against the widths the gateware gives it (multiplier operands
 ``signed(MUL_A)`` × ``signed(MUL_B)``, register file and ``P`` ``signed(WORD)``): a program that
@@ -14,7 +14,8 @@ would overflow raises :exc:`OverflowError` here instead of wrapping there.
 
 import collections
 
-from ...hdl.engine import BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD, Op
+from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD,
+                           WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
 __all__ = ["EngineModel"]
@@ -112,7 +113,7 @@ class EngineModel:
         trace = []
         queue = collections.deque([0, 1, 2])
         fetch = 3
-        pending = []
+        pending = collections.deque()     # writes in flight (X2, X3), the oldest first
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
         self.sreg = self.tbl + (self._fold(ang)[1],)
@@ -152,7 +153,7 @@ class EngineModel:
                 sw = self.width + (ins.sat == SAT_W1)
                 y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
             entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": self.p}
-            writes = []                 # applied one instruction later (the X2 stage)
+            writes = []                 # applied WRITE_DELAY instructions later (X3)
             taken = False
             if op in ALU:
                 entry["y"] = y
@@ -191,14 +192,16 @@ class EngineModel:
             elif op == Op.BR:
                 taken = bool(c)
             trace.append(entry)
-            # The table read port follows the angle register one clock behind; then the
-            # previous instruction's write back (X2) lands.
+            # The table read port follows the angle register one clock behind; then the write
+            # back (X3) of the instruction WRITE_DELAY before this one lands.
             self.sreg = self.tbl + (kd_now,)
             self.tbl = self._table_word(ang)
-            self._write(pending)
-            pending = writes
+            pending.append(writes)
+            if len(pending) > WRITE_DELAY:
+                self._write(pending.popleft())
             if op == Op.END:
-                self._write(pending)
+                while pending:
+                    self._write(pending.popleft())
                 break
             if taken:
                 fetch = ins.tgt
