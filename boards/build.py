@@ -49,7 +49,8 @@ from amaranth.hdl import ClockDomain, ClockSignal, Const, Elaboratable, Instance
 from amaranth.lib import io
 from amaranth.lib.cdc import FFSynchronizer, ResetSynchronizer
 
-from ..hdl.top import Top
+from ..hdl.fixed import check_choice
+from ..hdl.top import CURRENT_LOOPS, Top
 from . import area
 from .platforms import MOTOR_PORTS, get_board
 
@@ -244,6 +245,12 @@ def _pll_instance(family, pll, clk_in, clk_out, locked):
 
 # --- the board top -------------------------------------------------------------------------------
 
+def _check_current_loop(current_loop):
+    """``current_loop`` a :data:`~foc_servo.hdl.top.CURRENT_LOOPS` value, else a TypeError /
+    ValueError naming the parameter, the value and the allowed values."""
+    check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
+
+
 class BoardTop(Elaboratable):
     """:class:`~foc_servo.hdl.top.Top` on a board: PLL, reset, pin buffers (module docstring).
 
@@ -254,7 +261,12 @@ class BoardTop(Elaboratable):
     clk_hz : float or None
         System clock asked for, Hz, within :data:`CLOCK_RANGE_HZ`; ``None``: 50 MHz. The PLL
         gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
-        family's multiplier width (:data:`MUL_WIDTH`).
+        family's multiplier width (:data:`MUL_WIDTH`) and the board's scope RAM
+        (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K).
+    current_loop : str
+        ``Top(current_loop=...)``, one of :data:`~foc_servo.hdl.top.CURRENT_LOOPS`:
+        ``"pipelined"`` (default, :class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
+        (:class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`).
 
     Attributes
     ----------
@@ -263,17 +275,19 @@ class BoardTop(Elaboratable):
     top : Top
     clk_hz : float
         The actual system clock, Hz.
+    current_loop : str
 
     Raises
     ------
     TypeError
-        ``clk_hz`` not a number (or ``board`` not a name).
+        ``clk_hz`` not a number, ``current_loop`` not a string (or ``board`` not a name).
     ValueError
-        ``clk_hz`` out of range, or an unknown board.
+        ``clk_hz`` out of range, ``current_loop`` not one of the values, or an unknown board.
     """
 
-    def __init__(self, board, *, clk_hz=None):
+    def __init__(self, board, *, clk_hz=None, current_loop="pipelined"):
         self._board = get_board(board)
+        _check_current_loop(current_loop)
         if clk_hz is None:
             clk_hz = 50e6
         if not _is_hz(clk_hz):
@@ -284,12 +298,14 @@ class BoardTop(Elaboratable):
                              f"not {clk_hz!r} Hz")
         _, f_in = self._board.clock
         self._pll = pll_config(self._board.family, f_in, clk_hz)
-        self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family])
+        self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
+                        current_loop=current_loop, scope_ram=self._board.scope_ram)
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)
     top = property(lambda self: self._top)
     clk_hz = property(lambda self: self._pll.f_out_hz)
+    current_loop = property(lambda self: self._top.current_loop)
 
     def elaborate(self, platform):
         m = Module()
@@ -446,11 +462,12 @@ def synthesis_verilog(rtlil_text, *, name=NAME):
         return (work / f"{name}.v").read_text()
 
 
-def prepare(board, *, out_dir="build", clk_hz=None):
+def prepare(board, *, out_dir="build", clk_hz=None, current_loop="pipelined"):
     """Write ``board``'s build plan (sources, constraints, scripts) to ``out_dir/NAME``.
 
     Nothing is run: for a vendor board this is the Vivado / ISE tree, also archived as
-    ``out_dir/NAME/foc_servo.zip``.
+    ``out_dir/NAME/foc_servo.zip``. ``clk_hz`` and ``current_loop`` as in :class:`BoardTop`
+    (checked before anything is written).
 
     Returns
     -------
@@ -458,7 +475,7 @@ def prepare(board, *, out_dir="build", clk_hz=None):
         ``board`` (Board), ``top`` (BoardTop), ``dir`` (Path), ``files`` (names written),
         ``zip`` (Path or None), ``commands`` (argv lists of the build script).
     """
-    top = BoardTop(board, clk_hz=clk_hz)
+    top = BoardTop(board, clk_hz=clk_hz, current_loop=current_loop)
     board = top.board
     root = Path(out_dir) / board.name
     root.mkdir(parents=True, exist_ok=True)
@@ -633,7 +650,8 @@ def _run_bitstream(board, prep, stages):
     return result, logs
 
 
-def build(board, *, out_dir="build", clk_hz=None, progress=False, json=False):
+def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", progress=False,
+          json=False):
     """Build the controller for ``board`` and print its utilisation beside paper Table 1.
 
     Parameters
@@ -645,6 +663,9 @@ def build(board, *, out_dir="build", clk_hz=None, progress=False, json=False):
         Everything goes to ``out_dir/board``.
     clk_hz : float or None
         System clock asked for, Hz (``None``: 50 MHz); the PLL's nearest is used and reported.
+    current_loop : str
+        The current-loop gateware, ``"pipelined"`` (default) or ``"engine"``
+        (:class:`BoardTop`).
     progress : bool
         Stage lines on stderr while the tools run.
     json : bool
@@ -657,7 +678,8 @@ def build(board, *, out_dir="build", clk_hz=None, progress=False, json=False):
         JSON-ready: ``board``, ``title``, ``flow``, ``lut`` (and ``lut_kind``), ``ff``,
         ``bram_bits``, ``dsp``, ``fmax_mhz`` (``None`` without place-and-route or when it
         failed; the slowest clock, MHz), ``timing_met`` (that Fmax against the clock, or
-        ``None``), ``clock_mhz`` (actual), ``clock_requested_mhz``, ``pll`` (text), ``paper``
+        ``None``), ``clock_mhz`` (actual), ``clock_requested_mhz``, ``current_loop`` (the
+        ``Top(current_loop=...)`` built), ``scope_ram`` (its trace-buffer RAM), ``pll`` (text), ``paper``
         (Table 1), ``fits`` (bool, or ``None`` when not known), ``error`` (the failing tool's
         ``ERROR`` lines or ``None``), ``wall_s``, ``stages`` (wall time per stage, s),
         ``artifacts`` (name → path), ``utilisation`` (all figures, including the
@@ -666,13 +688,15 @@ def build(board, *, out_dir="build", clk_hz=None, progress=False, json=False):
     Raises
     ------
     TypeError, ValueError
-        A bad board name or ``clk_hz`` (before anything is written).
+        A bad board name, ``clk_hz`` or ``current_loop`` (before anything is written).
     """
     start = time.perf_counter()
     board = get_board(board)
+    _check_current_loop(current_loop)
     stages = _Stages(board.name, progress)
     prep = stages.run("elaborate + write build plan",
-                      lambda: prepare(board, out_dir=out_dir, clk_hz=clk_hz))
+                      lambda: prepare(board, out_dir=out_dir, clk_hz=clk_hz,
+                                      current_loop=current_loop))
     root, top = prep["dir"], prep["top"]
     artifacts = {"dir": root}
     if board.flow == "vendor":
@@ -701,6 +725,7 @@ def build(board, *, out_dir="build", clk_hz=None, progress=False, json=False):
         "fmax_mhz": res["fmax_mhz"], "fmax": res["fmax"], "timing_met": res.get("timing_met"),
         "clock_mhz": round(top.clk_hz / 1e6, 6),
         "clock_requested_mhz": round(top.pll.f_req_hz / 1e6, 6),
+        "current_loop": top.current_loop, "scope_ram": top.top.scope_ram,
         "pll": top.pll.describe(), "pll_divs": top.pll.divs,
         "paper": dict(PAPER), "fits": res["fits"], "error": res["error"],
         "utilisation": {k: res[k] for k in util_keys},
@@ -732,6 +757,8 @@ def report_lines(result):
     lines = [
         f"{result['board']}: {result['title']}",
         f"  clock     {result['pll']} (asked {result['clock_requested_mhz']:g} MHz)",
+        f"  gateware  Top(current_loop={result.get('current_loop', 'pipelined')!r}, "
+        f"scope_ram={result.get('scope_ram', 'bram')!r})",
         f"  {'':<10}{'this build (' + source + ')':>28}   {'paper Table 1':>14}",
         f"  {result['lut_kind'] or 'LUT':<10}{fmt(result['lut']):>28}   {fmt(p['lut4']):>14}",
         f"  {'FF':<10}{fmt(result['ff']):>28}   {fmt(p['ff']):>14}",

@@ -98,6 +98,9 @@ class Board:
         ``bram_bits``); ``None`` where place-and-route decides.
     notes : tuple of str
         Wiring notes printed under the pin table.
+    scope_ram : str
+        ``Top(scope_ram=…)``: ``"ice40_spram"`` on a part with ``SB_SPRAM256KA`` (iCE40 UP5K: the
+        trace buffer in one SPRAM instead of 16 block RAMs), else ``"bram"``.
     """
     name: str
     title: str
@@ -109,6 +112,7 @@ class Board:
     platform_kwargs: dict = field(default_factory=dict)
     capacity: dict = None
     notes: tuple = ()
+    scope_ram: str = "bram"
 
     def platform(self, *, file_templates=None):
         """A fresh platform instance with the ``motor`` resource added; ``file_templates``
@@ -146,6 +150,7 @@ ICEBREAKER = Board(
     family="ice40",
     flow="bitstream",
     platform_class=ICEBreakerPlatform,
+    scope_ram="ice40_spram",
     connectors={"pmod1a": ("pmod", 0), "pmod1b": ("pmod", 1), "pmod2": ("pmod", 2)},
     motor=_motor({
         "gate_h": ("pmod1a", "1 2 3"), "gate_l": ("pmod1a", "7 8 9"),

@@ -41,9 +41,10 @@ from pathlib import Path
 from amaranth.asserts import AnySeq
 from amaranth.back import rtlil
 from amaranth.hdl import (Assert, Assume, Cat, Const, Cover, Elaboratable, Fragment, Module, Mux,
-                          Signal, Value, signed)
+                          Signal, Value, signed, unsigned)
 from amaranth.lib.wiring import In
 
+from ..hdl.fixed import abs_exceeds
 from ..hdl.foc import CurrentLoop
 from ..hdl.gates import Gates
 from ..hdl.hostlink import LinkCore
@@ -250,12 +251,11 @@ class FaultSpec(Elaboratable):
             m.d.sync += last.eq(now)
             return last, now
 
-        def over(x, limit):
-            wide = signed(max(len(x), len(limit)) + 2)
-            xv = x.as_signed() if x.shape().signed else x
-            mag = Signal(wide)
-            m.d.comb += mag.eq(Mux(xv < 0, -xv, xv))
-            return mag > limit
+        # |x| > limit: Protection's own comparator function, proven equal to the magnitude
+        # compare by the `abs_compare` proof (AbsCompareSpec). Written here as the magnitude
+        # compare, the induction has to re-prove that arithmetic identity in every step of
+        # every sampled cause: 1.6 s → 177 s, and > 600 s for the broken variant's BMC.
+        over = abs_exceeds
 
         i, udc, speed = prot.i.payload, prot.udc.payload, prot.speed.payload
         armed = Signal()
@@ -312,6 +312,37 @@ class FaultSpec(Elaboratable):
         tripped = Signal()                          # a fault was latched at some time
         m.d.sync += tripped.eq(tripped | need)
         m.d.comb += Cover(on & tripped)             # gates back on after a fault and a clear
+        return m
+
+
+class AbsCompareSpec(Elaboratable):
+    """Proof of :func:`~foc_servo.hdl.fixed.abs_exceeds` (``|v| > limit`` without forming
+    ``|v|``, Protection's over-current and over-speed comparator) against the magnitude compare
+    ``Mux(v < 0, −v, v) > limit`` formed two bits wider, for every ``v`` and ``limit`` at the
+    widths :class:`FaultSpec` uses (16-bit currents, 32-bit speed; ``AnySeq`` inputs).
+    :class:`FaultSpec` states its causes with ``abs_exceeds``; this proof makes that the
+    documented definition.
+
+    Parameters
+    ----------
+    broken : bool
+        Compare ``~v > limit`` for ``v < 0`` (off by one: misses ``|v| = limit + 1``).
+    """
+
+    def __init__(self, *, broken=False):
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        for width in (16, 32):
+            v = Signal(signed(width), name=f"v{width}")
+            limit = Signal(unsigned(width), name=f"limit{width}")
+            mag = Signal(signed(width + 2), name=f"mag{width}")
+            m.d.comb += [v.eq(AnySeq(signed(width))), limit.eq(AnySeq(unsigned(width))),
+                         mag.eq(Mux(v < 0, -v, v))]
+            got = Mux(v[-1], ~v > limit, v > limit) if self.broken else abs_exceeds(v, limit)
+            m.d.comb += [Assert(got == (mag > limit), f"abs_compare: |v| > limit at {width} bit"),
+                         Cover(got & v[-1] & (mag == limit + 1))]
         return m
 
 
@@ -662,6 +693,8 @@ PROOFS = {p.name: p for p in (
           "Gates: never high and low together; every turn-on after >= the dead time off"),
     Proof("fault", FaultSpec, 4, 8,
           "Protection + Gates: all gates off within 3 clocks of a fault, until a clear"),
+    Proof("abs_compare", AbsCompareSpec, 1, 1,
+          "Protection's |v| > limit comparator: equal to the magnitude compare, 16 and 32 bit"),
     Proof("pi", PISpec, 5, 10,
           "current-loop PI: output within its limits, integrator within them, never wrapping"),
     Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,

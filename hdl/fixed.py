@@ -58,6 +58,29 @@ def check_param(owner, name, value, lo, hi):
     return int(value)
 
 
+def check_choice(owner, name, value, choices):
+    """The string-choice parameter check: ``value`` a string among ``choices``, else a
+    ``TypeError`` (not a string) or ``ValueError`` (``"<owner> <name> must be one of 'a', 'b',
+    not <value>"``). Returns ``value``."""
+    allowed = ", ".join(map(repr, choices))
+    if not isinstance(value, str):
+        raise TypeError(f"{owner} {name} must be a string, one of {allowed}, not {value!r}")
+    if value not in choices:
+        raise ValueError(f"{owner} {name} must be one of {allowed}, not {value!r}")
+    return value
+
+
+def abs_exceeds(v, limit):
+    """``|v| > limit`` for a signed ``v`` and an unsigned ``limit``, exactly (the most negative
+    ``v`` included), without forming ``|v|``: for ``v < 0``, ``|v| = ~v + 1``, so ``|v| > limit``
+    ⟺ ``~v ≥ limit``. The two comparisons run side by side and ``v``'s sign selects: no negating
+    carry chain in front of a comparator (the protection's thresholds at 100 MHz)."""
+    v = Value.cast(v)
+    if not v.shape().signed:
+        raise TypeError(f"abs_exceeds needs a signed value, not {v.shape()!r}")
+    return Mux(v[-1], ~v >= limit, v > limit)
+
+
 def _check_int(name, value, minimum, maximum=None):
     if not isinstance(value, numbers.Integral) or isinstance(value, bool):
         raise TypeError(f"{name} must be an integer, not {value!r}")

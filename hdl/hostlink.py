@@ -13,7 +13,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, signed
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -238,7 +238,8 @@ class LinkCore(wiring.Component):
         The normalised address map.
 
     Timing: a wire byte per clock in; :meth:`access_latency` to the first access; each access
-    takes ``2 + (ack delay)`` clocks (3 with a slave that acks one clock after ``stb``); a
+    takes ``2 + (ack delay)`` clocks (4 with :class:`~.regs.RegisterFile`, which acks two clocks
+    after ``stb``); a
     reply of ``n`` decoded bytes (``4 + 4·words + 2``) takes about ``3n + 4`` clocks when the
     output never stalls (CRC pass, COBS scan, emission, one byte per clock each).
     """
@@ -319,13 +320,19 @@ class LinkCore(wiring.Component):
         # adder sits in front of the reply's byte selection and buffer address (100 MHz).
         dend = Signal.like(j)
         rlen = Signal.like(j)
+        dend_m1 = Signal.like(j)                # dend − 1 (the CRC pass's last byte)
         m.d.sync += [dend.eq(REPLY_HEADER + 4 * nwords),
+                     dend_m1.eq(REPLY_HEADER + 4 * nwords - 1),
                      rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES)]
         # p + blk and p + blk + 1 likewise: p and blk are set in REPLY / NEXT and SCAN, and read
         # back in DATA and NEXT, at least one clock (CODE) later.
         pb = Signal.like(j)
         pb1 = Signal.like(j)
-        m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1)]
+        pb_m1 = Signal(signed(len(j) + 2))     # p + blk − 1 (−1 when both are 0)
+        m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1), pb_m1.eq(p + blk - 1)]
+        # p + 254 (the longest COBS block's end), set with p: no subtractor before the SCAN
+        # state's comparison.
+        p254 = Signal(range((1 << len(j)) + 255), init=254)
 
         # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
         # addresses the buffer with v at once.
@@ -345,14 +352,23 @@ class LinkCore(wiring.Component):
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), widx.eq(0)]
             m.d.sync += [h.eq(0) for h in hdr]
 
-        # Address checks of word `idx`, decoded from the address bits.
-        a_full = addr_in + idx                  # ADDR_WIDTH + 1 bits: no wrap
+        # Address checks of word `idx`, decoded from the address bits. a_full = addr_in + idx
+        # (ADDR_WIDTH + 1 bits: no wrap) as a register set with idx (idx = 0 with addr_in, idx
+        # + 1 with a_full + 1; the header does not change from CHECK to the reply): no adder in
+        # front of the decode (the whole top's 100 MHz).
+        a_full = Signal(ADDR_WIDTH + 1)
         a_exists, a_writable = address_decode(a_full, self._address_map)
-        # The bus address, registered: idx does not change in SETUP, the clock before every
-        # ACCESS, so the register holds word idx's address there (no adder in front of the
-        # register file's address decode: 100 MHz).
-        a_bus = Signal(ADDR_WIDTH)
-        m.d.sync += a_bus.eq(a_full[:ADDR_WIDTH])
+        # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
+        # one clock ahead): no state decode or adder in front of the register file's address
+        # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
+        # the clock before every ACCESS, so word idx's address is loaded there. Outside
+        # ACCESS stb, we and addr are 0; lock is high in SETUP and ACCESS.
+        bus_stb = Signal()
+        bus_lock = Signal()
+        bus_we = Signal()
+        bus_addr = Signal(ADDR_WIDTH)
+        m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
+                     bus.addr.eq(bus_addr), bus.w_data.eq(Mux(bus_stb, rd.data, 0))]
 
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)
@@ -410,7 +426,7 @@ class LinkCore(wiring.Component):
                 m.d.sync += [
                     r_cmd.eq(Mux(length >= 3, cmd_in, 0)),
                     r_seq.eq(Mux(length >= 4, seq_in, 0)),
-                    r_info.eq(0), nwords.eq(0), idx.eq(0), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), idx.eq(0), a_full.eq(addr_in), framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
                 m.next = "REPLY"
@@ -457,29 +473,25 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx == count_in - 1):
-                    m.d.sync += idx.eq(0)
+                    m.d.sync += [idx.eq(0), a_full.eq(addr_in), bus_lock.eq(1)]
                     m.next = "SETUP"
                 with m.Else():
-                    m.d.sync += idx.eq(idx + 1)
+                    m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                m.d.comb += bus.lock.eq(1)
+                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write),
+                             bus_addr.eq(a_full[:ADDR_WIDTH])]
                 m.next = "ACCESS"
 
-            with m.State("ACCESS"):
-                m.d.comb += [
-                    bus.lock.eq(1),
-                    bus.stb.eq(1),
-                    bus.addr.eq(a_bus),
-                    bus.we.eq(is_write),
-                    bus.w_data.eq(rd.data),
-                ]
+            with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
+                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0), bus_addr.eq(0)]
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
                                             ReplyStatus.READ_ONLY, ReplyStatus.BAD_ADDRESS)),
                             r_info.eq(idx),
+                            bus_lock.eq(0),
                         ]
                         m.next = "REPLY"
                     with m.Else():
@@ -488,9 +500,10 @@ class LinkCore(wiring.Component):
                         with m.If(idx == count_in - 1):
                             with m.If(~is_write):
                                 m.d.sync += [nwords.eq(count_in), r_info.eq(count_in)]
+                            m.d.sync += bus_lock.eq(0)
                             m.next = "REPLY"
                         with m.Else():
-                            m.d.sync += idx.eq(idx + 1)
+                            m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
                             m.next = "SETUP"
 
             with m.State("REPLY"):
@@ -503,7 +516,7 @@ class LinkCore(wiring.Component):
                         counter(self.crc_errors)
                 with m.Else():
                     counter(self.rejected)
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0)]
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p254.eq(254)]
                 next_j(0)
                 m.next = "CRC"
 
@@ -511,7 +524,7 @@ class LinkCore(wiring.Component):
             # `jb` is the byte at j in every clock.
             with m.State("CRC"):                    # CRC over the reply payload
                 m.d.sync += crc.eq(crc16_byte(crc, jb))
-                with m.If(j == dend - 1):
+                with m.If(j == dend_m1):
                     next_j(0)
                     m.next = "SCAN"
                 with m.Else():
@@ -522,7 +535,7 @@ class LinkCore(wiring.Component):
                     m.d.sync += [blk.eq(j - p), blk_zero.eq(0)]
                     next_j(p)
                     m.next = "CODE"
-                with m.Elif(j - p == 254):
+                with m.Elif(j == p254):            # j − p = 254
                     m.d.sync += [blk.eq(254), blk_zero.eq(0)]
                     next_j(p)
                     m.next = "CODE"
@@ -546,18 +559,18 @@ class LinkCore(wiring.Component):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
                 with m.If(self.o.ready):
                     next_j(j + 1)
-                    with m.If(j + 1 == pb):
+                    with m.If(j == pb_m1):         # j + 1 = p + blk
                         m.next = "NEXT"
                 with m.Else():
                     next_j(j)
 
             with m.State("NEXT"):
                 with m.If(blk_zero):
-                    m.d.sync += p.eq(pb1)
+                    m.d.sync += [p.eq(pb1), p254.eq(pb1 + 254)]
                     next_j(pb1)
                     m.next = "SCAN"
                 with m.Elif((blk == 254) & (pb != rlen)):
-                    m.d.sync += p.eq(pb)
+                    m.d.sync += [p.eq(pb), p254.eq(pb + 254)]
                     next_j(pb)
                     m.next = "SCAN"
                 with m.Else():

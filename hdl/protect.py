@@ -33,7 +33,7 @@ from amaranth.hdl import Module, Mux, Shape, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_param, shape_range
+from .fixed import abs_exceeds, check_param, shape_range
 
 __all__ = ["FAULTS", "FAULT_LAYOUT", "Protection"]
 
@@ -153,10 +153,6 @@ class Protection(wiring.Component):
     def elaborate(self, platform):
         m = Module()
 
-        def magnitude(v):
-            # |v| exactly (one bit wider, so the most negative value does not wrap).
-            return Mux(v < 0, -v, v)
-
         # Sampled causes: the verdict of the current sample, else the held one.
         def sampled(name, valid, verdict):
             held = Signal(name=f"held_{name}")
@@ -176,15 +172,15 @@ class Protection(wiring.Component):
 
         cause = {
             "external": ~self.fault_n,
-            "overcurrent_a": sampled("oc_a", self.i.valid, magnitude(i.a) > self.oc_limit),
-            "overcurrent_b": sampled("oc_b", self.i.valid, magnitude(i.b) > self.oc_limit),
-            "overcurrent_c": sampled("oc_c", self.i.valid, magnitude(i.c) > self.oc_limit),
+            "overcurrent_a": sampled("oc_a", self.i.valid, abs_exceeds(i.a, self.oc_limit)),
+            "overcurrent_b": sampled("oc_b", self.i.valid, abs_exceeds(i.b, self.oc_limit)),
+            "overcurrent_c": sampled("oc_c", self.i.valid, abs_exceeds(i.c, self.oc_limit)),
             "overcurrent_comparator": self.oc_comp,
             "overvoltage": sampled("ov", self.udc.valid, udc > self.ov_limit),
             "undervoltage": self.uv_enable & armed
                             & sampled("uv", self.udc.valid, udc < self.uv_limit),
             "overspeed": sampled("os", self.speed.valid,
-                                 magnitude(self.speed.payload) > self.os_limit),
+                                 abs_exceeds(self.speed.payload, self.os_limit)),
             "encoder": self.encoder_illegal,
             "hall": self.hall_invalid,
             "encoder_hall": self.encoder_hall,

@@ -3,8 +3,13 @@
 
 ``channels`` channels, each selecting one of the named ``sources`` by its ``sel`` register,
 record one sample per ``decim + 1`` strobes of ``strobe`` (the loop rate) into a circular buffer
-of ``depth`` samples per channel (one :class:`~amaranth.lib.memory.Memory` of ``depth`` words of
-``channels × width`` bits: 4 × 1024 × 16 bit = 64 Kbit by default, the paper's RAM).
+of ``depth`` samples per channel: one single-port RAM of ``channels · depth`` words of ``width``
+bits (4 × 1024 × 16 bit = 64 Kbit by default, the paper's RAM), word ``channel · depth + ring
+slot``. ``ram`` chooses it: ``"bram"`` (default) an :class:`~amaranth.lib.memory.Memory` (block
+RAM; 16 ``SB_RAM40_4K`` on the iCE40), ``"ice40_spram"`` one iCE40 UP5K ``SB_SPRAM256KA``
+(16 K × 16, an :class:`~amaranth.hdl.Instance`: synthesis only, the simulators cannot run it).
+Both behave the same clock for clock (below), except that the SPRAM's contents are undefined
+until written, where the Memory starts at 0.
 
 **Sample word.** Each source is MSB-aligned to ``width`` bits: a wider source keeps its top
 ``width`` bits (truncated, i.e. floored: the Q format's scale is kept, its LSBs dropped), a
@@ -22,6 +27,8 @@ together; a source changing every clock (the measured θ) is read ``c`` clocks l
 strobe) further strobes are ignored entirely (neither taken nor counted by the decimation), and
 ``done`` waits for the last channel of the last sample. ``arm`` abandons the channels not yet
 written. (Four independent multiplexers cost ≈ 180 LUT4 each on the iCE40; see docs/AREA.md.)
+So strobes must come at least ``strobe_interval`` = ``channels`` clocks apart to be all seen; the
+top strobes once per current-loop computation (one per PWM period, ≥ 5 000 clocks).
 
 **Capture** (``state``: :class:`ScopeState`)::
 
@@ -42,20 +49,31 @@ decimation (the first strobe after ``arm`` is sampled). ``force`` (host strobe) 
 ``rd_data`` holds the sample one clock later (1-clock latency, as a synchronous block-RAM read).
 The index is translated by the write pointer (``(index + wr_ptr) mod depth``), so the capture
 reads back in time order without the host knowing where the ring starts. A channel number
-≥ ``channels`` reads 0. Reading while a capture runs returns the ring as it stands.
+≥ ``channels`` reads 0. Reading while a capture runs returns the ring as it stands, except that
+the RAM has one port: a read in a clock in which a channel is written (the ``channels`` clocks
+from a taken strobe) reads 0 (the SPRAM's output is undefined after a write cycle). After
+``done`` nothing is written, so a read-back of a complete capture is never affected.
 """
 
 from collections.abc import Mapping
 
-from amaranth.hdl import Module, Mux, Shape, Signal, Value, signed, unsigned
+from amaranth.hdl import (C, Cat, ClockSignal, Instance, Module, Mux, Shape, Signal, Value,
+                          signed, unsigned)
 from amaranth.lib import data, enum, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from .fixed import is_int
+from .fixed import check_choice, is_int
 
-__all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES"]
+__all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES", "RAMS"]
+
+#: ``Scope(ram=…)`` choices: a generic :class:`~amaranth.lib.memory.Memory` (block RAM), or
+#: the iCE40 UP5K's single-port 16 K × 16 ``SB_SPRAM256KA``.
+RAMS = ("bram", "ice40_spram")
+
+#: Words and bits of one ``SB_SPRAM256KA``.
+SPRAM_DEPTH, SPRAM_WIDTH = 16384, 16
 
 #: Default source list (select code = position): the top drives these members of ``src``.
 DEFAULT_SOURCES = {
@@ -89,7 +107,7 @@ class TriggerSource(enum.Enum, shape=1):
     EXTERNAL = 1    # the ``trigger`` input (e.g. the Servo's reference step) or ``force``
 
 
-def check_scope(sources, channels, depth, width, decim_width):
+def check_scope(sources, channels, depth, width, decim_width, ram="bram"):
     """Validate the :class:`Scope` parameters; returns the sources as a dict of shapes."""
     ok = isinstance(sources, Mapping) and len(sources) > 0
     shapes = {}
@@ -116,6 +134,11 @@ def check_scope(sources, channels, depth, width, decim_width):
     if not is_int(decim_width) or not 1 <= decim_width <= 32:
         raise TypeError(f"Scope decim_width must be an integer from 1 to 32, "
                         f"not {decim_width!r}")
+    check_choice("Scope", "ram", ram, RAMS)
+    if ram == "ice40_spram" and (width > SPRAM_WIDTH or channels * depth > SPRAM_DEPTH):
+        raise ValueError(f"Scope ram 'ice40_spram' holds at most {SPRAM_DEPTH} words of "
+                         f"{SPRAM_WIDTH} bits, not channels · depth = {channels * depth} words "
+                         f"of width {width} bits")
     return shapes
 
 
@@ -134,6 +157,9 @@ class Scope(wiring.Component):
         Bits per sample, 1 … 32.
     decim_width : int
         Width of ``decim``, 1 … 32.
+    ram : str
+        ``"bram"`` (an :class:`~amaranth.lib.memory.Memory`) or ``"ice40_spram"`` (one
+        ``SB_SPRAM256KA``: ``width`` ≤ 16 and ``channels · depth`` ≤ 16 384; synthesis only).
 
     Members
     -------
@@ -161,7 +187,7 @@ class Scope(wiring.Component):
     rd_addr : In(unsigned(addr_width))
         ``channel · depth + index`` (``addr_width = ceil_log2(channels) + log2(depth)``).
     rd_data : Out(unsigned(width))
-        The sample at ``rd_addr`` of the previous clock.
+        The sample at ``rd_addr`` of the previous clock; 0 if a channel was written in that clock.
 
     Attributes
     ----------
@@ -170,14 +196,19 @@ class Scope(wiring.Component):
     write_clocks : int
         ``channels``: clocks from a taken strobe to its last channel in the RAM (channel ``c``
         written in clock ``c`` after the strobe's).
+    strobe_interval : int
+        ``channels``: the smallest strobe spacing, in clocks, at which no strobe is ignored.
+    ram : str
+        The ``ram`` parameter.
     source_names : tuple of str
         Names in select-code order.
     sel_width, addr_width, memory_bits : int
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
-                 decim_width=16):
-        shapes = check_scope(sources, channels, depth, width, decim_width)
+                 decim_width=16, ram="bram"):
+        shapes = check_scope(sources, channels, depth, width, decim_width, ram)
+        self._ram = ram
         self._sources = shapes
         self._channels = channels
         self._depth = depth
@@ -214,6 +245,8 @@ class Scope(wiring.Component):
     memory_bits = property(lambda self: self._channels * self._depth * self._width)
     read_latency = property(lambda self: 1)
     write_clocks = property(lambda self: self._channels)
+    strobe_interval = property(lambda self: self._channels)
+    ram = property(lambda self: self._ram)
 
     def _aligned(self, name):
         """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
@@ -221,13 +254,15 @@ class Scope(wiring.Component):
         sw, w = len(value), self._width
         return value[sw - w:] if sw >= w else value << (w - sw)
 
+    def _spram(self, ports):
+        """The ``SB_SPRAM256KA`` cell with ``ports`` (``Instance`` keyword arguments, yosys
+        ``ice40/cells_sim.v`` names). A test replaces it with a simulation stand-in."""
+        return Instance("SB_SPRAM256KA", **ports)
+
     def elaborate(self, platform):
         m = Module()
         n, depth, ab = self._channels, self._depth, self._abits
-        layout = data.ArrayLayout(unsigned(self._width), n)
-        m.submodules.mem = mem = Memory(shape=layout, depth=depth, init=[])
-        wr = mem.write_port(granularity=1)         # one write-enable per channel lane
-        rd = mem.read_port()
+        width = self._width
 
         sel = Signal.like(self.sel)
         decim = Signal.like(self.decim)
@@ -239,6 +274,7 @@ class Scope(wiring.Component):
         filled = Signal(unsigned(ab))
         post_left = Signal(unsigned(ab + 1))
         dcount = Signal.like(self.decim)
+        dzero = Signal(init=1)          # dcount == 0, registered (off the RAM-address path)
         # Channel being written: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
         # in the clocks after it; `slot` is the ring address of that sample.
         phase = Signal(range(n))
@@ -250,9 +286,11 @@ class Scope(wiring.Component):
         take = Signal()
         full = Signal()
         event = Signal()
+        write = Signal()
         m.d.comb += [
             strobe.eq(self.strobe & ~busy),
-            take.eq(strobe & capturing & (dcount == 0) & ~self.arm),
+            take.eq(strobe & capturing & dzero & ~self.arm),
+            write.eq((take | busy) & ~self.arm),
             full.eq(filled >= pre),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
@@ -260,18 +298,13 @@ class Scope(wiring.Component):
             self.pre_full.eq((state == ScopeState.PRE) & full),
         ]
 
-        # Sample word: one multiplexer, the channel of this clock's source code, into every lane;
-        # only the lane of `phase` is written.
+        # Sample word: one multiplexer, the source code of the channel written in this clock.
         names = self.source_names
-        sample = Signal(unsigned(self._width))
+        sample = Signal(unsigned(width))
         with m.Switch(sel[phase] if n > 1 else sel[0]):
             for code, name in enumerate(names):
                 with m.Case(code):
                     m.d.comb += sample.eq(self._aligned(name))
-        write = (take | busy) & ~self.arm
-        for c in range(n):
-            m.d.comb += [wr.data[c].eq(sample), wr.en[c].eq(write & (phase == c))]
-        m.d.comb += wr.addr.eq(Mux(busy, slot, wr_ptr))
         if n > 1:
             with m.If(self.arm):
                 m.d.sync += phase.eq(0)
@@ -280,12 +313,46 @@ class Scope(wiring.Component):
             with m.Elif(busy):
                 m.d.sync += phase.eq(Mux(phase == n - 1, 0, phase + 1))
 
+        # One RAM port, word `channel · depth + ring slot`: the write of channel `phase` (slot
+        # `wr_ptr` with the strobe, `slot` after it) or else the read-back window, its index
+        # translated by the write pointer.
+        words = n * depth
+        addr = Signal(range(words))
+        w_addr = Cat(Mux(busy, slot, wr_ptr), phase)
+        r_addr = Cat((self.rd_addr[:ab] + wr_ptr)[:ab], self.rd_addr[ab:])
+        m.d.comb += addr.eq(Mux(write, w_addr, r_addr))
+        if self._ram == "bram":
+            m.submodules.mem = mem = Memory(shape=unsigned(width), depth=words, init=[])
+            wr = mem.write_port()
+            rd = mem.read_port()
+            m.d.comb += [
+                wr.addr.eq(addr), wr.data.eq(sample), wr.en.eq(write),
+                rd.addr.eq(addr),
+            ]
+            word = rd.data
+        else:
+            # Single port, always selected and powered, all four nibbles written; DATAOUT is
+            # registered: the word at ADDRESS one clock later, undefined after a write cycle.
+            address = Signal(ceil_log2(SPRAM_DEPTH))
+            datain = Signal(SPRAM_WIDTH)
+            word = Signal(SPRAM_WIDTH)
+            m.d.comb += [address.eq(addr), datain.eq(sample)]
+            m.submodules.spram = self._spram(dict(
+                i_ADDRESS=address, i_DATAIN=datain, i_MASKWREN=C(0b1111, 4), i_WREN=write,
+                i_CHIPSELECT=C(1, 1), i_CLOCK=ClockSignal(), i_STANDBY=C(0, 1),
+                i_SLEEP=C(0, 1), i_POWEROFF=C(1, 1), o_DATAOUT=word))
+        # Read-back: 0 for a channel ≥ channels and in the clock after a write.
+        valid_q = Signal()
+        m.d.sync += valid_q.eq(~write & (self.rd_addr[ab:] < n))
+        m.d.comb += self.rd_data.eq(Mux(valid_q, word[:width], 0))
+
         with m.If(self.arm):
             m.d.sync += [
                 state.eq(ScopeState.PRE),
                 done.eq(0),
                 filled.eq(0),
                 dcount.eq(0),
+                dzero.eq(1),
                 sel.eq(self.sel),
                 decim.eq(self.decim),
                 pre.eq(self.pretrigger),
@@ -293,7 +360,8 @@ class Scope(wiring.Component):
             ]
         with m.Else():
             with m.If(strobe & capturing):
-                m.d.sync += dcount.eq(Mux(dcount >= decim, 0, dcount + 1))
+                wrap = dcount >= decim
+                m.d.sync += [dcount.eq(Mux(wrap, 0, dcount + 1)), dzero.eq(wrap)]
             with m.If(take):
                 m.d.sync += wr_ptr.eq(wr_ptr + 1)
             with m.If(state == ScopeState.PRE):
@@ -310,16 +378,4 @@ class Scope(wiring.Component):
                     m.d.sync += post_left.eq(post_left - 1)
                     with m.If(post_left == 1):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
-
-        # Read-back window: index translated by the write pointer, channel picked after the RAM.
-        m.d.comb += rd.addr.eq(self.rd_addr[:ab] + wr_ptr)
-        if self._cbits == 0:
-            m.d.comb += self.rd_data.eq(rd.data[0])
-        else:
-            channel_q = Signal(unsigned(self._cbits))
-            m.d.sync += channel_q.eq(self.rd_addr[ab:])
-            with m.Switch(channel_q):
-                for c in range(n):
-                    with m.Case(c):
-                        m.d.comb += self.rd_data.eq(rd.data[c])
         return m

@@ -58,10 +58,9 @@ from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
-from .fixed import round_shift, saturate
+from .fixed import check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
-from .foc_engine import PIPELINE_CLOCKS, EngineCurrentLoop
-from .foc_engine import OUTS as ENGINE_OUTS
+from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
@@ -69,6 +68,7 @@ from .protect import FAULTS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
                      build_regmap, mt_k_for)
 from .regs import RegisterFile
+from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
 from .servo import Servo
 from .svpwm import PWMTimer, pwm_half_period
@@ -93,18 +93,6 @@ def _latencies(loop):
     """Every sample → ``o.valid`` latency of a current loop (one for :class:`CurrentLoop`, one
     per program path for :class:`EngineCurrentLoop`)."""
     return loop.latencies if isinstance(loop, EngineCurrentLoop) else [loop.latency]
-
-
-def _phase_latency(loop):
-    """Clocks from the accepted sample to the current loop's ``phase`` transfer: Clarke's stage,
-    or for the engine the program's (straight-line) write of phase c, executed in X2 two clocks
-    after its fetch, plus the start pipeline and ``phase.valid``'s register (measured: 24)."""
-    if not isinstance(loop, EngineCurrentLoop):
-        return loop.stage_latency["clarke"]
-    outs = list(ENGINE_OUTS)
-    pc = next(i for i, ins in enumerate(loop.program.instrs)
-              if ins.out and outs[ins.out - 1] == "pc")
-    return pc + 2 + PIPELINE_CLOCKS
 
 
 def _is_hz(value):
@@ -223,8 +211,12 @@ class Top(wiring.Component):
         The current loop's implementation: ``"pipelined"`` (default, :class:`~.foc.CurrentLoop`:
         one pipeline stage per operation, 46–48 clocks) or ``"engine"``
         (:class:`~.foc_engine.EngineCurrentLoop`: the same results from a program on one
-        micro-sequenced datapath, 91–169 clocks, ≈ 1/3 of the LUTs, 4 multipliers; docs/ENGINE.md).
+        micro-sequenced datapath, 102–186 clocks, ≈ 1/3 of the LUTs, 4 multipliers; docs/ENGINE.md).
         Only the timing differs (:attr:`loop_latency`); ``mul_width`` does not apply to the engine.
+    scope_ram : str
+        The trace buffer's RAM (:class:`~.scope.Scope` ``ram``): ``"bram"`` (default, a
+        :class:`~amaranth.lib.memory.Memory`, simulates) or ``"ice40_spram"`` (one iCE40 UP5K
+        ``SB_SPRAM256KA`` instead of 16 ``SB_RAM40_4K``; synthesis only, the iCE40 boards' choice).
 
     Members
     -------
@@ -268,8 +260,8 @@ class Top(wiring.Component):
         The M/T edge mode (the parameter).
     mul_width : int
         The parameter.
-    current_loop : str
-        The parameter.
+    current_loop, scope_ram : str
+        The parameters.
 
     Raises
     ------
@@ -281,7 +273,7 @@ class Top(wiring.Component):
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
-                 mt_edges=MT_EDGES, current_loop="pipelined"):
+                 mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram"):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -324,19 +316,12 @@ class Top(wiring.Component):
         if (not isinstance(max_words, int) or isinstance(max_words, bool)
                 or not 1 <= max_words <= 255):
             raise TypeError(f"Top max_words must be an integer from 1 to 255, not {max_words!r}")
-        if not isinstance(mt_edges, str):
-            raise TypeError(f"Top mt_edges must be a string, not {mt_edges!r}")
-        if mt_edges not in MT_EDGES_PER_LINE:
-            raise ValueError(f"Top mt_edges must be one of "
-                             f"{', '.join(map(repr, MT_EDGES_PER_LINE))}, not {mt_edges!r}")
+        check_choice("Top", "mt_edges", mt_edges, MT_EDGES_PER_LINE)
         if mt_edges != MT_EDGES:
             regmap = regmap.with_constants(
                 {"mt_k": mt_k_for(scales, edges_per_line=MT_EDGES_PER_LINE[mt_edges])})
-        if not isinstance(current_loop, str):
-            raise TypeError(f"Top current_loop must be a string, not {current_loop!r}")
-        if current_loop not in CURRENT_LOOPS:
-            raise ValueError(f"Top current_loop must be one of "
-                             f"{', '.join(map(repr, CURRENT_LOOPS))}, not {current_loop!r}")
+        check_choice("Top", "current_loop", current_loop, CURRENT_LOOPS)
+        check_choice("Top", "scope_ram", scope_ram, SCOPE_RAMS)
         if resets is not None:
             if not isinstance(resets, Mapping):
                 raise TypeError(f"Top resets must be a mapping of register names to raw values "
@@ -374,7 +359,7 @@ class Top(wiring.Component):
         self._lead = LeadAngle()
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
-        self._scope = Scope()
+        self._scope = Scope(ram=scope_ram)
 
         super().__init__({
             "uart_rx": In(1, init=1),
@@ -403,6 +388,7 @@ class Top(wiring.Component):
     loop_latency = property(lambda self: self._adc.latency + self._loop.latency)
     mul_width = property(lambda self: self._mul_width)
     current_loop = property(lambda self: self._current_loop)
+    scope_ram = property(lambda self: self._scope.ram)
 
     def elaborate(self, platform):
         m = Module()
@@ -444,7 +430,7 @@ class Top(wiring.Component):
         wiring.connect(m, adc=adc.o, current_loop=cl.i)
         # Dead-time compensation between the duties and the timer's shadow register (no added
         # latency); its currents (Clarke) must be ready before this sample's duties.
-        assert _phase_latency(cl) + dtc.comp_latency < min(_latencies(cl))
+        assert cl.phase_latency + dtc.comp_latency < min(_latencies(cl))
         wiring.connect(m, current_loop=cl.o, dtc=dtc.i)
         wiring.connect(m, dtc=dtc.o, timer=timer.duty)
         wiring.connect(m, current_loop=cl.phase, protect=prot.i)

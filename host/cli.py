@@ -180,7 +180,7 @@ def cmd_prove(args):
 def cmd_build(args):
     from ..boards.build import build
     build(args.board, out_dir=args.out, clk_hz=args.clk_mhz * 1e6 if args.clk_mhz else None,
-          progress=not args.quiet, json=args.json)
+          current_loop=args.current_loop, progress=not args.quiet, json=args.json)
 
 
 def cmd_fmax(args):
@@ -236,6 +236,10 @@ def build_parser():
     p.add_argument("--out", default="build", help="output folder (default: %(default)s)")
     p.add_argument("--clk-mhz", type=float, default=None,
                    help="system clock, MHz (default: 50; the PLL's nearest is used)")
+    from ..hdl.top import CURRENT_LOOPS
+    p.add_argument("--current-loop", choices=CURRENT_LOOPS, default="pipelined",
+                   help="current-loop gateware: pipelined (CurrentLoop) or engine "
+                        "(EngineCurrentLoop, fewer LUTs and multipliers) (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--json", action="store_true",
                    help="print the figures as one JSON object on the last line")

@@ -13,6 +13,7 @@ Slow (``-m slow``): the real builds — iCEBreaker and ULX3S bitstreams with YoW
 """
 
 import gc
+import json
 import os
 import re
 import subprocess
@@ -237,6 +238,70 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
                                    top.top._servo.loop_params["mul_width"]))
     assert widths == (mul_width,) * 3
     assert MUL_WIDTH[get_board(name).family] == mul_width
+
+
+@pytest.mark.parametrize("kwargs, loop", [({}, "pipelined"), ({"current_loop": "pipelined"},
+                                                                "pipelined"),
+                                          ({"current_loop": "engine"}, "engine")])
+def test_board_top_builds_the_chosen_current_loop(kwargs, loop):
+    """``current_loop`` reaches Top: its class, with the family's multiplier width where the
+    loop takes one (the engine has its own 18-bit datapath)."""
+    from foc_servo.hdl.foc import CurrentLoop
+    from foc_servo.hdl.foc_engine import EngineCurrentLoop
+    facts = _inspect(lambda: BoardTop("ulx3s", **kwargs),
+                     lambda top: (top.current_loop, top.top.current_loop, type(top.top._loop),
+                                  top.top.mul_width))
+    assert facts == (loop, loop, {"pipelined": CurrentLoop, "engine": EngineCurrentLoop}[loop],
+                     18)
+
+
+def test_build_current_loop_errors(tmp_path):
+    with pytest.raises(ValueError, match=r"^Build current_loop must be one of 'pipelined', "
+                                         r"'engine', not 'cordic'$"):
+        BoardTop("ulx3s", current_loop="cordic")
+    with pytest.raises(TypeError, match=r"^Build current_loop must be a string, one of "
+                                        r"'pipelined', 'engine', not None$"):
+        BoardTop("icebreaker", current_loop=None)
+    # checked before anything is written, also by prepare() and build()
+    with pytest.raises(ValueError, match=r"^Build current_loop must be one of"):
+        prepare("ulx3s", out_dir=tmp_path / "out", current_loop="Engine")
+    with pytest.raises(ValueError, match=r"^Build current_loop must be one of"):
+        build("ulx3s", out_dir=tmp_path / "out", current_loop="engine ")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")
+def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
+    """``build(current_loop="engine")``: the engine is in the written design, and the result
+    (report.json, the ``--json`` line, the printed report) names it; every other key stays.
+    The tools are not run (``_run_bitstream`` stubbed: the real builds are the slow tests)."""
+    import foc_servo.boards.build as build_mod
+    fake = {"fits": True, "fmax_mhz": 61.5, "error": None, "timing_met": True,
+            "fmax": {"sync": {"achieved": 61.5, "constraint": 50.0}}, "pnr_utilisation": {},
+            "lut": 1, "lut_kind": "LUT4", "ff": 2, "dsp": 3, "bram_bits": 4}
+    monkeypatch.setattr(build_mod, "_run_bitstream", lambda board, prep, stages: (dict(fake), []))
+    keys = None
+    for loop in ("pipelined", "engine"):
+        r = build("ulx3s", out_dir=tmp_path / loop, current_loop=loop, json=True)
+        out = capsys.readouterr().out.strip().splitlines()
+        assert json.loads(out[-1])["current_loop"] == r["current_loop"] == loop
+        assert f"  gateware  Top(current_loop={loop!r}, scope_ram='bram')" in out
+        assert r["scope_ram"] == "bram"
+        saved = json.loads((tmp_path / loop / "ulx3s" / "report.json").read_text())
+        assert saved["current_loop"] == loop
+        il = (tmp_path / loop / "ulx3s" / f"{NAME}.il").read_text()
+        # the written design holds the chosen loop: the engine's datapath, or the pipeline's
+        # CORDIC rotator
+        engine = "module \\foc_servo.top.current_loop.engine\n" in il
+        cordic = "module \\foc_servo.top.current_loop.cordic\n" in il
+        assert (engine, cordic) == ((True, False) if loop == "engine" else (False, True))
+        if keys is None:
+            keys = set(r)
+        assert set(r) == keys
+    assert {"board", "title", "flow", "lut", "lut_kind", "ff", "bram_bits", "dsp", "fmax_mhz",
+            "fmax", "timing_met", "clock_mhz", "clock_requested_mhz", "pll", "pll_divs", "paper",
+            "fits", "error", "utilisation", "wall_s", "stages", "artifacts",
+            "current_loop", "scope_ram"} == keys
 
 
 # --- vendor build trees ---------------------------------------------------------------------------

@@ -104,3 +104,25 @@ def test_simtop_builds_the_chosen_current_loop():
     simtop = SimTop(current_loop="engine")
     assert simtop.top_kwargs == {"current_loop": "engine"}
     assert isinstance(simtop.top._loop, EngineCurrentLoop)
+
+
+@pytest.mark.parametrize("args, passed", [([], "pipelined"),
+                                          (["--current-loop", "engine"], "engine"),
+                                          (["--current-loop", "pipelined"], "pipelined")])
+def test_build_current_loop_option_reaches_build(monkeypatch, args, passed):
+    """``foc-servo build --current-loop`` reaches ``build(current_loop=...)`` (stubbed: no
+    tools run here; tests/test_build.py follows it into Top and the report)."""
+    import foc_servo.boards.build as build_mod
+    seen = {}
+    monkeypatch.setattr(build_mod, "build", lambda board, **kw: seen.update(board=board, **kw))
+    main(["build", "--board", "ulx3s", "--quiet", "--json", *args])
+    assert seen["board"] == "ulx3s" and seen["current_loop"] == passed
+    assert seen["json"] is True and seen["progress"] is False and seen["clk_hz"] is None
+
+
+def test_build_current_loop_option_rejects_unknown(capsys):
+    with pytest.raises(SystemExit):
+        main(["build", "--board", "ulx3s", "--current-loop", "cordic"])
+    err = capsys.readouterr().err
+    assert "argument --current-loop: invalid choice: 'cordic'" in err
+    assert "'pipelined'" in err and "'engine'" in err

@@ -2,8 +2,8 @@
 """The SymbiYosys proofs of :mod:`foc_servo.boards.prove`: each proof passes, each deliberately
 broken variant fails on the property it breaks, and the spec's own pieces are right.
 
-The dead-time and fault proofs (and their broken variants) run in the default test run (a few
-seconds each); the PI, host-link and register-file proofs are ``slow``.
+The dead-time, fault and abs_compare proofs (and their broken variants) run in the default
+test run (a few seconds each); the PI, host-link and register-file proofs are ``slow``.
 """
 
 import re
@@ -22,12 +22,13 @@ from foc_servo.host.protocol import crc16
 CAUGHT_BY = {
     "deadtime": r"deadtime: phase [abc] turned on after less than the dead time off",
     "fault": r"fault bound: a gate on 3 clocks after a fault",
+    "abs_compare": r"abs_compare: \|v\| > limit at (16|32) bit",
     "pi": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "pi_speed": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "hostlink": r"hostlink crc: a write without a frame with a valid CRC",
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
 }
-QUICK = ("deadtime", "fault")
+QUICK = ("deadtime", "fault", "abs_compare")
 SLOW = tuple(name for name in PROOFS if name not in QUICK)
 
 

@@ -16,16 +16,19 @@ from foc_servo.sim.verify.regs import run, window_word
 
 
 async def access(ctx, dut, addr, *, we=0, data=0, lock=0):
-    """One bus access as the master does it; checks ``ack`` comes exactly one clock after
-    ``stb`` and returns ``(r_data, status)``."""
+    """One bus access as the master does it; checks ``ack`` comes exactly ``dut.latency`` (2)
+    clocks after ``stb`` and returns ``(r_data, status)``."""
     ctx.set(dut.bus.addr, addr)
     ctx.set(dut.bus.we, we)
     ctx.set(dut.bus.w_data, data & 0xFFFFFFFF)
     ctx.set(dut.bus.lock, lock)
     ctx.set(dut.bus.stb, 1)
     assert ctx.get(dut.bus.ack) == 0
+    for _ in range(dut.latency - 1):
+        await ctx.tick()
+        assert ctx.get(dut.bus.ack) == 0              # stb held: not a new access
     await ctx.tick()
-    assert ctx.get(dut.bus.ack) == 1                  # latency 1
+    assert ctx.get(dut.bus.ack) == 1                  # latency 2
     r_data, status = ctx.get(dut.bus.r_data), ctx.get(dut.bus.status)
     await ctx.tick()
     ctx.set(dut.bus.stb, 0)
@@ -64,7 +67,7 @@ def test_register_file_ports_follow_the_declaration():
     assert members["pi_d_lim_lo"].shape == signed(16) and members["mt_k"].shape == unsigned(48)
     assert members["scope_rd_addr"].shape == 12
     assert members["scope_rd_data"].shape == 32
-    assert dut.latency == 1 and dut.commit_latency == 1
+    assert dut.latency == 2 and dut.commit_latency == 1
 
 
 def test_every_register_reset_value_reads_back():
@@ -153,7 +156,7 @@ def test_burst_across_commit_with_lock_high_applies_only_after_lock_falls():
     run_tb(dut, tb, "regs_burst_lock")
 
 
-def test_immediate_register_and_strobe_act_in_the_ack_clock():
+def test_immediate_register_and_strobe_act_the_clock_after_stb():
     dut = RegisterFile()
     oc, clear = REGMAP["prot_oc_limit"], REGMAP["clear_faults"]
 
@@ -164,7 +167,9 @@ def test_immediate_register_and_strobe_act_in_the_ack_clock():
         ctx.set(dut.bus.lock, 1)                   # immediate registers ignore lock
         ctx.set(dut.bus.stb, 1)
         await ctx.tick()
-        assert ctx.get(dut.bus.ack) == 1 and ctx.get(dut.prot_oc_limit) == 1234
+        assert ctx.get(dut.bus.ack) == 0 and ctx.get(dut.prot_oc_limit) == 1234
+        await ctx.tick()
+        assert ctx.get(dut.bus.ack) == 1
         await ctx.tick()
         ctx.set(dut.bus.stb, 0)
         pulses = []
@@ -174,8 +179,8 @@ def test_immediate_register_and_strobe_act_in_the_ack_clock():
         for _ in range(4):
             pulses.append(ctx.get(dut.clear_faults))
             await ctx.tick()
-            ctx.set(dut.bus.stb, int(len(pulses) < 2))
-        assert pulses == [0, 1, 0, 0]              # one pulse, in the ack clock
+            ctx.set(dut.bus.stb, int(len(pulses) < 3))
+        assert pulses == [0, 1, 0, 0]              # one pulse, the clock after stb
         r_data, status = await access(ctx, dut, clear.addr, we=1, data=0x2)
         assert status is Status.OK and ctx.get(dut.clear_faults) == 0   # bit 0 clear: no pulse
         assert (await access(ctx, dut, clear.addr))[0] == 0             # strobes read 0
@@ -214,6 +219,8 @@ def test_scope_window_reads_the_memory_one_clock_later():
         for off in (0, 1, 0x3FF, 0x400, 0xFFF):
             ctx.set(bench.stim, bench.pack(fields, dict(addr=0x1000 + off, stb=1)))
             assert ctx.get(dut.scope_rd_addr) == off
+            await ctx.tick()
+            assert ctx.get(dut.bus.ack) == 0                  # the address held: read in t + 1
             await ctx.tick()
             assert ctx.get(dut.bus.ack) == 1 and Status(ctx.get(dut.bus.status)) is Status.OK
             assert ctx.get(dut.bus.r_data) == window_word(off)

@@ -26,6 +26,9 @@ class RegisterFileModel:
         Strobe outputs during the current clock.
     ack, status, r_data_reg, win_hit
         Bus reply registers (``r_data_reg`` is the register behind the window mux).
+    pending, status_p, sel, win_pend
+        The access's first-clock registers (t): the read multiplexer runs in t + 1 on the word
+        ``sel`` (``(register, k)`` or ``None``), ``ack`` and the reply show in t + 2.
     """
 
     def __init__(self, regmap=REGMAP):
@@ -42,6 +45,10 @@ class RegisterFileModel:
         self.status = Status.OK.value
         self.r_data_reg = 0
         self.win_hit = {w.name: 0 for w in regmap.windows}
+        self.pending = 0
+        self.status_p = Status.OK.value
+        self.sel = None
+        self.win_pend = dict(self.win_hit)
 
     def r_data(self, window_data=None):
         """``bus.r_data`` during this clock; ``window_data`` maps a window name to its
@@ -62,34 +69,19 @@ class RegisterFileModel:
         """Advance one clock with these inputs; ``ro`` maps read-only register names to their
         input bits in this clock (missing: 0). Returns the :class:`~foc_servo.hdl.bus.Status`
         value the access gets (``None`` if no access started)."""
-        access = bool(stb) and not self.ack
-        self.ack = int(access)
+        access = bool(stb) and not self.pending and not self.ack
+        self.ack = self.pending
         for n in self.strobes:
             self.strobes[n] = 0
         if commit and not lock:
             for n in self._shadowed:
                 self.active[n] = self.staged[n]
-        if not access:
-            return None
-        self.status, self.r_data_reg = Status.BAD_ADDRESS.value, 0
-        for n in self.win_hit:
-            self.win_hit[n] = 0
-        hit = self._words.get(addr)
-        if hit is not None:
-            r, k = hit
-            if we:
-                if r.access is Access.STROBE:
-                    self.status = Status.OK.value
-                    self.strobes[r.name] = w_data & 1
-                elif r.access is Access.RW:
-                    self.status = Status.OK.value
-                    self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
-                    if r.shadow is None:
-                        self.active[r.name] = self.staged[r.name]
-                else:
-                    self.status = Status.READ_ONLY.value
-            else:
-                self.status = Status.OK.value
+        if self.pending:                      # t + 1: the read multiplexer, status inputs now
+            self.status = self.status_p
+            self.win_hit = dict(self.win_pend)
+            self.r_data_reg = 0
+            if self.sel is not None:
+                r, k = self.sel
                 if r.access is Access.RW:
                     bits = self.staged[r.name]
                 elif r.access is Access.RO:
@@ -99,12 +91,35 @@ class RegisterFileModel:
                 else:
                     bits = 0
                 self.r_data_reg = r.read_word(bits, k)
+        self.pending = int(access)
+        if not access:
+            return None
+        self.status_p, self.sel = Status.BAD_ADDRESS.value, None
+        for n in self.win_pend:
+            self.win_pend[n] = 0
+        hit = self._words.get(addr)
+        if hit is not None:
+            r, k = hit
+            if we:
+                if r.access is Access.STROBE:
+                    self.status_p = Status.OK.value
+                    self.strobes[r.name] = w_data & 1
+                elif r.access is Access.RW:
+                    self.status_p = Status.OK.value
+                    self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
+                    if r.shadow is None:
+                        self.active[r.name] = self.staged[r.name]
+                else:
+                    self.status_p = Status.READ_ONLY.value
+            else:
+                self.status_p = Status.OK.value
+                self.sel = (r, k)
         else:
             w = self._window(addr)
             if w is not None:
                 if we:
-                    self.status = Status.READ_ONLY.value
+                    self.status_p = Status.READ_ONLY.value
                 else:
-                    self.status = Status.OK.value
-                    self.win_hit[w.name] = 1
-        return self.status
+                    self.status_p = Status.OK.value
+                    self.win_pend[w.name] = 1
+        return self.status_p

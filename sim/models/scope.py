@@ -2,7 +2,8 @@
 """Clock-by-clock golden model of :class:`~foc_servo.hdl.scope.Scope` (behaviour in
 ``hdl/scope.py``): capture state machine, decimation, ring buffer, the time-shared source
 multiplexer (channel ``c`` of a sample written ``c`` clocks after its strobe) and the read-back
-window."""
+window of the single-port RAM (a read in a write clock reads 0). ``ram`` is validated and kept
+but changes nothing: both RAMs behave alike."""
 
 import numpy as np
 
@@ -32,8 +33,9 @@ class ScopeModel:
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
-                 decim_width=16):
-        self.sources = check_scope(sources, channels, depth, width, decim_width)
+                 decim_width=16, ram="bram"):
+        self.sources = check_scope(sources, channels, depth, width, decim_width, ram)
+        self.ram = ram
         self.names = tuple(self.sources)
         self.channels, self.depth, self.width = channels, depth, width
         self.abits = depth.bit_length() - 1
@@ -78,15 +80,17 @@ class ScopeModel:
         out = {"state": self.state, "done": int(self.done and not busy),
                "pre_full": int(self.state == pre_s and full), "rd_data": self.rd_data}
 
-        # Read port: RAM word and channel registered; reads the ring before this clock's write.
-        addr = inp["rd_addr"]
-        channel = addr >> self.abits
-        phys = ((addr & (self.depth - 1)) + self.wr_ptr) % self.depth
-        self.rd_data = int(self.mem[phys, channel]) if channel < self.channels else 0
-
         capturing = self.state != idle
         strobe = bool(inp["strobe"]) and not busy       # ignored while a sample is written
         take = strobe and capturing and self.dcount == 0 and not inp["arm"]
+        write = (take or busy) and not inp["arm"]
+
+        # The RAM's one port: a write, or the read-back (word registered, 0 in a write clock).
+        addr = inp["rd_addr"]
+        channel = addr >> self.abits
+        phys = ((addr & (self.depth - 1)) + self.wr_ptr) % self.depth
+        self.rd_data = (int(self.mem[phys, channel]) if channel < self.channels and not write
+                        else 0)
         if inp["arm"]:
             self.phase = 0                               # channels not yet written are dropped
             self.state, self.done, self.filled, self.dcount = pre_s, 0, 0, 0

@@ -141,7 +141,7 @@ def _cycles(regmap, accesses, rng):
         i += n
         framed = rng.random() < 0.7
         for j, (addr, we, w_data) in enumerate(frame):
-            for _ in range(2):       # stb clock, ack clock (stb still high)
+            for _ in range(RegisterFile.latency + 1):   # stb clock … ack clock (stb held)
                 yield dict(addr=addr, we=we, w_data=w_data, stb=1, lock=int(framed),
                            commit=int(rng.random() < 0.15))
             gap = 0 if rng.random() < 0.7 else rng.randint(1, 3)
