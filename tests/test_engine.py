@@ -318,6 +318,15 @@ def test_engine_current_loop_against_model():
     assert result["overruns"] == 0
 
 
+async def _clocks_until(ctx, valid, clocks, limit=300):
+    """Tick until ``valid`` is high; returns ``clocks`` plus the ticks taken (at most ``limit``)."""
+    while not ctx.get(valid):
+        await ctx.tick()
+        clocks += 1
+        assert clocks < limit
+    return clocks
+
+
 def test_engine_current_loop_overrun_and_stalled_duties():
     dut = EngineCurrentLoop()
     seen = {}
@@ -337,11 +346,7 @@ def test_engine_current_loop_overrun_and_stalled_duties():
         seen["overrun"] = ctx.get(dut.overrun)          # a sample while busy: dropped
         await ctx.tick()
         ctx.set(dut.i.valid, 0)
-        clocks = 12
-        while not ctx.get(dut.o.valid):
-            await ctx.tick()
-            clocks += 1
-        seen["latency"] = clocks
+        seen["latency"] = await _clocks_until(ctx, dut.o.valid, 12)
         duties = ctx.get(dut.o.payload)
         for _ in range(20):                             # o.ready low: duties held, still busy
             await ctx.tick()
@@ -374,12 +379,7 @@ def test_phase_latency_attribute(loop):
         ctx.set(dut.i.valid, 1)
         await ctx.tick()
         ctx.set(dut.i.valid, 0)
-        clocks = 1
-        while not ctx.get(dut.phase.valid):
-            await ctx.tick()
-            clocks += 1
-            assert clocks < 300
-        seen["clocks"] = clocks
+        seen["clocks"] = await _clocks_until(ctx, dut.phase.valid, 1)
         seen["phase"] = ctx.get(dut.phase.payload)
 
     simulate(dut, [testbench], name=f"phase_latency_{loop}")
