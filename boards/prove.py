@@ -604,6 +604,16 @@ class HostLinkSpec(Elaboratable):
             Assert(~in_state("SETUP", "ACCESS") | ~dut["is_write"]
                    | all_writable(addr_in, addr_in + count_in),
                    "aux: hostlink burst writable"),
+            # The bus outputs are registers set one clock ahead (ACHECK / SETUP): tied to the
+            # state they imply.
+            Assert(~in_state("ACHECK", "SETUP", "ACCESS")
+                   | (internal["a_full"] == (addr_in + dut["idx"])[:len(internal["a_full"])]),
+                   "aux: hostlink word address"),
+            Assert((internal["bus_stb"] == in_state("ACCESS"))
+                   & (internal["bus_we"] == (in_state("ACCESS") & dut["is_write"]))
+                   & (~in_state("ACCESS")
+                      | (internal["bus_addr"] == internal["a_full"][:len(internal["bus_addr"])])),
+                   "aux: hostlink bus registers"),
         ]
         return m
 
@@ -615,8 +625,9 @@ class RegFileSpec(Elaboratable):
     bus writes it (with :class:`HostLinkSpec`: no register changes without a good frame).
 
     The bus (``addr``, ``we``, ``w_data``, ``stb``, ``lock``), ``commit``, the status (``ro``)
-    inputs and the window data are ``AnySeq``. An *access* is ``stb & ~ack`` (the register
-    file's documented protocol). Properties, for every register of the map:
+    inputs and the window data are ``AnySeq``. An *access* starts in a clock with ``stb`` high
+    that is not one of the two clocks after an access start (the register file's documented
+    protocol: ``stb`` held until ``ack``, two clocks after the start). Properties, for every register of the map:
 
     * ``rw``: its written value (the staging register of a shadowed one, else the port) differs
       from the previous clock's only after a write access to one of its words;
@@ -628,8 +639,8 @@ class RegFileSpec(Elaboratable):
     regmap : RegMap
         The register map (default :data:`~foc_servo.hdl.regmap.REGMAP`).
     broken : bool
-        Prove a :func:`mutant` of :class:`RegisterFile` that also takes a write in the ``ack``
-        clock (``access = stb`` instead of ``stb & ~ack``).
+        Prove a :func:`mutant` of :class:`RegisterFile` that also takes a write in the two
+        clocks after an access (``access = stb`` instead of ``stb & ~pending & ~ack``).
     """
 
     def __init__(self, *, regmap=REGMAP, broken=False):
@@ -640,13 +651,21 @@ class RegFileSpec(Elaboratable):
         m = Module()
         cls = RegisterFile
         if self.broken:
-            cls = mutant(RegisterFile, ("access.eq(bus.stb & ~bus.ack)", "access.eq(bus.stb)"))
+            cls = mutant(RegisterFile, ("access.eq(bus.stb & ~pending & ~bus.ack)",
+                                        "access.eq(bus.stb)"))
         regs = cls(self.regmap)
         m.submodules.regs, internal = elaborate_with_internals(regs, platform)
         _drive_inputs(m, regs)
         bus = regs.bus
 
-        access = bus.stb & ~bus.ack & bus.we
+        # An access starts in a clock with stb high, not in the two clocks after one (the
+        # documented protocol: stb is held until ack, in the second clock after the access).
+        started = Signal(name="spec_started")
+        access = Signal(name="spec_access")
+        m.d.comb += access.eq(bus.stb & ~started & ~bus.ack)
+        m.d.sync += started.eq(access)
+        m.d.comb += Assert(started == internal["pending"], "aux: regfile access in flight")
+        access = access & bus.we
         written = {}
         for addr, r, _ in self.regmap.words():
             written[r.name] = written.get(r.name, Const(0, 1)) | (access & (bus.addr == addr))
