@@ -598,6 +598,11 @@ class Top(wiring.Component):
         # duty transfer (overmod is registered then), the speed PI's one clock after its result.
         # clear_faults clears them all (a flag still true is set again by the next loop; one
         # seen in the clear's own clock is kept).
+        # The angle as a status word one clock late: the encoder forms θ combinationally (sum
+        # and wrap compare), and the register file's read multiplexer behind it was the whole
+        # top's critical path on the ECP5 (docs/AREA.md §7.8).
+        theta_status = Signal.like(enc.theta)
+        m.d.sync += theta_status.eq(enc.theta)
         flags = Signal(len(LOOP_FLAG_FIELDS))
         cl_done = Signal()
         speed_done = Signal()
@@ -620,7 +625,7 @@ class Top(wiring.Component):
             _raw(regs.st_fault_seen).eq(_raw(prot.seen)),
             regs.st_enc_aligned.eq(enc.aligned),
             regs.st_position.eq(enc.count),
-            regs.st_theta.eq(enc.theta),
+            regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
             regs.st_i_d.eq(cl.i_d), regs.st_i_q.eq(cl.i_q),
             regs.st_i_alpha.eq(cl.i_alpha), regs.st_i_beta.eq(cl.i_beta),
