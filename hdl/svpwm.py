@@ -651,34 +651,37 @@ class PWMTimer(wiring.Component):
         last = pos == 2 * n - 1
 
         shadow = Signal(_duty_layout(cw))
+        active = Signal(_duty_layout(cw))
         sym = Signal()                          # active mode
+        first = Signal(init=1)                  # pos = 0: the period's first clock
 
         m.d.comb += self.duty.ready.eq(1)
         with m.If(self.duty.valid):
             m.d.sync += shadow.eq(self.duty.payload)
-        m.d.sync += pos.eq(Mux(last, 0, pos + 1))
-        # A write on the boundary clock itself still makes this period.
-        new = Signal(_duty_layout(cw))
-        m.d.comb += new.eq(Mux(self.duty.valid, self.duty.payload, shadow))
+        m.d.sync += [pos.eq(Mux(last, 0, pos + 1)), first.eq(last)]
         with m.If(last):
-            m.d.sync += sym.eq(self.symmetric)
+            # A write on the boundary clock itself still makes this period.
+            m.d.sync += [active.eq(Mux(self.duty.valid, self.duty.payload, shadow)),
+                         sym.eq(self.symmetric)]
 
         m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
         for p in "abc":
             # The period's compare c, clamped, as the window edges the counter is compared
             # with: symmetric high for n − c ≤ pos < n + c (c ≤ n), asymmetric for pos < c
-            # (c ≤ 2n). Loaded at the boundary, so no clamp or adder sits between the counter
-            # and the gates (the whole top's 100 MHz; the levels are those of the compare
-            # `pos + c ≥ n ∧ pos < n + c` they replace).
+            # (c ≤ 2n). The edges are registered from `active` in every clock, so neither the
+            # duty input's path (the dead-time compensation's sum) nor the counter's reaches
+            # a clamp or an adder (the whole top's 100 MHz). In the period's first clock they
+            # still hold the last period's values, and the level comes from `active` directly:
+            # pos = 0 is high iff c ≥ n (symmetric) or c ≠ 0 (asymmetric). The levels are those
+            # of the compare `pos + c ≥ n ∧ pos < n + c` they replace, clock for clock.
             lo = Signal(range(2 * n + 1), init=n, name=f"lo_{p}")
             hi = Signal(range(2 * n + 1), init=n, name=f"hi_{p}")
             c_asym = Signal(range(2 * n + 1), name=f"c_asym_{p}")
-            c_sym = Mux(new[p] > n, n, new[p])
-            with m.If(last):
-                m.d.sync += [lo.eq(n - c_sym), hi.eq(n + c_sym),
-                             c_asym.eq(Mux(new[p] > 2 * n, 2 * n, new[p]))]
-            level_sym = (pos >= lo) & (pos < hi)
-            level_asym = pos < c_asym
+            c_sym = Mux(active[p] > n, n, active[p])
+            m.d.sync += [lo.eq(n - c_sym), hi.eq(n + c_sym),
+                         c_asym.eq(Mux(active[p] > 2 * n, 2 * n, active[p]))]
+            level_sym = Mux(first, active[p] >= n, (pos >= lo) & (pos < hi))
+            level_asym = Mux(first, active[p] != 0, pos < c_asym)
             m.d.comb += self.pwm[p].eq(Mux(sym, level_sym, level_asym))
 
         m.d.comb += [
