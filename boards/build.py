@@ -245,12 +245,6 @@ def _pll_instance(family, pll, clk_in, clk_out, locked):
 
 # --- the board top -------------------------------------------------------------------------------
 
-def _check_current_loop(current_loop):
-    """``current_loop`` a :data:`~foc_servo.hdl.top.CURRENT_LOOPS` value, else a TypeError /
-    ValueError naming the parameter, the value and the allowed values."""
-    check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
-
-
 class BoardTop(Elaboratable):
     """:class:`~foc_servo.hdl.top.Top` on a board: PLL, reset, pin buffers (module docstring).
 
@@ -287,7 +281,7 @@ class BoardTop(Elaboratable):
 
     def __init__(self, board, *, clk_hz=None, current_loop="pipelined"):
         self._board = get_board(board)
-        _check_current_loop(current_loop)
+        check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
         if clk_hz is None:
             clk_hz = 50e6
         if not _is_hz(clk_hz):
@@ -692,7 +686,7 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", prog
     """
     start = time.perf_counter()
     board = get_board(board)
-    _check_current_loop(current_loop)
+    check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
     stages = _Stages(board.name, progress)
     prep = stages.run("elaborate + write build plan",
                       lambda: prepare(board, out_dir=out_dir, clk_hz=clk_hz,
