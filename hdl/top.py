@@ -42,7 +42,10 @@ link's 16-bit counters (``st_link_*``) count the frames before the one that read
 
 A driver fault (``fault_n`` low) reaches the gates in :attr:`Top.fault_latency` clocks: 2 clocks
 of synchroniser, 1 in :class:`~.protect.Protection` (``present`` register, ``trip`` follows
-combinationally), 1 in :class:`~.gates.Gates` (registered outputs).
+combinationally), 1 in :class:`~.gates.Gates` (registered outputs). Only the gates and the
+``led`` pin take ``trip`` straight from the protection; the Servo (its mode, the loops' clears)
+and the ``st_trip`` status see it through a register, one clock later, so that the trip's wide
+fan-out into the loops is off the path from ``present`` (docs/AREA.md §7.12).
 """
 
 import math
@@ -412,6 +415,9 @@ class Top(wiring.Component):
         m.submodules.fault_sync = FFSynchronizer(self.fault_n, fault_n, init=1,
                                                  stages=SYNC_STAGES)
         m.submodules.oc_sync = FFSynchronizer(self.oc_comp, oc_comp, stages=SYNC_STAGES)
+        # The trip for everything but the gates, one clock late (module docstring).
+        trip_q = Signal()
+        m.d.sync += trip_q.eq(prot.trip)
         m.d.comb += [
             link.rx.eq(self.uart_rx),
             self.uart_tx.eq(link.tx),
@@ -452,7 +458,7 @@ class Top(wiring.Component):
             servo.speed.valid.eq(mt.o.valid),
             servo.speed.payload.eq(mt.o.payload),
             servo.theta_meas.eq(enc.theta),
-            servo.trip.eq(prot.trip),
+            servo.trip.eq(trip_q),
 
             cl.theta.eq(servo.theta),
             # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
@@ -619,7 +625,7 @@ class Top(wiring.Component):
             m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
         m.d.comb += [
             _raw(regs.st_mode).eq(_raw(servo.active)),
-            regs.st_trip.eq(prot.trip),
+            regs.st_trip.eq(trip_q),
             _raw(regs.st_fault_present).eq(_raw(prot.present)),
             _raw(regs.st_fault_first).eq(_raw(prot.first)),
             _raw(regs.st_fault_seen).eq(_raw(prot.seen)),
