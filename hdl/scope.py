@@ -275,12 +275,6 @@ class Scope(wiring.Component):
         sel = Signal.like(self.sel)
         decim = Signal.like(self.decim)
         pre = Signal.like(self.pretrigger)
-        # The post-trigger count, depth − pre, and depth − pre − 1, latched with pre (at arm):
-        # no subtractor between a taken strobe and the state (depth − pre − take), and its
-        # zero test is `take & (pre = depth − 1)`.
-        post_n = Signal(unsigned(ab + 1))
-        post_n_m1 = Signal(unsigned(ab))
-        pre_max = Signal()
         trig_src = Signal(TriggerSource)
         state = Signal(ScopeState)
         done = Signal()
@@ -381,9 +375,6 @@ class Scope(wiring.Component):
                 sel.eq(self.sel),
                 decim.eq(self.decim),
                 pre.eq(self.pretrigger),
-                post_n.eq(depth - self.pretrigger),
-                post_n_m1.eq(depth - 1 - self.pretrigger),
-                pre_max.eq(self.pretrigger == depth - 1),
                 trig_src.eq(self.trig_src),
             ]
         with m.Else():
@@ -393,12 +384,12 @@ class Scope(wiring.Component):
             with m.If(take):
                 m.d.sync += wr_ptr.eq(wr_ptr + 1)
             with m.If(state == ScopeState.PRE):
-                with m.If(event & full):                 # depth − pre − take samples left
-                    with m.If(take & pre_max):
+                left = depth - pre - take
+                with m.If(event & full):
+                    with m.If(left == 0):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
-                        m.d.sync += [state.eq(ScopeState.POST),
-                                     post_left.eq(Mux(take, post_n_m1, post_n))]
+                        m.d.sync += [state.eq(ScopeState.POST), post_left.eq(left)]
                 with m.Elif(take & (filled != depth - 1)):
                     m.d.sync += filled.eq(filled + 1)
             with m.Elif(state == ScopeState.POST):
