@@ -321,31 +321,75 @@ class LinkCore(wiring.Component):
         dend = Signal.like(j)
         rlen = Signal.like(j)
         dend_m1 = Signal.like(j)                # dend − 1 (the CRC pass's last byte)
+        dend_m2 = Signal.like(j)                # dend − 2 (≥ 2)
+        rlen_m1 = Signal.like(j)                # rlen − 1
         m.d.sync += [dend.eq(REPLY_HEADER + 4 * nwords),
                      dend_m1.eq(REPLY_HEADER + 4 * nwords - 1),
-                     rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES)]
+                     dend_m2.eq(REPLY_HEADER + 4 * nwords - 2),
+                     rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES),
+                     rlen_m1.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES - 1)]
         # p + blk and p + blk + 1 likewise: p and blk are set in REPLY / NEXT and SCAN, and read
         # back in DATA and NEXT, at least one clock (CODE) later.
         pb = Signal.like(j)
         pb1 = Signal.like(j)
         pb_m1 = Signal(signed(len(j) + 2))     # p + blk − 1 (−1 when both are 0)
         m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1), pb_m1.eq(p + blk - 1)]
-        # p + 254 (the longest COBS block's end), set with p: no subtractor before the SCAN
-        # state's comparison.
-        p254 = Signal(range((1 << len(j)) + 255), init=254)
+        # NEXT's test for another block after a 254-byte one, registered from the same values
+        # (blk is set at least a clock, CODE, before NEXT; rlen from the CRC pass on).
+        more254 = Signal()
+        m.d.sync += more254.eq((blk == 254) & (p + blk != rlen))
+        # p + 253 (the longest COBS block's end, p + 254, less one), set with p: no adder before
+        # the SCAN state's comparison.
+        p253 = Signal(range((1 << len(j)) + 255), init=253)
+        # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
+        # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
+        # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
+        # scan_end: j = rlen or j = p + 254, in SCAN. Both 0 outside those states. CRC starts
+        # at j = 0 (dend − 1 ≥ 3), SCAN at j = 0 (rlen ≥ 6, p + 254 = 254), at p + blk + 1
+        # after a zero (p + 254 is then farther), or at p + blk ≠ rlen after a 254-byte block.
+        crc_last = Signal()
+        scan_end = Signal()
+        m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
 
         # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
-        # addresses the buffer with v at once.
+        # addresses the buffer with v at once. Which part of the reply j is in (header, data,
+        # first CRC byte, second) is registered with j, from the candidate values of j_next
+        # (dend is valid from CRC on, and j = 0, set in REPLY, is in the header whatever dend
+        # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
+        # are meaningful from CRC to DATA.
         m.d.sync += j.eq(j_next)
         jw = j.shape().width
-        doff = (j - REPLY_HEADER)[:jw]
-        jb = Mux(j < REPLY_HEADER, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
-                 Mux(j < dend, rd.data.word_select(doff[:2], 8),
-                     Mux(j == dend, crc[8:], crc[:8])))
+        j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
+        flags = Cat(j_hdr, j_dat, j_dend)
+        flags_next = Signal.like(flags)
+        m.d.sync += flags.eq(flags_next)
+        jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
+                 Mux(j_dat, rd.data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
+                     Mux(j_dend, crc[8:], crc[:8])))
 
-        def next_j(value):
+        def word(value):
+            """Buffer address of reply byte ``value``."""
+            return (Value.cast(value) - REPLY_HEADER)[2:jw]
+
+        def parts(value):
+            """The part flags of reply byte ``value``."""
+            if value is j:
+                return flags
+            return Cat(value < REPLY_HEADER, value < dend, value == dend)
+
+        # j + 1's flags from j: j < 3, j ≤ dend − 2, j = dend − 1 (no adder in front).
+        parts_j1 = Cat(j < REPLY_HEADER - 1, j <= dend_m2, j == dend_m1)
+
+        def set_j(value, value_parts=None):
+            """j := ``value``, with its part flags (``parts(value)`` unless given)."""
             value = Value.cast(value)
-            m.d.comb += [j_next.eq(value), rd.addr.eq((value - REPLY_HEADER)[2:jw])]
+            m.d.comb += [j_next.eq(value),
+                         flags_next.eq(parts(value) if value_parts is None else value_parts)]
+
+        def next_j(value, *, read=None, value_parts=None):
+            """:func:`set_j`, and the buffer reads reply byte ``read`` (default ``value``)."""
+            set_j(value, value_parts)
+            m.d.comb += rd_addr.eq(word(value if read is None else read))
 
         def reset_frame():
             m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
@@ -377,9 +421,13 @@ class LinkCore(wiring.Component):
             m.d.sync += skip.eq(1)
             counter(self.dropped)
 
-        m.d.comb += [j_next.eq(j), rd.addr.eq(idx)]
+        # The buffer address the FSM gives (rd_addr), except in DATA with o.ready high: byte
+        # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
+        # state; the link's 100 MHz).
+        rd_addr = Signal.like(rd.addr)
+        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx)]
 
-        with m.FSM(name="link"):
+        with m.FSM(name="link") as fsm:
             with m.State("RECV"):
                 m.d.comb += self.i.ready.eq(1)
                 with m.If(self.rx_error):
@@ -516,35 +564,35 @@ class LinkCore(wiring.Component):
                         counter(self.crc_errors)
                 with m.Else():
                     counter(self.rejected)
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p254.eq(254)]
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p253.eq(253)]
                 next_j(0)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
-            # `jb` is the byte at j in every clock.
+            # `jb` is the byte at j in every clock where it is used. CRC and SCAN read byte
+            # j + 1 whatever they decide (no comparison in front of the buffer address, the
+            # link's 100 MHz): when CRC ends, SCAN starts at j = 0, a header byte; when SCAN
+            # ends, CODE sends `blk + 1` and reads byte j = p again for DATA. The byte read in
+            # those last clocks is never used.
             with m.State("CRC"):                    # CRC over the reply payload
                 m.d.sync += crc.eq(crc16_byte(crc, jb))
-                with m.If(j == dend_m1):
-                    next_j(0)
+                with m.If(crc_last):                 # j = dend − 1
+                    next_j(0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
-                    next_j(j + 1)
+                    m.d.sync += crc_last.eq(j == dend_m2)
+                    next_j(j + 1, value_parts=parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
-                with m.If(j == rlen):
-                    m.d.sync += [blk.eq(j - p), blk_zero.eq(0)]
-                    next_j(p)
-                    m.next = "CODE"
-                with m.Elif(j == p254):            # j − p = 254
-                    m.d.sync += [blk.eq(254), blk_zero.eq(0)]
-                    next_j(p)
-                    m.next = "CODE"
-                with m.Elif(jb == 0):
-                    m.d.sync += [blk.eq(j - p), blk_zero.eq(1)]
-                    next_j(p)
+                # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
+                # so j − p = 254 too) or at a zero byte.
+                with m.If(scan_end | (jb == 0)):
+                    m.d.sync += [blk.eq(j - p), blk_zero.eq(~scan_end)]
+                    next_j(p, read=j + 1)
                     m.next = "CODE"
                 with m.Else():
-                    next_j(j + 1)
+                    m.d.sync += scan_end.eq((j == rlen_m1) | (j == p253))
+                    next_j(j + 1, value_parts=parts_j1)
 
             with m.State("CODE"):
                 next_j(j)
@@ -557,20 +605,19 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
+                next_j(j)
                 with m.If(self.o.ready):
-                    next_j(j + 1)
+                    set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     with m.If(j == pb_m1):         # j + 1 = p + blk
                         m.next = "NEXT"
-                with m.Else():
-                    next_j(j)
 
             with m.State("NEXT"):
                 with m.If(blk_zero):
-                    m.d.sync += [p.eq(pb1), p254.eq(pb1 + 254)]
+                    m.d.sync += [p.eq(pb1), p253.eq(pb1 + 253), scan_end.eq(pb1 == rlen)]
                     next_j(pb1)
                     m.next = "SCAN"
-                with m.Elif((blk == 254) & (pb != rlen)):
-                    m.d.sync += [p.eq(pb), p254.eq(pb + 254)]
+                with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
+                    m.d.sync += [p.eq(pb), p253.eq(pb + 253)]
                     next_j(pb)
                     m.next = "SCAN"
                 with m.Else():
@@ -581,6 +628,7 @@ class LinkCore(wiring.Component):
                 with m.If(self.o.ready):
                     reset_frame()
                     m.next = "RECV"
+        m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m
 
 

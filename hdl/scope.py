@@ -23,12 +23,18 @@ channel 0), through one source multiplexer, into its own lane of the RAM word (a
 lane). Sources that hold their value for ``channels`` clocks after the strobe (all the current
 loop's outputs, the references, the M/T speed and the ADC code in the top) read as if sampled
 together; a source changing every clock (the measured θ) is read ``c`` clocks late in channel
-``c``. While a sample's channels are being written (the ``channels − 1`` clocks after a taken
-strobe) further strobes are ignored entirely (neither taken nor counted by the decimation), and
-``done`` waits for the last channel of the last sample. ``arm`` abandons the channels not yet
-written. (Four independent multiplexers cost ≈ 180 LUT4 each on the iCE40; see docs/AREA.md.)
-So strobes must come at least ``strobe_interval`` = ``channels`` clocks apart to be all seen; the
-top strobes once per current-loop computation (one per PWM period, ≥ 5 000 clocks).
+``c``. While a sample's channels are being taken (the ``channels − 1`` clocks after a taken
+strobe) further strobes are ignored entirely (neither taken nor counted by the decimation).
+(Four independent multiplexers cost ≈ 180 LUT4 each on the iCE40; see docs/AREA.md.) So strobes
+must come at least ``strobe_interval`` = ``channels`` clocks apart to be all seen; the top
+strobes once per current-loop computation (one per PWM period, ≥ 5 000 clocks).
+
+**Write register.** The multiplexer's output is registered together with the write enable and
+the word address, and written into the RAM one clock after it was taken (channel ``c`` in clock
+``c + 1`` after the strobe's): the RAM's data input comes from a flip-flop, not from sources
+spread over the whole design. ``done`` waits until the last channel of the last sample is in the
+RAM (``write_clocks`` = ``channels + 1`` clocks from the strobe). ``arm`` abandons the channels
+not yet taken; one taken in the clock before ``arm`` still reaches the RAM in ``arm``'s clock.
 
 **Capture** (``state``: :class:`ScopeState`)::
 
@@ -51,8 +57,9 @@ The index is translated by the write pointer (``(index + wr_ptr) mod depth``), s
 reads back in time order without the host knowing where the ring starts. A channel number
 ≥ ``channels`` reads 0. Reading while a capture runs returns the ring as it stands, except that
 the RAM has one port: a read in a clock in which a channel is written (the ``channels`` clocks
-from a taken strobe) reads 0 (the SPRAM's output is undefined after a write cycle). After
-``done`` nothing is written, so a read-back of a complete capture is never affected.
+from the one after a taken strobe) reads 0 (the SPRAM's output is undefined after a write
+cycle); a read in the taken strobe's own clock is undisturbed. After ``done`` nothing is
+written, so a read-back of a complete capture is never affected.
 """
 
 from collections.abc import Mapping
@@ -194,8 +201,9 @@ class Scope(wiring.Component):
     read_latency : int
         1: ``rd_data`` shows the sample addressed in the previous clock.
     write_clocks : int
-        ``channels``: clocks from a taken strobe to its last channel in the RAM (channel ``c``
-        written in clock ``c`` after the strobe's).
+        ``channels + 1``: clocks from a taken strobe to its last channel in the RAM (channel
+        ``c`` sampled in clock ``c`` after the strobe's, written into the RAM in clock
+        ``c + 1``).
     strobe_interval : int
         ``channels``: the smallest strobe spacing, in clocks, at which no strobe is ignored.
     ram : str
@@ -244,7 +252,7 @@ class Scope(wiring.Component):
     addr_width = property(lambda self: self._cbits + self._abits)
     memory_bits = property(lambda self: self._channels * self._depth * self._width)
     read_latency = property(lambda self: 1)
-    write_clocks = property(lambda self: self._channels)
+    write_clocks = property(lambda self: self._channels + 1)
     strobe_interval = property(lambda self: self._channels)
     ram = property(lambda self: self._ram)
 
@@ -275,11 +283,13 @@ class Scope(wiring.Component):
         post_left = Signal(unsigned(ab + 1))
         dcount = Signal.like(self.decim)
         dzero = Signal(init=1)          # dcount == 0, registered (off the RAM-address path)
-        # Channel being written: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
-        # in the clocks after it; `slot` is the ring address of that sample.
+        # Channel being sampled: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
+        # in the clocks after it; `slot` is the ring address of that sample. The RAM writes
+        # each channel a clock later (wr_en, wr_addr, wr_data).
         phase = Signal(range(n))
         slot = Signal(unsigned(ab))
         busy = phase != 0
+        wr_en = Signal()                # the RAM writes (a channel of the clock before's sample)
 
         capturing = state != ScopeState.IDLE
         strobe = Signal()
@@ -294,11 +304,11 @@ class Scope(wiring.Component):
             full.eq(filled >= pre),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
-            self.done.eq(done & ~busy),
+            self.done.eq(done & ~busy & ~wr_en),
             self.pre_full.eq((state == ScopeState.PRE) & full),
         ]
 
-        # Sample word: one multiplexer, the source code of the channel written in this clock.
+        # Sample word: one multiplexer, the source code of the channel sampled in this clock.
         names = self.source_names
         sample = Signal(unsigned(width))
         with m.Switch(sel[phase] if n > 1 else sel[0]):
@@ -313,20 +323,29 @@ class Scope(wiring.Component):
             with m.Elif(busy):
                 m.d.sync += phase.eq(Mux(phase == n - 1, 0, phase + 1))
 
-        # One RAM port, word `channel · depth + ring slot`: the write of channel `phase` (slot
-        # `wr_ptr` with the strobe, `slot` after it) or else the read-back window, its index
-        # translated by the write pointer.
+        # The write of channel `phase` (word `channel · depth + ring slot`: slot `wr_ptr` with the
+        # strobe, `slot` after it), registered: the RAM's data, write enable and write address
+        # all come from flip-flops, one clock after the multiplexer (the sources reach the
+        # multiplexer from all over the design; the RAM's data input is a long route).
         words = n * depth
+        wr_addr = Signal(range(words))
+        wr_data = Signal(unsigned(width))
+        m.d.sync += [
+            wr_en.eq(write),
+            wr_addr.eq(Cat(Mux(busy, slot, wr_ptr), phase)),
+            wr_data.eq(sample),
+        ]
+        # One RAM port: the registered write, or else the read-back window, its index translated
+        # by the write pointer.
         addr = Signal(range(words))
-        w_addr = Cat(Mux(busy, slot, wr_ptr), phase)
         r_addr = Cat((self.rd_addr[:ab] + wr_ptr)[:ab], self.rd_addr[ab:])
-        m.d.comb += addr.eq(Mux(write, w_addr, r_addr))
+        m.d.comb += addr.eq(Mux(wr_en, wr_addr, r_addr))
         if self._ram == "bram":
             m.submodules.mem = mem = Memory(shape=unsigned(width), depth=words, init=[])
             wr = mem.write_port()
             rd = mem.read_port()
             m.d.comb += [
-                wr.addr.eq(addr), wr.data.eq(sample), wr.en.eq(write),
+                wr.addr.eq(addr), wr.data.eq(wr_data), wr.en.eq(wr_en),
                 rd.addr.eq(addr),
             ]
             word = rd.data
@@ -336,14 +355,14 @@ class Scope(wiring.Component):
             address = Signal(ceil_log2(SPRAM_DEPTH))
             datain = Signal(SPRAM_WIDTH)
             word = Signal(SPRAM_WIDTH)
-            m.d.comb += [address.eq(addr), datain.eq(sample)]
+            m.d.comb += [address.eq(addr), datain.eq(wr_data)]
             m.submodules.spram = self._spram(dict(
-                i_ADDRESS=address, i_DATAIN=datain, i_MASKWREN=C(0b1111, 4), i_WREN=write,
+                i_ADDRESS=address, i_DATAIN=datain, i_MASKWREN=C(0b1111, 4), i_WREN=wr_en,
                 i_CHIPSELECT=C(1, 1), i_CLOCK=ClockSignal(), i_STANDBY=C(0, 1),
                 i_SLEEP=C(0, 1), i_POWEROFF=C(1, 1), o_DATAOUT=word))
         # Read-back: 0 for a channel ≥ channels and in the clock after a write.
         valid_q = Signal()
-        m.d.sync += valid_q.eq(~write & (self.rd_addr[ab:] < n))
+        m.d.sync += valid_q.eq(~wr_en & (self.rd_addr[ab:] < n))
         m.d.comb += self.rd_data.eq(Mux(valid_q, word[:width], 0))
 
         with m.If(self.arm):

@@ -163,7 +163,7 @@ def test_scope_interface_and_verilog():
     dut = Scope()
     assert dut.source_names == tuple(DEFAULT_SOURCES) and dut.sel_width == 4
     assert dut.addr_width == 2 + 10 and dut.memory_bits == 64 * 1024 and dut.read_latency == 1
-    assert dut.ram == "bram" and dut.strobe_interval == dut.write_clocks == 4
+    assert dut.ram == "bram" and dut.strobe_interval == 4 and dut.write_clocks == 5
     text = verilog.convert(dut, name="scope")
     assert "module scope" in text and "SB_SPRAM256KA" not in text
     assert "module scope" in verilog.convert(Scope(channels=1, depth=16), name="scope")
@@ -197,9 +197,9 @@ def test_scope_pretrigger_and_wraparound():
     states = [g["state"] for g in got[:200]]
     assert states[0] == IDLE and set(states[1:121]) == {PRE} and set(states[121:151]) == {POST}
     assert states[151:] == [IDLE] * 49
-    # The last sample (clock 150) has its channels 1 and 2 written in clocks 151 and 152: done
-    # shows from 153.
-    assert [g["done"] for g in got[149:155]] == [0, 0, 0, 0, 1, 1]
+    # The last sample (clock 150) has its channels 1 and 2 multiplexed in clocks 151 and 152,
+    # each written into the RAM a clock later (151, 152, 153): done shows from 154.
+    assert [g["done"] for g in got[149:156]] == [0, 0, 0, 0, 0, 1, 1]
 
 
 @pytest.mark.parametrize("pretrigger", [0, 15])
@@ -294,22 +294,19 @@ def test_scope_100k_clocks_vs_model():
 
 
 def test_scope_read_during_write_reads_zero():
-    """One RAM port: a read in a clock in which a channel is written reads 0 (rd_data one clock
-    later); the reads around it are undisturbed."""
+    """One RAM port: a read in a clock in which a channel is written (from the write register,
+    one clock after its multiplexer) reads 0 (rd_data one clock later); the reads around it,
+    the taken strobe's clock included, are undisturbed."""
     seq = [idle_inputs(src={"ramp": 100 + t, "wide": 0, "narrow": 0}, strobe=int(t in (2, 10)),
-                       arm=int(t == 0), rd_addr=0) for t in range(16)]
+                       arm=int(t == 0), rd_addr=15) for t in range(17)]
     got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
-    # Strobe at 2 writes slot 0 in clocks 2, 3, 4; then index 0 (wr_ptr 1 → slot 1) reads 0;
-    # strobe at 10 writes slot 1 in 10, 11, 12; index 0 is then slot 2.
-    data = [g["rd_data"] for g in got]
-    assert data[3:6] == [0, 0, 0] and data[11:14] == [0, 0, 0]
     assert model.wr_ptr == 2
-    seq = [idle_inputs(src={"ramp": 100 + t, "wide": 0, "narrow": 0}, strobe=int(t == 2),
-                       arm=int(t == 0), rd_addr=15) for t in range(8)]
-    got, _ = scope_clocks(seq, sources=SOURCES, channels=3, depth=16)
-    # Index 15 is the newest slot (0) once wr_ptr = 1: the ramp of clock 2, shown from clock 6
-    # (the reads of the write clocks 2, 3, 4 show 0 in clocks 3, 4, 5).
-    assert [g["rd_data"] for g in got[1:8]] == [0, 0, 0, 0, 0, 102, 102]
+    # Index 15 is the newest slot. Strobe at 2: slot 0 is written in clocks 3, 4, 5 (channels
+    # 0, 1, 2); from clock 6 (wr_ptr 1) index 15 reads it: the ramp of clock 2, shown from 7.
+    # Strobe at 10: the read of clock 10 still sees slot 0 (shown in 11); slot 1 is written in
+    # 11, 12, 13, whose reads show 0 in 12, 13, 14; then index 15 is slot 1 (ramp of clock 10).
+    data = [g["rd_data"] for g in got]
+    assert data[:16] == [0] * 7 + [102] * 5 + [0, 0, 0] + [110]
 
 
 def random_inputs(seed, clocks, channels, depth):

@@ -1,9 +1,10 @@
 # Ref: issue 5 item 3 (trace buffer)
 """Clock-by-clock golden model of :class:`~foc_servo.hdl.scope.Scope` (behaviour in
 ``hdl/scope.py``): capture state machine, decimation, ring buffer, the time-shared source
-multiplexer (channel ``c`` of a sample written ``c`` clocks after its strobe) and the read-back
-window of the single-port RAM (a read in a write clock reads 0). ``ram`` is validated and kept
-but changes nothing: both RAMs behave alike."""
+multiplexer (channel ``c`` of a sample taken ``c`` clocks after its strobe and written into the
+RAM one clock later, from the write register) and the read-back window of the single-port RAM (a
+read in a write clock reads 0). ``ram`` is validated and kept but changes nothing: both RAMs
+behave alike."""
 
 import numpy as np
 
@@ -28,8 +29,10 @@ class ScopeModel:
     mem : numpy.ndarray
         The ring, ``(depth, channels)`` raw samples.
     state, done, wr_ptr, filled, post_left, phase, slot : int
-        The registers of the same names (``phase``: the channel written this clock when
+        The registers of the same names (``phase``: the channel multiplexed this clock when
         non-zero, ``slot`` its ring address).
+    wr : tuple or None
+        The write register: ``(slot, channel, sample)`` the RAM writes this clock, or ``None``.
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
@@ -44,6 +47,7 @@ class ScopeModel:
         self.done = 0
         self.wr_ptr = self.filled = self.post_left = self.dcount = 0
         self.phase = self.slot = 0
+        self.wr = None
         self.sel = [0] * channels
         self.decim = self.pre = 0
         self.trig_src = TriggerSource.HOST.value
@@ -77,20 +81,24 @@ class ScopeModel:
         pre_s, post_s = ScopeState.PRE.value, ScopeState.POST.value
         full = self.filled >= self.pre
         busy = self.phase != 0
-        out = {"state": self.state, "done": int(self.done and not busy),
+        out = {"state": self.state, "done": int(self.done and not busy and self.wr is None),
                "pre_full": int(self.state == pre_s and full), "rd_data": self.rd_data}
 
         capturing = self.state != idle
         strobe = bool(inp["strobe"]) and not busy       # ignored while a sample is written
         take = strobe and capturing and self.dcount == 0 and not inp["arm"]
-        write = (take or busy) and not inp["arm"]
 
-        # The RAM's one port: a write, or the read-back (word registered, 0 in a write clock).
+        # The RAM's one port: the registered write of the clock before, or the read-back (word
+        # registered, 0 in a write clock).
         addr = inp["rd_addr"]
         channel = addr >> self.abits
         phys = ((addr & (self.depth - 1)) + self.wr_ptr) % self.depth
-        self.rd_data = (int(self.mem[phys, channel]) if channel < self.channels and not write
-                        else 0)
+        self.rd_data = (int(self.mem[phys, channel])
+                        if channel < self.channels and self.wr is None else 0)
+        if self.wr is not None:
+            slot, chan, value = self.wr
+            self.mem[slot, chan] = value
+        self.wr = None                                  # loaded below by a write
         if inp["arm"]:
             self.phase = 0                               # channels not yet written are dropped
             self.state, self.done, self.filled, self.dcount = pre_s, 0, 0, 0
@@ -103,10 +111,10 @@ class ScopeModel:
         if strobe and capturing:
             self.dcount = 0 if self.dcount >= self.decim else self.dcount + 1
         if busy:                                        # channel `phase` of the last sample
-            self.mem[self.slot, self.phase] = self.sample(inp["src"], self.phase)
+            self.wr = (self.slot, self.phase, self.sample(inp["src"], self.phase))
             self.phase = (self.phase + 1) % self.channels
         if take:                                        # channel 0 now, the others after
-            self.mem[self.wr_ptr, 0] = self.sample(inp["src"], 0)
+            self.wr = (self.wr_ptr, 0, self.sample(inp["src"], 0))
             self.slot, self.phase = self.wr_ptr, 1 % self.channels
             self.wr_ptr = (self.wr_ptr + 1) % self.depth
         if self.state == pre_s:

@@ -415,7 +415,7 @@ def _scope_stimulus(count, rng, model, dut):
             figures["pretrigger_max_captures"] += pre_at_trigger == depth - 1
             figures["pretrigger_zero_captures"] += pre_at_trigger == 0
             want = taken[trig_at - pre_at_trigger:trig_at - pre_at_trigger + depth]
-            pending = (k + n - 1, want)
+            pending = (k + n, want)           # the last channel lands in the RAM then
             read_seq = 0 if rng.random() < 0.3 else None
         if pending is not None and k == pending[0]:
             got = [[model.read(i, c) for c in range(n)] for i in range(depth)]
