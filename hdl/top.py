@@ -578,6 +578,10 @@ class Top(wiring.Component):
             regs.scope_rd_data.eq(scope.rd_data),
         ]
         src = scope.src
+        # θ through a register (the encoder forms it from a sum and a wrap compare, and the
+        # Servo selects it): in the trace one clock late, like st_theta (docs/AREA.md §7.12).
+        theta_q = Signal.like(servo.theta)
+        m.d.sync += theta_q.eq(servo.theta)
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),
@@ -586,7 +590,7 @@ class Top(wiring.Component):
             src.i_alpha.eq(cl.i_alpha), src.i_beta.eq(cl.i_beta),
             src.u_d.eq(cl.u_d), src.u_q.eq(cl.u_q),
             src.u_alpha.eq(cl.u_alpha), src.u_beta.eq(cl.u_beta),
-            src.theta.eq(servo.theta),
+            src.theta.eq(theta_q),
             src.u_dc.eq(adc.o.payload.udc),
         ]
 
