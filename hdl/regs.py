@@ -23,6 +23,30 @@ held high over it) are applied together at the first commit after the frame. Imm
 ``rw`` registers have no staging: the write changes the Out member in ``t + 1``. Reads of ``rw``
 registers return the staging value (what the host wrote), which equals the active value once
 committed.
+
+Staging in block RAM (``staging="bram"``; docs/AREA.md §7.11). The staging registers are one
+RAM of :attr:`~RegisterFile.slots` 32-bit words (one per shadowed register word, slot = index in
+:func:`staging_slots`: address order, ``copy_last`` registers at the end), each held in its read
+format (the top word of a signed register sign-extended), and a second half of the same RAM
+holds the reset values (initial contents, never written). The bus timing is the same, ``ack``
+two clocks after the access is taken::
+
+    t      address decoded → registered slot and word format (no staging register loaded)
+    t + 1  write: the RAM's word written (w_data still held, formatted); read: the RAM read
+    t + 2  ack; a read's r_data is the RAM's read data
+
+``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
+``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
+never deferred); the RAM reads slot ``i`` in clock ``s + i`` and the active register word of
+slot ``i`` changes at the end of clock ``s + 1 + i``, so every active value is the new one from
+clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy (clocks ``s`` …
+``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in ``s``) is taken
+in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the host link
+waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
+keeps its contents) the same sequencer walks the reset values into the staging slots
+(:attr:`~RegisterFile.reset_clocks` clocks, accesses held off, commits ignored), so reads after
+a reset return the reset values, as with ``"ff"``. Strobes, immediate registers, status and the
+windows are as with ``"ff"``.
 """
 
 from amaranth.hdl import Cat, Module, Mux, Signal, Value, unsigned

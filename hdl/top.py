@@ -85,7 +85,7 @@ from .protect import FAULTS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
                      build_regmap, mt_k_for)
 from .regs import STAGINGS as REGS_STAGINGS
-from .regs import RegisterFile
+from .regs import RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
 from .servo import Servo
@@ -363,6 +363,10 @@ class Top(wiring.Component):
                 raise ValueError("Top dead_time_s and resets['dead_time'] both set the dead "
                                  "time: give one")
             regmap = regmap.with_constants(dict(resets))   # Register checks each value's range
+        copy = len(staging_slots(regmap)) + 1               # RegisterFile.commit_clocks
+        if regs_staging == "bram" and copy >= 2 * n:
+            raise ValueError(f"Top regs_staging='bram' needs a PWM period longer than the "
+                             f"register copy ({copy} clocks), not {2 * n} clocks")
         self._clk_hz = float(clk_hz)
         self._scales = scales
         self._regmap = regmap
@@ -376,10 +380,6 @@ class Top(wiring.Component):
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
-        if regs_staging == "bram" and self._regs.commit_clocks >= self._timer.period:
-            raise ValueError(f"Top regs_staging='bram' needs a PWM period longer than the "
-                             f"register copy ({self._regs.commit_clocks} clocks), not "
-                             f"{self._timer.period} clocks")
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
         self._mul_width = mul_width
         self._current_loop = current_loop

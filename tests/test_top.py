@@ -466,13 +466,22 @@ def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
     assert seen["st_mode"] == Mode.OPEN_LOOP.value
 
 
-@pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # only inspected
 def test_regs_staging_threaded_from_top_and_board():
+    import gc
+    import warnings
+
+    from amaranth.hdl import UnusedElaboratable
+
     from foc_servo.boards.build import BoardTop
     from foc_servo.boards.platforms import BOARDS
-    assert Top().regs_staging == "ff" and Top().commit_clocks == 1
-    assert {name: BoardTop(name).top.regs_staging for name in BOARDS} == {
-        name: "bram" if name == "icebreaker" else "ff" for name in BOARDS}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)    # only inspected, never elaborated
+        top = Top()
+        assert top.regs_staging == "ff" and top.commit_clocks == 1
+        assert {name: BoardTop(name).top.regs_staging for name in BOARDS} == {
+            name: "bram" if name == "icebreaker" else "ff" for name in BOARDS}
+        del top
+        gc.collect()
 
 
 def test_top_fault_n_low_forces_all_gates_off_within_fault_latency():

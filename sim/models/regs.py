@@ -33,6 +33,11 @@ class RegisterFileModel:
     pending, status_p, sel, win_pend
         The access's first-clock registers (t): the read multiplexer runs in t + 1 on the word
         ``sel`` (``(register, k)`` or ``None``), ``ack`` and the reply show in t + 2.
+    mem, rd_data, run, walk, cnt, load, load_walk, dst, slot, wr_pend, stage_pend, stage_hit
+        ``staging="bram"``: the staging RAM (slots, then the reset values from ``base``), its
+        read data register, and the copy / reset-walk sequencer and access registers of
+        :class:`~foc_servo.hdl.regs.RegisterFile` (same names). ``staged`` then holds only the
+        immediate registers; :meth:`staged_value` reads any register's staging value.
     """
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
@@ -57,8 +62,9 @@ class RegisterFileModel:
     def reset(self):
         """The state after a domain reset (the staging RAM keeps its contents)."""
         regmap = self.regmap
-        self.staged = {r.name: r.bits(r.reset) for r in self._rw}
-        self.active = dict(self.staged)
+        self.active = {r.name: r.bits(r.reset) for r in self._rw}
+        self.staged = {n: v for n, v in self.active.items()
+                       if not (self.bram and n in self._shadowed)}
         self.strobes = {r.name: 0 for r in regmap if r.access is Access.STROBE}
         self.ack = 0
         self.status = Status.OK.value
