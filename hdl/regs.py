@@ -315,7 +315,8 @@ class RegisterFile(wiring.Component):
         load_walk = Signal()                    # a load of the walk: into the RAM's slot dst
         dst = Signal(range(n))
         slot = Signal(range(n))                 # the access's slot (t → t + 1)
-        fmt = Signal(range(max(1, len(self._formats()))))     # its word format
+        formats = self._formats()
+        fmt = Signal(range(max(1, len(formats))))       # its word format (index in formats)
         wr_pend = Signal()                      # t + 1 of a write to a staged word
         pend = Signal(name="stage_pend")        # t + 1 of a read of a staged word
         hit = Signal(name="stage_hit")          # t + 2 of it: bus.r_data from the RAM
@@ -348,7 +349,6 @@ class RegisterFile(wiring.Component):
 
         # The RAM's write port: the walk's load, or a bus write in t + 1 (w_data still held).
         m.d.sync += [wr_pend.eq(0), pend.eq(0)]
-        formats = self._formats()
         w_fmt = Signal(DATA_WIDTH)
         with m.Switch(fmt):
             for j, (width, signed) in enumerate(formats):
@@ -364,24 +364,26 @@ class RegisterFile(wiring.Component):
                 "pend": pend, "hit": hit, "index": {a: i for i, (a, _, _) in enumerate(slots)},
                 "formats": formats}
 
+    @staticmethod
+    def _word_format(r, k):
+        """``(width, sign-extended)`` of word ``k`` of register ``r`` as it is read."""
+        lo, hi = r.word_slice(k)
+        return hi - lo, bool(r.signed and k == r.words - 1 and hi - lo < DATA_WIDTH)
+
     def _formats(self):
-        """The distinct ``(word width, sign-extended)`` of the staged words, in slot order."""
+        """The distinct word formats (:meth:`_word_format`) of the staged words, in slot order."""
         out = []
         for _, r, k in self._slots:
-            lo, hi = r.word_slice(k)
-            f = (hi - lo, bool(r.signed and k == r.words - 1 and hi - lo < DATA_WIDTH))
-            if f not in out:
-                out.append(f)
+            if self._word_format(r, k) not in out:
+                out.append(self._word_format(r, k))
         return out
 
     def _staged_word(self, m, stage, addr, status):
         """The access logic of a staged word (``staging="bram"``, inside its address ``Case``):
         the slot and format for t + 1, where a write goes into the RAM and a read reads it."""
         _, r, k = self._slots[stage["index"][addr]]
-        lo, hi = r.word_slice(k)
-        f = (hi - lo, bool(r.signed and k == r.words - 1 and hi - lo < DATA_WIDTH))
         m.d.sync += [status.eq(Status.OK), stage["slot"].eq(stage["index"][addr]),
-                     stage["fmt"].eq(stage["formats"].index(f))]
+                     stage["fmt"].eq(stage["formats"].index(self._word_format(r, k)))]
         with m.If(self.bus.we):
             m.d.sync += stage["wr_pend"].eq(1)
         with m.Else():
