@@ -151,7 +151,7 @@ def _cycles(regmap, accesses, rng, seen, *, commit_p, rst_p):
         i += n
         framed = rng.random() < 0.7
         for j, (addr, we, w_data) in enumerate(frame):
-            for held in range(HOLD_LIMIT):              # stb clock … ack clock (stb held)
+            for _ in range(HOLD_LIMIT):                 # stb clock … ack clock (stb held)
                 yield dict(addr=addr, we=we, w_data=w_data, stb=1, lock=int(framed),
                            commit=int(rng.random() < commit_p), rst=int(rng.random() < rst_p))
                 if seen["ack"]:
