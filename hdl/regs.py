@@ -134,9 +134,7 @@ class RegisterFile(wiring.Component):
     commit_clocks : int
         Clocks from a ``commit`` that is taken (clock ``s``) to the clock from which every active
         value is the new one (``s + commit_clocks``): 1 (``"ff"``), ``slots + 1`` (``"bram"``:
-        slot ``i`` changes at the end of clock ``s + 1 + i``). Also the clocks after a reset
-        before the first access is taken (``"bram"``: the reset walk; 0 for ``"ff"``) is
-        :attr:`reset_clocks`.
+        slot ``i`` changes at the end of clock ``s + 1 + i``).
     commit_latency : int
         The same as :attr:`commit_clocks` (kept for the existing callers).
     reset_clocks : int
