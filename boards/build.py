@@ -255,8 +255,9 @@ class BoardTop(Elaboratable):
     clk_hz : float or None
         System clock asked for, Hz, within :data:`CLOCK_RANGE_HZ`; ``None``: 50 MHz. The PLL
         gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
-        family's multiplier width (:data:`MUL_WIDTH`) and the board's scope RAM
-        (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K).
+        family's multiplier width (:data:`MUL_WIDTH`), the board's scope RAM
+        (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K) and register-file staging
+        (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K).
     current_loop : str
         ``Top(current_loop=...)``, one of :data:`~foc_servo.hdl.top.CURRENT_LOOPS`:
         ``"pipelined"`` (default, :class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
@@ -293,7 +294,8 @@ class BoardTop(Elaboratable):
         _, f_in = self._board.clock
         self._pll = pll_config(self._board.family, f_in, clk_hz)
         self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
-                        current_loop=current_loop, scope_ram=self._board.scope_ram)
+                        current_loop=current_loop, scope_ram=self._board.scope_ram,
+                        regs_staging=self._board.regs_staging)
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)
@@ -673,7 +675,8 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", prog
         ``bram_bits``, ``dsp``, ``fmax_mhz`` (``None`` without place-and-route or when it
         failed; the slowest clock, MHz), ``timing_met`` (that Fmax against the clock, or
         ``None``), ``clock_mhz`` (actual), ``clock_requested_mhz``, ``current_loop`` (the
-        ``Top(current_loop=...)`` built), ``scope_ram`` (its trace-buffer RAM), ``pll`` (text), ``paper``
+        ``Top(current_loop=...)`` built), ``scope_ram`` (its trace-buffer RAM), ``regs_staging``
+        (its register-file staging), ``pll`` (text), ``paper``
         (Table 1), ``fits`` (bool, or ``None`` when not known), ``error`` (the failing tool's
         ``ERROR`` lines or ``None``), ``wall_s``, ``stages`` (wall time per stage, s),
         ``artifacts`` (name → path), ``utilisation`` (all figures, including the
@@ -720,6 +723,7 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", prog
         "clock_mhz": round(top.clk_hz / 1e6, 6),
         "clock_requested_mhz": round(top.pll.f_req_hz / 1e6, 6),
         "current_loop": top.current_loop, "scope_ram": top.top.scope_ram,
+        "regs_staging": top.top.regs_staging,
         "pll": top.pll.describe(), "pll_divs": top.pll.divs,
         "paper": dict(PAPER), "fits": res["fits"], "error": res["error"],
         "utilisation": {k: res[k] for k in util_keys},
@@ -752,7 +756,8 @@ def report_lines(result):
         f"{result['board']}: {result['title']}",
         f"  clock     {result['pll']} (asked {result['clock_requested_mhz']:g} MHz)",
         f"  gateware  Top(current_loop={result.get('current_loop', 'pipelined')!r}, "
-        f"scope_ram={result.get('scope_ram', 'bram')!r})",
+        f"scope_ram={result.get('scope_ram', 'bram')!r}, "
+        f"regs_staging={result.get('regs_staging', 'ff')!r})",
         f"  {'':<10}{'this build (' + source + ')':>28}   {'paper Table 1':>14}",
         f"  {result['lut_kind'] or 'LUT':<10}{fmt(result['lut']):>28}   {fmt(p['lut4']):>14}",
         f"  {'FF':<10}{fmt(result['ff']):>28}   {fmt(p['ff']):>14}",

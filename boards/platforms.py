@@ -101,6 +101,9 @@ class Board:
     scope_ram : str
         ``Top(scope_ram=…)``: ``"ice40_spram"`` on a part with ``SB_SPRAM256KA`` (iCE40 UP5K: the
         trace buffer in one SPRAM instead of 16 block RAMs), else ``"bram"``.
+    regs_staging : str
+        ``Top(regs_staging=…)``: ``"bram"`` where flip-flops are short (iCE40 UP5K: the register
+        file's ≈ 600 staging flip-flops in 2 block RAMs), else ``"ff"``.
     """
     name: str
     title: str
@@ -113,6 +116,7 @@ class Board:
     capacity: dict = None
     notes: tuple = ()
     scope_ram: str = "bram"
+    regs_staging: str = "ff"
 
     def platform(self, *, file_templates=None):
         """A fresh platform instance with the ``motor`` resource added; ``file_templates``
@@ -151,6 +155,7 @@ ICEBREAKER = Board(
     flow="bitstream",
     platform_class=ICEBreakerPlatform,
     scope_ram="ice40_spram",
+    regs_staging="bram",
     connectors={"pmod1a": ("pmod", 0), "pmod1b": ("pmod", 1), "pmod2": ("pmod", 2)},
     motor=_motor({
         "gate_h": ("pmod1a", "1 2 3"), "gate_l": ("pmod1a", "7 8 9"),

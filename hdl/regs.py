@@ -23,16 +23,57 @@ held high over it) are applied together at the first commit after the frame. Imm
 ``rw`` registers have no staging: the write changes the Out member in ``t + 1``. Reads of ``rw``
 registers return the staging value (what the host wrote), which equals the active value once
 committed.
+
+Staging in block RAM (``staging="bram"``; docs/AREA.md §7.11). The staging registers are one
+RAM of :attr:`~RegisterFile.slots` 32-bit words (one per shadowed register word, slot = index in
+:func:`staging_slots`: address order, ``copy_last`` registers at the end), each held in its read
+format (the top word of a signed register sign-extended), and a second half of the same RAM
+holds the reset values (initial contents, never written). The bus timing is the same, ``ack``
+two clocks after the access is taken::
+
+    t      address decoded → registered slot and word format (no staging register loaded)
+    t + 1  write: the RAM's word written (w_data still held, formatted); read: the RAM read
+    t + 2  ack; a read's r_data is the RAM's read data
+
+``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
+``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
+never deferred); the RAM reads slot ``i`` in clock ``s + i`` and the active register word of
+slot ``i`` changes at the end of clock ``s + 1 + i``, so every active value is the new one from
+clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy (clocks ``s`` …
+``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in ``s``) is taken
+in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the host link
+waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
+keeps its contents) the same sequencer walks the reset values into the staging slots
+(:attr:`~RegisterFile.reset_clocks` clocks, accesses held off, commits ignored), so reads after
+a reset return the reset values, as with ``"ff"``. Strobes, immediate registers, status and the
+windows are as with ``"ff"``.
 """
 
-from amaranth.hdl import Module, Mux, Signal, Value, unsigned
+from amaranth.hdl import Cat, Module, Mux, Signal, Value, unsigned
 from amaranth.lib import wiring
+from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
+from amaranth.utils import ceil_log2
 
 from .bus import DATA_WIDTH, RegBusSignature, Status
+from .fixed import check_choice
 from .regmap import REGMAP, Access, RegMap
 
-__all__ = ["RegisterFile"]
+__all__ = ["RegisterFile", "STAGINGS", "staging_slots"]
+
+#: Values of ``RegisterFile(staging=...)``.
+STAGINGS = ("ff", "bram")
+
+
+def staging_slots(regmap, copy_last=()):
+    """The staging RAM's slots of ``regmap`` (``staging="bram"``): ``[(addr, register, k), ...]``,
+    one per word of a shadowed ``rw`` register, in address order except that the registers named
+    in ``copy_last`` come last (in that order). Slot ``i`` is copied to the active register in
+    the copy's clock ``i + 1``."""
+    words = [(a, r, k) for a, r, k in regmap.words()
+             if r.access is Access.RW and r.shadow is not None]
+    last = [w for name in copy_last for w in words if w[1].name == name]
+    return [w for w in words if w[1].name not in copy_last] + last
 
 
 def _bits(port):
@@ -49,14 +90,26 @@ class RegisterFile(wiring.Component):
         The declaration (default :data:`~.regmap.REGMAP`). ``const`` registers read their
         declared reset value: build the map for the drive's clock and scales with
         :func:`~.regmap.build_regmap`.
+    staging : str
+        Where the staging copies of the shadowed ``rw`` registers live: ``"ff"`` (default) one
+        flip-flop register per shadowed register, ``commit`` copies them all in one clock;
+        ``"bram"`` one word per shadowed register word in a RAM (module docstring), ``commit``
+        starts a copy of :attr:`commit_clocks` clocks, one word per clock.
+    copy_last : tuple of str
+        ``staging="bram"`` only: shadowed registers copied last, in this order (the last one in
+        the copy's last clock; see :func:`staging_slots`). Default ``()``.
 
     Members
     -------
     bus : In(RegBusSignature())
-        Register bus from the host link (see :mod:`.bus`); ``ack`` two clocks after ``stb``.
+        Register bus from the host link (see :mod:`.bus`); ``ack`` two clocks after ``stb``
+        (``"bram"``: later while a copy or the reset walk holds the access off).
     commit : In(1)
         Loop-boundary strobe: staging → active for every shadowed register, while ``bus.lock``
-        is low. Pulse it when no loop is computing (e.g. the PWM ``period_start``).
+        is low. ``"ff"``: in this clock; pulse it when no loop is computing (e.g. the PWM
+        ``period_start``). ``"bram"``: starts the copy (only with ``lock`` low, no access in its
+        second clock and no copy or reset walk running; otherwise ignored); pulse it
+        :attr:`commit_clocks` clocks before the new values are wanted.
     <rw register> : Out(register.shape, init=reset)
         The active value the control path uses (enum, StructLayout of the fields, or the raw
         fixed-point shape ``register.fmt.shape``).
@@ -73,23 +126,58 @@ class RegisterFile(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from ``stb`` to ``ack``: 2.
+        Clocks from the access clock (``stb`` taken) to ``ack``: 2.
+    staging : str
+        The parameter.
+    slots : int
+        Words in the staging RAM (``"bram"``; 0 for ``"ff"``).
+    commit_clocks : int
+        Clocks from a ``commit`` that is taken (clock ``s``) to the clock from which every active
+        value is the new one (``s + commit_clocks``): 1 (``"ff"``), ``slots + 1`` (``"bram"``:
+        slot ``i`` changes at the end of clock ``s + 1 + i``).
     commit_latency : int
-        Clocks from a ``commit`` (lock low) to the new active values: 1.
+        The same as :attr:`commit_clocks` (kept for the existing callers).
+    reset_clocks : int
+        ``"bram"``: clocks after a reset during which accesses are held off while the reset
+        values are written back into the staging RAM (``slots``); ``"ff"``: 0.
 
     Raises
     ------
     TypeError
-        ``regmap`` is not a :class:`~.regmap.RegMap`.
+        ``regmap`` is not a :class:`~.regmap.RegMap`; ``staging`` is not a string;
+        ``copy_last`` is not a tuple of strings.
+    ValueError
+        ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` names a register that is not
+        a shadowed ``rw`` register of ``regmap``, or is given with ``staging="ff"``.
     """
 
     latency = 2
-    commit_latency = 1
 
-    def __init__(self, regmap=REGMAP):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
+        check_choice("RegisterFile", "staging", staging, STAGINGS)
+        if (not isinstance(copy_last, tuple)
+                or not all(isinstance(n, str) for n in copy_last)):
+            raise TypeError(f"RegisterFile copy_last must be a tuple of register names, "
+                            f"not {copy_last!r}")
+        for name in copy_last:
+            if (name not in regmap or regmap[name].access is not Access.RW
+                    or regmap[name].shadow is None):
+                raise ValueError(f"RegisterFile copy_last must name shadowed rw registers, "
+                                 f"not {name!r}")
+        if copy_last and staging != "bram":
+            raise ValueError(f"RegisterFile copy_last applies only to staging='bram', "
+                             f"not staging={staging!r}")
+        if len(set(copy_last)) != len(copy_last):
+            raise ValueError(f"RegisterFile copy_last must not repeat a name, not {copy_last!r}")
         self._regmap = regmap
+        self._staging = staging
+        self._copy_last = copy_last
+        self._slots = staging_slots(regmap, copy_last) if staging == "bram" else []
+        if staging == "bram" and not self._slots:
+            raise ValueError("RegisterFile staging='bram' needs a shadowed rw register in the "
+                             "regmap, not none")
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         for r in regmap:
             if r.access is Access.RW:
@@ -104,10 +192,17 @@ class RegisterFile(wiring.Component):
         super().__init__(members)
 
     regmap = property(lambda self: self._regmap)
+    staging = property(lambda self: self._staging)
+    copy_last = property(lambda self: self._copy_last)
+    slots = property(lambda self: len(self._slots))
+    commit_clocks = property(lambda self: len(self._slots) + 1)
+    commit_latency = commit_clocks
+    reset_clocks = property(lambda self: len(self._slots))
 
     def elaborate(self, platform):
         m = Module()
         bus = self.bus
+        bram = self._staging == "bram"
 
         access = Signal()
         pending = Signal()                      # t + 1 of an access: the read multiplexer
@@ -118,10 +213,17 @@ class RegisterFile(wiring.Component):
         words = self._regmap.words()
         # Word select: 1 + the index of the addressed register word (0: none, reads 0).
         sel = Signal(range(len(words) + 1))
-        m.d.comb += access.eq(bus.stb & ~pending & ~bus.ack)
+        if bram:
+            stage = self._stage(m, pending)
+            m.d.comb += access.eq(bus.stb & ~pending & ~bus.ack & ~stage["hold"])
+        else:
+            stage = None
+            m.d.comb += access.eq(bus.stb & ~pending & ~bus.ack)
         m.d.sync += [pending.eq(access), bus.ack.eq(pending)]
 
         out = r_data
+        if bram:
+            out = Mux(stage["hit"], stage["rd"].data, out)
         for w in self._regmap.windows:
             m.d.comb += getattr(self, f"{w.name}_rd_addr").eq(bus.addr[:w.addr_width])
             out = Mux(win_hit[w.name], getattr(self, f"{w.name}_rd_data"), out)
@@ -131,7 +233,9 @@ class RegisterFile(wiring.Component):
         held = {}
         for r in self._regmap:
             port = getattr(self, r.name, None)
-            if r.access is Access.RW and r.shadow is not None:
+            if r.access is Access.RW and r.shadow is not None and bram:
+                held[r.name] = None             # in the staging RAM
+            elif r.access is Access.RW and r.shadow is not None:
                 staged = Signal(unsigned(r.width), init=r.bits(r.reset), name=f"{r.name}_staged")
                 held[r.name] = staged
                 with m.If(self.commit & ~bus.lock):
@@ -156,9 +260,12 @@ class RegisterFile(wiring.Component):
             with m.Switch(bus.addr):
                 for i, (addr, r, k) in enumerate(words):
                     with m.Case(addr):
-                        self._word(m, r, k, held[r.name], status_p)
-                        with m.If(~bus.we):
-                            m.d.sync += sel.eq(i + 1)
+                        if held[r.name] is None:
+                            self._staged_word(m, stage, addr, status_p)
+                        else:
+                            self._word(m, r, k, held[r.name], status_p)
+                            with m.If(~bus.we):
+                                m.d.sync += sel.eq(i + 1)
                 for w in self._regmap.windows:
                     pattern = format(w.addr >> w.addr_width, f"0{16 - w.addr_width}b")
                     with m.Case(pattern + "-" * w.addr_width):
@@ -170,14 +277,115 @@ class RegisterFile(wiring.Component):
         with m.If(pending):
             m.d.sync += [bus.status.eq(status_p),
                          *(win_hit[n].eq(win_pend[n]) for n in win_hit)]
+            if bram:
+                m.d.sync += stage["hit"].eq(stage["pend"])
             with m.Switch(sel):
                 with m.Case(0):
                     m.d.sync += r_data.eq(0)
                 for i, (addr, r, k) in enumerate(words):
+                    if held[r.name] is None:
+                        continue
                     with m.Case(i + 1):
                         m.d.sync += r_data.eq(self._read_word(r, k, held[r.name]))
         return m
 
+    def _stage(self, m, pending):
+        """The staging RAM, its copy / reset-walk sequencer and the active registers' loads
+        (``staging="bram"``). Returns the signals the bus logic uses."""
+        bus = self.bus
+        slots = self._slots
+        n = len(slots)
+        base = 1 << ceil_log2(n)                # the reset values' half: slot i at base + i
+        # One word per slot in its read format (``Register.read_word``: the top word of a
+        # signed register sign-extended), so that a read returns the RAM's data as it is.
+        resets = [r.read_word(r.bits(r.reset), k) for _, r, k in slots]
+        m.submodules.staging = mem = Memory(shape=DATA_WIDTH, depth=base + n,
+                                            init=resets + [0] * (base - n) + resets)
+        rd = mem.read_port()
+        wr = mem.write_port()
+
+        hold = Signal()                         # the RAM read port busy: no access taken
+        start = Signal()                        # a copy starts (reads slot 0 in this clock)
+        run = Signal(init=1)                    # a copy or the walk reads slot cnt next
+        walk = Signal(init=1)                   # the reading is the reset walk
+        cnt = Signal(range(n))
+        load = Signal()                         # rd.data holds slot dst: load it
+        load_walk = Signal()                    # a load of the walk: into the RAM's slot dst
+        dst = Signal(range(n))
+        slot = Signal(range(n))                 # the access's slot (t → t + 1)
+        formats = self._formats()
+        fmt = Signal(range(max(1, len(formats))))       # its word format (index in formats)
+        wr_pend = Signal()                      # t + 1 of a write to a staged word
+        pend = Signal(name="stage_pend")        # t + 1 of a read of a staged word
+        hit = Signal(name="stage_hit")          # t + 2 of it: bus.r_data from the RAM
+
+        m.d.comb += [
+            start.eq(self.commit & ~bus.lock & ~run & ~pending),
+            hold.eq(start | run),
+        ]
+        # The copy / walk: read slot cnt (base + cnt in the walk) in one clock, load it in the
+        # next. The bus read of a staged word uses the read port in t + 1 (pending), which
+        # never coincides with a reading clock (start needs pending low; accesses are held off
+        # while reading).
+        with m.If(start | run):
+            m.d.sync += [load.eq(1), load_walk.eq(walk), dst.eq(cnt)]
+            with m.If(cnt == n - 1):
+                m.d.sync += [cnt.eq(0), run.eq(0), walk.eq(0)]
+            with m.Else():
+                m.d.sync += [cnt.eq(cnt + 1), run.eq(1)]
+        with m.Else():
+            m.d.sync += [load.eq(0), load_walk.eq(0)]
+        m.d.comb += rd.addr.eq(Mux(pending, slot, Cat(cnt, walk)))   # cnt: log2(base) bits
+
+        # Active registers: slot dst's word from the RAM in a load clock of a copy.
+        with m.If(load & ~load_walk):
+            with m.Switch(dst):
+                for i, (_, r, k) in enumerate(slots):
+                    with m.Case(i):
+                        lo, hi = r.word_slice(k)
+                        m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd.data[:hi - lo])
+
+        # The RAM's write port: the walk's load, or a bus write in t + 1 (w_data still held).
+        m.d.sync += [wr_pend.eq(0), pend.eq(0)]
+        w_fmt = Signal(DATA_WIDTH)
+        with m.Switch(fmt):
+            for j, (width, signed) in enumerate(formats):
+                with m.Case(j):
+                    word = bus.w_data[:width]
+                    m.d.comb += w_fmt.eq(word.as_signed() if signed else word)
+        m.d.comb += [
+            wr.addr.eq(Mux(load_walk, dst, slot)),
+            wr.data.eq(Mux(load_walk, rd.data, w_fmt)),
+            wr.en.eq((load & load_walk) | wr_pend),
+        ]
+        return {"hold": hold, "rd": rd, "slot": slot, "fmt": fmt, "wr_pend": wr_pend,
+                "pend": pend, "hit": hit, "index": {a: i for i, (a, _, _) in enumerate(slots)},
+                "formats": formats}
+
+    @staticmethod
+    def _word_format(r, k):
+        """``(width, sign-extended)`` of word ``k`` of register ``r`` as it is read."""
+        lo, hi = r.word_slice(k)
+        return hi - lo, bool(r.signed and k == r.words - 1 and hi - lo < DATA_WIDTH)
+
+    def _formats(self):
+        """The distinct word formats (:meth:`_word_format`) of the staged words, in slot order."""
+        out = []
+        for _, r, k in self._slots:
+            if self._word_format(r, k) not in out:
+                out.append(self._word_format(r, k))
+        return out
+
+    def _staged_word(self, m, stage, addr, status):
+        """The access logic of a staged word (``staging="bram"``, inside its address ``Case``):
+        the slot and format for t + 1, where a write goes into the RAM and a read reads it."""
+        _, r, k = self._slots[stage["index"][addr]]
+        m.d.sync += [status.eq(Status.OK), stage["slot"].eq(stage["index"][addr]),
+                     stage["fmt"].eq(stage["formats"].index(self._word_format(r, k)))]
+        with m.If(self.bus.we):
+            m.d.sync += stage["wr_pend"].eq(1)
+        with m.Else():
+            m.d.sync += stage["pend"].eq(1)
     @staticmethod
     def _read_word(r, k, held):
         """The bus word ``k`` of register ``r`` holding ``held`` (a value or a constant)."""

@@ -25,6 +25,23 @@ provided the loop finishes before the period ends (``pwm_sample_custom`` must no
 within :attr:`Top.loop_latency` = ``AdcInterface.latency`` + the current loop's latency clocks of
 the period end: 95 with the pipelined loop, 216 with ``current_loop="engine"``, at 50 MHz).
 
+**Register commit with** ``regs_staging="bram"`` (the staging registers in a block RAM,
+:class:`~.regs.RegisterFile`): the commit is a copy of one word per clock, so it starts
+:attr:`Top.commit_clocks` (49) clocks before ``period_start`` (at ``pos = 2N − commit_clocks``)
+and every new value is in place in the ``period_start`` clock. Every block that samples its
+registers at a period event then sees one commit's values whole: the Servo's ``loop`` and the
+M/T ``update`` at ``period_start``, ``theta_lead`` and the speed loop after ``mt.o.valid``, the
+current loop from the sample on, and the PWM timer's mode, latched in the period's last clock:
+``pwm_symmetric`` is the copy's last word (changed at the end of that clock, after the latch),
+so the timer changes mode one boundary later together with the duties computed for the new
+scale, as with ``"ff"``. Differences from ``"ff"``: the Servo's ``loop`` strobe at
+``period_start`` sees the new values (``"ff"``: the old ones, the new from the next period);
+inputs read in every clock (the encoder's configuration, ``dead_time``, the sample point)
+change word by word over the copy, a register group within its few consecutive clocks; a frame
+whose ``lock`` falls in the copy window (or is high at its start) is applied a period later;
+and the current loop must be idle in the window too (the sample not within ``loop_latency +
+commit_clocks`` clocks of the period end).
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -70,7 +87,8 @@ from .mt_speed import MTSpeed
 from .protect import FAULTS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
                      build_regmap, mt_k_for)
-from .regs import RegisterFile
+from .regs import STAGINGS as REGS_STAGINGS
+from .regs import RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
 from .servo import Servo
@@ -220,6 +238,11 @@ class Top(wiring.Component):
         The trace buffer's RAM (:class:`~.scope.Scope` ``ram``): ``"bram"`` (default, a
         :class:`~amaranth.lib.memory.Memory`, simulates) or ``"ice40_spram"`` (one iCE40 UP5K
         ``SB_SPRAM256KA`` instead of 16 ``SB_RAM40_4K``; synthesis only, the iCE40 boards' choice).
+    regs_staging : str
+        The register file's staging registers (:class:`~.regs.RegisterFile` ``staging``):
+        ``"ff"`` (default, flip-flops; ``commit`` at ``period_start``) or ``"bram"`` (one block
+        RAM; the commit copy runs over the :attr:`commit_clocks` clocks before ``period_start``,
+        module docstring; the iCEBreaker's choice: −≈ 600 FF).
 
     Members
     -------
@@ -263,8 +286,13 @@ class Top(wiring.Component):
         The M/T edge mode (the parameter).
     mul_width : int
         The parameter.
-    current_loop, scope_ram : str
+    current_loop, scope_ram, regs_staging : str
         The parameters.
+    commit_clocks : int
+        Clocks the register commit takes: it starts ``commit_clocks`` clocks before
+        ``period_start`` and the new values are all in place in the ``period_start`` clock
+        (``"bram"``), or 1 (``"ff"``: the commit in the ``period_start`` clock, the new values
+        from the clock after it).
 
     Raises
     ------
@@ -276,7 +304,8 @@ class Top(wiring.Component):
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
-                 mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram"):
+                 mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
+                 regs_staging="ff"):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -325,6 +354,7 @@ class Top(wiring.Component):
                 {"mt_k": mt_k_for(scales, edges_per_line=MT_EDGES_PER_LINE[mt_edges])})
         check_choice("Top", "current_loop", current_loop, CURRENT_LOOPS)
         check_choice("Top", "scope_ram", scope_ram, SCOPE_RAMS)
+        check_choice("Top", "regs_staging", regs_staging, REGS_STAGINGS)
         if resets is not None:
             if not isinstance(resets, Mapping):
                 raise TypeError(f"Top resets must be a mapping of register names to raw values "
@@ -336,12 +366,19 @@ class Top(wiring.Component):
                 raise ValueError("Top dead_time_s and resets['dead_time'] both set the dead "
                                  "time: give one")
             regmap = regmap.with_constants(dict(resets))   # Register checks each value's range
+        copy = len(staging_slots(regmap)) + 1               # RegisterFile.commit_clocks
+        if regs_staging == "bram" and copy >= 2 * n:
+            raise ValueError(f"Top regs_staging='bram' needs a PWM period longer than the "
+                             f"register copy ({copy} clocks), not {2 * n} clocks")
         self._clk_hz = float(clk_hz)
         self._scales = scales
         self._regmap = regmap
 
         # Built here (after every check) so that their timing attributes are known.
-        self._regs = RegisterFile(regmap)
+        # "bram": the timer latches pwm_symmetric in the period's last clock, so that word is
+        # copied in the copy's last clock (it changes after the latch, as with "ff").
+        self._regs = RegisterFile(regmap, staging=regs_staging,
+                                  copy_last=("pwm_symmetric",) if regs_staging == "bram" else ())
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -392,6 +429,8 @@ class Top(wiring.Component):
     mul_width = property(lambda self: self._mul_width)
     current_loop = property(lambda self: self._current_loop)
     scope_ram = property(lambda self: self._scope.ram)
+    regs_staging = property(lambda self: self._regs.staging)
+    commit_clocks = property(lambda self: self._regs.commit_clocks)
 
     def elaborate(self, platform):
         m = Module()
@@ -446,7 +485,8 @@ class Top(wiring.Component):
         speed = mt.o.payload.speed
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
-            regs.commit.eq(timer.period_start),
+            regs.commit.eq(timer.period_start if regs.staging == "ff" else
+                           timer.position == timer.period - regs.commit_clocks),
             servo.loop.eq(timer.period_start),
             mt.update.eq(timer.period_start),
             adc.sample.eq(timer.sample),

@@ -285,8 +285,9 @@ def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
         r = build("ulx3s", out_dir=tmp_path / loop, current_loop=loop, json=True)
         out = capsys.readouterr().out.strip().splitlines()
         assert json.loads(out[-1])["current_loop"] == r["current_loop"] == loop
-        assert f"  gateware  Top(current_loop={loop!r}, scope_ram='bram')" in out
-        assert r["scope_ram"] == "bram"
+        assert (f"  gateware  Top(current_loop={loop!r}, scope_ram='bram', regs_staging='ff')"
+                in out)
+        assert r["scope_ram"] == "bram" and r["regs_staging"] == "ff"
         saved = json.loads((tmp_path / loop / "ulx3s" / "report.json").read_text())
         assert saved["current_loop"] == loop
         il = (tmp_path / loop / "ulx3s" / f"{NAME}.il").read_text()
@@ -301,7 +302,7 @@ def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
     assert {"board", "title", "flow", "lut", "lut_kind", "ff", "bram_bits", "dsp", "fmax_mhz",
             "fmax", "timing_met", "clock_mhz", "clock_requested_mhz", "pll", "pll_divs", "paper",
             "fits", "error", "utilisation", "wall_s", "stages", "artifacts",
-            "current_loop", "scope_ram"} == keys
+            "current_loop", "scope_ram", "regs_staging"} == keys
 
 
 # --- vendor build trees ---------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from amaranth.hdl import signed, unsigned
 
 from foc_servo.hdl.bus import Status
 from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
-from foc_servo.hdl.regs import RegisterFile
+from foc_servo.hdl.regs import RegisterFile, staging_slots
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.regs import RegisterFileModel
 from foc_servo.sim.verify import regs as verify_regs
@@ -34,6 +34,24 @@ async def access(ctx, dut, addr, *, we=0, data=0, lock=0):
     ctx.set(dut.bus.stb, 0)
     assert ctx.get(dut.bus.ack) == 0                  # stb held in the ack clock: no new access
     return r_data, Status(status)
+
+
+async def access_waiting(ctx, dut, addr, *, we=0, data=0, lock=0):
+    """One bus access, ``stb`` held until ``ack`` (a copy or the reset walk may hold it off);
+    returns ``(r_data, status, clocks from stb to ack)``."""
+    ctx.set(dut.bus.addr, addr)
+    ctx.set(dut.bus.we, we)
+    ctx.set(dut.bus.w_data, data & 0xFFFFFFFF)
+    ctx.set(dut.bus.lock, lock)
+    ctx.set(dut.bus.stb, 1)
+    clocks = 0
+    while not ctx.get(dut.bus.ack):
+        await ctx.tick()
+        clocks += 1
+    r_data, status = ctx.get(dut.bus.r_data), ctx.get(dut.bus.status)
+    await ctx.tick()
+    ctx.set(dut.bus.stb, 0)
+    return r_data, Status(status), clocks
 
 
 def bits(port):
@@ -252,6 +270,235 @@ def test_random_comparison_detects_a_model_that_ignores_lock(monkeypatch):
 def test_register_file_converts_to_verilog():
     text = verilog.convert(RegisterFile(), name="regs")
     assert "module regs" in text
+
+
+# --- staging="bram" ------------------------------------------------------------------------
+
+BRAM = dict(staging="bram", copy_last=("pwm_symmetric",))
+
+
+@pytest.mark.parametrize("kwargs, exc, msg", [
+    ({"staging": 1}, TypeError, r"^RegisterFile staging must be a string, one of 'ff', 'bram', "
+                                r"not 1$"),
+    ({"staging": "sram"}, ValueError, r"^RegisterFile staging must be one of 'ff', 'bram', "
+                                      r"not 'sram'$"),
+    ({"staging": "bram", "copy_last": ["mode"]}, TypeError,
+     r"^RegisterFile copy_last must be a tuple of register names, not \['mode'\]$"),
+    ({"staging": "bram", "copy_last": ("prot_oc_limit",)}, ValueError,
+     r"^RegisterFile copy_last must name shadowed rw registers, not 'prot_oc_limit'$"),
+    ({"staging": "bram", "copy_last": ("nope",)}, ValueError,
+     r"^RegisterFile copy_last must name shadowed rw registers, not 'nope'$"),
+    ({"staging": "bram", "copy_last": ("mode", "mode")}, ValueError,
+     r"^RegisterFile copy_last must not repeat a name, not \('mode', 'mode'\)$"),
+    ({"copy_last": ("mode",)}, ValueError,
+     r"^RegisterFile copy_last applies only to staging='bram', not staging='ff'$"),
+])
+def test_register_file_staging_validation(kwargs, exc, msg):
+    with pytest.raises(exc, match=msg):
+        RegisterFile(**kwargs)
+
+
+def test_model_staging_validation():
+    with pytest.raises(ValueError, match=r"^RegisterFileModel staging must be one of 'ff', "
+                                         r"'bram', not 'x'$"):
+        RegisterFileModel(staging="x")
+
+
+def test_bram_staging_slots_and_timing_attributes():
+    slots = staging_slots(REGMAP, ("pwm_symmetric",))
+    shadowed = [(a, r.name) for a, r, _ in REGMAP.words()
+                if r.access is Access.RW and r.shadow is not None]
+    assert [(a, r.name) for a, r, _ in slots] == (
+        [w for w in shadowed if w[1] != "pwm_symmetric"]
+        + [w for w in shadowed if w[1] == "pwm_symmetric"])
+    assert [a for a, _, _ in staging_slots(REGMAP)] == [a for a, _ in shadowed]
+    dut = RegisterFile(**BRAM)
+    assert dut.staging == "bram" and dut.slots == len(slots) == 48
+    assert dut.latency == 2 and dut.commit_clocks == dut.commit_latency == 49
+    assert dut.reset_clocks == 48
+    ff = RegisterFile()
+    assert (ff.staging, ff.slots, ff.commit_clocks, ff.reset_clocks) == ("ff", 0, 1, 0)
+    assert set(dut.signature.members) == set(ff.signature.members)
+
+
+def test_bram_reads_after_reset_return_reset_values_after_the_walk():
+    dut = RegisterFile(**BRAM)
+
+    async def tb(ctx):
+        first = True
+        for addr, r, k in REGMAP.words():
+            if r.access is not Access.RW:
+                continue
+            r_data, status, clocks = await access_waiting(ctx, dut, addr)
+            # The first access waits for the reset walk (reset_clocks) before it is taken.
+            assert clocks == (dut.reset_clocks + dut.latency if first else dut.latency), r.name
+            first = False
+            assert status is Status.OK and r_data == r.read_word(r.bits(r.reset), k), r.name
+    run_tb(dut, tb, "regs_bram_reset")
+
+
+def test_bram_commit_copies_one_word_per_clock_and_holds_accesses_off():
+    """A commit with ``lock`` low in clock s: slot i's active register changes at the end of
+    clock s + 1 + i (all new in s + commit_clocks); an access arriving in the copy's first
+    clock or in its last reading clock is taken after the copy (s + slots)."""
+    dut = RegisterFile(**BRAM)
+    slots = staging_slots(REGMAP, BRAM["copy_last"])
+    n = len(slots)
+    new = {}
+
+    async def tb(ctx):
+        await ctx.tick().repeat(dut.reset_clocks)
+        # Write every staged word (one frame) with a value unlike its reset.
+        for i, (addr, r, k) in enumerate(slots):
+            lo, hi = r.word_slice(k)
+            word = (r.read_word(r.bits(r.reset), k) ^ (1 + 2 * i)) & ((1 << (hi - lo)) - 1)
+            new[addr] = word
+            assert (await access(ctx, dut, addr, we=1, data=word, lock=1))[1] is Status.OK
+        ctx.set(dut.bus.lock, 0)
+        for late in (0, n - 1):               # access in the copy's first / last reading clock
+            changed = {}
+            before = {r.name: r.bits(ctx.get(bits(getattr(dut, r.name)))) for _, r, _ in slots}
+            ctx.set(dut.commit, 1)
+            for c in range(n + 3):
+                if c == late:
+                    ctx.set(dut.bus.addr, slots[0][0])
+                    ctx.set(dut.bus.we, 0)
+                    ctx.set(dut.bus.stb, 1)
+                    stb_at = c
+                if c == 1:
+                    ctx.set(dut.commit, 0)
+                await ctx.tick()
+                for _, r, _ in slots:
+                    v = r.bits(ctx.get(bits(getattr(dut, r.name))))
+                    if v != before[r.name]:
+                        changed.setdefault(r.name, []).append(c + 1)
+                        before[r.name] = v
+                if ctx.get(dut.bus.ack):
+                    ack_at = c + 1
+                    r_data = ctx.get(dut.bus.r_data)
+                    await ctx.tick()
+                    ctx.set(dut.bus.stb, 0)
+                    break
+            assert ack_at == n + dut.latency, (late, stb_at, ack_at)    # taken in clock s + n
+            assert r_data == new[slots[0][0]]
+            if late == 0:
+                # Register of slot i: in place from clock s + 2 + i (one change per word).
+                for i, (addr, r, k) in enumerate(slots):
+                    assert 2 + i in changed[r.name], (r.name, i, changed.get(r.name))
+                assert max(c for v in changed.values() for c in v) == dut.commit_clocks
+                for addr, r, k in slots:
+                    lo, hi = r.word_slice(k)
+                    got = r.bits(ctx.get(bits(getattr(dut, r.name))))
+                    assert (got >> lo) & ((1 << (hi - lo)) - 1) == new[addr], r.name
+            else:
+                assert changed == {}          # the second copy copies the same values
+    run_tb(dut, tb, "regs_bram_copy")
+
+
+def test_bram_commit_is_ignored_under_lock_during_an_access_and_during_a_copy():
+    dut = RegisterFile(**BRAM)
+    kp = REGMAP["pi_q_kp"]
+
+    async def tb(ctx):
+        await ctx.tick().repeat(dut.reset_clocks)
+        await access(ctx, dut, kp.addr, we=1, data=0x0123, lock=1)
+        # Under lock: nothing starts (the next access is taken at once).
+        ctx.set(dut.commit, 1)
+        await ctx.tick()
+        ctx.set(dut.commit, 0)
+        assert (await access(ctx, dut, kp.addr, lock=1))[0] == 0x0123
+        await ctx.tick().repeat(dut.commit_clocks)
+        assert ctx.get(dut.pi_q_kp) == 0
+        # In an unlocked access's second clock (t + 1): ignored, the access is not delayed.
+        ctx.set(dut.bus.lock, 0)
+        ctx.set(dut.bus.addr, kp.addr)
+        ctx.set(dut.bus.stb, 1)
+        await ctx.tick()
+        ctx.set(dut.commit, 1)
+        await ctx.tick()
+        ctx.set(dut.commit, 0)
+        assert ctx.get(dut.bus.ack) == 1
+        await ctx.tick()
+        ctx.set(dut.bus.stb, 0)
+        await ctx.tick().repeat(dut.commit_clocks)
+        assert ctx.get(dut.pi_q_kp) == 0
+        # Taken in the ack clock; a second commit during the copy does not restart it.
+        ctx.set(dut.commit, 1)
+        await ctx.tick()
+        await ctx.tick().repeat(dut.commit_clocks - 2)
+        ctx.set(dut.commit, 0)
+        assert ctx.get(dut.pi_q_kp) == 0x0123
+        r_data, _, clocks = await access_waiting(ctx, dut, kp.addr)
+        assert (r_data, clocks) == (0x0123, dut.latency)
+    run_tb(dut, tb, "regs_bram_ignored")
+
+
+def test_bram_reset_during_a_copy_restores_every_reset_value():
+    bench = verify_regs.Bench(**BRAM)
+    dut = bench.dut
+    f = bench.stim_fields
+    kp = REGMAP["pi_q_kp"]
+
+    async def tb(ctx):
+        await ctx.tick().repeat(dut.reset_clocks)
+        for data in (0x0123, 0x0456):
+            ctx.set(bench.stim, bench.pack(f, dict(addr=kp.addr, we=1, w_data=data, stb=1)))
+            await ctx.tick().repeat(3)
+            ctx.set(bench.stim, bench.pack(f, dict(commit=1)))
+            await ctx.tick()
+            ctx.set(bench.stim, 0)
+            await ctx.tick().repeat(dut.commit_clocks)
+            assert ctx.get(dut.pi_q_kp) == data
+        ctx.set(bench.stim, bench.pack(f, dict(addr=kp.addr, we=1, w_data=0x789, stb=1)))
+        await ctx.tick().repeat(3)
+        ctx.set(bench.stim, bench.pack(f, dict(commit=1)))
+        await ctx.tick().repeat(10)                    # in the middle of the copy
+        ctx.set(bench.stim, bench.pack(f, dict(rst=1)))
+        await ctx.tick()
+        ctx.set(bench.stim, 0)
+        assert ctx.get(dut.pi_q_kp) == kp.reset
+        ctx.set(bench.stim, bench.pack(f, dict(addr=kp.addr, stb=1)))
+        clocks = 0
+        while not ctx.get(dut.bus.ack):
+            await ctx.tick()
+            clocks += 1
+        assert clocks == dut.reset_clocks + dut.latency
+        assert ctx.get(dut.bus.r_data) == kp.reset     # the walk rewrote the staging RAM
+        assert ctx.get(dut.pi_q_kp) == kp.reset
+    simulate(bench, [tb], name="regs_bram_reset_copy")
+
+
+@pytest.mark.parametrize("staging", ["ff", "bram"])
+def test_random_bus_traffic_with_resets_matches_the_model(staging):
+    kw = BRAM if staging == "bram" else {}
+    fig = run(2500, seed=7, rst_p=0.002, **kw)
+    assert fig["mismatches"] == 0 and fig["stuck"] == 0, fig["first_mismatch"]
+    for key in ("reads", "writes", "bad_address", "read_only", "window_reads",
+                "commits_applied", "commits_locked", "strobe_pulses", "resets"):
+        assert fig[key] > 0, key
+    if staging == "bram":
+        assert fig["copies"] > 10 and fig["held"] > 100
+
+
+def test_random_bram_comparison_detects_a_wrong_copy_order_or_a_copy_under_lock(monkeypatch):
+    from foc_servo.sim.models import regs as model_regs
+    slots = model_regs.staging_slots
+    monkeypatch.setattr(model_regs, "staging_slots",
+                        lambda regmap, copy_last=(): list(reversed(slots(regmap, copy_last))))
+    fig = run(400, seed=1, **BRAM)
+    assert fig["mismatches"] > 0 and fig["stuck"] == 0
+    monkeypatch.undo()
+    step = RegisterFileModel.step
+    monkeypatch.setattr(RegisterFileModel, "step",
+                        lambda self, **kw: step(self, **{**kw, "lock": 0}))   # copies under lock
+    fig = run(400, seed=1, **BRAM)
+    assert fig["mismatches"] > 0
+
+
+@pytest.mark.slow
+def test_register_file_bram_100k_random_accesses():
+    fig = run(100_000, seed=0, rst_p=0.0005, **BRAM)
+    assert fig["mismatches"] == 0, fig["first_mismatch"]
 
 
 @pytest.mark.slow

@@ -156,6 +156,12 @@ def _signed(word, bits=32):
      r"^Register theta_lead reset value must be an integer from 0 to 65535, not 65536$"),
     ({"dead_time_s": 1e-6, "resets": {"dead_time": 5}}, ValueError,
      r"^Top dead_time_s and resets\['dead_time'\] both set the dead time: give one$"),
+    ({"regs_staging": 1}, TypeError, r"^Top regs_staging must be a string, one of .*, not 1$"),
+    ({"regs_staging": "spram"}, ValueError, r"^Top regs_staging must be one of 'ff', 'bram', "
+                                            r"not 'spram'$"),
+    ({"regs_staging": "bram", "pwm_hz": 1.25e6}, ValueError,
+     r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
+     r"not 40 clocks$"),
 ])
 def test_top_parameter_validation(kwargs, exc, msg):
     with pytest.raises(exc, match=msg):
@@ -379,6 +385,103 @@ def test_top_register_writes_reach_blocks_through_the_host_link():
     assert (seen["ud_set"], seen["uq_set"]) == (1000, -2000)
     assert seen["st_mode"] == Mode.OPEN_LOOP.value
     assert seen["ro"].status == ReplyStatus.READ_ONLY
+
+
+class _TracingHost(_Host):
+    """A :class:`_Host` that records ``probe(ctx)`` in every clock it ticks."""
+
+    def __init__(self, bench, probe):
+        super().__init__(bench)
+        self.probe = probe
+        self.trace = []
+
+    async def tick(self, ctx, n=1):
+        for _ in range(n):
+            await ctx.tick()
+            self.clocks += 1
+            self.trace.append(self.probe(ctx))
+
+
+def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
+    """``regs_staging="bram"``: reads after reset return the reset values (the reset walk);
+    a frame's words reach their blocks in the copy before the next ``period_start``, slot ``i``
+    in the copy's clock ``i + 1``, all in place in the ``period_start`` clock, ``pwm_symmetric``
+    last; the copy starts only with ``lock`` low; read-back returns what was written."""
+    from foc_servo.hdl.regs import staging_slots
+    top = Top(pwm_hz=PWM, baud=BAUD, regs_staging="bram")
+    assert top.regs_staging == "bram" and top.commit_clocks == 49
+    bench = _Bench(top, BAUD)
+    rm = top.regmap
+    regs, timer = top._regs, top._timer
+    ports = {"pwm_symmetric": timer.symmetric, "pwm_sample_custom": timer.sample_custom,
+             "pwm_sample_point": timer.sample_point, "dead_time": top._gates.dead_time,
+             "pi_q_kp": top._loop.kp_q}
+    slots = [r.name for _, r, _ in staging_slots(rm, ("pwm_symmetric",))]
+    assert slots[-1] == "pwm_symmetric"
+
+    def probe(ctx):
+        return (ctx.get(timer.period_start), ctx.get(regs.bus.lock),
+                {n: ctx.get(p) for n, p in ports.items()})
+    host = _TracingHost(bench, probe)
+    seen = {}
+    new = {"pwm_symmetric": 0, "pwm_sample_custom": 1, "pwm_sample_point": 77, "dead_time": 37}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        seen["resets"] = await host.read(ctx, _addr(top, "pwm_symmetric"), 4)
+        seen["pi_resets"] = await host.read(ctx, _addr(top, "pi_d_kp"), 8)
+        host.trace.clear()
+        await host.write(ctx, _addr(top, "pwm_symmetric"), *new.values())   # one frame
+        seen["staged"] = await host.read(ctx, _addr(top, "pwm_symmetric"), 4)
+        await host.next_period(ctx, top)
+        await host.next_period(ctx, top)
+        # Mode and the open-loop set-points in one frame: the servo's loop strobe at the
+        # period_start after the copy takes the new mode (in place in that clock).
+        await host.write(ctx, _addr(top, "mode"),
+                         Mode.OPEN_LOOP.value, 0, 0, 0, 0, 0, 1000, 0xFFFF & -2000)
+        await host.next_period(ctx, top)
+        await host.next_period(ctx, top)
+        seen["servo_mode"] = ctx.get(top._servo.mode).value
+        seen["st_mode"] = (await host.read(ctx, _addr(top, "st_mode")))[0]
+
+    simulate(bench, [testbench], name="test_top_regs_bram")
+    assert list(seen["resets"]) == [rm[n].reset for n in new]
+    assert list(seen["pi_resets"]) == [rm[a].read_word(rm[a].bits(rm[a].reset), 0) for a in (
+        "pi_d_kp", "pi_d_kx", "pi_d_lim_lo", "pi_d_lim_hi", "pi_q_kp", "pi_q_kx", "pi_q_lim_lo",
+        "pi_q_lim_hi")]
+    assert list(seen["staged"]) == list(new.values())
+    trace = host.trace
+    # The first clock each port shows its new value, and the period_start after it.
+    first = {n: next(t for t, (_, _, v) in enumerate(trace) if v[n] == new[n]) for n in new}
+    p = next(t for t, (start, _, _) in enumerate(trace) if start and t >= max(first.values()))
+    s = p - top.commit_clocks                          # the copy's first clock
+    assert trace[s][1] == 0                            # lock low when it starts
+    assert all(not start for start, _, _ in trace[s:p])
+    for n in new:
+        assert first[n] == s + 2 + slots.index(n), (n, first[n] - s)
+        assert all(v[n] == new[n] for _, _, v in trace[first[n]:p + 2])
+    assert first["pwm_symmetric"] == p                 # the last word: after the timer's latch
+    assert trace[p][2]["pi_q_kp"] == rm["pi_q_kp"].reset   # an unwritten register kept
+    assert seen["servo_mode"] == Mode.OPEN_LOOP.value
+    assert seen["st_mode"] == Mode.OPEN_LOOP.value
+
+
+def test_regs_staging_threaded_from_top_and_board():
+    import gc
+    import warnings
+
+    from amaranth.hdl import UnusedElaboratable
+
+    from foc_servo.boards.build import BoardTop
+    from foc_servo.boards.platforms import BOARDS
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)    # only inspected, never elaborated
+        top = Top()
+        assert top.regs_staging == "ff" and top.commit_clocks == 1
+        assert {name: BoardTop(name).top.regs_staging for name in BOARDS} == {
+            name: "bram" if name == "icebreaker" else "ff" for name in BOARDS}
+        del top
+        gc.collect()
 
 
 def test_top_fault_n_low_forces_all_gates_off_within_fault_latency():

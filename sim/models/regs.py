@@ -7,8 +7,12 @@ clock (registered state, plus the combinational window read data), then
 :meth:`RegisterFileModel.step` takes that clock's inputs and computes the state of the next.
 """
 
+from amaranth.utils import ceil_log2
+
 from ...hdl.bus import Status
+from ...hdl.fixed import check_choice
 from ...hdl.regmap import REGMAP, Access, RegMap
+from ...hdl.regs import STAGINGS, staging_slots
 
 __all__ = ["RegisterFileModel"]
 
@@ -29,17 +33,38 @@ class RegisterFileModel:
     pending, status_p, sel, win_pend
         The access's first-clock registers (t): the read multiplexer runs in t + 1 on the word
         ``sel`` (``(register, k)`` or ``None``), ``ack`` and the reply show in t + 2.
+    mem, rd_data, run, walk, cnt, load, load_walk, dst, slot, wr_pend, stage_pend, stage_hit
+        ``staging="bram"``: the staging RAM (slots, then the reset values from ``base``), its
+        read data register, and the copy / reset-walk sequencer and access registers of
+        :class:`~foc_servo.hdl.regs.RegisterFile` (same names). ``staged`` then holds only the
+        immediate registers; :meth:`staged_value` reads any register's staging value.
     """
 
-    def __init__(self, regmap=REGMAP):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFileModel regmap must be a RegMap, not {regmap!r}")
+        check_choice("RegisterFileModel", "staging", staging, STAGINGS)
         self.regmap = regmap
+        self.staging = staging
         self._words = {addr: (r, k) for addr, r, k in regmap.words()}
         self._rw = [r for r in regmap if r.access is Access.RW]
         self._shadowed = [r.name for r in self._rw if r.shadow is not None]
-        self.staged = {r.name: r.bits(r.reset) for r in self._rw}
-        self.active = dict(self.staged)
+        self.bram = staging == "bram"
+        self.slots = staging_slots(regmap, copy_last) if self.bram else []
+        self._slot_of = {addr: i for i, (addr, _, _) in enumerate(self.slots)}
+        n = len(self.slots)
+        self.base = 1 << ceil_log2(n) if n else 0
+        resets = [r.read_word(r.bits(r.reset), k) for _, r, k in self.slots]
+        self.mem = resets + [0] * (self.base - n) + resets
+        self.commit_clocks = n + 1
+        self.reset()
+
+    def reset(self):
+        """The state after a domain reset (the staging RAM keeps its contents)."""
+        regmap = self.regmap
+        self.active = {r.name: r.bits(r.reset) for r in self._rw}
+        self.staged = {n: v for n, v in self.active.items()
+                       if not (self.bram and n in self._shadowed)}
         self.strobes = {r.name: 0 for r in regmap if r.access is Access.STROBE}
         self.ack = 0
         self.status = Status.OK.value
@@ -49,11 +74,24 @@ class RegisterFileModel:
         self.status_p = Status.OK.value
         self.sel = None
         self.win_pend = dict(self.win_hit)
+        # staging="bram": the copy / reset-walk sequencer and the RAM's ports.
+        self.run = self.walk = int(self.bram)
+        self.cnt = self.dst = self.slot = 0
+        self.load = self.load_walk = 0
+        self.wr_pend = self.stage_pend = self.stage_hit = 0
+        self.rd_data = 0
+
+    @property
+    def busy(self):
+        """A copy or the reset walk is reading the staging RAM (accesses held off)."""
+        return bool(self.run)
 
     def r_data(self, window_data=None):
         """``bus.r_data`` during this clock; ``window_data`` maps a window name to its
         ``rd_data`` input."""
         out = self.r_data_reg
+        if self.stage_hit:
+            out = self.rd_data
         for w in self.regmap.windows:
             if self.win_hit[w.name]:
                 out = (window_data or {}).get(w.name, 0)
@@ -65,20 +103,34 @@ class RegisterFileModel:
                 return w
         return None
 
-    def step(self, *, stb, addr, we, w_data, lock=0, commit=0, ro=None):
+    def step(self, *, stb, addr, we, w_data, lock=0, commit=0, ro=None, rst=0):
         """Advance one clock with these inputs; ``ro`` maps read-only register names to their
-        input bits in this clock (missing: 0). Returns the :class:`~foc_servo.hdl.bus.Status`
-        value the access gets (``None`` if no access started)."""
-        access = bool(stb) and not self.pending and not self.ack
+        input bits in this clock (missing: 0); ``rst`` a domain reset in this clock. Returns the
+        :class:`~foc_servo.hdl.bus.Status` value the access gets (``None`` if no access
+        started). With ``staging="bram"``, :attr:`started` tells whether a copy started."""
+        self.started = False
+        if rst:
+            self.reset()
+            return None
+        if self.bram:
+            start = bool(commit) and not lock and not self.run and not self.pending
+            reading = start or bool(self.run)
+            self.started = start
+        else:
+            reading = False
+        access = bool(stb) and not self.pending and not self.ack and not reading
+        if self.bram:
+            self._stage_step(reading, w_data)
         self.ack = self.pending
         for n in self.strobes:
             self.strobes[n] = 0
-        if commit and not lock:
+        if commit and not lock and not self.bram:
             for n in self._shadowed:
                 self.active[n] = self.staged[n]
         if self.pending:                      # t + 1: the read multiplexer, status inputs now
             self.status = self.status_p
             self.win_hit = dict(self.win_pend)
+            self.stage_hit = self.stage_pend
             self.r_data_reg = 0
             if self.sel is not None:
                 r, k = self.sel
@@ -92,6 +144,7 @@ class RegisterFileModel:
                     bits = 0
                 self.r_data_reg = r.read_word(bits, k)
         self.pending = int(access)
+        self.stage_pend = 0
         if not access:
             return None
         self.status_p, self.sel = Status.BAD_ADDRESS.value, None
@@ -104,6 +157,10 @@ class RegisterFileModel:
                 if r.access is Access.STROBE:
                     self.status_p = Status.OK.value
                     self.strobes[r.name] = w_data & 1
+                elif r.access is Access.RW and addr in self._slot_of:
+                    self.status_p = Status.OK.value
+                    self.slot = self._slot_of[addr]
+                    self.wr_pend = 1
                 elif r.access is Access.RW:
                     self.status_p = Status.OK.value
                     self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
@@ -113,7 +170,11 @@ class RegisterFileModel:
                     self.status_p = Status.READ_ONLY.value
             else:
                 self.status_p = Status.OK.value
-                self.sel = (r, k)
+                if addr in self._slot_of:
+                    self.slot = self._slot_of[addr]
+                    self.stage_pend = 1
+                else:
+                    self.sel = (r, k)
         else:
             w = self._window(addr)
             if w is not None:
@@ -123,3 +184,39 @@ class RegisterFileModel:
                     self.status_p = Status.OK.value
                     self.win_pend[w.name] = 1
         return self.status_p
+
+    def _stage_step(self, reading, w_data):
+        """``staging="bram"``: the staging RAM's read and write in this clock and the copy /
+        reset-walk sequencer (all from the state at the start of the clock)."""
+        n = len(self.slots)
+        raddr = self.slot if self.pending else self.cnt + (self.base if self.walk else 0)
+        new_rd = self.mem[raddr]                      # read before this clock's write
+        if self.load:
+            if self.load_walk:
+                self.mem[self.dst] = self.rd_data
+            else:
+                _, r, k = self.slots[self.dst]
+                self.active[r.name] = r.write_word(self.active[r.name], k, self.rd_data)
+        if self.wr_pend:                              # t + 1 of a write: w_data still held
+            _, r, k = self.slots[self.slot]
+            self.mem[self.slot] = r.read_word(r.write_word(0, k, w_data), k)
+        self.rd_data = new_rd
+        self.wr_pend = 0
+        if reading:
+            self.load, self.load_walk, self.dst = 1, self.walk, self.cnt
+            if self.cnt == n - 1:
+                self.cnt, self.run, self.walk = 0, 0, 0
+            else:
+                self.cnt, self.run = self.cnt + 1, 1
+        else:
+            self.load = self.load_walk = 0
+
+    def staged_value(self, name):
+        """What a read of ``rw`` register ``name`` returns (its staging value) as bits."""
+        r = self.regmap[name]
+        if not (self.bram and r.shadow is not None):
+            return self.staged[name]
+        bits = 0
+        for k in range(r.words):
+            bits = r.write_word(bits, k, self.mem[self._slot_of[r.addr + k]])
+        return bits

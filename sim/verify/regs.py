@@ -12,7 +12,7 @@ way, a simulation-only wrapper packs all inputs into one signal and all outputs 
 
 import random
 
-from amaranth.hdl import Cat, Elaboratable, Module, Signal
+from amaranth.hdl import Cat, Elaboratable, Module, ResetInserter, Signal
 from amaranth.lib.memory import Memory
 
 from ...hdl.bus import Status
@@ -22,6 +22,10 @@ from ..harness import Progress, simulate
 from ..models.regs import RegisterFileModel
 
 __all__ = ["run", "window_word", "Bench"]
+
+#: Clocks the random master holds ``stb`` without an ``ack`` before it gives the access up
+#: (counted in ``stuck``; a copy and the reset walk hold an access off for ≈ 50 clocks each).
+HOLD_LIMIT = 1000
 
 
 def window_word(offset):
@@ -36,17 +40,18 @@ def _bits(port):
 class Bench(Elaboratable):
     """Simulation-only wrapper: ``stim`` drives every input, ``outs`` packs every output.
 
-    ``stim`` = Cat(addr, we, w_data, stb, lock, commit, *ro registers); ``outs`` = Cat(ack,
+    ``stim`` = Cat(addr, we, w_data, stb, lock, commit, rst, *ro registers); ``outs`` = Cat(ack,
     status, r_data, *strobes, *rw registers), in :attr:`stim_fields` / :attr:`out_fields` order
-    (name, offset, width).
+    (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
+    RAM keeps its contents, as block RAM does).
     """
 
-    def __init__(self, regmap=REGMAP):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
         self.regmap = regmap
-        self.dut = RegisterFile(regmap)
+        self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last)
         ro = [r for r in regmap if r.access is Access.RO]
         self.stim_fields = self._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
-                                         ("lock", 1), ("commit", 1),
+                                         ("lock", 1), ("commit", 1), ("rst", 1),
                                          *((r.name, r.width) for r in ro)])
         self.out_fields = self._fields([("ack", 1), ("status", 2), ("r_data", 32),
                                         *((r.name, 1) for r in regmap
@@ -66,10 +71,12 @@ class Bench(Elaboratable):
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.dut = dut = self.dut
+        dut = self.dut
+        rst = Signal()
+        m.submodules.dut = ResetInserter(rst)(dut)
         bus = dut.bus
-        sinks = [bus.addr, bus.we, bus.w_data, bus.stb, bus.lock, dut.commit]
-        sinks += [_bits(getattr(dut, name)) for name, _, _ in self.stim_fields[6:]]
+        sinks = [bus.addr, bus.we, bus.w_data, bus.stb, bus.lock, dut.commit, rst]
+        sinks += [_bits(getattr(dut, name)) for name, _, _ in self.stim_fields[7:]]
         m.d.comb += Cat(*sinks).eq(self.stim)
         m.d.comb += self.outs.eq(Cat(bus.ack, bus.status, bus.r_data,
                                      *(_bits(getattr(dut, name))
@@ -131,9 +138,12 @@ def _accesses(regmap, count, rng):
     return out[:count + len(words)] if count else out
 
 
-def _cycles(regmap, accesses, rng):
+def _cycles(regmap, accesses, rng, seen, *, commit_p, rst_p):
     """Per-clock input dicts (without ro) for ``accesses``: frames of 1 … 8 accesses under
-    ``lock``, 0 … 3 idle clocks between accesses (30 %), ``commit`` at random."""
+    ``lock``, 0 … 3 idle clocks between accesses (30 %), ``commit`` (probability ``commit_p``)
+    and ``rst`` (``rst_p``) at random in any clock. The master holds ``stb`` until the ``ack``
+    clock (``seen["ack"]``: the expected ``ack`` of the clock last yielded), as the host link
+    does; a reset in the middle of an access leaves ``stb`` held and the access is taken again."""
     i = 0
     while i < len(accesses):
         n = rng.randint(1, 8)
@@ -141,19 +151,28 @@ def _cycles(regmap, accesses, rng):
         i += n
         framed = rng.random() < 0.7
         for j, (addr, we, w_data) in enumerate(frame):
-            for _ in range(RegisterFile.latency + 1):   # stb clock … ack clock (stb held)
+            for _ in range(HOLD_LIMIT):                 # stb clock … ack clock (stb held)
                 yield dict(addr=addr, we=we, w_data=w_data, stb=1, lock=int(framed),
-                           commit=int(rng.random() < 0.15))
+                           commit=int(rng.random() < commit_p), rst=int(rng.random() < rst_p))
+                if seen["ack"]:
+                    break
+            else:
+                seen["stuck"] += 1                      # no ack: give the access up
             gap = 0 if rng.random() < 0.7 else rng.randint(1, 3)
             for _ in range(gap):
                 yield dict(addr=addr, we=rng.getrandbits(1), w_data=w_data, stb=0,
                            lock=int(framed and j < len(frame) - 1),
-                           commit=int(rng.random() < 0.15))
+                           commit=int(rng.random() < commit_p), rst=int(rng.random() < rst_p))
 
 
-def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
+def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", copy_last=(),
+        commit_p=None, rst_p=0.0):
     """Simulate the register file on ``count`` random bus accesses (plus a read of every register
     word first) and compare every clock with the model.
+
+    ``staging`` / ``copy_last``: the :class:`~foc_servo.hdl.regs.RegisterFile` parameters;
+    ``commit_p``: the probability of ``commit`` in a clock (default 0.15 for ``"ff"``, 0.02 for
+    ``"bram"``, whose copy takes ``commit_clocks``); ``rst_p``: of a reset in a clock.
 
     Returns
     -------
@@ -161,17 +180,22 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
         ``mismatches`` (clocks whose outputs differ), ``vectors`` (bus accesses), ``clocks``,
         ``sim_s``, ``clk_per_s``, ``reads``, ``writes``, ``bad_address``, ``read_only``,
         ``window_reads``, ``commits_applied``, ``commits_locked`` (commit strobes ignored under
-        ``lock``), ``strobe_pulses``, ``first_mismatch`` (None or a description).
+        ``lock``), ``strobe_pulses``, ``resets``, ``copies`` (copies started, ``"bram"``),
+        ``held`` (clocks with ``stb`` high held off by a copy or the reset walk), ``stuck``
+        (accesses given up after :data:`HOLD_LIMIT` clocks without ``ack``), ``first_mismatch``
+        (None or a description).
     """
+    if commit_p is None:
+        commit_p = 0.02 if staging == "bram" else 0.15
     rng = random.Random(seed)
-    bench = Bench(regmap)
-    model = RegisterFileModel(regmap)
+    bench = Bench(regmap, staging=staging, copy_last=copy_last)
+    model = RegisterFileModel(regmap, staging=staging, copy_last=copy_last)
     accesses = _accesses(regmap, count, rng)
     ro_regs = [r for r in regmap if r.access is Access.RO]
     windows = regmap.windows
     fig = dict(mismatches=0, vectors=len(accesses), clocks=0, reads=0, writes=0, bad_address=0,
                read_only=0, window_reads=0, commits_applied=0, commits_locked=0,
-               strobe_pulses=0, first_mismatch=None)
+               strobe_pulses=0, resets=0, copies=0, held=0, stuck=0, first_mismatch=None)
     out_fields = bench.out_fields
     strobe_names = [n for n, _, _ in out_fields[3:] if n in model.strobes]
     bar = Progress("regs", len(accesses), enabled=progress)
@@ -192,7 +216,8 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
         ro = {r.name: 0 for r in ro_regs}
         prev_addr = 0
         done = 0
-        for cyc in _cycles(regmap, accesses, rng):
+        seen = {"ack": 0, "stuck": 0}
+        for cyc in _cycles(regmap, accesses, rng, seen, commit_p=commit_p, rst_p=rst_p):
             if rng.random() < 0.1:
                 r = rng.choice(ro_regs)
                 ro[r.name] = rng.getrandbits(r.width)
@@ -207,15 +232,20 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
                     g, e = bench.unpack(out_fields, got), bench.unpack(out_fields, want)
                     diff = {k: (g[k], e[k]) for k in g if g[k] != e[k]}
                     fig["first_mismatch"] = f"clock {fig['clocks']}: (got, expected) {diff}"
+            seen["ack"] = model.ack
+            if cyc["stb"] and model.busy and not model.pending and not model.ack:
+                fig["held"] += 1
             if model.ack:
                 done += 1
                 if done % 1000 == 0:
                     bar.update(done)
             fig["strobe_pulses"] += sum(model.strobes[n] for n in strobe_names)
-            if cyc["commit"]:
+            if cyc["commit"] and not cyc["rst"]:
                 fig["commits_locked" if cyc["lock"] else "commits_applied"] += 1
+            fig["resets"] += cyc["rst"]
             status = model.step(**{k: cyc[k] for k in ("stb", "addr", "we", "w_data", "lock",
-                                                       "commit")}, ro=ro)
+                                                       "commit", "rst")}, ro=ro)
+            fig["copies"] += model.started
             if status is not None:
                 fig["writes" if cyc["we"] else "reads"] += 1
                 if status == Status.BAD_ADDRESS.value:
@@ -227,6 +257,8 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP):
             prev_addr = cyc["addr"]
             fig["clocks"] += 1
             await ctx.tick()
+
+        fig["stuck"] = seen["stuck"]
 
     fig["sim_s"] = simulate(bench, [testbench], name="regs")
     bar.close()
