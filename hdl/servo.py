@@ -4,7 +4,8 @@
 
 :class:`SpeedLoop` turns the M/T speed (Q1.(speed_width−1) of the full-scale speed N_FS) and the
 speed reference into the i_q reference (Q1.15 of I_FS) through a reference profile generator and a
-Tustin PI (:class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9)) of ``width`` bits; the speed error
+Tustin PI (the equations of :class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9), bit for bit,
+computed sequentially here) of ``width`` bits; the speed error
 needs far more than 16 bits (0.01 % of 1667 r/min is 0.17 r/min; one LSB of Q1.23 at
 N_FS = 12 000 r/min is 0.0014 r/min).
 
@@ -32,13 +33,28 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
 (``mv`` is then never set: no hold).
 
-Timing: a run compares ``speed_ref`` with bounds ``R ± S`` registered in the clock before from
-that clock's ``speed_slew``, and for ``d ≥ 1`` takes the interpolation registered in the clock
-before from that clock's ``ref_delay``; ``to_pi`` of the bounds, of ``speed_ref`` and of the
-speed are computed beside the comparisons, so a run only selects, and the PI's two operands
-are registered in the run's clock and taken by the PI in the next (100 MHz on an ECP5: latency
-8, interval 7). ``ff``, the hold and the shifted PI limits are registers loaded by the run. In
-the top the registers change at the loop boundary, tens of clocks before a run.
+**Sequential datapath.** A run is a fixed program of about 80 operations on one adder
+``acc ← A + (B or ~B) + cin`` (width ``max(speed_width + 2, width + int_guard + 3, width + 4)``),
+``A`` being 0, ``acc`` or ``acc >> k`` with the rounding increment of ``round_shift(acc, k)`` as
+carry in, ``B`` one of the registers and inputs; results are written from ``acc`` (truncated
+when exact, else saturated to signed(width) or signed(16) by bit tests), comparisons leave
+flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E + E[n−1])`` and
+``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own
+``width + 3``-bit adder, then right shifts that keep the rounding bits): no hard multiplier. The
+reference history is a ring of ``max_delay`` registers, rotated twice per run (refilled with
+``to_pi(R)`` after ``clear``, then read: taps ``d − 1`` and ``d`` as they pass). ``_program``
+lists the operations; each is placed in the earliest clock its operands allow, and the timing
+(``latency``, ``interval``, ``ref_latency``) follows from the list (:func:`speed_loop_timing`).
+Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
+the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
+kept and with the new integrator, the conditional-integration choice and the output rounding.
+Every operand, select and flag is a register: the longest paths are a register through the
+operand multiplexers and the adder into ``acc`` (100 MHz on an ECP5 is the target).
+
+``P`` and ``dI`` enter the adder saturated to signed(width + int_guard + 2), which changes no
+result: beyond that range ``P + I`` (or ``I + dI``) lies outside the limits·2**int_guard
+whatever the integrator (``|I| ≤ 2**(width + int_guard − 1)``), so the comparisons, the clamped
+values and ``sat`` are those of the exact values, and the sign of ``dI`` is kept.
 
 **PI and feed-forward**, with the anti-windup working against the room the feed-forward leaves::
 
@@ -67,9 +83,9 @@ from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
-from .fixed import is_int, UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
+from .fixed import is_int, UQ, BinaryAngle, clamp
 from .mt_speed import output_layout as mt_output_layout
-from .pi import PI, pi_widths
+from .pi import pi_widths
 
 __all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
            "check_speed_loop", "speed_loop_timing"]
@@ -329,9 +345,20 @@ class SpeedLoop(wiring.Component):
     docstring: equations).
 
     Runs on every ``rate_div + 1``-th valid speed sample (the first one after ``clear`` runs); a
-    run that finds the PI still busy (samples less than :attr:`interval` clocks apart) is dropped
-    and leaves the profile alone. The M/T block delivers one sample per PWM period, thousands of
-    clocks apart.
+    run that finds the loop still busy (samples less than :attr:`interval` clocks apart) is
+    dropped and leaves the profile alone. The M/T block delivers one sample per PWM period,
+    thousands of clocks apart.
+
+    **Input timing.** A run is accepted in clock ``t`` (``i.valid``, decimation count 0, not
+    busy, no ``clear``); ``i.payload.speed`` is latched then. The other inputs a run uses —
+    ``speed_ref``, ``speed_slew``, ``iq_ff``, ``ref_delay``, ``int_hold``, ``kp``, ``kx``,
+    ``lim_lo``, ``lim_hi`` — are read during the run, in clocks ``t + 1 … t + interval − 1``,
+    and must hold their clock-``t`` values until then (:class:`SpeedLoopModel` raises if one
+    changes). In the top the register file changes them only at the PWM period start; M/T's
+    sample comes ~40 clocks after it, the run ends ~120 clocks later, and the current loop
+    samples the new i_q reference thousands of clocks later (at the period centre).
+    ``clear`` acts in its own clock (no long path behind it: it only resets registers and
+    selects ``R``'s tracking input).
 
     Parameters
     ----------
@@ -341,7 +368,7 @@ class SpeedLoop(wiring.Component):
     width : int
         Width of the speed PI (error, integrator scale, output), ``16 … speed_width``.
     kp_format, kx_format, int_guard
-        Of the speed PI (:class:`~foc_servo.hdl.pi.PI`). ``kp`` is the gain in per-unit
+        Of the speed PI (as for :class:`~foc_servo.hdl.pi.PI`). ``kp`` is the gain in per-unit
         (I_FS per N_FS), ``kx = K_i·T_s/2`` with ``T_s`` the speed-loop period. The defaults,
         ``UQ(24, 12)`` (0 … 4096), ``UQ(24, 24)`` (0 … 1 in steps of 6·10⁻⁸) and 16 guard bits,
         keep a small ``kx`` integrating errors far below 0.01 % of full scale.
@@ -351,9 +378,8 @@ class SpeedLoop(wiring.Component):
         Width of ``ref_delay``, UQ(delay_width, 3): ``4 … 7`` (largest delay 1.875 … 15.875
         runs; the default 5 gives 0 … 3.875 and stores 3 past references).
     mul_width : int
-        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
-        18 ECP5 / Xilinx; ``None`` iCE40: products not split), for the speed PI's partial
-        products; never changes a result.
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None``; checked and
+        kept for the interface (the sequential multiplier uses no hard multiplier).
 
     Members
     -------
@@ -361,19 +387,19 @@ class SpeedLoop(wiring.Component):
         The M/T speed (``wiring.connect`` it to :attr:`MTSpeed.o`); only ``speed`` is used
         (a stopped motor reads 0; the payload is held between strobes).
     speed_ref : In(signed(speed_width))
-        Speed reference, Q1.(speed_width−1) of N_FS, read in the clock a run is accepted (and
-        every clock while ``clear`` with ``speed_slew = 0``). A host or DSP closing a position
+        Speed reference, Q1.(speed_width−1) of N_FS, read during a run (and every clock while
+        ``clear`` with ``speed_slew = 0``). A host or DSP closing a position
         loop writes it (or, in current mode, the i_q reference).
     speed_slew : In(unsigned(speed_width))
         Largest change of ``ref_int`` per run, UQ1.(speed_width−1) of N_FS; 0: off (``ref_int``
-        steps to ``speed_ref``). A run uses the value of the clock before it.
+        steps to ``speed_ref``). Read during a run (and while ``clear``).
     iq_ff : In(signed(16))
         Acceleration feed-forward ``J·α/K_t``, Q1.15 of I_FS, added with the direction of the
-        profile while ``ref_int`` has not reached ``speed_ref`` (read in the run's clock).
+        profile while ``ref_int`` has not reached ``speed_ref`` (read during a run).
     ref_delay : In(unsigned(delay_width))
         UQ(delay_width, 3): the PI's reference is ``ref_int`` this many runs ago, interpolated
         linearly between runs; integer part 0: ``ref_int`` itself (the fraction is ignored).
-        A run uses the value of the clock before it (for ``d ≥ 1``).
+        Read during a run.
     int_hold : In(1)
         Hold the PI's integrator (its ``kx`` is 0) in runs whose reference still moves
         (``ref_int`` has not reached ``speed_ref``, or the delayed reference has not reached
@@ -381,9 +407,8 @@ class SpeedLoop(wiring.Component):
     kp : In(kp_format.shape)
     kx : In(kx_format.shape)
     lim_lo, lim_hi : In(signed(16))
-        i_q limits (the current limit), Q1.15 of I_FS. Gains, limits, ``ref_delay`` and
-        ``int_hold`` must be stable while a run is in flight (the register file changes them
-        only at loop boundaries).
+        i_q limits (the current limit), Q1.15 of I_FS. Gains, limits and the profile inputs
+        must be stable while a run is in flight (see *Input timing*).
     rate_div : In(unsigned(div_width))
         The loop runs on every ``rate_div + 1``-th speed sample.
     clear : In(1)
@@ -393,20 +418,23 @@ class SpeedLoop(wiring.Component):
     o : Out(stream.Signature(signed(16), always_ready=True))
         i_q reference, Q1.15 of I_FS, rounded half away from zero, within [lim_lo, lim_hi];
         ``valid`` strobes :attr:`latency` clocks after an accepted run, payload held (0 after
-        reset and ``clear``).
+        reset and ``clear``; a run in flight when ``clear`` rises never strobes).
     sat : Out(1)
         The last output was clamped to a limit (updates with ``o.valid``).
     ref_int : Out(signed(speed_width))
-        The profile's reference ``R``, Q1.(speed_width−1) of N_FS (updates the clock after a
-        run; 0 after reset).
+        The profile's reference ``R``, Q1.(speed_width−1) of N_FS (updates :attr:`ref_latency`
+        clocks after a run; 0 after reset).
 
     Attributes
     ----------
     latency : int
-        Clocks from a valid speed sample that runs the loop to ``o.valid``: PI latency + 2 = 8
-        (the run's operands are registered before the PI takes them, for 100 MHz on the ECP5).
+        Clocks from a valid speed sample that runs the loop to ``o.valid`` (119 with the
+        defaults; 115 with the top's ``kx_format`` UQ(24, 20); 143 with ``delay_width`` 7).
+        Computed from the program of a run.
     interval : int
-        Minimum clocks between runs: the PI's + 1 = 7.
+        Minimum clocks between runs: :attr:`latency` + 1.
+    ref_latency : int
+        Clocks from an accepted run to the new ``ref_int`` (13).
     max_delay : int
         Largest integer part of ``ref_delay``: ``2**(delay_width − 3) − 1``.
     """
@@ -461,7 +489,7 @@ class SpeedLoop(wiring.Component):
         m = Module()
         sw, w, g = self._speed_width, self._width, self._int_guard
         kpf, kxf = self._kp_format, self._kx_format
-        s_in, s_out = sw - w, w - IQ_WIDTH
+        s_out = w - IQ_WIDTH
         n = self.max_delay
         ops, timing = self._ops, self._timing
         wa = self._alu_width
@@ -522,7 +550,6 @@ class SpeedLoop(wiring.Component):
         lo = Signal(unsigned(mw))
         m_cnt = Signal(range(max(timing["mult_clocks"].values()) + 1))
         m_shift = Signal(range(mw + 1))           # iterations left that add
-        m_sub = Signal()                          # multiplier signed: its top bit subtracts
         m_signed = Signal()
         half = Signal()
         sticky = Signal()

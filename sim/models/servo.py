@@ -3,20 +3,20 @@
 """Bit-true, clock-by-clock golden models of :class:`~foc_servo.hdl.servo.SpeedLoop` and
 :class:`~foc_servo.hdl.servo.Servo` (equations and mode table in ``hdl/servo.py``).
 
-The model keeps the gateware's registers where their timing shows: a run uses the bounds
-``R ± speed_slew`` and the interpolated delayed reference of the clock before it. It computes
-them in its own way (saturated bounds from the value ``R`` takes each clock; the gateware keeps
-unsaturated bounds from the value ``R`` has, stale only in the clock after a run, when no run can
-be accepted), so the comparison checks that the two agree. It also checks the invariants the
-gateware relies on (the i_q reference stays inside ``[lim_lo, lim_hi]`` with the feed-forward;
-the interpolation stays between its two taps) and raises :exc:`AssertionError` if one fails.
+The speed loop's gateware is a sequential datapath that spends ``interval`` clocks on a run;
+the model computes the run's equations directly, in the clock the run is accepted, with
+:class:`~foc_servo.sim.models.pi.PIModel` and the numpy helpers, and shows the results when the
+gateware does (timing from :func:`~foc_servo.hdl.servo.speed_loop_timing`, the one place it is
+derived). It checks that the inputs the gateware reads during a run stay as they were when it was
+accepted, and the invariants the gateware relies on (the i_q reference stays inside
+``[lim_lo, lim_hi]`` with the feed-forward; the interpolation stays between its two taps), and
+raises :exc:`AssertionError` if one fails.
 
 Both are stateful and sequential, so they step one clock at a time: :meth:`~ServoModel.clock`
 takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
-the combinational paths from the inputs), then advances the state to clock ``t + 1``. The speed
-PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the gateware's timing around it (a run
-accepted in clock ``t`` hands its registered operands to the PI in ``t + 1``; the PI's result
-shows in ``t + 7``, the loop busy until then, and the i_q reference in ``t + 8``).
+the combinational paths from the inputs), then advances the state to clock ``t + 1``. A run
+accepted in clock ``t`` shows its ``ref_int`` in ``t + ref_latency`` (13 by default), its i_q
+reference in ``t + latency`` (119), and the next run can be accepted in ``t + interval`` (120).
 """
 
 from amaranth.hdl import signed
@@ -120,7 +120,7 @@ class SpeedLoopModel:
         """Inputs of the current clock → ``(o_valid, o_payload, sat, ref_int)`` seen in it;
         advance one clock."""
         out = (self.o_valid, self.o_payload, self.sat, self.ref_int)
-        s, sw = self._shift_out, signed(self.speed_width)
+        s = self._shift_out
         d_int, d_frac = ref_delay >> DELAY_FRAC, ref_delay & ((1 << DELAY_FRAC) - 1)
         now = dict(speed=speed, speed_ref=speed_ref, speed_slew=speed_slew, iq_ff=iq_ff,
                    ref_delay=ref_delay, int_hold=int_hold, kp=kp, kx=kx, lim_lo=lim_lo,
@@ -168,7 +168,7 @@ class SpeedLoopModel:
 
     def _run(self, inp, d_int, d_frac):
         """Compute an accepted run (clock ``self.t``) and schedule its results."""
-        s, sw = self._shift_out, signed(self.speed_width)
+        s = self._shift_out
         r, slew, sref = self.ref_int, inp["speed_slew"], inp["speed_ref"]
         lim_lo, lim_hi, iq_ff = inp["lim_lo"], inp["lim_hi"], inp["iq_ff"]
         up = slew != 0 and sref > r + slew
