@@ -6,7 +6,7 @@ import pytest
 from amaranth.back import verilog
 from amaranth.hdl import Const, Value
 
-from foc_servo.hdl.fixed import Q, UQ
+from foc_servo.hdl.fixed import Q, UQ, shape_range
 from foc_servo.hdl.servo import AngleSource, Mode, Servo, SpeedLoop
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel, SpeedLoopModel
@@ -565,3 +565,85 @@ def test_servo_and_scope_100k_clocks_vs_model():
                    "ff_clamped_runs", "held_runs", "delayed_runs", "slew_max_runs"):
         assert result[f"servo_{figure}"] > 2, figure
     assert result["scope_captures"] >= 10 and result["scope_capture_order_errors"] == 0
+
+
+def _corner_run_inputs(rng, dut, hold_prev):
+    """Inputs of one random run of :func:`test_speed_loop_random_runs_with_corner_inputs`."""
+    sw = dut.speed_width
+    s_lo, s_hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
+    kp_min, kp_max = shape_range(dut.kp_format.shape)
+    kx_min, kx_max = shape_range(dut.kx_format.shape)
+
+    def pick(*choices):
+        return choices[rng.randrange(len(choices))]
+
+    lo, hi = pick((-32768, 32767), (-3000, 4000), (500, 500), (4000, -3000), (-32768, -32768),
+                  (32767, 32767), tuple(sorted(rng.randint(-32768, 32767) for _ in range(2))))
+    ref = pick(s_lo, s_hi, 0, hold_prev, rng.randint(s_lo, s_hi),
+               hold_prev + rng.randint(-(1 << 24), 1 << 24))
+    return dict(
+        speed=pick(s_lo, s_hi, s_lo + 1, 0, -1, rng.randint(s_lo, s_hi),
+                   rng.randint(s_lo >> 6, s_hi >> 6)),
+        speed_ref=max(s_lo, min(s_hi, ref)),
+        speed_slew=pick(0, 0, 1, (1 << sw) - 1, rng.randint(1, 1 << (sw - 6)),
+                        rng.randint(1, 1 << (sw - 12))),
+        iq_ff=pick(0, -32768, 32767, rng.randint(-32768, 32767)),
+        ref_delay=rng.randint(0, (1 << dut.delay_width) - 1),
+        int_hold=rng.randint(0, 1),
+        kp=pick(0, kp_max, kp_min, rng.randint(kp_min, kp_max), rng.randint(0, 1 << 12)),
+        kx=pick(0, kx_max, kx_min, rng.randint(kx_min, kx_max), rng.randint(0, 1 << 14)),
+        lim_lo=lo, lim_hi=hi)
+
+
+@pytest.mark.parametrize("params", [{}, dict(kx_format=UQ(24, 20)),
+                                    dict(speed_width=24, width=16, delay_width=7),
+                                    dict(width=20, kp_format=Q(16, 4), kx_format=Q(16, 20),
+                                         int_guard=4),
+                                    # no guard bits: the products' rounding shows in i_q
+                                    dict(speed_width=24, width=16, int_guard=0)])
+def test_speed_loop_random_runs_with_corner_inputs(params):
+    # Runs at random spacing >= interval (and some samples dropped inside a run), with corner
+    # inputs: full-scale speeds, inverted and equal limits, largest gains, kx = 0, integrator
+    # hold, every reference delay, and clear at random points of a run. Clock by clock against
+    # the model (the helper asserts equality); a dropped rounding bit anywhere shows here
+    # (checked by mutation: the rounding increments of acc >> k and of the products).
+    import random
+    rng = random.Random(7 + len(params))
+    dut = SpeedLoop(**params)
+    seq, prev = [loop_inputs()], 0
+    for _ in range(40):
+        kw = _corner_run_inputs(rng, dut, prev)
+        prev = kw["speed_ref"]
+        gap = dut.interval + rng.choice([0, 0, 1, 7, rng.randrange(200)])
+        run = [loop_inputs(**kw) for _ in range(gap)]
+        run[0] = dict(run[0], valid=1)
+        what = rng.random()
+        if what < 0.3:                              # a sample inside the run: dropped
+            k = rng.randrange(1, dut.interval)
+            run[k] = dict(run[k], valid=1, speed=rng.randint(-(1 << 23), 1 << 23))
+        elif what < 0.45:                           # clear inside the run
+            k = rng.randrange(0, dut.interval)
+            run[k] = dict(run[k], clear=1)
+        seq += run
+    seq += [loop_inputs(**kw) for _ in range(dut.latency)]
+    got, model = speed_loop_clocks(seq, **params)
+    assert model.runs >= 30 and sum(g[0] for g in got) >= 25
+
+
+def test_speed_loop_product_rounding_shows_without_guard_bits():
+    # int_guard = 0 and a 16-bit PI: P = round(kp·E / 2**12) and dI = round(kx·(E + E[n−1]) /
+    # 2**24) are in i_q's LSBs, errors small enough that nothing saturates: every rounding
+    # increment of the shift-add products (ties of either sign included) shows in i_q.
+    import random
+    rng = random.Random(11)
+    params = dict(speed_width=24, width=16, int_guard=0)
+    dut = SpeedLoop(**params)
+    seq = [loop_inputs()]
+    for k in range(60):
+        kw = dict(speed=rng.randint(-3000, 3000) << 8 | rng.choice([0, 128, 127, 129]),
+                  kp=rng.choice([rng.randint(0, 1 << 14), 2048, 6144]),
+                  kx=rng.choice([rng.randint(0, 1 << 22), 1 << 23, 3 << 22]))
+        seq += [loop_inputs(valid=1, **kw)] + [loop_inputs(**kw) for _ in range(dut.interval)]
+    got, model = speed_loop_clocks(seq, **params)
+    outs = [g for g in got if g[0]]
+    assert len(outs) == 60 and sum(o[2] for o in outs) < 10       # mostly unsaturated
