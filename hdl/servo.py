@@ -78,7 +78,7 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 ``id_ref``) plus the PI clear signals and a reference-step strobe for the trace buffer.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, signed, unsigned
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
@@ -667,9 +667,13 @@ class SpeedLoop(wiring.Component):
         m.d.comb += [b_n.eq(narrow), b_val.eq(b_n | wide)]
         cin = c_cin | cin_rnd | (Cat(*[b_sel["PRD"]]) & prd_inc)
         res = Signal(signed(wa))
-        m.d.comb += res.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin)
+        exact = Signal(signed(wa + 2))
+        m.d.comb += [res.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin),
+                     exact.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin)]
         with m.If(c_en):
             m.d.sync += acc.eq(res)
+            # The widths above are such that no operation wraps (checked in every simulation).
+            m.d.comb += Assert(res == exact, "SpeedLoop: adder result wraps")
 
         # Writes, flags and side actions of the clock (from ``step``: the operation of the
         # clock before writes its result).
