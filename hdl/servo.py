@@ -536,7 +536,11 @@ class SpeedLoop(wiring.Component):
         d_frac = self.ref_delay[:DELAY_FRAC]
         snz = Signal()
         m.d.comb += snz.eq(self.speed_slew != 0)
-        cond_in = dict(flags, snz=snz, d0=(d_int == 0))
+        # The run's decode reads ``speed_slew ≠ 0`` from a register (the input is stable during a
+        # run; the 32-bit OR stays out of the control decode). ``clear``'s tracking uses ``snz``.
+        snz_r = Signal()
+        m.d.sync += snz_r.eq(snz)
+        cond_in = dict(flags, snz=snz_r, d0=(d_int == 0))
         cond_in.update({f"f{k}": d_frac[k] for k in range(DELAY_FRAC)})
 
         # Shift-add multiplier: {hi, lo} = mc · (multiplier), one multiplier bit per clock,
@@ -623,18 +627,46 @@ class SpeedLoop(wiring.Component):
             return stmts
 
         by_clock = {op.clock: op for op in ops}
+        # Events of a clock (registered one clock ahead, like the control word): writes and flag
+        # captures of the operation before it, side actions of its own operation.
+        wr_pairs = sorted({(d, k if isinstance(k, str) else k[0]) for op in ops
+                           for d, k in op.wr.items()})
+        ev_wr = {pk: Signal(name=f"wr_{pk[0].lower()}_{pk[1]}") for pk in wr_pairs}
+        ev_flag = {f: Signal(name=f"cap_{f.lower()}") for f in flag_names}
+        ev_act = {a: Signal(name=f"act_{a}") for a in ("ring", "shin", "mult_x", "mult_p")}
+        events = [*ev_wr.values(), *ev_flag.values(), *ev_act.values()]
+        ev_index = {key: i for i, key in enumerate([("wr", *k) for k in ev_wr] +
+                                                   [("flag", k) for k in ev_flag] +
+                                                   [("act", k) for k in ev_act])}
+
+        def decode_events(c):
+            """Statements loading the event bits of clock ``c``."""
+            v = [Const(0)] * len(events)
+            prev, now = by_clock.get(c - 1), by_clock.get(c)
+            for dest, kind in (prev.wr.items() if prev else ()):
+                kind, wc = kind if isinstance(kind, tuple) else (kind, None)
+                v[ev_index["wr", dest, kind]] = Value.cast(cond(wc))
+            for fl in (prev.flags if prev else ()):
+                v[ev_index["flag", fl]] = Const(1)
+            for act in (now.act if now else ()):
+                v[ev_index["act", act]] = Const(1)
+            return [sig.eq(val) for sig, val in zip(events, v)]
+
         with m.If(clear):
-            m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl]
+            m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl + events]
         with m.Elif(accept):
             m.d.sync += [running.eq(1), step.eq(0)] + decode(by_clock.get(0))
+            m.d.sync += decode_events(0)
         with m.Elif(running):
             m.d.sync += step.eq(step + 1)
             with m.Switch(step):
                 for c in range(clocks):
                     with m.Case(c):
-                        m.d.sync += decode(by_clock.get(c + 1))
+                        m.d.sync += decode(by_clock.get(c + 1)) + decode_events(c + 1)
                         if c == clocks - 1:
                             m.d.sync += running.eq(0)
+        with m.Else():
+            m.d.sync += [s.eq(0) for s in events]
 
         # The adder.
         a_val = 0
@@ -686,48 +718,40 @@ class SpeedLoop(wiring.Component):
         kinds = {"raw": acc, "w": sat(acc, w), "wshl": sat(acc << s_out, w),
                  "q16": sat(acc, IQ_WIDTH)}
         tests = {"neg": acc[-1], "nneg": ~acc[-1], "nz": acc.any(), "pos": ~acc[-1] & acc.any()}
-        hold_i = self.int_hold & snz & (flags["DNZ"] | ((d_int != 0) & flags["MVD"]))
+        hold_i = self.int_hold & snz_r & (flags["DNZ"] | ((d_int != 0) & flags["MVD"]))
         hold_b = (flags["AC"] & flags["DIP"]) | (flags["BC"] & flags["DIN"])
         rot = Signal()
         m.d.comb += rot.eq(rc != 0)
         m.d.sync += self.o.valid.eq(0)                  # a strobe (set below)
-        with m.If(running & ~clear):
-            with m.Switch(step):
-                for c in range(clocks):
-                    prev, now = by_clock.get(c - 1), by_clock.get(c)
-                    if not (prev and (prev.wr or prev.flags)) and not (now and now.act):
-                        continue
-                    with m.Case(c):
-                        for dest, kind in (prev.wr.items() if prev else ()):
-                            kind, wc = kind if isinstance(kind, tuple) else (kind, None)
-                            with m.If(cond(wc)):
-                                m.d.sync += regs[dest].eq(kinds[kind])
-                            if dest == "OPAY":
-                                m.d.sync += [
-                                    self.o.valid.eq(1),
-                                    self.sat.eq(Mux(hold_b, flags["AK"] | flags["BK"],
-                                                    flags["AC"] | flags["BC"])),
-                                ]
-                        for fl, test in (prev.flags.items() if prev else ()):
-                            m.d.sync += flags[fl].eq(tests[test])
-                        for act in (now.act if now else ()):
-                            if act == "ring":
-                                m.d.sync += [rc.eq(2 * n), regs["CA"].eq(regs["TP"]),
-                                             regs["CB"].eq(regs["TP"])]
-                            elif act == "shin":
-                                m.d.sync += [ring[0].eq(regs["TP"]), fresh.eq(0)]
-                                m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
-                            else:
-                                shift = sh[act]
-                                if act == "mult_x":
-                                    m.d.sync += [mc.eq(acc << lsh[act]),
-                                                 lo.eq(Mux(hold_i, 0, self.kx)),
-                                                 m_signed.eq(kxf.signed)]
-                                else:
-                                    m.d.sync += [mc.eq(regs["CA"] << lsh[act]),
-                                                 lo.eq(self.kp), m_signed.eq(kpf.signed)]
-                                m.d.sync += [hi.eq(0), half.eq(0), sticky.eq(0),
-                                             m_cnt.eq(mw + max(shift, 0)), m_shift.eq(mw)]
+        with m.If(~clear):
+            for (dest, kind), en in ev_wr.items():
+                with m.If(en):
+                    m.d.sync += regs[dest].eq(kinds[kind])
+                    if dest == "OPAY":
+                        m.d.sync += [
+                            self.o.valid.eq(1),
+                            self.sat.eq(Mux(hold_b, flags["AK"] | flags["BK"],
+                                            flags["AC"] | flags["BC"])),
+                        ]
+            flag_test = {fl: test for op in ops for fl, test in op.flags.items()}
+            for fl, en in ev_flag.items():
+                with m.If(en):
+                    m.d.sync += flags[fl].eq(tests[flag_test[fl]])
+            with m.If(ev_act["ring"]):
+                m.d.sync += [rc.eq(2 * n), regs["CA"].eq(regs["TP"]), regs["CB"].eq(regs["TP"])]
+            with m.If(ev_act["shin"]):
+                m.d.sync += [ring[0].eq(regs["TP"]), fresh.eq(0)]
+                m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
+            for act in ("mult_x", "mult_p"):
+                with m.If(ev_act[act]):
+                    if act == "mult_x":
+                        m.d.sync += [mc.eq(acc << lsh[act]), lo.eq(Mux(hold_i, 0, self.kx)),
+                                     m_signed.eq(kxf.signed)]
+                    else:
+                        m.d.sync += [mc.eq(regs["CA"] << lsh[act]), lo.eq(self.kp),
+                                     m_signed.eq(kpf.signed)]
+                    m.d.sync += [hi.eq(0), half.eq(0), sticky.eq(0),
+                                 m_cnt.eq(mw + max(sh[act], 0)), m_shift.eq(mw)]
 
         # Ring rotation: first pass refills after clear (every tap TP), second reads taps
         # d − 1 (CA, when d ≥ 2) and d (CB) as they pass ring[n − 1].
