@@ -33,14 +33,15 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
 (``mv`` is then never set: no hold).
 
-**Sequential datapath.** A run is a fixed program of about 80 operations on one adder
+**Sequential datapath.** A run is a fixed program of 67 operations on one adder
 ``acc ← A + (B or ~B) + cin`` (width ``max(speed_width + 2, width + int_guard + 3, width + 4)``),
 ``A`` being 0, ``acc`` or ``acc >> k`` with the rounding increment of ``round_shift(acc, k)`` as
 carry in, ``B`` one of the registers and inputs; results are written from ``acc`` (truncated
 when exact, else saturated to signed(width) or signed(16) by bit tests), comparisons leave
 flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E + E[n−1])`` and
-``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own
-``width + 3``-bit adder, then right shifts that keep the rounding bits): no hard multiplier. The
+``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own adder of
+``width + 3`` bits, plus ``int_guard − frac`` for a gain whose product is shifted left, then right
+shifts that keep the rounding bits): no hard multiplier. The
 reference history is a ring of ``max_delay`` registers, rotated twice per run (refilled with
 ``to_pi(R)`` after ``clear``, then read: taps ``d − 1`` and ``d`` as they pass). ``_program``
 lists the operations; each is placed in the earliest clock its operands allow, and the timing
@@ -48,8 +49,9 @@ lists the operations; each is placed in the earliest clock its operands allow, a
 Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
 the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
 kept and with the new integrator, the conditional-integration choice and the output rounding.
-Every operand, select and flag is a register: the longest paths are a register through the
-operand multiplexers and the adder into ``acc`` (100 MHz on an ECP5 is the target).
+The operand selects, write enables, flag captures and side actions are registers, decoded one
+clock ahead from the step counter; the longest paths are that decode and a register through
+the operand multiplexers and the adder into ``acc`` (100 MHz on an ECP5 is the target).
 
 ``P`` and ``dI`` enter the adder saturated to signed(width + int_guard + 2), which changes no
 result: beyond that range ``P + I`` (or ``I + dI``) lies outside the limits·2**int_guard
