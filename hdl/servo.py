@@ -4,7 +4,8 @@
 
 :class:`SpeedLoop` turns the M/T speed (Q1.(speed_width−1) of the full-scale speed N_FS) and the
 speed reference into the i_q reference (Q1.15 of I_FS) through a reference profile generator and a
-Tustin PI (:class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9)) of ``width`` bits; the speed error
+Tustin PI (the equations of :class:`~foc_servo.hdl.pi.PI`, paper eq. (7)–(9), bit for bit,
+computed sequentially here) of ``width`` bits; the speed error
 needs far more than 16 bits (0.01 % of 1667 r/min is 0.17 r/min; one LSB of Q1.23 at
 N_FS = 12 000 r/min is 0.0014 r/min).
 
@@ -32,13 +33,30 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
 (``mv`` is then never set: no hold).
 
-Timing: a run compares ``speed_ref`` with bounds ``R ± S`` registered in the clock before from
-that clock's ``speed_slew``, and for ``d ≥ 1`` takes the interpolation registered in the clock
-before from that clock's ``ref_delay``; ``to_pi`` of the bounds, of ``speed_ref`` and of the
-speed are computed beside the comparisons, so a run only selects, and the PI's two operands
-are registered in the run's clock and taken by the PI in the next (100 MHz on an ECP5: latency
-8, interval 7). ``ff``, the hold and the shifted PI limits are registers loaded by the run. In
-the top the registers change at the loop boundary, tens of clocks before a run.
+**Sequential datapath.** A run is a fixed program of 67 operations on one adder
+``acc ← A + (B or ~B) + cin`` (width ``max(speed_width + 2, width + int_guard + 3, width + 4)``),
+``A`` being 0, ``acc`` or ``acc >> k`` with the rounding increment of ``round_shift(acc, k)`` as
+carry in, ``B`` one of the registers and inputs; results are written from ``acc`` (truncated
+when exact, else saturated to signed(width) or signed(16) by bit tests), comparisons leave
+flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E + E[n−1])`` and
+``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own adder of
+``width + 3`` bits, plus ``int_guard − frac`` for a gain whose product is shifted left, then right
+shifts that keep the rounding bits): no hard multiplier. The
+reference history is a ring of ``max_delay`` registers, rotated twice per run (refilled with
+``to_pi(R)`` after ``clear``, then read: taps ``d − 1`` and ``d`` as they pass). ``_program``
+lists the operations; each is placed in the earliest clock its operands allow, and the timing
+(``latency``, ``interval``, ``ref_latency``) follows from the list (:func:`speed_loop_timing`).
+Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
+the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
+kept and with the new integrator, the conditional-integration choice and the output rounding.
+The operand selects, write enables, flag captures and side actions are registers, decoded one
+clock ahead from the step counter; the longest paths are that decode and a register through
+the operand multiplexers and the adder into ``acc`` (100 MHz on an ECP5 is the target).
+
+``P`` and ``dI`` enter the adder saturated to signed(width + int_guard + 2), which changes no
+result: beyond that range ``P + I`` (or ``I + dI``) lies outside the limits·2**int_guard
+whatever the integrator (``|I| ≤ 2**(width + int_guard − 1)``), so the comparisons, the clamped
+values and ``sat`` are those of the exact values, and the sign of ``dI`` is kept.
 
 **PI and feed-forward**, with the anti-windup working against the room the feed-forward leaves::
 
@@ -62,17 +80,17 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 ``id_ref``) plus the PI clear signals and a reference-step strobe for the trace buffer.
 """
 
-from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
-from .fixed import is_int, UQ, BinaryAngle, clamp, round_shift, saturate, shape_range
+from .fixed import is_int, UQ, BinaryAngle, clamp
 from .mt_speed import output_layout as mt_output_layout
-from .pi import PI, pi_widths
+from .pi import pi_widths
 
 __all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
-           "check_speed_loop"]
+           "check_speed_loop", "speed_loop_timing"]
 
 #: Width of the current references and modulation indices, Q1.15 (docs/ARCHITECTURE.md).
 IQ_WIDTH = 16
@@ -119,14 +137,230 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
     pi_widths(width, kp_format, kx_format, int_guard)
 
 
+# --- The speed loop's micro-program ---------------------------------------------------------------
+#
+# One adder ``acc ← A + (B or ~B) + cin`` does all the arithmetic of a run; a shift-add multiplier
+# (own small adder, one bit of the multiplier per clock) forms kx·(E + E[n−1]) and kp·E; a ring of
+# shift registers holds the reference history. ``_program`` lists the operations in order and
+# places each in the earliest clock its operands allow (a register written from ``acc`` is
+# readable two clocks after the operation that formed the value; a flag steers the selection of an
+# operation three clocks after that value). Everything here is Python at elaboration time: the
+# timing (``latency``, ``interval``, the clock ``ref_int`` changes) follows from the list.
+
+
+def speed_loop_timing(speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
+                      int_guard=16, delay_width=5):
+    """Timing of :class:`SpeedLoop` with these parameters (validated first): a dict with
+    ``latency``, ``interval``, ``ref_latency`` (clocks from an accepted run to the new
+    ``ref_int``), ``clocks`` (clocks of a run's program) and ``mult_clocks``. The golden model
+    takes its timing from here."""
+    check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, 1, delay_width)
+    max_delay = (1 << (delay_width - DELAY_FRAC)) - 1
+    return _program(speed_width, width, kp_format, kx_format, int_guard, max_delay)[1]
+
+
+class _Op:
+    """One operation of the speed loop's program.
+
+    ``a``: ``"Z"`` (0), ``"ACC"`` or ``("RND", k)`` (``round_shift(acc, k)``: ``acc >> k`` plus
+    the rounding increment as carry in); or a list of ``(condition, a)`` chosen in order (the
+    condition a function of the flags and inputs, evaluated when the operation is decoded).
+    ``b``: a source name, ``None`` (0), or such a list. ``sub``: subtract ``b`` (``~b`` with carry
+    in 1), a bool or a condition; ``cin``: the carry in when it is not ``sub``'s. ``wr``: dest →
+    kind (``"raw"``, ``"w"``, ``"wshl"``, ``"q16"``) or (kind, condition): written from ``acc``
+    in the clock after the operation. ``flags``: flag → ``"neg"``, ``"nneg"``, ``"nz"``, ``"pos"``
+    of the result, captured in the clock after. ``uses``: flags the conditions read. ``act``:
+    side actions in the operation's clock (``"ring"``, ``"mult_x"``, ``"mult_p"``, ``"shin"``).
+    """
+
+    def __init__(self, a="Z", b=None, *, sub=False, cin=None, wr=None, flags=None, uses=(),
+                 act=()):
+        self.a, self.b, self.sub, self.cin = a, b, sub, cin
+        self.wr = dict(wr or {})
+        self.flags = dict(flags or {})
+        self.uses = tuple(uses)
+        self.act = (act,) if isinstance(act, str) else tuple(act)
+        self.clock = None
+
+    def sources(self):
+        out = []
+        for sel in (self.a, self.b):
+            if isinstance(sel, list):
+                out += [s for _, s in sel]
+            else:
+                out.append(sel)
+        return [s for s in out if isinstance(s, str) and s not in ("Z", "ACC")]
+
+    @property
+    def alu(self):
+        return not (self.a == "Z" and self.b is None and not self.sub)
+
+
+#: B sources that are shifted views of a register (readiness follows the register).
+_ALIAS = {"CB1": "CB", "CB2": "CB", "FFS": "FF", "HIG": "HI_S", "LOG": "LO_S"}
+
+
+def _program(sw, w, kp_format, kx_format, g, n_taps):
+    """The operations of a run, placed in clocks; returns ``(ops, timing)``."""
+    s_in, s_out = sw - w, w - IQ_WIDTH
+    mw = max(kp_format.width, kx_format.width)
+    sh_p, sh_x = kp_format.frac - g, kx_format.frac - g
+    mult_clocks = {"mult_p": mw + max(sh_p, 0), "mult_x": mw + max(sh_x, 0)}
+
+    def rnd(k):
+        return ("RND", k) if k > 0 else "ACC"
+
+    up = lambda f: f["snz"] & f["UPR"]                              # noqa: E731
+    dn = lambda f: f["snz"] & f["DNR"]                              # noqa: E731
+    updn = lambda f: up(f) | dn(f)                                  # noqa: E731
+
+    def clamp_ops(hi, lo, fa, fl, wr):
+        """Compare ``acc`` with ``hi``, ``lo`` (restoring it) and select the clamped value."""
+        return [
+            _Op("ACC", hi, sub=True, cin=0, flags={fa: "nneg"}),     # acc − hi − 1 ≥ 0: above
+            _Op("ACC", hi, cin=1),
+            _Op("ACC", lo, sub=True, flags={fl: "neg"}),             # acc − lo < 0: below
+            _Op("ACC", lo),
+            _Op([(lambda f: f[fa] | f[fl], "Z"), (None, "ACC")],
+                [(lambda f: f[fa], hi), (lambda f: f[fl], lo)], uses=(fa, fl), wr=wr),
+        ]
+
+    ops = [
+        # Profile: TP = to_pi(R[n−1]); D = speed_ref − R; up: D > S; dn: D + S < 0.
+        _Op("Z", "R"),
+        _Op(rnd(s_in), wr={"TP": "w"}),
+        _Op("Z", "SREF"),
+        _Op("ACC", "R", sub=True, flags={"DNZ": "nz"}),
+        _Op("ACC", "S", sub=True, flags={"UPR": "pos"}),
+        _Op("ACC", "S"),
+        _Op("ACC", "S", flags={"DNR": "neg"}),
+        _Op(act="ring"),
+        # plan = R ± S (up / dn) or speed_ref → R.
+        _Op("Z", [(updn, "R"), (None, "SREF")], uses=("UPR", "DNR")),
+        _Op("ACC", [(updn, "S")], sub=dn, uses=("UPR", "DNR"), wr={"R": "raw"}),
+    ]
+    # ff = clamp(±iq_ff, lim_lo, lim_hi) (up / dn), else 0; the PI limits
+    # sat((lim − ff)·2**s_out). Placed while the multiplier forms kx·(E + E[n−1]).
+    ff_ops = [_Op("Z", [(updn, "IQFF")], sub=dn, uses=("UPR", "DNR"))]
+    ff_ops += clamp_ops("LIM_HI", "LIM_LO", "FA", "FL", None)
+    sel = ff_ops[-1]                    # the select also gives 0 when the profile does not move
+    sel.a = [(lambda f: ~updn(f) | f["FA"] | f["FL"], "Z"), (None, "ACC")]
+    sel.b = [(lambda f: updn(f) & f["FA"], "LIM_HI"), (lambda f: updn(f) & f["FL"], "LIM_LO")]
+    sel.uses = ("FA", "FL", "UPR", "DNR")
+    sel.wr = {"FF": "raw"}
+    ff_ops += [
+        _Op("Z", "LIM_LO"),
+        _Op("ACC", "FF", sub=True, wr={"LO_S": "wshl"}),
+        _Op("Z", "LIM_HI"),
+        _Op("ACC", "FF", sub=True, wr={"HI_S": "wshl"}),
+    ]
+    ops += [
+        # Interpolation a + round_shift(f·(b − a), 3): CA = a, CB = b from the ring.
+        _Op("Z", "CB"),
+        _Op("ACC", "CA", sub=True, wr={"CB": "raw"}),
+    ]
+    for k in range(DELAY_FRAC):
+        ops.append(_Op("Z" if k == 0 else "ACC",
+                       [((lambda k: lambda f: f[f"f{k}"])(k), "CB" if k == 0 else f"CB{k}")]))
+    ops += [
+        _Op(rnd(DELAY_FRAC)),
+        _Op("ACC", "CA", wr={"CB": "w"}),
+        # d = 0: the reference is to_pi(plan) (R now holds the plan).
+        _Op("Z", "R"),
+        _Op(rnd(s_in), wr={"CB": ("w", lambda f: f["d0"])}),
+        # mv: the delayed reference has not reached R[n−1].
+        _Op("Z", "CB"),
+        _Op("ACC", "TP", sub=True, flags={"MVD": "nz"}),
+        # fb = to_pi(speed) → CA; E = sat(ref − fb) → CA; E + E[n−1].
+        _Op("Z", "SPD"),
+        _Op(rnd(s_in), wr={"CA": "w"}),
+        _Op("Z", "CB"),
+        _Op("ACC", "CA", sub=True, wr={"CA": "w"}),
+        _Op("Z", "CA"),
+        _Op("ACC", "EP"),
+        _Op(act="mult_x", uses=("DNZ", "MVD")),                    # kx·(E + E[n−1])
+        _Op("Z", "CA", wr={"EP": "w"}),                             # E[n−1] ← E
+        *ff_ops,
+        # dI, I + dI, I_c = clamp(I + dI, lo·2**g, hi·2**g) → PR.
+        _Op("Z", "PRD", flags={"DIP": "pos", "DIN": "neg"}),
+        _Op("ACC", "I", act="mult_p"),                              # kp·E
+    ]
+    ops += clamp_ops("HIG", "LOG", "GT", "LT", {"PR": "raw"})
+    # U with the kept integrator → O_k (CB), then with I_c → O_c (CA).
+    ops += [_Op("Z", "PRD"), _Op("ACC", "I"), _Op(rnd(g))]
+    ops += clamp_ops("HI_S", "LO_S", "AK", "BK", {"CB": "w"})
+    ops += [_Op("Z", "PRD"), _Op("ACC", "PR"), _Op(rnd(g))]
+    ops += clamp_ops("HI_S", "LO_S", "AC", "BC", {"CA": "w"})
+    hold = lambda f: (f["AC"] & f["DIP"]) | (f["BC"] & f["DIN"])   # noqa: E731
+    ops += [
+        _Op("Z", [(hold, "I"), (None, "PR")], uses=("AC", "BC", "DIP", "DIN"),
+            wr={"I": "raw"}),
+        _Op("Z", [(hold, "CB"), (None, "CA")], uses=("AC", "BC", "DIP", "DIN")),
+        _Op("ACC", "FFS"),
+        _Op(rnd(s_out), wr={"OPAY": "q16"}, uses=("AC", "BC", "AK", "BK", "DIP", "DIN")),
+        _Op(act="shin"),
+    ]
+
+    # Placement.
+    ready = {}                      # register / flag → first clock it may be read
+    flag_ready = {}                 # flag → first clock an operation may be decoded with it
+    clock = -1
+    ring_ready = mult_ready = 0
+    ring_clocks = 2 * n_taps
+    for op in ops:
+        c = clock + 1
+        for s in op.sources():
+            s = _ALIAS.get(s, s)
+            c = max(c, ready.get(s, 0))
+            if s == "PRD":
+                c = max(c, mult_ready)
+            if s in ("CA", "CB"):
+                c = max(c, ring_ready)
+        for fl in op.uses:
+            c = max(c, flag_ready[fl])
+        if "ring" in op.act:
+            c = max(c, ready.get("TP", 0))
+        if "shin" in op.act:
+            c = max(c, ring_ready)
+        if "mult_x" in op.act or "mult_p" in op.act:
+            c = max(c, mult_ready, ready.get("CA", 0))
+        op.clock = clock = c
+        for dest in op.wr:
+            ready[dest] = c + 2
+        for fl in op.flags:
+            flag_ready[fl] = c + 3
+        if "ring" in op.act:
+            ring_ready = c + ring_clocks + 1
+        for kind in ("mult_x", "mult_p"):
+            if kind in op.act:
+                mult_ready = c + mult_clocks[kind] + 2
+    last = max(clock + 1, ring_ready)
+    out_op = next(op for op in ops if "OPAY" in op.wr)
+    r_op = next(op for op in ops if "R" in op.wr)
+    timing = {"latency": out_op.clock + 3, "interval": last + 2, "ref_latency": r_op.clock + 3,
+              "clocks": last + 1, "mult_clocks": mult_clocks}
+    return ops, timing
+
+
 class SpeedLoop(wiring.Component):
     """Reference profile and speed PI: M/T speed and speed reference → i_q reference (module
     docstring: equations).
 
     Runs on every ``rate_div + 1``-th valid speed sample (the first one after ``clear`` runs); a
-    run that finds the PI still busy (samples less than :attr:`interval` clocks apart) is dropped
-    and leaves the profile alone. The M/T block delivers one sample per PWM period, thousands of
-    clocks apart.
+    run that finds the loop still busy (samples less than :attr:`interval` clocks apart) is
+    dropped and leaves the profile alone. The M/T block delivers one sample per PWM period,
+    thousands of clocks apart.
+
+    **Input timing.** A run is accepted in clock ``t`` (``i.valid``, decimation count 0, not
+    busy, no ``clear``); ``i.payload.speed`` is latched then. The other inputs a run uses —
+    ``speed_ref``, ``speed_slew``, ``iq_ff``, ``ref_delay``, ``int_hold``, ``kp``, ``kx``,
+    ``lim_lo``, ``lim_hi`` — are read during the run, in clocks ``t + 1 … t + interval − 1``,
+    and must hold their clock-``t`` values until then (:class:`SpeedLoopModel` raises if one
+    changes). In the top the register file changes them only at the PWM period start; M/T's
+    sample comes ~40 clocks after it, the run ends ~120 clocks later, and the current loop
+    samples the new i_q reference thousands of clocks later (at the period centre).
+    ``clear`` acts in its own clock (no long path behind it: it only resets registers and
+    selects ``R``'s tracking input).
 
     Parameters
     ----------
@@ -136,7 +370,7 @@ class SpeedLoop(wiring.Component):
     width : int
         Width of the speed PI (error, integrator scale, output), ``16 … speed_width``.
     kp_format, kx_format, int_guard
-        Of the speed PI (:class:`~foc_servo.hdl.pi.PI`). ``kp`` is the gain in per-unit
+        Of the speed PI (as for :class:`~foc_servo.hdl.pi.PI`). ``kp`` is the gain in per-unit
         (I_FS per N_FS), ``kx = K_i·T_s/2`` with ``T_s`` the speed-loop period. The defaults,
         ``UQ(24, 12)`` (0 … 4096), ``UQ(24, 24)`` (0 … 1 in steps of 6·10⁻⁸) and 16 guard bits,
         keep a small ``kx`` integrating errors far below 0.01 % of full scale.
@@ -146,9 +380,8 @@ class SpeedLoop(wiring.Component):
         Width of ``ref_delay``, UQ(delay_width, 3): ``4 … 7`` (largest delay 1.875 … 15.875
         runs; the default 5 gives 0 … 3.875 and stores 3 past references).
     mul_width : int
-        Signed operand width of the target's hard multiplier, 8 … 25, or ``None`` (:mod:`~.dsp`:
-        18 ECP5 / Xilinx; ``None`` iCE40: products not split), for the speed PI's partial
-        products; never changes a result.
+        Signed operand width of the target's hard multiplier, 8 … 25, or ``None``; checked and
+        kept for the interface (the sequential multiplier uses no hard multiplier).
 
     Members
     -------
@@ -156,19 +389,19 @@ class SpeedLoop(wiring.Component):
         The M/T speed (``wiring.connect`` it to :attr:`MTSpeed.o`); only ``speed`` is used
         (a stopped motor reads 0; the payload is held between strobes).
     speed_ref : In(signed(speed_width))
-        Speed reference, Q1.(speed_width−1) of N_FS, read in the clock a run is accepted (and
-        every clock while ``clear`` with ``speed_slew = 0``). A host or DSP closing a position
+        Speed reference, Q1.(speed_width−1) of N_FS, read during a run (and every clock while
+        ``clear`` with ``speed_slew = 0``). A host or DSP closing a position
         loop writes it (or, in current mode, the i_q reference).
     speed_slew : In(unsigned(speed_width))
         Largest change of ``ref_int`` per run, UQ1.(speed_width−1) of N_FS; 0: off (``ref_int``
-        steps to ``speed_ref``). A run uses the value of the clock before it.
+        steps to ``speed_ref``). Read during a run (and while ``clear``).
     iq_ff : In(signed(16))
         Acceleration feed-forward ``J·α/K_t``, Q1.15 of I_FS, added with the direction of the
-        profile while ``ref_int`` has not reached ``speed_ref`` (read in the run's clock).
+        profile while ``ref_int`` has not reached ``speed_ref`` (read during a run).
     ref_delay : In(unsigned(delay_width))
         UQ(delay_width, 3): the PI's reference is ``ref_int`` this many runs ago, interpolated
         linearly between runs; integer part 0: ``ref_int`` itself (the fraction is ignored).
-        A run uses the value of the clock before it (for ``d ≥ 1``).
+        Read during a run.
     int_hold : In(1)
         Hold the PI's integrator (its ``kx`` is 0) in runs whose reference still moves
         (``ref_int`` has not reached ``speed_ref``, or the delayed reference has not reached
@@ -176,9 +409,8 @@ class SpeedLoop(wiring.Component):
     kp : In(kp_format.shape)
     kx : In(kx_format.shape)
     lim_lo, lim_hi : In(signed(16))
-        i_q limits (the current limit), Q1.15 of I_FS. Gains, limits, ``ref_delay`` and
-        ``int_hold`` must be stable while a run is in flight (the register file changes them
-        only at loop boundaries).
+        i_q limits (the current limit), Q1.15 of I_FS. Gains, limits and the profile inputs
+        must be stable while a run is in flight (see *Input timing*).
     rate_div : In(unsigned(div_width))
         The loop runs on every ``rate_div + 1``-th speed sample.
     clear : In(1)
@@ -188,20 +420,23 @@ class SpeedLoop(wiring.Component):
     o : Out(stream.Signature(signed(16), always_ready=True))
         i_q reference, Q1.15 of I_FS, rounded half away from zero, within [lim_lo, lim_hi];
         ``valid`` strobes :attr:`latency` clocks after an accepted run, payload held (0 after
-        reset and ``clear``).
+        reset and ``clear``; a run in flight when ``clear`` rises never strobes).
     sat : Out(1)
         The last output was clamped to a limit (updates with ``o.valid``).
     ref_int : Out(signed(speed_width))
-        The profile's reference ``R``, Q1.(speed_width−1) of N_FS (updates the clock after a
-        run; 0 after reset).
+        The profile's reference ``R``, Q1.(speed_width−1) of N_FS (updates :attr:`ref_latency`
+        clocks after a run; 0 after reset).
 
     Attributes
     ----------
     latency : int
-        Clocks from a valid speed sample that runs the loop to ``o.valid``: PI latency + 2 = 8
-        (the run's operands are registered before the PI takes them, for 100 MHz on the ECP5).
+        Clocks from a valid speed sample that runs the loop to ``o.valid`` (119 with the
+        defaults; 115 with the top's ``kx_format`` UQ(24, 20); 143 with ``delay_width`` 7).
+        Computed from the program of a run.
     interval : int
-        Minimum clocks between runs: the PI's + 1 = 7.
+        Minimum clocks between runs: :attr:`latency` + 1.
+    ref_latency : int
+        Clocks from an accepted run to the new ``ref_int`` (13).
     max_delay : int
         Largest integer part of ``ref_delay``: ``2**(delay_width − 3) − 1``.
     """
@@ -218,6 +453,9 @@ class SpeedLoop(wiring.Component):
         self._int_guard = int_guard
         self._div_width = div_width
         self._delay_width = delay_width
+        self._ops, self._timing = _program(speed_width, width, kp_format, kx_format, int_guard,
+                                           self.max_delay)
+        self._alu_width = max(speed_width + 2, width + int_guard + 3, width + 4)
         super().__init__({
             "i": In(stream.Signature(mt_output_layout(speed_width), always_ready=True)),
             "speed_ref": In(signed(speed_width)),
@@ -245,193 +483,298 @@ class SpeedLoop(wiring.Component):
     delay_width = property(lambda self: self._delay_width)
     mul_width = property(lambda self: self._mul_width)
     max_delay = property(lambda self: (1 << (self._delay_width - DELAY_FRAC)) - 1)
-    latency = property(lambda self: 6 + 2)
-    interval = property(lambda self: 6 + 1)
+    latency = property(lambda self: self._timing["latency"])
+    interval = property(lambda self: self._timing["interval"])
+    ref_latency = property(lambda self: self._timing["ref_latency"])
 
     def elaborate(self, platform):
         m = Module()
-        sw, w = self._speed_width, self._width
-        shift_in = sw - w
-        shift_out = w - IQ_WIDTH
-        m.submodules.pi = pi = PI(width=w, kp_format=self._kp_format,
-                                  kx_format=self._kx_format, int_guard=self._int_guard,
-                                  mul_width=self._mul_width)
-        if pi.latency + 2 != self.latency:
-            raise RuntimeError(f"PI latency {pi.latency} changed; update SpeedLoop.latency")
+        sw, w, g = self._speed_width, self._width, self._int_guard
+        kpf, kxf = self._kp_format, self._kx_format
+        s_out = w - IQ_WIDTH
+        n = self.max_delay
+        ops, timing = self._ops, self._timing
+        wa = self._alu_width
+        wsat = w + g + 2                # P and dI saturated to this (see the module docstring)
+        clocks = timing["clocks"]
+        clear = self.clear
 
-        def to_pi(value):
-            # saturate by bit tests (no comparator behind the rounding adder).
-            return saturate_bits(round_shift(value, shift_in).as_signed(), signed(w))
-
+        # Decimation and acceptance.
         count = Signal(unsigned(self._div_width))
-        run = Signal()
-        m.d.comb += run.eq(self.i.valid & (count == 0) & ~self.clear)
-        with m.If(self.clear):
+        running = Signal()
+        step = Signal(range(clocks + 1))
+        accept = Signal()
+        m.d.comb += accept.eq(self.i.valid & (count == 0) & ~clear & ~running)
+        with m.If(clear):
             m.d.sync += count.eq(0)
         with m.Elif(self.i.valid):
             m.d.sync += count.eq(Mux(count >= self.rate_div, 0, count + 1))
-        # A run accepted in clock t hands its registered operands to the PI in t + 1 (``start``),
-        # which is busy from t + 2: no second run may be accepted in t + 1.
-        start = Signal()
-        accept = Signal()
-        m.d.comb += accept.eq(run & pi.i.ready & ~start)
-        m.d.sync += start.eq(accept)
 
-        # Profile. The bounds R ± S (signed(sw + 2), unsaturated) are registers, so a run only
-        # compares ``speed_ref`` with them and selects (no adder before the PI's rounding).
-        # They are loaded every clock from the tracked value while clear, else from R:
-        # stale only in the clock after a run, when the PI is busy and no run can be accepted.
-        # S = 0 opens them beyond any speed_ref. A bound is selected only when speed_ref lies
-        # beyond it, so it lies between R and speed_ref: the truncation of ``plan`` to
-        # signed(sw) is exact.
-        b_lo, b_hi = shape_range(signed(sw + 2))
-        ref_int = Signal(signed(sw))
-        # to_pi of each candidate (bounds, speed_ref, speed) side by side with the comparisons:
-        # a run then selects among them (no rounding adder behind the bound comparison).
-        tp_ref = Signal(signed(w))
-        tp_speed = Signal(signed(w))
-        tp_lo = Signal(signed(w))
-        tp_hi = Signal(signed(w))
-        tp_plan = Signal(signed(w))
-        lo_b = Signal(signed(sw + 2), init=b_lo)
-        hi_b = Signal(signed(sw + 2), init=b_hi)
-        up = Signal()
-        dn = Signal()
-        plan = Signal(signed(sw))
-        track = Signal(signed(sw))
-        ref_next = Signal(signed(sw))
-        ref_next_pi = Signal(signed(w))
-        ref_pi = Signal(signed(w))                      # to_pi(ref_int)
-        m.d.comb += [
-            up.eq(self.speed_ref > hi_b),
-            dn.eq(self.speed_ref < lo_b),
-            plan.eq(Mux(up, hi_b, Mux(dn, lo_b, self.speed_ref))),
-            track.eq(Mux(self.speed_slew == 0, self.speed_ref, self.i.payload.speed)),
-            self.ref_int.eq(ref_int),
-            tp_ref.eq(to_pi(self.speed_ref)),
-            tp_speed.eq(to_pi(self.i.payload.speed)),
-            # A bound is selected only when it lies within signed(sw): to_pi of the wider
-            # value is then to_pi(plan).
-            tp_lo.eq(to_pi(lo_b)),
-            tp_hi.eq(to_pi(hi_b)),
-            tp_plan.eq(Mux(up, tp_hi, Mux(dn, tp_lo, tp_ref))),
-        ]
-        with m.If(self.clear):
-            m.d.comb += [ref_next.eq(track),
-                         ref_next_pi.eq(Mux(self.speed_slew == 0, tp_ref, tp_speed))]
-        with m.Elif(accept):
-            m.d.comb += [ref_next.eq(plan), ref_next_pi.eq(tp_plan)]
-        with m.Else():
-            m.d.comb += [ref_next.eq(ref_int), ref_next_pi.eq(ref_pi)]
-        m.d.sync += [ref_int.eq(ref_next), ref_pi.eq(ref_next_pi)]
-        base = Mux(self.clear, track, ref_int)
-        with m.If(self.speed_slew == 0):
-            m.d.sync += [lo_b.eq(b_lo), hi_b.eq(b_hi)]
-        with m.Else():
-            m.d.sync += [lo_b.eq(base - self.speed_slew), hi_b.eq(base + self.speed_slew)]
+        # The speed sample is latched when a run is accepted (M/T holds its payload between
+        # strobes, but a sample arriving during a run may change it).
+        spd = Signal(signed(sw))
+        with m.If(accept):
+            m.d.sync += spd.eq(self.i.payload.speed)
 
-        # Delayed reference: hist[k] = to_pi(R) k runs before the last; the interpolation for
-        # the next run is registered in ``ref_pre`` (its inputs change only at runs and clear).
-        # The tap differences b − a are registered first (``tap_diff``, zeroed while clear):
-        # after a run they are one clock late, so ``ref_pre`` is right from the third clock
-        # after a run on, long before the PI can take the next one.
+        # Registers.
+        R = Signal(signed(sw))
+        regs = {
+            "R": R,
+            "TP": Signal(signed(w), name="tp"),           # to_pi(R[n−1])
+            "CA": Signal(signed(w), name="ca"),           # a; fb; E; O_c
+            "CB": Signal(signed(w + 1), name="cb"),       # b; b − a; ref; O_k
+            "EP": Signal(signed(w), name="e_prev"),       # E[n−1]
+            "LO_S": Signal(signed(w), name="lo_s"),       # PI limits sat((lim − ff)·2**s_out)
+            "HI_S": Signal(signed(w), name="hi_s"),
+            "I": Signal(signed(w + g), name="integ"),     # integrator
+            "PR": Signal(signed(w + g), name="i_c"),      # I_c
+            "FF": Signal(signed(IQ_WIDTH), name="ff"),
+            "OPAY": self.o.payload,
+        }
+        acc = Signal(signed(wa))
+        flag_names = sorted({f for op in ops for f in op.flags})
+        flags = {f: Signal(name=f"flag_{f.lower()}") for f in flag_names}
         d_int = self.ref_delay[DELAY_FRAC:]
         d_frac = self.ref_delay[:DELAY_FRAC]
-        hist = [Signal(signed(w), name=f"hist{k}") for k in range(1, self.max_delay + 1)]
-        taps = [ref_pi] + hist
-        tap_diff = [Signal(signed(w + 1), name=f"tap_diff{k}")
-                    for k in range(1, self.max_delay + 1)]
-        a = Signal(signed(w))
-        diff = Signal(signed(w + 1))
-        with m.Switch(d_int):
-            for k in range(1, self.max_delay + 1):
-                with m.Case(k):
-                    m.d.comb += [a.eq(taps[k - 1]), diff.eq(tap_diff[k - 1])]
-        ref_pre = Signal(signed(w))
-        # a + round_shift(f·(b − a), 3) = (8a + f·(b − a) + 4 − [f·(b − a) < 0]) >> 3 (8a has no
-        # low bits), f·(b − a) by shift-and-add (f has DELAY_FRAC bits: no multiplier). It lies
-        # between a and b: the truncation to signed(w) is exact.
-        prod = sum(Mux(d_frac[k], diff << k, 0) for k in range(DELAY_FRAC))
-        neg = diff[-1] & d_frac.any()
-        interp = ((a << DELAY_FRAC) + prod + ((1 << (DELAY_FRAC - 1)) - neg)) >> DELAY_FRAC
-        with m.If(self.clear):
-            m.d.sync += [h.eq(ref_next_pi) for h in hist]
-            m.d.sync += [d.eq(0) for d in tap_diff]
-            m.d.sync += ref_pre.eq(ref_next_pi)
-        with m.Else():
-            with m.If(accept):
-                m.d.sync += [dst.eq(src) for dst, src in zip(hist, taps)]
-            m.d.sync += [d.eq(taps[k + 1] - taps[k]) for k, d in enumerate(tap_diff)]
-            m.d.sync += ref_pre.eq(interp)
+        snz = Signal()
+        m.d.comb += snz.eq(self.speed_slew != 0)
+        # The run's decode reads ``speed_slew ≠ 0`` from a register (the input is stable during a
+        # run; the 32-bit OR stays out of the control decode). ``clear``'s tracking uses ``snz``.
+        snz_r = Signal()
+        m.d.sync += snz_r.eq(snz)
+        cond_in = dict(flags, snz=snz_r, d0=(d_int == 0))
+        cond_in.update({f"f{k}": d_frac[k] for k in range(DELAY_FRAC)})
 
-        # The PI's reference this run, and whether it still moves (a profile only): R has not
-        # reached speed_ref before this run, or the delayed reference has not reached R
-        # (registers and inputs only: no comparison after the profile's multiplexer). Both
-        # operands are registered in the run's clock; the PI takes them in the next (``start``).
-        pi_ref = Signal(signed(w))
-        pi_fb = Signal(signed(w))
-        moving = Signal()
-        m.d.comb += moving.eq((self.speed_slew != 0)
-                              & ((ref_int != self.speed_ref)
-                                 | ((d_int != 0) & (ref_pre != ref_pi))))
-        with m.If(accept):
-            m.d.sync += [pi_ref.eq(Mux(d_int == 0, tp_plan, ref_pre)), pi_fb.eq(tp_speed)]
-
-        # Feed-forward and integrator hold of the run in flight (held until the next run).
-        # The feed-forward is clamped to the current limits, so lim − ff never leaves the PI's
-        # range in the direction that would let O + ff pass a limit.
-        ff = Signal(signed(IQ_WIDTH))
-        hold = Signal()
-        with m.If(self.clear):
-            m.d.sync += [ff.eq(0), hold.eq(0)]
-        with m.Elif(accept):
-            # Both clamped candidates are ready before ``up``/``dn`` select one.
-            m.d.sync += [ff.eq(Mux(up, clamp(self.iq_ff, self.lim_lo, self.lim_hi),
-                                   Mux(dn, clamp(-self.iq_ff, self.lim_lo, self.lim_hi), 0))),
-                         hold.eq(self.int_hold & moving)]
-
-        # PI limits shifted by −ff (registered: the PI reads them from its third clock on).
-        pi_lo = Signal(signed(w))
-        pi_hi = Signal(signed(w))
-        m.d.sync += [
-            pi_lo.eq(saturate((self.lim_lo - ff) << shift_out, signed(w))),
-            pi_hi.eq(saturate((self.lim_hi - ff) << shift_out, signed(w))),
-        ]
-
-        m.d.comb += [
-            pi.i.valid.eq(start),
-            pi.i.payload.ref.eq(pi_ref),
-            pi.i.payload.fb.eq(pi_fb),
-            pi.kp.eq(self.kp),
-            pi.kx.eq(Mux(hold, 0, self.kx)),
-            pi.lim_lo.eq(pi_lo),
-            pi.lim_hi.eq(pi_hi),
-            pi.clear.eq(self.clear),
-        ]
-
-        # i_q = saturate(round_shift(O + ff·2**s, s), signed(16)), s = shift_out, in one adder:
-        # with O = H0·2**s + lo (0 ≤ lo < 2**s) the sum is H·2**s + lo, H = H0 + ff, negative
-        # iff H is, and the rounding adds [lo ≥ 2**(s−1) + neg] to H. H and H + 1 are formed side
-        # by side and saturated by bit tests; H's sign and lo choose.
-        h0 = pi.o.payload[shift_out:].as_signed()
-        h = Signal(signed(w - shift_out + 2))
-        h1 = Signal(signed(w - shift_out + 2))
-        m.d.comb += [h.eq(h0 + ff), h1.eq(h0 + ff + 1)]
-        if shift_out:
-            lo = pi.o.payload[:shift_out]
-            half = lo[shift_out - 1]
-            inc = Mux(h[-1], half & lo[:shift_out - 1].any(), half)
+        # Shift-add multiplier: {hi, lo} = mc · (multiplier), one multiplier bit per clock,
+        # then right shifts with the rounding bits kept (half, sticky).
+        mw = max(kpf.width, kxf.width)
+        sh = {"mult_p": kpf.frac - g, "mult_x": kxf.frac - g}
+        lsh = {k: max(-v, 0) for k, v in sh.items()}
+        mcw = w + 1 + max(lsh.values())
+        mc = Signal(signed(mcw))
+        hi = Signal(signed(mcw + 1))
+        lo = Signal(unsigned(mw))
+        m_cnt = Signal(range(max(timing["mult_clocks"].values()) + 1))
+        m_shift = Signal(range(mw + 1))           # iterations left that add
+        m_signed = Signal()
+        half = Signal()
+        sticky = Signal()
+        prod = Cat(lo, hi).as_signed()
+        over = Signal()
+        under = Signal()
+        m.d.sync += [over.eq(~prod[-1] & prod[wsat - 1:].any()) if len(prod) > wsat else
+                     over.eq(0),
+                     under.eq(prod[-1] & ~prod[wsat - 1:].all()) if len(prod) > wsat else
+                     under.eq(0)]
+        if len(prod) > wsat:
+            prd = Mux(over, (1 << (wsat - 1)) - 1,
+                      Mux(under, -(1 << (wsat - 1)), prod[:wsat].as_signed()))
         else:
-            inc = 0
-        iq = Mux(inc, saturate_bits(h1, signed(IQ_WIDTH)), saturate_bits(h, signed(IQ_WIDTH)))
-        m.d.sync += self.o.valid.eq(pi.o.valid & ~self.clear)
-        with m.If(self.clear):
-            m.d.sync += [self.o.payload.eq(0), self.sat.eq(0)]
-        with m.Elif(pi.o.valid):
+            prd = prod
+        prd_inc = half & (~prod[-1] | sticky)
+        with m.If(m_cnt != 0):
+            m.d.sync += m_cnt.eq(m_cnt - 1)
+            with m.If(m_shift != 0):
+                m.d.sync += m_shift.eq(m_shift - 1)
+                addend = Mux(lo[0], mc, 0)
+                t = Mux(m_signed & (m_shift == 1), hi - addend, hi + addend)
+                m.d.sync += [hi.eq(t >> 1), lo.eq(Cat(lo[1:], t[0]))]
+            with m.Else():
+                m.d.sync += [hi.eq(hi >> 1), lo.eq(Cat(lo[1:], hi[0])), half.eq(lo[0]),
+                             sticky.eq(sticky | half)]
+
+        # Reference history: ring[k − 1] = to_pi(R) k runs before the last (tap k); tap 0 is TP.
+        ring = [Signal(signed(w), name=f"hist{k}") for k in range(1, n + 1)]
+        fresh = Signal(init=1)          # after clear: every tap is to_pi(R)
+        rc = Signal(range(2 * n + 1))
+
+        # Control word of the operation in the next clock (decoded from ``step``, registered).
+        a_names = ["ACC"] + sorted({op_a[1] for op in ops
+                                    for op_a in ([x for _, x in op.a] if isinstance(op.a, list)
+                                                 else [op.a])
+                                    if isinstance(op_a, tuple)})
+        b_names = sorted({s for op in ops for s in op.sources() if s != "PRD"} | {"PRD"})
+        a_sel = {k: Signal(name=f"a_{k if isinstance(k, str) else f'rnd{k}'}") for k in a_names}
+        b_sel = {k: Signal(name=f"b_{k.lower()}") for k in b_names}
+        c_sub = Signal()
+        c_cin = Signal()
+        c_en = Signal()
+        ctl = [*a_sel.values(), *b_sel.values(), c_sub, c_cin, c_en]
+
+        def cond(c):
+            if c is None:
+                return 1
+            return c(cond_in)
+
+        def decode(op):
+            """Statements loading the control word with ``op``'s."""
+            if op is None or not op.alu:
+                return [s.eq(0) for s in ctl]
+            sel_v = {("a", k): Const(0) for k in a_sel}
+            sel_v.update({("b", k): Const(0) for k in b_sel})
+            for field, sel in (("a", op.a), ("b", op.b)):
+                choices = sel if isinstance(sel, list) else [(None, sel)]
+                taken = Const(0)
+                for c, name in choices:
+                    hit = Value.cast(cond(c)) & ~taken
+                    taken = taken | Value.cast(cond(c))
+                    if name in (None, "Z"):
+                        continue
+                    key = name if field == "b" else name if name == "ACC" else name[1]
+                    sel_v[field, key] = sel_v[field, key] | hit
+            stmts = [(a_sel if f == "a" else b_sel)[k].eq(v) for (f, k), v in sel_v.items()]
+            sub = cond(op.sub) if callable(op.sub) else int(op.sub)
+            cin = sub if op.cin is None else op.cin
+            stmts += [c_sub.eq(sub), c_cin.eq(cin), c_en.eq(1)]
+            return stmts
+
+        by_clock = {op.clock: op for op in ops}
+        # Events of a clock (registered one clock ahead, like the control word): writes and flag
+        # captures of the operation before it, side actions of its own operation.
+        wr_pairs = sorted({(d, k if isinstance(k, str) else k[0]) for op in ops
+                           for d, k in op.wr.items()})
+        ev_wr = {pk: Signal(name=f"wr_{pk[0].lower()}_{pk[1]}") for pk in wr_pairs}
+        ev_flag = {f: Signal(name=f"cap_{f.lower()}") for f in flag_names}
+        ev_act = {a: Signal(name=f"act_{a}") for a in ("ring", "shin", "mult_x", "mult_p")}
+        events = [*ev_wr.values(), *ev_flag.values(), *ev_act.values()]
+        ev_index = {key: i for i, key in enumerate([("wr", *k) for k in ev_wr] +
+                                                   [("flag", k) for k in ev_flag] +
+                                                   [("act", k) for k in ev_act])}
+
+        def decode_events(c):
+            """Statements loading the event bits of clock ``c``."""
+            v = [Const(0)] * len(events)
+            prev, now = by_clock.get(c - 1), by_clock.get(c)
+            for dest, kind in (prev.wr.items() if prev else ()):
+                kind, wc = kind if isinstance(kind, tuple) else (kind, None)
+                v[ev_index["wr", dest, kind]] = Value.cast(cond(wc))
+            for fl in (prev.flags if prev else ()):
+                v[ev_index["flag", fl]] = Const(1)
+            for act in (now.act if now else ()):
+                v[ev_index["act", act]] = Const(1)
+            return [sig.eq(val) for sig, val in zip(events, v)]
+
+        with m.If(clear):
+            m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl + events]
+        with m.Elif(accept):
+            m.d.sync += [running.eq(1), step.eq(0)] + decode(by_clock.get(0))
+            m.d.sync += decode_events(0)
+        with m.Elif(running):
+            m.d.sync += step.eq(step + 1)
+            with m.Switch(step):
+                for c in range(clocks):
+                    with m.Case(c):
+                        m.d.sync += decode(by_clock.get(c + 1)) + decode_events(c + 1)
+                        if c == clocks - 1:
+                            m.d.sync += running.eq(0)
+        with m.Else():
+            m.d.sync += [s.eq(0) for s in events]
+
+        # The adder.
+        a_val = 0
+        cin_rnd = 0
+        for k, sel in a_sel.items():
+            if k == "ACC":
+                a_val = a_val | Mux(sel, acc, 0)
+            else:
+                a_val = a_val | Mux(sel, acc >> k, 0)
+                below = acc[:k - 1].any() if k > 1 else 0
+                cin_rnd = cin_rnd | (sel & acc[k - 1] & (~acc[-1] | below))
+        sources = {
+            "R": R, "SREF": self.speed_ref, "S": self.speed_slew, "SPD": spd,
+            "IQFF": self.iq_ff, "LIM_LO": self.lim_lo, "LIM_HI": self.lim_hi,
+            "FFS": regs["FF"] << s_out, "CB1": regs["CB"] << 1, "CB2": regs["CB"] << 2,
+            "HIG": regs["HI_S"] << g, "LOG": regs["LO_S"] << g, "PRD": prd,
+        }
+        sources.update({k: v for k, v in regs.items() if k != "OPAY"})
+        narrow_w = sw + 1
+        narrow = 0
+        wide = 0
+        for name, sel in b_sel.items():
+            v = Value.cast(sources[name])
+            if len(v) + (0 if v.shape().signed else 1) <= narrow_w:
+                narrow = narrow | Mux(sel, v, 0)
+            else:
+                wide = wide | Mux(sel, v, 0)
+        b_n = Signal(signed(narrow_w))
+        b_val = Signal(signed(wa))
+        m.d.comb += [b_n.eq(narrow), b_val.eq(b_n | wide)]
+        cin = c_cin | cin_rnd | (Cat(*[b_sel["PRD"]]) & prd_inc)
+        res = Signal(signed(wa))
+        exact = Signal(signed(wa + 2))
+        m.d.comb += [res.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin),
+                     exact.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin)]
+        with m.If(c_en):
+            m.d.sync += acc.eq(res)
+            # The widths above are such that no operation wraps (checked in every simulation).
+            m.d.comb += Assert(res == exact, "SpeedLoop: adder result wraps")
+
+        # Writes, flags and side actions of the clock (from ``step``: the operation of the
+        # clock before writes its result).
+        def sat(value, width):
+            # saturate_bits, its result signed(width) so that a wider register sign-extends it.
+            out = Signal(signed(width))
+            m.d.comb += out.eq(saturate_bits(value, signed(width)))
+            return out
+
+        kinds = {"raw": acc, "w": sat(acc, w), "wshl": sat(acc << s_out, w),
+                 "q16": sat(acc, IQ_WIDTH)}
+        tests = {"neg": acc[-1], "nneg": ~acc[-1], "nz": acc.any(), "pos": ~acc[-1] & acc.any()}
+        hold_i = self.int_hold & snz_r & (flags["DNZ"] | ((d_int != 0) & flags["MVD"]))
+        hold_b = (flags["AC"] & flags["DIP"]) | (flags["BC"] & flags["DIN"])
+        rot = Signal()
+        m.d.comb += rot.eq(rc != 0)
+        m.d.sync += self.o.valid.eq(0)                  # a strobe (set below)
+        with m.If(~clear):
+            for (dest, kind), en in ev_wr.items():
+                with m.If(en):
+                    m.d.sync += regs[dest].eq(kinds[kind])
+                    if dest == "OPAY":
+                        m.d.sync += [
+                            self.o.valid.eq(1),
+                            self.sat.eq(Mux(hold_b, flags["AK"] | flags["BK"],
+                                            flags["AC"] | flags["BC"])),
+                        ]
+            flag_test = {fl: test for op in ops for fl, test in op.flags.items()}
+            for fl, en in ev_flag.items():
+                with m.If(en):
+                    m.d.sync += flags[fl].eq(tests[flag_test[fl]])
+            with m.If(ev_act["ring"]):
+                m.d.sync += [rc.eq(2 * n), regs["CA"].eq(regs["TP"]), regs["CB"].eq(regs["TP"])]
+            with m.If(ev_act["shin"]):
+                m.d.sync += [ring[0].eq(regs["TP"]), fresh.eq(0)]
+                m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
+            for act in ("mult_x", "mult_p"):
+                with m.If(ev_act[act]):
+                    if act == "mult_x":
+                        m.d.sync += [mc.eq(acc << lsh[act]), lo.eq(Mux(hold_i, 0, self.kx)),
+                                     m_signed.eq(kxf.signed)]
+                    else:
+                        m.d.sync += [mc.eq(regs["CA"] << lsh[act]), lo.eq(self.kp),
+                                     m_signed.eq(kpf.signed)]
+                    m.d.sync += [hi.eq(0), half.eq(0), sticky.eq(0),
+                                 m_cnt.eq(mw + max(sh[act], 0)), m_shift.eq(mw)]
+
+        # Ring rotation: first pass refills after clear (every tap TP), second reads taps
+        # d − 1 (CA, when d ≥ 2) and d (CB) as they pass ring[n − 1].
+        with m.If(rot):
+            m.d.sync += rc.eq(rc - 1)
+            m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
+            m.d.sync += ring[0].eq(Mux(fresh & (rc > n), regs["TP"], ring[-1]))
+            with m.If((rc <= n) & (rc == d_int)):
+                m.d.sync += regs["CB"].eq(ring[-1])
+            with m.If((rc <= n) & (rc + 1 == d_int)):
+                m.d.sync += regs["CA"].eq(ring[-1])
+
+        # Clear: run abandoned, state zeroed, R tracks.
+        track = Mux(snz, self.i.payload.speed, self.speed_ref)
+        with m.If(clear):
             m.d.sync += [
-                self.o.payload.eq(iq),
-                self.sat.eq(pi.sat),
+                rc.eq(0), m_cnt.eq(0), m_shift.eq(0), fresh.eq(1), R.eq(track),
+                regs["I"].eq(0), regs["EP"].eq(0), regs["FF"].eq(0),
+                self.o.payload.eq(0), self.sat.eq(0), self.o.valid.eq(0),
             ]
+        m.d.comb += self.ref_int.eq(R)
         return m
 
 
@@ -553,6 +896,8 @@ class Servo(wiring.Component):
                                  kx_format=kx_format, int_guard=int_guard, div_width=div_width,
                                  delay_width=delay_width, mul_width=mul_width)
         self._phase_width = phase_width
+        self._speed_loop_timing = speed_loop_timing(speed_width, width, kp_format, kx_format,
+                                                    int_guard, delay_width)
         a = ANGLE.shape
         q = signed(IQ_WIDTH)
         super().__init__({
@@ -596,7 +941,7 @@ class Servo(wiring.Component):
 
     loop_params = property(lambda self: dict(self._loop_params))
     phase_width = property(lambda self: self._phase_width)
-    speed_loop_latency = property(lambda self: 6 + 2)
+    speed_loop_latency = property(lambda self: self._speed_loop_timing["latency"])
 
     def elaborate(self, platform):
         m = Module()

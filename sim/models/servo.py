@@ -3,31 +3,30 @@
 """Bit-true, clock-by-clock golden models of :class:`~foc_servo.hdl.servo.SpeedLoop` and
 :class:`~foc_servo.hdl.servo.Servo` (equations and mode table in ``hdl/servo.py``).
 
-The model keeps the gateware's registers where their timing shows: a run uses the bounds
-``R ± speed_slew`` and the interpolated delayed reference of the clock before it. It computes
-them in its own way (saturated bounds from the value ``R`` takes each clock; the gateware keeps
-unsaturated bounds from the value ``R`` has, stale only in the clock after a run, when no run can
-be accepted), so the comparison checks that the two agree. It also checks the invariants the
-gateware relies on (the i_q reference stays inside ``[lim_lo, lim_hi]`` with the feed-forward;
-the interpolation stays between its two taps) and raises :exc:`AssertionError` if one fails.
+The speed loop's gateware is a sequential datapath that spends ``interval`` clocks on a run;
+the model computes the run's equations directly, in the clock the run is accepted, with
+:class:`~foc_servo.sim.models.pi.PIModel` and the numpy helpers, and shows the results when the
+gateware does (timing from :func:`~foc_servo.hdl.servo.speed_loop_timing`, the one place it is
+derived). It checks that the inputs the gateware reads during a run stay as they were when it was
+accepted, and the invariants the gateware relies on (the i_q reference stays inside
+``[lim_lo, lim_hi]`` with the feed-forward; the interpolation stays between its two taps), and
+raises :exc:`AssertionError` if one fails.
 
 Both are stateful and sequential, so they step one clock at a time: :meth:`~ServoModel.clock`
 takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
-the combinational paths from the inputs), then advances the state to clock ``t + 1``. The speed
-PI is :class:`~foc_servo.sim.models.pi.PIModel`, with the gateware's timing around it (a run
-accepted in clock ``t`` hands its registered operands to the PI in ``t + 1``; the PI's result
-shows in ``t + 7``, the loop busy until then, and the i_q reference in ``t + 8``).
+the combinational paths from the inputs), then advances the state to clock ``t + 1``. A run
+accepted in clock ``t`` shows its ``ref_int`` in ``t + ref_latency`` (13 by default), its i_q
+reference in ``t + latency`` (119), and the next run can be accepted in ``t + interval`` (120).
 """
 
 from amaranth.hdl import signed
 
-from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np, shape_range
-from ...hdl.servo import ANGLE, DELAY_FRAC, IQ_WIDTH, AngleSource, Mode, check_speed_loop
+from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np
+from ...hdl.servo import (ANGLE, DELAY_FRAC, IQ_WIDTH, AngleSource, Mode, check_speed_loop,
+                          speed_loop_timing)
 from .pi import PIModel
 
 __all__ = ["SpeedLoopModel", "ServoModel", "SERVO_INPUTS"]
-
-PI_LATENCY = 6
 
 #: Inputs of :meth:`ServoModel.clock` (the :class:`Servo` members of the same names;
 #: ``speed_valid``/``speed`` are ``speed.valid`` / ``speed.payload.speed``).
@@ -39,7 +38,15 @@ SERVO_INPUTS = ("loop", "mode", "trip", "ol_src", "ol_theta", "ol_freq", "ud_set
 
 class SpeedLoopModel:
     """Clock-by-clock model of :class:`~foc_servo.hdl.servo.SpeedLoop` (same parameters and
-    validation).
+    validation; timing from :func:`~foc_servo.hdl.servo.speed_loop_timing`).
+
+    A run is computed whole in the clock it is accepted, from that clock's inputs; its
+    results show when the gateware's do: ``ref_int`` ``ref_latency`` clocks later, the i_q
+    reference ``latency`` clocks later; the next run can be accepted ``interval`` clocks later.
+    The inputs the gateware reads during a run (``speed_ref``, ``speed_slew``,
+    ``iq_ff``, ``ref_delay``, ``int_hold``, ``kp``, ``kx``, ``lim_lo``, ``lim_hi``) must keep
+    their accept-clock values until the run ends (``interval − 1`` clocks after acceptance, or a
+    ``clear``): the model raises :exc:`AssertionError` naming the input that changed.
 
     Attributes
     ----------
@@ -49,46 +56,58 @@ class SpeedLoopModel:
         The profile's reference ``R`` (the ``ref_int`` output) in the current clock.
     ff, hold : int
         Feed-forward and integrator hold of the last run (0 after ``clear``).
+    plan : int
+        The reference ``R`` the last run set (``ref_int`` shows it ``ref_latency`` clocks after
+        the run).
     pi : PIModel
         The speed PI (``pi.last`` describes the last run).
     runs, dropped : int
-        Accepted runs, and runs dropped because the PI was busy.
+        Accepted runs, and runs dropped because a run was in flight.
+    latency, interval, ref_latency : int
+        The gateware's timing.
     """
+
+    #: Inputs that must be stable during a run (argument names of :meth:`clock`).
+    STABLE = ("speed_ref", "speed_slew", "iq_ff", "ref_delay", "int_hold", "kp", "kx",
+              "lim_lo", "lim_hi")
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
                  int_guard=16, div_width=8, delay_width=5):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
+        timing = speed_loop_timing(speed_width, width, kp_format, kx_format, int_guard,
+                                   delay_width)
+        self.latency, self.interval = timing["latency"], timing["interval"]
+        self.ref_latency = timing["ref_latency"]
         self.speed_width, self.width = speed_width, width
         self.pi = PIModel(width=width, kp_format=kp_format, kx_format=kx_format,
                           int_guard=int_guard)
         self._shift_in = speed_width - width
         self._shift_out = width - IQ_WIDTH
-        self._s_range = shape_range(signed(speed_width))
         self.max_delay = (1 << (delay_width - DELAY_FRAC)) - 1
         self.t = 0
         self.count = 0
         self.pending = None                 # (due clock, PI out, PI sat, lim_lo, lim_hi, ff)
+        self.pending_ref = None             # (due clock, R)
+        self.run_end = 0                    # first clock a new run can be accepted
+        self.run_inputs = None              # the stable inputs of the run in flight
         self.o_valid = self.o_payload = self.sat = 0
         self.ref_int = 0
-        self.lo_b, self.hi_b = self._s_range
         self.hist = [0] * self.max_delay    # to_pi(R) 1 … max_delay runs before the last
-        self.ref_pre = 0
         self.ff = self.hold = 0
+        self.plan = 0
         self.runs = self.dropped = 0
 
     @property
     def busy(self):
-        """A run is in flight (the PI is not ready) in the current clock."""
-        return self.pending is not None and self.pending[0] > self.t
+        """A run is in flight (no run can be accepted) in the current clock."""
+        return self.t < self.run_end
 
     def _to_pi(self, value):
         return saturate_np(round_shift_np(value, self._shift_in), signed(self.width))
 
     def _interp(self, d_int, d_frac):
-        """The registered interpolation ``ref_pre`` computed from the current history."""
-        if d_int == 0:
-            return 0
+        """The delayed reference of a run with the current history (``d_int ≥ 1``)."""
         taps = [self._to_pi(self.ref_int)] + self.hist
         a, b = taps[d_int - 1], taps[d_int]
         v = a + round_shift_np(d_frac * (b - a), DELAY_FRAC)
@@ -101,23 +120,29 @@ class SpeedLoopModel:
         """Inputs of the current clock → ``(o_valid, o_payload, sat, ref_int)`` seen in it;
         advance one clock."""
         out = (self.o_valid, self.o_payload, self.sat, self.ref_int)
-        s, sw = self._shift_out, signed(self.speed_width)
+        s = self._shift_out
         d_int, d_frac = ref_delay >> DELAY_FRAC, ref_delay & ((1 << DELAY_FRAC) - 1)
-        track = speed_ref if speed_slew == 0 else speed
-        # Registered next values (all computed from the current state).
-        ref_pre = self._interp(d_int, d_frac)
-        ref_next = self.ref_int
+        now = dict(speed=speed, speed_ref=speed_ref, speed_slew=speed_slew, iq_ff=iq_ff,
+                   ref_delay=ref_delay, int_hold=int_hold, kp=kp, kx=kx, lim_lo=lim_lo,
+                   lim_hi=lim_hi)
         self.o_valid = 0
         if clear:
-            self.pending = None
+            self.pending = self.pending_ref = self.run_inputs = None
+            self.run_end = 0
             self.pi.clear()
             self.count = 0
             self.o_payload = self.sat = 0
             self.ff = self.hold = 0
-            ref_next = track
+            track = speed_ref if speed_slew == 0 else speed
+            self.ref_int = track
             self.hist = [self._to_pi(track)] * self.max_delay
-            ref_pre = self._to_pi(track)
         else:
+            if self.busy and self.run_inputs is not None:
+                changed = [k for k in self.STABLE if now[k] != self.run_inputs[k]]
+                if changed:
+                    raise AssertionError(f"SpeedLoop input {changed[0]} changed during a run "
+                                         f"(clock {self.t}: {self.run_inputs[changed[0]]} → "
+                                         f"{now[changed[0]]})")
             if self.pending is not None and self.pending[0] == self.t:
                 _, pi_out, pi_sat, lo, hi, ff = self.pending
                 self.pending = None
@@ -128,43 +153,47 @@ class SpeedLoopModel:
                 if lo <= hi and not lo <= self.o_payload <= hi:
                     raise AssertionError(f"SpeedLoop i_q {self.o_payload} outside the limits "
                                          f"[{lo}, {hi}]")
+            if self.pending_ref is not None and self.pending_ref[0] == self.t:
+                self.ref_int = self.pending_ref[1]
+                self.pending_ref = None
             if valid:
                 if self.count == 0:
                     if self.busy:
                         self.dropped += 1
                     else:
-                        up, dn = speed_ref > self.hi_b, speed_ref < self.lo_b
-                        plan = self.hi_b if up else self.lo_b if dn else speed_ref
-                        ff = clamp_np(iq_ff if up else -iq_ff, lim_lo, lim_hi) if up or dn else 0
-                        ref = self._to_pi(plan) if d_int == 0 else self.ref_pre
-                        # The PI's reference moves (a profile only): R has not reached
-                        # speed_ref, or the delayed reference has not reached R, before this run.
-                        moving = speed_slew != 0 and (
-                            self.ref_int != speed_ref
-                            or (d_int != 0 and self.ref_pre != self._to_pi(self.ref_int)))
-                        hold = int(bool(int_hold) and moving)
-                        # The PI runs with the limits shifted by this run's feed-forward (the
-                        # gateware's registered limits have it from the PI's third clock on).
-                        lo_s, hi_s = (saturate_np((lim - ff) << s, signed(self.width))
-                                      for lim in (lim_lo, lim_hi))
-                        pi_out, pi_sat = self.pi.step(ref, self._to_pi(speed), kp,
-                                                      0 if hold else kx, lo_s, hi_s)
-                        self.pending = (self.t + 1 + PI_LATENCY, pi_out, pi_sat, lim_lo, lim_hi,
-                                        ff)
-                        self.runs += 1
-                        self.hist = [self._to_pi(self.ref_int)] + self.hist[:-1]
-                        self.ff, self.hold = ff, hold
-                        ref_next = plan
+                        self._run(now, d_int, d_frac)
                 self.count = 0 if self.count >= rate_div else self.count + 1
-        self.ref_int = ref_next
-        if speed_slew == 0:
-            self.lo_b, self.hi_b = self._s_range
-        else:
-            self.lo_b = saturate_np(ref_next - speed_slew, sw)
-            self.hi_b = saturate_np(ref_next + speed_slew, sw)
-        self.ref_pre = ref_pre
         self.t += 1
         return out
+
+    def _run(self, inp, d_int, d_frac):
+        """Compute an accepted run (clock ``self.t``) and schedule its results."""
+        s = self._shift_out
+        r, slew, sref = self.ref_int, inp["speed_slew"], inp["speed_ref"]
+        lim_lo, lim_hi, iq_ff = inp["lim_lo"], inp["lim_hi"], inp["iq_ff"]
+        up = slew != 0 and sref > r + slew
+        dn = slew != 0 and sref < r - slew
+        plan = r + slew if up else r - slew if dn else sref
+        ff = clamp_np(iq_ff if up else -iq_ff, lim_lo, lim_hi) if up or dn else 0
+        tp = self._to_pi(r)
+        ref = self._to_pi(plan) if d_int == 0 else self._interp(d_int, d_frac)
+        # The PI's reference moves (a profile only): R has not reached speed_ref, or the
+        # delayed reference has not reached R, before this run.
+        moving = slew != 0 and (r != sref or (d_int != 0 and ref != tp))
+        hold = int(bool(inp["int_hold"]) and moving)
+        # The PI runs with the limits shifted by this run's feed-forward.
+        lo_s, hi_s = (saturate_np((lim - ff) << s, signed(self.width))
+                      for lim in (lim_lo, lim_hi))
+        pi_out, pi_sat = self.pi.step(ref, self._to_pi(inp["speed"]), inp["kp"],
+                                      0 if hold else inp["kx"], lo_s, hi_s)
+        self.pending = (self.t + self.latency - 1, pi_out, pi_sat, lim_lo, lim_hi, ff)
+        self.pending_ref = (self.t + self.ref_latency - 1, plan)
+        self.run_end = self.t + self.interval
+        self.run_inputs = dict(inp)
+        self.runs += 1
+        self.plan = plan
+        self.hist = [tp] + self.hist[:-1]
+        self.ff, self.hold = ff, hold
 
 
 class ServoModel:

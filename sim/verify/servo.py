@@ -9,8 +9,10 @@ PI busy; the speed feedback comes from a crude plant (speed integrates the i_q r
 model outputs), so steps drive the PI into the current limit, wind it up and let it recover, with
 occasional full-scale speed values. The reference profile gets random slews (0, 1 LSB, small,
 large, the maximum), feed-forwards (0, random, ±full scale), reference delays and integrator
-holds, changed at any clock (mid-run and mid-ramp too), and speed references that reverse
-through zero or land exactly a whole number of slews away.
+holds, changed between speed-loop runs (mid-ramp too; the speed loop reads its inputs during a
+run, as the register file leaves them between loop boundaries), loop periods of at least the
+speed loop's interval, and speed references that reverse through zero or land exactly a whole
+number of slews away.
 
 Scope: random arm/force/trigger strobes, strobe densities, decimation, pre-trigger counts (0 and
 depth − 1 included), channel selects (invalid codes included) and read addresses every clock;
@@ -148,8 +150,12 @@ def _servo_stimulus(count, rng, model, dut):
     delay_max = 1 << dut.loop_params["delay_width"]
     regs = {name: 0 for name in SERVO_INPUTS}
     regs.update(iq_lim_lo=-32768, iq_lim_hi=32767, speed_kp=1 << max(kp_fmt.frac, 0))
-    pending_cfg = None
-    period, offset, phase, seg_left = 20, 3, 0, 0
+    # The speed loop's inputs are changed only between runs (the register file changes them
+    # at loop boundaries, thousands of clocks apart; the model checks it): writes wait here.
+    pending = {}
+    interval = sl.interval
+    period, offset, phase, seg_left = interval + 20, 3, 0, 0
+    slow = max(interval // 24, 1)       # event rates per loop period as with 24-clock periods
     trip_left = 0
     omega = 0.0                                 # plant speed, raw Q1.(sw-1)
     gain = 0.0
@@ -165,45 +171,44 @@ def _servo_stimulus(count, rng, model, dut):
     for _ in range(count):
         # Segment: new loop timing and (when the PI is idle) new gains, limits, rate divider.
         if seg_left <= 0:
-            period = int(rng.integers(8, 41))
+            period = int(rng.integers(interval, interval + 81))
             offset = int(rng.integers(0, period))
-            seg_left = int(rng.integers(300, 3000))
+            seg_left = int(rng.integers(300, 3000)) * slow
             kp = 0 if rng.random() < 0.05 else _log_uniform(rng, 0, kp_fmt.max_raw >> 4)
             kx = 0 if rng.random() < 0.05 else _log_uniform(rng, 1 << 8, kx_fmt.max_raw >> 6)
             lo, hi = _limits(rng)
             div = int(rng.choice([0, 0, 0, 1, 2, 3, int(rng.integers(0, div_max + 1))]))
-            pending_cfg = dict(speed_kp=kp, speed_kx=kx, iq_lim_lo=lo, iq_lim_hi=hi,
-                               speed_rate_div=div)
+            pending.update(speed_kp=kp, speed_kx=kx, iq_lim_lo=lo, iq_lim_hi=hi,
+                           speed_rate_div=div)
             gain = float(rng.choice([0.0, 2.0 ** (sw - 16 - 4), 2.0 ** (sw - 16 - 2),
                                      2.0 ** (sw - 16)], p=[0.1, 0.3, 0.3, 0.3]))
         seg_left -= 1
-        if pending_cfg is not None and not sl.busy:
-            regs.update(pending_cfg)
-            pending_cfg = None
-        if rng.random() < 1 / 700:
-            regs.update(_profile(rng, sw, delay_max))
+        if rng.random() < 1 / (700 * slow):
+            pending.update(_profile(rng, sw, delay_max))
 
         # Register writes.
-        if rng.random() < 1 / 120:
+        if rng.random() < 1 / (120 * slow):
             what = rng.choice(["mode", "mode", "mode", "speed_ref", "speed_ref", "iq_set",
                                "id_set", "ud_set", "uq_set", "ol_src", "ol_theta", "ol_freq"])
             if what == "mode":
                 regs["mode"] = int(rng.choice([0, 1, 2, 3, 3, 3]))
             elif what == "speed_ref":
                 r = rng.random()
+                ref = pending.get("speed_ref", regs["speed_ref"])
+                slew = pending.get("speed_slew", regs["speed_slew"])
                 if r < 0.15:
-                    regs["speed_ref"] = int(rng.choice([s_lo, s_hi, 0]))
+                    ref = int(rng.choice([s_lo, s_hi, 0]))
                 elif r < 0.25:                  # reversal through zero
-                    regs["speed_ref"] = int(np.clip(-regs["speed_ref"], s_lo, s_hi))
+                    ref = int(np.clip(-ref, s_lo, s_hi))
                 elif r < 0.35:                  # a whole number of slews away: lands exactly
                     k = int(rng.integers(-6, 7))
-                    regs["speed_ref"] = int(np.clip(sl.ref_int + k * regs["speed_slew"],
-                                                    s_lo, s_hi))
+                    ref = int(np.clip(sl.ref_int + k * slew, s_lo, s_hi))
                 elif r < 0.6:
-                    regs["speed_ref"] = int(rng.integers(s_lo // 4, s_hi // 4))
+                    ref = int(rng.integers(s_lo // 4, s_hi // 4))
                 else:
-                    regs["speed_ref"] = int(np.clip(regs["speed_ref"] + rng.integers(
-                        -(1 << (sw - 8)), 1 << (sw - 8)), s_lo, s_hi))
+                    ref = int(np.clip(ref + rng.integers(-(1 << (sw - 8)), 1 << (sw - 8)),
+                                      s_lo, s_hi))
+                pending["speed_ref"] = ref
             elif what in ("iq_set", "id_set", "ud_set", "uq_set"):
                 regs[what] = int(rng.integers(-32768, 32768))
             elif what == "ol_src":
@@ -213,12 +218,15 @@ def _servo_stimulus(count, rng, model, dut):
             else:
                 regs["ol_freq"] = int(rng.choice([p_lo, p_hi, int(rng.integers(p_lo, p_hi))]))
         # Trip pulses.
-        if trip_left == 0 and rng.random() < 1 / 3000:
-            trip_left = int(rng.integers(1, 60))
+        if trip_left == 0 and rng.random() < 1 / (3000 * slow):
+            trip_left = int(rng.integers(1, 60 * slow))
             figures["trips"] += 1
         regs["trip"] = int(trip_left > 0)
         trip_left = max(trip_left - 1, 0)
 
+        if pending and not sl.busy:
+            regs.update(pending)
+            pending = {}
         # Strobes: loop boundary, speed sample (plus rare extra ones, which find the PI busy).
         regs["loop"] = int(phase == 0)
         valid = phase == offset or rng.random() < 1 / 400
@@ -251,11 +259,11 @@ def _servo_stimulus(count, rng, model, dut):
                     and not last["sat"] and last["e"] * prev_last["e"] < 0):
                 figures["recoveries"] += 1
             prev_last = last
-            moving = sl.ref_int != regs["speed_ref"]          # after this run's update
+            moving = sl.plan != regs["speed_ref"]             # after this run's update
             figures["ramp_runs"] += moving
-            figures["ramp_ends"] += (ref_before != sl.ref_int and sl.ref_int == regs["speed_ref"]
+            figures["ramp_ends"] += (ref_before != sl.plan and sl.plan == regs["speed_ref"]
                                      and regs["speed_slew"] != 0)
-            figures["ramp_reversals"] += ((ref_before > 0) != (sl.ref_int > 0)
+            figures["ramp_reversals"] += ((ref_before > 0) != (sl.plan > 0)
                                           and regs["speed_slew"] != 0)
             figures["ff_full_scale_runs"] += moving and abs(regs["iq_ff"]) >= 32767
             figures["ff_clamped_runs"] += moving and abs(sl.ff) != abs(regs["iq_ff"])
@@ -462,9 +470,10 @@ def run_scope(count=100_000, *, seed=0, progress=False, **params):
     return result
 
 
-def run(count=100_000, *, seed=0, progress=False, scope=None, **params):
-    """Both checks: :func:`run_servo` (``params``) and :func:`run_scope` (the dict ``scope`` of
-    Scope parameters, defaults if ``None``), ``count`` clocks each.
+def run(count=100_000, *, seed=0, progress=False, scope=None, servo_count=None, **params):
+    """Both checks: :func:`run_servo` (``params``; ``servo_count`` clocks, ``count`` if
+    ``None``) and :func:`run_scope` (the dict ``scope`` of Scope parameters, defaults if
+    ``None``, ``count`` clocks).
 
     Returns
     -------
@@ -472,7 +481,8 @@ def run(count=100_000, *, seed=0, progress=False, scope=None, **params):
         ``mismatches``, ``vectors``, ``clocks``, ``sim_s`` summed over both, and every figure of
         each prefixed ``servo_`` / ``scope_``.
     """
-    servo = run_servo(count, seed=seed, progress=progress, **params)
+    servo = run_servo(count if servo_count is None else servo_count, seed=seed,
+                      progress=progress, **params)
     scope_r = run_scope(count, seed=seed, progress=progress, **(scope or {}))
     result = {k: servo[k] + scope_r[k] for k in ("mismatches", "vectors", "clocks", "sim_s")}
     result.update({f"servo_{k}": v for k, v in servo.items()})
