@@ -226,8 +226,9 @@ class Top(wiring.Component):
         Signed operand width of the target's hard multiplier, 8 … 25, or ``None``: 18 (default;
         ECP5 ``MULT18X18D``, Xilinx ``DSP48``); ``None`` for the iCE40 (products not split: yosys
         maps them onto 16 × 16 ``SB_MAC16`` better than a split can, :mod:`~.dsp`). Passed to the
-        current loop and the speed loop, whose wide products are split into partial products of
-        this size; it changes the netlist, never a result.
+        pipelined current loop, whose wide products are split into partial products of this size
+        (the speed loop accepts it but multiplies by shift and add, no hard multiplier); it
+        changes the netlist, never a result.
     current_loop : str
         The current loop's implementation: ``"pipelined"`` (default, :class:`~.foc.CurrentLoop`:
         one pipeline stage per operation, 46–48 clocks) or ``"engine"``
