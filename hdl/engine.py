@@ -49,7 +49,7 @@ from .fixed import check_param
 from .rotator import RotatorParams
 
 __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
-           "RF_DEPTH", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD", "HAZARD_TABLE", "WRITE_DELAY",
+           "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD", "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
 #: Width of the register file words, the ALU and the product register ``P``.
@@ -58,13 +58,23 @@ WORD = 48
 MUL_A, MUL_B = 19, 28
 #: Register-file words.
 RF_DEPTH = 128
-#: Hazard distances of the three-stage execute (in instructions from the writer): a register
-#: written by instruction i is read correctly from i + HAZARD_RF on; after a write of the angle
-#: register ``ang``, the fold flags are valid from i + HAZARD_FOLD, ``KD`` from i + HAZARD_KD,
-#: the table words ``TS``, ``TC`` from i + HAZARD_TABLE.
-HAZARD_RF, HAZARD_FOLD, HAZARD_KD, HAZARD_TABLE = 3, 3, 4, 5
-#: Execute stages after X1 (X2, X3): an instruction writes back this many clocks after its X1.
-WRITE_DELAY = 2
+#: Execute stages after X1 (X2, X3, X4): an instruction writes back this many clocks after its
+#: X1. The hazard distances follow from it: the register file is read (transparently) in R, the
+#: fold flags in X1, ``KD`` is selected in R from the angle register, the table words one
+#: clock later (the table's read port is registered).
+WRITE_DELAY = 3
+HAZARD_RF = WRITE_DELAY + 1
+HAZARD_FOLD = WRITE_DELAY + 1
+HAZARD_KD = WRITE_DELAY + 2
+HAZARD_TABLE = WRITE_DELAY + 3
+#: P is written (MUL, DIV) at the end of X3 and read there by MAC and DIV (sequentially), but
+#: read in X2 by a post (an ALU operation on P or PQ, or a MUL's fused post): a post sees the
+#: P of instruction i from i + HAZARD_P on.
+HAZARD_P = 2
+#: (Hazard distances, in instructions from the writer: a register written by instruction i is
+#: read correctly from i + HAZARD_RF on; after a write of the angle register ``ang``, the fold
+#: flags are valid from i + HAZARD_FOLD, ``KD`` from i + HAZARD_KD, the table words ``TS``,
+#: ``TC`` from i + HAZARD_TABLE.)
 #: Saturation choices.
 SAT_NONE, SAT_W, SAT_W1 = 0, 1, 2
 
@@ -86,10 +96,13 @@ class Op(enum.IntEnum):
 #: ALU operations (they produce ``X`` and may write back).
 ALU_OPS = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 
+#: Width of the program counter and of branch targets (programs of up to 2**PC_WIDTH words).
+PC_WIDTH = 9
+
 #: Instruction fields, in bit order (name, width).
 FIELDS = (("op", 4), ("wen", 1), ("dst", 7), ("asp", 1), ("a", 7), ("bsp", 1), ("b", 7), ("sh", 5),
           ("rnd", 1), ("sat", 2), ("setf", 1), ("cond", 4), ("inv", 1), ("neg", 1), ("acc", 1),
-          ("asl", 1), ("out", 5), ("tgt", 8))
+          ("asl", 1), ("out", 5), ("tgt", PC_WIDTH))
 INSTR_LAYOUT = data.StructLayout({name: unsigned(width) for name, width in FIELDS})
 INSTR_WIDTH = sum(w for _, w in FIELDS)
 
@@ -396,7 +409,9 @@ class Assembler:
                 if i in preds[k]:
                     regs = {r for r in eff[i][1] & eff[k][0] if isinstance(r, tuple) and
                             r[0] == "r"}
-                    height[i] = max(height[i], height[k] + (HAZARD_RF if regs else 1))
+                    gap = HAZARD_RF if regs else (HAZARD_P if "P" in eff[i][1] & eff[k][0]
+                                                  else 1)
+                    height[i] = max(height[i], height[k] + gap)
         seq = list(before[-HAZARD_TABLE:])
         done, order = set(), []
         while len(order) < n:
@@ -427,6 +442,9 @@ class Assembler:
                                                (b_ref, f["bsp"], writer or op == Op.DIV))
                           if use and not sp and r[0] == "r"},
                 "writes": dst if (writer and f["wen"]) else None,
+                "pw": op in (Op.MUL, Op.DIV),
+                "pr": (op in ALU_OPS and f["asp"] and a_ref in (("s", 0), ("s", 1))) or
+                      (op == Op.MUL and bool(f["wen"] or f["out"])),
                 "ang": writer and f["out"] == self.outs.index("ang"),
                 "kd": f["asp"] and a_ref == ("s", self.specials.index("KD")) and writer,
                 "fold": f["cond"] in (self.conds.index(c) for c in ("SWAP", "NEGC", "NEGS")),
@@ -446,6 +464,8 @@ class Assembler:
             # k ≥ HAZARD_TABLE.
             if p["writes"] is not None and p["writes"] in c["reads"]:
                 n = max(n, HAZARD_RF - k)
+            if p["pw"] and c["pr"]:
+                n = max(n, HAZARD_P - k)
             if p["ang"]:
                 n = max(n, HAZARD_FOLD - k if c["fold"] else 0,
                         HAZARD_KD - k if c["kd"] else 0, HAZARD_TABLE - k if c["table"] else 0)
@@ -460,6 +480,11 @@ class Assembler:
         self.const(0)
         for i, entry in enumerate(instrs):
             n = self._needs(out, entry)
+            if entry[0]["op"] == Op.BR and i + 2 < len(instrs):
+                # Where a delay slot would need NOPs, they go in front of the branch.
+                hist = out + [None] * n + [entry]
+                n += max(self._needs(hist, instrs[i + 1]),
+                         self._needs(hist + [instrs[i + 1]], instrs[i + 2]))
             if n:
                 if i in slots:
                     raise ValueError(f"Assembler: hazard in a branch delay slot at {i}: "
@@ -563,8 +588,8 @@ class Assembler:
             f["dst"] = resolve(dst) if dst else 0
             f["tgt"] = self._labels[tgt] if tgt is not None else 0
             words.append(Instr(**f).encode())
-        if len(words) > 256:
-            raise ValueError(f"Assembler: {len(words)} instructions exceed 256")
+        if len(words) > 1 << PC_WIDTH:
+            raise ValueError(f"Assembler: {len(words)} instructions exceed {1 << PC_WIDTH}")
         symbols = dict(regs)
         symbols.update({f"k.{v}": a for v, a in kaddr.items()})
         return Program(words=words, rf_init=rf_init, regs=symbols, labels=dict(self._labels),
@@ -645,7 +670,7 @@ class Engine(wiring.Component):
             "running": Out(1),
             "end": Out(1),
             "trace_valid": Out(1),
-            "trace_pc": Out(8),
+            "trace_pc": Out(PC_WIDTH),
             "trace_wen": Out(1),
             "trace_dst": Out(7),
             "trace_y": Out(signed(WORD)),
@@ -677,7 +702,7 @@ class Engine(wiring.Component):
         rf_b = rf.read_port(transparent_for=(rf_w,))
         rom_r = rom.read_port()
 
-        pc = Signal(8)
+        pc = Signal(PC_WIDTH)
         f_valid = Signal()          # an instruction is being fetched (pc)
         r_valid = Signal()          # rom_r.data is an instruction in R
         x_valid = Signal()
@@ -787,14 +812,24 @@ class Engine(wiring.Component):
                      h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0))]
         half = Signal(signed(WORD + 1))
         m.d.comb += half.eq(Mux(xp[-1], h_mask, h_one))
-        # X3: the rounded sum registered; shift by sh (floor), saturate, write back.
+        # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
+        # back (the barrel shift and the saturation test are in separate clocks).
         r3 = Signal(signed(WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
         m.d.sync += [r3.eq(xp + half), x3_nz.eq(x2 != 0), ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(WORD + 2))
-        m.d.comb += shifted.eq(r3 >> ir3.sh)
+        x4_nz = Signal()
+        m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
+        # The fields X4 uses, registered from X3.
+        w4_sat = Signal(2)
+        w4_dst = Signal(7)
+        w4_out = Signal(5)
+        w4_wen = Signal()
+        w4_op = Signal(4)
+        m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
+                     w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
         y = Signal(signed(WORD))
-        with m.Switch(ir3.sat):
+        with m.Switch(w4_sat):
             for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
                 with m.Case(code):
                     lo, hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
@@ -805,68 +840,76 @@ class Engine(wiring.Component):
                 m.d.comb += y.eq(shifted)
 
         # --- Multiplier, divider step ----------------------------------------------------------
-        # Operands registered at the end of X1; product and P update in X2.
+        # Operands registered at the end of X1; the product registered at the end of X2 (the
+        # multiplier and its partial-product adders alone in X2); P updated in X3 (± product,
+        # DIV step), read in X2 by the posts (``HAZARD_P``) and in X3 by MAC and DIV.
         ma = Signal(signed(MUL_A))
         mb = Signal(signed(MUL_B))
         m_neg = Signal()
         m.d.sync += [ma.eq(a[:MUL_A]), mb.eq(b[:MUL_B]), m_neg.eq(ir.neg ^ c)]
-        prod = Signal(signed(MUL_A + MUL_B))
-        m.d.comb += prod.eq(ma * mb)
+        prod = Signal(signed(MUL_A + MUL_B), reset_less=True)
+        mb3 = Signal(signed(MUL_B), reset_less=True)
+        m_neg3 = Signal(reset_less=True)
+        m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(WORD + 1))
         m.d.comb += t2.eq(p << 1)
         div_diff = Signal(signed(WORD + 1))
-        m.d.comb += div_diff.eq((t2 >> q) - mb)
+        m.d.comb += div_diff.eq((t2 >> q) - mb3)
         div_ge = ~div_diff[-1]
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL)
         execute = x_valid & self.running
-        m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid)]
-        writes3 = x3_valid & ((ir3.op == Op.ADD) | (ir3.op == Op.SUB) | (ir3.op == Op.RSUB) |
-                              (ir3.op == Op.MIN) | (ir3.op == Op.MAX) | (ir3.op == Op.SEL) |
-                              (ir3.op == Op.MUL))
+        x4_valid = Signal()
+        m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
+        writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
+                              (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
+                              (w4_op == Op.MUL))
         p3 = Signal(signed(WORD))           # P as the instruction in X3 read it (trace only)
-        m.d.sync += p3.eq(p)
+        p4 = Signal(signed(WORD))           # and in X4
+        m.d.sync += [p3.eq(p), p4.eq(p3)]
         m.d.comb += [
-            rf_w.addr.eq(ir3.dst),
+            rf_w.addr.eq(w4_dst),
             rf_w.data.eq(y),
-            rf_w.en.eq(writes3 & ir3.wen),
-            self.trace_valid.eq(x3_valid),
+            rf_w.en.eq(writes4 & w4_wen),
+            self.trace_valid.eq(x4_valid),
             self.trace_wen.eq(rf_w.en),
-            self.trace_dst.eq(ir3.dst),
+            self.trace_dst.eq(w4_dst),
             self.trace_y.eq(y),
-            self.trace_p.eq(p3),
+            self.trace_p.eq(p4),
         ]
-        x_pc = Signal(8)
-        r_pc = Signal(8)
-        x2_pc = Signal(8)
-        x3_pc = Signal(8)
-        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc)]
-        m.d.comb += self.trace_pc.eq(x3_pc)
+        x_pc = Signal(PC_WIDTH)
+        r_pc = Signal(PC_WIDTH)
+        x2_pc = Signal(PC_WIDTH)
+        x3_pc = Signal(PC_WIDTH)
+        x4_pc = Signal(PC_WIDTH)
+        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc),
+                     x4_pc.eq(x3_pc)]
+        m.d.comb += self.trace_pc.eq(x4_pc)
 
-        # Outputs (written in X3, like the register file).
+        # Outputs (written in X4, like the register file).
         for i, (name, ow) in enumerate(self._out_widths.items(), start=1):
             reg = getattr(self, f"o_{name}")
             we = getattr(self, f"o_{name}_we")
-            m.d.comb += we.eq(writes3 & (ir3.out == i))
+            m.d.comb += we.eq(writes4 & (w4_out == i))
             with m.If(we):
-                m.d.sync += reg.eq(x3_nz if ow == 1 else y[:ow])
+                m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
 
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # The sum (MAX: B − A); N, Z of A − B are derived from it where read.
                 m.d.sync += [flag_sum.eq(s), flag_max.eq(d_max)]
-        with m.If(x2_valid & (ir2.op == Op.MUL)):
+        with m.If(x3_valid & (ir3.op == Op.MUL)):
             # P ± prod: one adder, the carry-in negates.
-            m.d.sync += p.eq(Mux(ir2.acc, p, 0) + Mux(m_neg, ~prod, prod) + m_neg)
-        with m.If(x2_valid & (ir2.op == Op.DIV)):
+            m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)
+        with m.If(x3_valid & (ir3.op == Op.DIV)):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 
         # --- Sequencer -------------------------------------------------------------------------
-        # END stops the fetch in X1; ``end`` strobes with END in X2, when the instruction before
-        # it writes back (X3): from the next clock on every result is in place.
+        # END stops the fetch in X1; ``end`` strobes with END in X3, when the instruction before
+        # it writes back (X4): from the next clock on every result is in place.
         halt = execute & (ir.op == Op.END)
-        m.d.comb += self.end.eq(x2_valid & (ir2.op == Op.END))
+        m.d.comb += self.end.eq(x3_valid & (ir3.op == Op.END))
         with m.If(self.start & ~self.running):
             m.d.sync += [self.running.eq(1), pc.eq(0), f_valid.eq(1),
                          r_valid.eq(0), x_valid.eq(0)]

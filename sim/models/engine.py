@@ -114,6 +114,7 @@ class EngineModel:
         queue = collections.deque([0, 1, 2])
         fetch = 3
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
+        p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
         self.sreg = self.tbl + (self._fold(ang)[1],)
@@ -123,7 +124,9 @@ class EngineModel:
             ang = self.outs["ang"]
             _, kd_now, swap, negc, negs = self._fold(ang)
             ts, tc, kd = self.sreg                  # selected and registered in R
-            spec = [self.p, self.p & ((1 << q) - 1), ts, tc, kd] + [
+            # A post reads P in X2, before the update (X3) of the instruction before it.
+            p_x2, p_lag = p_lag, self.p
+            spec = [p_x2, p_x2 & ((1 << q) - 1), ts, tc, kd] + [
                 int(specials[name]) for name in prog.specials[len(BUILTIN_SPECIALS):]]
             cvals = [0, self.n, self.z, self.n | self.z, swap, negc, negs] + [
                 int(bool(conds[name])) for name in prog.conds[len(BUILTIN_CONDS):]]
@@ -152,7 +155,7 @@ class EngineModel:
             if ins.sat in (SAT_W, SAT_W1):
                 sw = self.width + (ins.sat == SAT_W1)
                 y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
-            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": self.p}
+            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": p_x2}
             writes = []                 # applied WRITE_DELAY instructions later (X3)
             taken = False
             if op in ALU:
@@ -167,7 +170,7 @@ class EngineModel:
                                    if self.out_widths[prog.outs[ins.out]] == 1 else y))
             elif op == Op.MUL:
                 if ins.wen or ins.out:                  # fused post of the old P
-                    x = self.p
+                    x = p_x2
                     y = (x + (1 << (sh - 1)) - (x < 0)) >> sh if (ins.rnd and sh) else x >> sh
                     if ins.sat in (SAT_W, SAT_W1):
                         sw = self.width + (ins.sat == SAT_W1)
