@@ -8,7 +8,8 @@ shared by the gateware (:class:`Engine`) and the bit-true interpreter
 docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B`` its operands,
 ``c`` its condition, ``P`` the product register, ``Y`` the post-processed result)::
 
-    A   = SPECIAL[a] if asp else RF[a];  A <<= guard if asl   (A = P or PQ: ADD with B = 0 only)
+    A   = SPECIAL[a] if asp else RF[a];  A <<= guard if asl   (asl: special A only;
+                                                              A = P or PQ: ADD with B = 0 only)
     B   = SPECIAL[BSPECIALS[b]] if bsp else RF[b]
     c   = COND[cond] ^ inv
     ADD  X = A + B        SUB  X = A − B        RSUB X = B − A        (flags N, Z of X)
@@ -24,17 +25,21 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     END  o.valid, halt
 
 Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``), R (operand
-RF read, transparent for the write port; special operands, adder mode and result select decoded
-and registered), X1 (operand select, ALU adder, flags, branch; MUL and DIV operands and the
-rounding constant registered), X2 (P read, rounding add; product and P update), X3 (shift,
-saturate, write back to the RF and the output registers). Hence: a register written by
-instruction i is seen from instruction i + 3 on (``HAZARD_RF``; the assembler schedules
-straight-line code to fill the gap, inserts NOPs where it cannot, and checks every branch path);
-flags and P behave sequentially (an ALU operation on P or PQ is an ADD with B = 0 and reads P
-in X2). A branch resolves in X1: the two instructions behind it (the delay slots) always
-execute. The angle register ``ang`` (an output, written in X3) addresses the sine table: after
-instruction i writes ``ang``, the fold flags are valid from i + 3, ``KD`` from i + 4, the table
-words ``TS``, ``TC`` from i + 5 (the special operands are selected and registered in R).
+RF read, transparent for the write port; special operands selected, shifted by ``asl`` and
+registered; adder mode and result select decoded and registered), X1 (operand select, ALU
+adder, flags, branch; MUL and DIV operands, the rounding constant, and for MIN/MAX both
+candidates registered), X2 (MIN/MAX select, P read, rounding add; the product registered),
+X3 (barrel shift registered; P update: ± product, DIV step), X4 (saturate, write back to the RF
+and the output registers). Hence: a register written by instruction i is seen from instruction
+i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
+fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
+sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
+a post (an ALU operation on P or PQ, an ADD with B = 0, or a MUL's fused post): a post sees
+the P of instruction i from i + 2 on (``HAZARD_P``). A branch resolves in X1: the two
+instructions behind it (the delay slots) always execute. The angle register ``ang`` (an
+output, written in X4) addresses the sine table: after instruction i writes ``ang``, the fold
+flags are valid from i + 4, ``KD`` from i + 5, the table words ``TS``, ``TC`` from i + 6 (the
+special operands are selected and registered in R).
 """
 
 import dataclasses
@@ -49,7 +54,8 @@ from .fixed import check_param
 from .rotator import RotatorParams
 
 __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
-           "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD", "HAZARD_TABLE", "WRITE_DELAY",
+           "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
+           "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
 #: Width of the register file words, the ALU and the product register ``P``.
@@ -256,6 +262,9 @@ class Assembler:
         fields = dict(op=int(op), wen=int(dst is not None), asp=asp, bsp=bsp, sh=sh, rnd=int(rnd),
                       sat=sat, setf=int(setf), cond=c, inv=inv, neg=int(neg), acc=int(acc),
                       asl=int(asl), out=self.outs.index(out) if out else 0)
+        if asl and not asp:
+            raise ValueError("Assembler: asl takes a special operand A only (it is shifted in "
+                             "the R stage)")
         if op in ALU_OPS and a_ref in (("s", 0), ("s", 1)) and (
                 b_ref != ("k", 0) or bsp or setf or asl or op != Op.ADD):
             raise ValueError("Assembler: an ALU operation on P or PQ must be ADD with B = 0, "
@@ -429,7 +438,7 @@ class Assembler:
             order.append(region[i])
         return order
 
-    # --- hazards of the three-stage execute (write back two instructions late) ------------------
+    # --- hazards of the four-stage execute (write back three instructions late) ------------------
     def _needs(self, hist, cur):
         """NOPs needed in front of ``cur``; ``hist`` holds the instructions before it, the
         latest last (``None`` for none)."""
@@ -625,7 +634,7 @@ class Engine(wiring.Component):
     running : Out(1)
         The program runs (from the clock after ``start`` to its END).
     end : Out(1)
-        One-clock strobe: END in X2 (the instruction before it writes back in this clock;
+        One-clock strobe: END in X3 (the instruction before it writes back in this clock;
         from the next clock on every result is in place).
     <special> : In(shape)
         One port per user special operand.
@@ -634,7 +643,7 @@ class Engine(wiring.Component):
     <out> : Out(width), <out>_we : Out(1)
         Output registers (held) and their one-clock write strobes.
     trace_* : Out
-        Per-clock view of the instruction in X3 (write back), for the tests:
+        Per-clock view of the instruction in X4 (write back), for the tests:
         ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
         written back), ``trace_p`` (P as this instruction read it in X2, before its update).
     """
@@ -737,15 +746,29 @@ class Engine(wiring.Component):
         # P and PQ are read in X2 (below), not through this mux.
         specials = [Const(0), Const(0), ts, tc, kd] + [getattr(self, f"s_{name}")
                                           for name in self._special_shapes]
-        # The special operands are selected in R (registered with the RF read).
+        # The special operands are selected in R (registered with the RF read) by an AND-OR
+        # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
+        # value shifted by the guard; a special A only). The select is decoded from ``pc`` in F
+        # (a LUT ROM beside the program ROM) and registered with the ROM read, so that neither
+        # a decode nor a mux tree follows the ROM's output.
+        keys = sorted({(ins.a, ins.asl) for ins in prog.instrs if ins.asp and ins.a >= 2})
+        sel = Signal(max(1, len(keys)))
+        with m.Switch(pc):
+            for addr, ins in enumerate(prog.instrs):
+                if ins.asp and ins.a >= 2:
+                    with m.Case(addr):
+                        m.d.sync += sel.eq(1 << keys.index((ins.a, ins.asl)))
+            with m.Default():
+                m.d.sync += sel.eq(0)
+        terms = [Mux(sel[k], specials[i] << self._guard if asl else specials[i], 0)
+                 for k, (i, asl) in enumerate(keys)] or [Const(0)]
+        while len(terms) > 1:                   # a balanced OR tree
+            terms = [terms[j] | terms[j + 1] if j + 1 < len(terms) else terms[j]
+                     for j in range(0, len(terms), 2)]
         spec = Signal(signed(WORD))
-        with m.Switch(ir1.a):
-            for i, v in enumerate(specials):
-                with m.Case(i):
-                    m.d.sync += spec.eq(v)
-        a_raw = Mux(ir.asp, spec, rf_a.data)
+        m.d.sync += spec.eq(terms[0])
         a = Signal(signed(WORD))
-        m.d.comb += a.eq(Mux(ir.asl, a_raw << self._guard, a_raw))
+        m.d.comb += a.eq(Mux(ir.asp, spec, rf_a.data))
         bspec = Signal(signed(WORD))
         with m.Switch(ir1.b):
             for i, name in enumerate(prog.bspecials):
@@ -754,23 +777,21 @@ class Engine(wiring.Component):
         b = Signal(signed(WORD))
         m.d.comb += b.eq(Mux(ir.bsp, bspec, rf_b.data))
 
-        # Flags: the sum itself is registered (``flag_sum``) and tested where the flags are read,
-        # which keeps the 49-bit zero test out of X1's adder path; N of a MAX (which adds
-        # B − A) is derived there too.
-        flag_sum = Signal(signed(WORD + 1))
+        # Flags: the sum's sign (``flag_s``) and its zero test (``flag_z``, computed from the
+        # adder's operands beside the carry chain, below) are registered; N of a MAX (which adds
+        # B − A) is derived where read.
+        flag_s = Signal()
         flag_max = Signal()
         flag_z = Signal()
         flag_n = Signal()
-        m.d.comb += [flag_z.eq(flag_sum == 0),
-                     flag_n.eq(Mux(flag_max, ~flag_sum[-1] & ~flag_z, flag_sum[-1]))]
+        m.d.comb += flag_n.eq(Mux(flag_max, ~flag_s & ~flag_z, flag_s))
         conds = [Const(0), flag_n, flag_z, flag_n | flag_z, quad[0] ^ mu, quad[0] ^ quad[1],
                  quad[1]] + [getattr(self, f"c_{name}") for name in prog.conds[len(BUILTIN_CONDS):]]
-        cond_raw = Signal()
-        with m.Switch(ir.cond):
-            for i, v in enumerate(conds):
-                with m.Case(i):
-                    m.d.comb += cond_raw.eq(v)
-        c = cond_raw ^ ir.inv
+        # The condition by an AND-OR over a one-hot select decoded in R.
+        cond_sel = Signal(len(conds))
+        m.d.sync += cond_sel.eq(1 << ir1.cond)
+        c = Signal()
+        m.d.comb += c.eq(Cat(*(cond_sel[i] & v for i, v in enumerate(conds))).any() ^ ir.inv)
 
         # --- ALU ---------------------------------------------------------------------------------
         # The adder's mode and the result select are decoded in R (registered with the operands).
@@ -789,34 +810,65 @@ class Engine(wiring.Component):
         s = Signal(signed(WORD + 1))
         # One adder: A + B, A − B or B − A. MAX computes B − A, so that both MIN (A − B ≥ 0) and
         # MAX (A − B ≤ 0, i.e. B − A ≥ 0) select on the sum's sign alone.
-        m.d.comb += s.eq(Mux(d_inv_a, ~a, a) + Mux(d_inv_b, ~b, b) + (d_inv_a | d_inv_b))
-        x = Signal(signed(WORD + 1))
-        m.d.comb += x.eq(Mux(d_mm | d_sel, Mux((d_mm & ~s[-1]) | c, b, a), s))
-        # --- X2: rounding add (P read here); X3: shift, saturate, write back ------------------
-        x2 = Signal(signed(WORD + 1))
-        m.d.sync += [x2.eq(x), ir2.as_value().eq(ir.as_value())]
-        # P is read in X2 only (MUL and DIV update it at the end of X2): by a MUL's fused post
-        # and by an ALU operation whose A is P or PQ (B ignored); the choice is decoded in X1.
+        # A carry-select adder: the low half's carry picks one of two high halves (two short
+        # carry chains in parallel instead of one of WORD + 1 bits).
+        ea = Signal(signed(WORD + 1))
+        eb = Signal(signed(WORD + 1))
+        cin = d_inv_a | d_inv_b
+        m.d.comb += [ea.eq(Mux(d_inv_a, ~a, a)), eb.eq(Mux(d_inv_b, ~b, b))]
+        k = WORD // 2
+        lo = Signal(k + 2)
+        hi0 = Signal(WORD + 1 - k + 1)
+        hi1 = Signal(WORD + 1 - k + 1)
+        m.d.comb += [lo.eq(ea[:k] + eb[:k] + cin), hi0.eq(ea[k:] + eb[k:]),
+                     hi1.eq(ea[k:] + eb[k:] + 1),
+                     s.eq(Cat(lo[:k], Mux(lo[k], hi1[:WORD + 1 - k], hi0[:WORD + 1 - k])))]
+        # The sum is zero iff every bit's operand bits agree with the carry a zero sum would
+        # bring into it (cin into bit 0, ea | eb of the bit below): no carry chain in front.
+        carries = Cat(cin, (ea | eb)[:WORD])
+        s_zero = ~((ea ^ eb ^ carries)[:WORD + 1].any())
+        # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
+        # is registered as it leaves the adder (``s2``), A or B (SEL: on c; MIN, MAX: A) beside
+        # it (``t2``), B for MIN and MAX (``b2``); the choice is made in X2 (``x2_b``: MIN or MAX
+        # take B), keeping every select off the carry chain's end.
+        # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
+        s2 = Signal(signed(WORD + 1), reset_less=True)
+        t2 = Signal(signed(WORD), reset_less=True)
+        b2 = Signal(signed(WORD), reset_less=True)
+        x2_b = Signal()
+        m.d.sync += [s2.eq(s), t2.eq(Mux(d_sel & c, b, a)), b2.eq(b),
+                     x2_b.eq(d_mm & (c | ~s[-1])), ir2.as_value().eq(ir.as_value())]
+        # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
+        # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
+        # of P, PQ, the sum, A/B (t2) and B (b2) under selects registered in X1.
         d_p = Signal()
         d_pq = Signal()
-        m.d.sync += [d_p.eq((ir.op == Op.MUL) | (ir.asp & (ir.a == 0))),
-                     d_pq.eq((ir.op != Op.MUL) & ir.asp & (ir.a == 1))]
+        k_s = Signal()
+        k_t = Signal()
+        p_read = (ir.op == Op.MUL) | (ir.asp & (ir.a == 0))
+        pq_read = (ir.op != Op.MUL) & ir.asp & (ir.a == 1)
+        m.d.sync += [d_p.eq(p_read), d_pq.eq(pq_read),
+                     k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
+                     k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
+        x2e = Signal(signed(WORD + 1))          # the ALU result X
+        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, t2, s2)))
         xp = Signal(signed(WORD + 1))
-        m.d.comb += xp.eq(Mux(d_p, p, Mux(d_pq, p[:q], x2)))
-        # Rounding constant 2**(sh−1) (− 1 for negative X), prepared in X1: no carry chain
-        # in front of the rounding adder.
-        h_one = Signal(unsigned(WORD))
-        h_mask = Signal(unsigned(WORD))
+        m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
+                          Mux(k_t & ~x2_b, t2, 0) | Mux(x2_b, b2, 0))
+        # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
+        # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
+        # rounding adder's operands).
+        h_mask = Signal(unsigned(WORD), reset_less=True)
+        rnd2 = Signal()
         rounding = ir.rnd & (ir.sh != 0)
-        m.d.sync += [h_one.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:], 0)),
-                     h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0))]
-        half = Signal(signed(WORD + 1))
-        m.d.comb += half.eq(Mux(xp[-1], h_mask, h_one))
+        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0)),
+                     rnd2.eq(rounding)]
         # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
         # back (the barrel shift and the saturation test are in separate clocks).
         r3 = Signal(signed(WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
-        m.d.sync += [r3.eq(xp + half), x3_nz.eq(x2 != 0), ir3.as_value().eq(ir2.as_value())]
+        m.d.sync += [r3.eq(xp + h_mask + (rnd2 & ~xp[-1])), x3_nz.eq(x2e != 0),
+                     ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(WORD + 2))
         x4_nz = Signal()
         m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
@@ -865,8 +917,8 @@ class Engine(wiring.Component):
         writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
                               (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
                               (w4_op == Op.MUL))
-        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it (trace only)
-        p4 = Signal(signed(WORD))           # and in X4
+        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it in X2 (trace)
+        p4 = Signal(signed(WORD))           # the same, in X4
         m.d.sync += [p3.eq(p), p4.eq(p3)]
         m.d.comb += [
             rf_w.addr.eq(w4_dst),
@@ -897,8 +949,8 @@ class Engine(wiring.Component):
 
         with m.If(execute):
             with m.If(is_alu & ir.setf):
-                # The sum (MAX: B − A); N, Z of A − B are derived from it where read.
-                m.d.sync += [flag_sum.eq(s), flag_max.eq(d_max)]
+                # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
+                m.d.sync += [flag_s.eq(s[-1]), flag_z.eq(s_zero), flag_max.eq(d_max)]
         with m.If(x3_valid & (ir3.op == Op.MUL)):
             # P ± prod: one adder, the carry-in negates.
             m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)

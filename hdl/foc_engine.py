@@ -223,7 +223,8 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     # --- SVPWM (width w + 1, frac w − 1: hdl/svpwm.py, min–max injection) --------------------------
     if int_guard != 8:
         raise ValueError("engine program: int_guard must be 8 (the SVPWM guard shift uses it)")
-    A.alu(Op.ADD, "r.qa", "r.ca", 0, asl=True)                       # α·2**8
+    A.mul("r.ca", 1 << 8)                                            # α·2**8
+    A.post("r.qa", 0)
     A.mul("r.cb", sv_k)
     A.post("r.qs", sv_kfrac)                                         # round(β·k, k_frac)
     A.alu(Op.ADD, "r.ta2", "r.qa", "r.qa")

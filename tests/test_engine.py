@@ -157,6 +157,8 @@ def test_assembler_errors():
         A.alu(Op.ADD, "r.t", 0, "s.x")
     with pytest.raises(ValueError, match=r"^Assembler: destination must be a register"):
         A.alu(Op.ADD, "s.x", 0, 0)
+    with pytest.raises(ValueError, match=r"^Assembler: asl takes a special operand A only"):
+        A.alu(Op.ADD, "r.t", "r.u", 0, asl=True)
     A.alu(Op.ADD, "r.t", 1 << 50, 0)
     with pytest.raises(ValueError, match=r"^Assembler: constant \d+ does not fit 48 bits"):
         A.assemble()
