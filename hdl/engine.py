@@ -703,12 +703,19 @@ class Engine(wiring.Component):
         w, q = self._width, self._div_bits
 
         # --- Fetch, register read, execute ---------------------------------------------------------
-        m.submodules.rom = rom = Memory(shape=INSTR_WIDTH, depth=max(len(prog.words), 2),
-                                        init=prog.words)
+        # The program ROM holds, beside each instruction, the key of its special operand A
+        # (``k + 1`` for the k-th (special, asl) pair the program uses, 0 for none; in the
+        # spare bits of the ROM's block RAM), decoded in R to the special's one-hot select.
+        keys = sorted({(ins.a, ins.asl) for ins in prog.instrs if ins.asp and ins.a >= 2})
+        key_w = max(1, (len(keys) + 1 - 1).bit_length())
+        rom_words = [word | ((keys.index((ins.a, ins.asl)) + 1 if ins.asp and ins.a >= 2 else 0)
+                             << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+        m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
+                                        depth=max(len(prog.words), 2), init=rom_words)
         m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init)
         rf_w = rf.write_port()
-        rf_a = rf.read_port(transparent_for=(rf_w,))
-        rf_b = rf.read_port(transparent_for=(rf_w,))
+        rf_a = rf.read_port()           # read-during-write: bypassed below (``use_a``, ``use_b``)
+        rf_b = rf.read_port()
         rom_r = rom.read_port()
 
         pc = Signal(PC_WIDTH)
@@ -720,9 +727,10 @@ class Engine(wiring.Component):
         x2_valid = Signal()
         ir3 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X3
         x3_valid = Signal()
-        ir1 = data.View(INSTR_LAYOUT, rom_r.data)
+        ir1 = data.View(INSTR_LAYOUT, rom_r.data[:INSTR_WIDTH])
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
-        m.d.sync += [ir.as_value().eq(rom_r.data), r_valid.eq(f_valid), x_valid.eq(r_valid)]
+        m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
+                     x_valid.eq(r_valid)]
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
@@ -748,43 +756,46 @@ class Engine(wiring.Component):
                                           for name in self._special_shapes]
         # The special operands are selected in R (registered with the RF read) by an AND-OR
         # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
-        # value shifted by the guard; a special A only). The select is decoded from ``pc`` in F
-        # (a LUT ROM beside the program ROM) and registered with the ROM read, so that neither
-        # a decode nor a mux tree follows the ROM's output.
-        keys = sorted({(ins.a, ins.asl) for ins in prog.instrs if ins.asp and ins.a >= 2})
+        # value shifted by the guard; a special A only), decoded from the key the ROM holds
+        # beside the instruction (no decode of the a field, no mux tree behind the ROM).
+        key = rom_r.data[INSTR_WIDTH:]
         sel = Signal(max(1, len(keys)))
-        with m.Switch(pc):
-            for addr, ins in enumerate(prog.instrs):
-                if ins.asp and ins.a >= 2:
-                    with m.Case(addr):
-                        m.d.sync += sel.eq(1 << keys.index((ins.a, ins.asl)))
-            with m.Default():
-                m.d.sync += sel.eq(0)
+        m.d.comb += sel.eq(Cat(*(key == k + 1 for k in range(len(keys)))))
         terms = [Mux(sel[k], specials[i] << self._guard if asl else specials[i], 0)
                  for k, (i, asl) in enumerate(keys)] or [Const(0)]
         while len(terms) > 1:                   # a balanced OR tree
             terms = [terms[j] | terms[j + 1] if j + 1 < len(terms) else terms[j]
                      for j in range(0, len(terms), 2)]
         spec = Signal(signed(WORD))
-        m.d.sync += spec.eq(terms[0])
-        a = Signal(signed(WORD))
-        m.d.comb += a.eq(Mux(ir.asp, spec, rf_a.data))
+        m.d.comb += spec.eq(terms[0])
         bspec = Signal(signed(WORD))
         with m.Switch(ir1.b):
             for i, name in enumerate(prog.bspecials):
                 with m.Case(i):
-                    m.d.sync += bspec.eq(getattr(self, f"s_{name}"))
+                    m.d.comb += bspec.eq(getattr(self, f"s_{name}"))
+        # Operands A, B in X1: the register file's read data, or an alternative registered in
+        # R (``alt_a``, ``alt_b``, assigned below): the special operand, or the value written
+        # back (X4) in R's clock to the register read (the read-during-write bypass, in place
+        # of the memory's transparency): one select in front of the adder.
+        alt_a = Signal(signed(WORD), reset_less=True)
+        alt_b = Signal(signed(WORD), reset_less=True)
+        use_a = Signal()
+        use_b = Signal()
+        a = Signal(signed(WORD))
         b = Signal(signed(WORD))
-        m.d.comb += b.eq(Mux(ir.bsp, bspec, rf_b.data))
+        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a.data)), b.eq(Mux(use_b, alt_b, rf_b.data))]
 
-        # Flags: the sum's sign (``flag_s``) and its zero test (``flag_z``, computed from the
-        # adder's operands beside the carry chain, below) are registered; N of a MAX (which adds
-        # B − A) is derived where read.
+        # Flags: the sum's sign (``flag_s``) and its zero test, computed from the adder's
+        # operands beside the carry chain (below) and registered in four groups (``flag_zg``: a
+        # group is set where the sum is not zero), are registered; Z is their NOR and N of a
+        # MAX (which adds B − A) is derived where read.
         flag_s = Signal()
         flag_max = Signal()
+        flag_zg = Signal(4)
         flag_z = Signal()
         flag_n = Signal()
-        m.d.comb += flag_n.eq(Mux(flag_max, ~flag_s & ~flag_z, flag_s))
+        m.d.comb += [flag_z.eq(~flag_zg.any()),
+                     flag_n.eq(Mux(flag_max, ~flag_s & ~flag_z, flag_s))]
         conds = [Const(0), flag_n, flag_z, flag_n | flag_z, quad[0] ^ mu, quad[0] ^ quad[1],
                  quad[1]] + [getattr(self, f"c_{name}") for name in prog.conds[len(BUILTIN_CONDS):]]
         # The condition by an AND-OR over a one-hot select decoded in R.
@@ -826,18 +837,21 @@ class Engine(wiring.Component):
         # The sum is zero iff every bit's operand bits agree with the carry a zero sum would
         # bring into it (cin into bit 0, ea | eb of the bit below): no carry chain in front.
         carries = Cat(cin, (ea | eb)[:WORD])
-        s_zero = ~((ea ^ eb ^ carries)[:WORD + 1].any())
+        s_nz = (ea ^ eb ^ carries)[:WORD + 1]
+        s_z4 = [s_nz[j:j + 4].any() for j in range(0, WORD + 1, 4)]     # two levels of OR4
+        s_zg = Cat(*(Cat(*s_z4[j:j + 4]).any() for j in range(0, len(s_z4), 4)))
         # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
-        # is registered as it leaves the adder (``s2``), A or B (SEL: on c; MIN, MAX: A) beside
-        # it (``t2``), B for MIN and MAX (``b2``); the choice is made in X2 (``x2_b``: MIN or MAX
-        # take B), keeping every select off the carry chain's end.
+        # is registered as it leaves the adder (``s2``), A and B beside it (``t2``, ``b2``); the
+        # choice is made in X2 (``x2_b``: SEL, MIN or MAX take B), keeping every select off the
+        # carry chain's end and the condition's fan-out small.
         # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
         s2 = Signal(signed(WORD + 1), reset_less=True)
         t2 = Signal(signed(WORD), reset_less=True)
         b2 = Signal(signed(WORD), reset_less=True)
         x2_b = Signal()
-        m.d.sync += [s2.eq(s), t2.eq(Mux(d_sel & c, b, a)), b2.eq(b),
-                     x2_b.eq(d_mm & (c | ~s[-1])), ir2.as_value().eq(ir.as_value())]
+        m.d.sync += [s2.eq(s), t2.eq(a), b2.eq(b),
+                     x2_b.eq((d_mm & (c | ~s[-1])) | (d_sel & c)),
+                     ir2.as_value().eq(ir.as_value())]
         # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
         # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
         # of P, PQ, the sum, A/B (t2) and B (b2) under selects registered in X1.
@@ -867,7 +881,19 @@ class Engine(wiring.Component):
         # back (the barrel shift and the saturation test are in separate clocks).
         r3 = Signal(signed(WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
-        m.d.sync += [r3.eq(xp + h_mask + (rnd2 & ~xp[-1])), x3_nz.eq(x2e != 0),
+        # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
+        # is short.
+        rx = Signal(WORD + 2)
+        rh = Signal(WORD + 2)
+        m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
+        rcin = rnd2 & ~xp[-1]
+        kr = (WORD + 2) // 2
+        r_lo = Signal(kr + 1)
+        r_hi0 = Signal(WORD + 2 - kr)
+        r_hi1 = Signal(WORD + 2 - kr)
+        m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
+                     r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
+        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0))), x3_nz.eq(x2e != 0),
                      ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(WORD + 2))
         x4_nz = Signal()
@@ -924,6 +950,14 @@ class Engine(wiring.Component):
             rf_w.addr.eq(w4_dst),
             rf_w.data.eq(y),
             rf_w.en.eq(writes4 & w4_wen),
+        ]
+        m.d.sync += [
+            alt_a.eq(Mux(ir1.asp, spec, y)),
+            use_a.eq(ir1.asp | (rf_w.en & (rf_w.addr == ir1.a))),
+            alt_b.eq(Mux(ir1.bsp, bspec, y)),
+            use_b.eq(ir1.bsp | (rf_w.en & (rf_w.addr == ir1.b))),
+        ]
+        m.d.comb += [
             self.trace_valid.eq(x4_valid),
             self.trace_wen.eq(rf_w.en),
             self.trace_dst.eq(w4_dst),
@@ -950,7 +984,7 @@ class Engine(wiring.Component):
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
-                m.d.sync += [flag_s.eq(s[-1]), flag_z.eq(s_zero), flag_max.eq(d_max)]
+                m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
         with m.If(x3_valid & (ir3.op == Op.MUL)):
             # P ± prod: one adder, the carry-in negates.
             m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)
