@@ -16,6 +16,7 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     MIN  X = B if (c or A − B ≥ 0) else A      MAX  X = B if (c or A − B ≤ 0) else A
     SEL  X = B if c else A                     (flags of MIN, MAX, SEL: N, Z of A − B)
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
+           (rnd: not with MIN, MAX, SEL)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
@@ -24,11 +25,13 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
 
-Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``), R (operand
-RF read, transparent for the write port; special operands selected, shifted by ``asl`` and
-registered; adder mode and result select decoded and registered), X1 (operand select, ALU
-adder, flags, branch; MUL and DIV operands, the rounding constant, and for MIN/MAX both
-candidates registered), X2 (MIN/MAX select, P read, rounding add; the product registered),
+Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``; beside each
+instruction the key of its special operand), R (operand RF read; the special operand selected,
+shifted by ``asl``, or the value written back in this clock to the register read, registered;
+adder mode, condition and result select decoded and registered), X1 (operand select,
+carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
+A and B registered as they are), X2 (SEL/MIN/MAX choice, P read, rounding add; the product
+registered),
 X3 (barrel shift registered; P update: ± product, DIV step), X4 (saturate, write back to the RF
 and the output registers). Hence: a register written by instruction i is seen from instruction
 i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
@@ -262,6 +265,9 @@ class Assembler:
         fields = dict(op=int(op), wen=int(dst is not None), asp=asp, bsp=bsp, sh=sh, rnd=int(rnd),
                       sat=sat, setf=int(setf), cond=c, inv=inv, neg=int(neg), acc=int(acc),
                       asl=int(asl), out=self.outs.index(out) if out else 0)
+        if rnd and sh and op in (Op.MIN, Op.MAX, Op.SEL):
+            raise ValueError("Assembler: rnd only with ADD, SUB, RSUB and the posts, not with "
+                             "MIN, MAX or SEL")
         if asl and not asp:
             raise ValueError("Assembler: asl takes a special operand A only (it is shifted in "
                              "the R stage)")
@@ -848,10 +854,13 @@ class Engine(wiring.Component):
         s2 = Signal(signed(WORD + 1), reset_less=True)
         t2 = Signal(signed(WORD), reset_less=True)
         b2 = Signal(signed(WORD), reset_less=True)
-        x2_b = Signal()
-        m.d.sync += [s2.eq(s), t2.eq(a), b2.eq(b),
-                     x2_b.eq((d_mm & (c | ~s[-1])) | (d_sel & c)),
+        mm2 = Signal()
+        sel2 = Signal()
+        c2 = Signal()
+        m.d.sync += [s2.eq(s), t2.eq(a), b2.eq(b), mm2.eq(d_mm), sel2.eq(d_sel), c2.eq(c),
                      ir2.as_value().eq(ir.as_value())]
+        x2_b = Signal()
+        m.d.comb += x2_b.eq((mm2 & (c2 | ~s2[-1])) | (sel2 & c2))
         # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
         # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
         # of P, PQ, the sum, A/B (t2) and B (b2) under selects registered in X1.
@@ -873,10 +882,13 @@ class Engine(wiring.Component):
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
         h_mask = Signal(unsigned(WORD), reset_less=True)
-        rnd2 = Signal()
+        rnd_p = Signal()
+        rnd_pq = Signal()
+        rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
         m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0)),
-                     rnd2.eq(rounding)]
+                     rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
+                     rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
         # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
         # back (the barrel shift and the saturation test are in separate clocks).
         r3 = Signal(signed(WORD + 2))
@@ -886,7 +898,8 @@ class Engine(wiring.Component):
         rx = Signal(WORD + 2)
         rh = Signal(WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
-        rcin = rnd2 & ~xp[-1]
+        # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
+        rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
         kr = (WORD + 2) // 2
         r_lo = Signal(kr + 1)
         r_hi0 = Signal(WORD + 2 - kr)

@@ -159,6 +159,9 @@ def test_assembler_errors():
         A.alu(Op.ADD, "s.x", 0, 0)
     with pytest.raises(ValueError, match=r"^Assembler: asl takes a special operand A only"):
         A.alu(Op.ADD, "r.t", "r.u", 0, asl=True)
+    with pytest.raises(ValueError, match=r"^Assembler: rnd only with ADD, SUB, RSUB and the "
+                                         r"posts, not with MIN, MAX or SEL$"):
+        A.alu(Op.MIN, "r.t", "r.u", 0, sh=2, rnd=True)
     A.alu(Op.ADD, "r.t", 1 << 50, 0)
     with pytest.raises(ValueError, match=r"^Assembler: constant \d+ does not fit 48 bits"):
         A.assemble()
