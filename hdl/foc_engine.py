@@ -314,7 +314,7 @@ def path_lengths(program):
 START_CLOCKS = 3
 #: Clocks from the accepted sample to ``o.valid`` beyond the executed instructions: the start,
 #: then END's X1 clock is the last instruction's; the write back of the instruction before
-#: END (X3) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
+#: END (X4) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
 PIPELINE_CLOCKS = START_CLOCKS + WRITE_DELAY - 1
 
 
