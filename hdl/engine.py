@@ -847,23 +847,23 @@ class Engine(wiring.Component):
         s_z4 = [s_nz[j:j + 4].any() for j in range(0, WORD + 1, 4)]     # two levels of OR4
         s_zg = Cat(*(Cat(*s_z4[j:j + 4]).any() for j in range(0, len(s_z4), 4)))
         # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
-        # is registered as it leaves the adder (``s2``), A and B beside it (``t2``, ``b2``); the
+        # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
         # choice is made in X2 (``x2_b``: SEL, MIN or MAX take B), keeping every select off the
         # carry chain's end and the condition's fan-out small.
         # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
         s2 = Signal(signed(WORD + 1), reset_less=True)
-        t2 = Signal(signed(WORD), reset_less=True)
+        a2 = Signal(signed(WORD), reset_less=True)
         b2 = Signal(signed(WORD), reset_less=True)
         mm2 = Signal()
         sel2 = Signal()
         c2 = Signal()
-        m.d.sync += [s2.eq(s), t2.eq(a), b2.eq(b), mm2.eq(d_mm), sel2.eq(d_sel), c2.eq(c),
+        m.d.sync += [s2.eq(s), a2.eq(a), b2.eq(b), mm2.eq(d_mm), sel2.eq(d_sel), c2.eq(c),
                      ir2.as_value().eq(ir.as_value())]
         x2_b = Signal()
         m.d.comb += x2_b.eq((mm2 & (c2 | ~s2[-1])) | (sel2 & c2))
         # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
         # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
-        # of P, PQ, the sum, A/B (t2) and B (b2) under selects registered in X1.
+        # of P, PQ, the sum, A (a2) and B (b2) under selects registered in X1.
         d_p = Signal()
         d_pq = Signal()
         k_s = Signal()
@@ -874,10 +874,10 @@ class Engine(wiring.Component):
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
         x2e = Signal(signed(WORD + 1))          # the ALU result X
-        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, t2, s2)))
+        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
         xp = Signal(signed(WORD + 1))
         m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
-                          Mux(k_t & ~x2_b, t2, 0) | Mux(x2_b, b2, 0))
+                          Mux(k_t & ~x2_b, a2, 0) | Mux(x2_b, b2, 0))
         # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
