@@ -8,13 +8,15 @@ shared by the gateware (:class:`Engine`) and the bit-true interpreter
 docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B`` its operands,
 ``c`` its condition, ``P`` the product register, ``Y`` the post-processed result)::
 
-    A   = SPECIAL[a] if asp else RF[a];  A <<= guard if asl   (A = P or PQ: ADD with B = 0 only)
+    A   = SPECIAL[a] if asp else RF[a];  A <<= guard if asl   (asl: special A only;
+                                                              A = P or PQ: ADD with B = 0 only)
     B   = SPECIAL[BSPECIALS[b]] if bsp else RF[b]
     c   = COND[cond] ^ inv
     ADD  X = A + B        SUB  X = A − B        RSUB X = B − A        (flags N, Z of X)
     MIN  X = B if (c or A − B ≥ 0) else A      MAX  X = B if (c or A − B ≤ 0) else A
     SEL  X = B if c else A                     (flags of MIN, MAX, SEL: N, Z of A − B)
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
+           (rnd: not with MIN, MAX, SEL)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
@@ -23,18 +25,24 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
 
-Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``), R (operand
-RF read, transparent for the write port; special operands, adder mode and result select decoded
-and registered), X1 (operand select, ALU adder, flags, branch; MUL and DIV operands and the
-rounding constant registered), X2 (P read, rounding add; product and P update), X3 (shift,
-saturate, write back to the RF and the output registers). Hence: a register written by
-instruction i is seen from instruction i + 3 on (``HAZARD_RF``; the assembler schedules
-straight-line code to fill the gap, inserts NOPs where it cannot, and checks every branch path);
-flags and P behave sequentially (an ALU operation on P or PQ is an ADD with B = 0 and reads P
-in X2). A branch resolves in X1: the two instructions behind it (the delay slots) always
-execute. The angle register ``ang`` (an output, written in X3) addresses the sine table: after
-instruction i writes ``ang``, the fold flags are valid from i + 3, ``KD`` from i + 4, the table
-words ``TS``, ``TC`` from i + 5 (the special operands are selected and registered in R).
+Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``; beside each
+instruction the key of its special operand), R (operand RF read; the special operand selected,
+shifted by ``asl``, or the value written back in this clock to the register read, registered;
+adder mode, condition and result select decoded and registered), X1 (operand select,
+carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
+A and B registered as they are), X2 (SEL/MIN/MAX choice, P read, rounding add; the product
+registered),
+X3 (barrel shift registered; P update: ± product, DIV step), X4 (saturate, write back to the RF
+and the output registers). Hence: a register written by instruction i is seen from instruction
+i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
+fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
+sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
+a post (an ALU operation on P or PQ, an ADD with B = 0, or a MUL's fused post): a post sees
+the P of instruction i from i + 2 on (``HAZARD_P``). A branch resolves in X1: the two
+instructions behind it (the delay slots) always execute. The angle register ``ang`` (an
+output, written in X4) addresses the sine table: after instruction i writes ``ang``, the fold
+flags are valid from i + 4, ``KD`` from i + 5, the table words ``TS``, ``TC`` from i + 6 (the
+special operands are selected and registered in R).
 """
 
 import dataclasses
@@ -49,7 +57,8 @@ from .fixed import check_param
 from .rotator import RotatorParams
 
 __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
-           "RF_DEPTH", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD", "HAZARD_TABLE", "WRITE_DELAY",
+           "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
+           "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
 #: Width of the register file words, the ALU and the product register ``P``.
@@ -58,13 +67,23 @@ WORD = 48
 MUL_A, MUL_B = 19, 28
 #: Register-file words.
 RF_DEPTH = 128
-#: Hazard distances of the three-stage execute (in instructions from the writer): a register
-#: written by instruction i is read correctly from i + HAZARD_RF on; after a write of the angle
-#: register ``ang``, the fold flags are valid from i + HAZARD_FOLD, ``KD`` from i + HAZARD_KD,
-#: the table words ``TS``, ``TC`` from i + HAZARD_TABLE.
-HAZARD_RF, HAZARD_FOLD, HAZARD_KD, HAZARD_TABLE = 3, 3, 4, 5
-#: Execute stages after X1 (X2, X3): an instruction writes back this many clocks after its X1.
-WRITE_DELAY = 2
+#: Execute stages after X1 (X2, X3, X4): an instruction writes back this many clocks after its
+#: X1. The hazard distances follow from it: the register file is read (transparently) in R, the
+#: fold flags in X1, ``KD`` is selected in R from the angle register, the table words one
+#: clock later (the table's read port is registered).
+WRITE_DELAY = 3
+HAZARD_RF = WRITE_DELAY + 1
+HAZARD_FOLD = WRITE_DELAY + 1
+HAZARD_KD = WRITE_DELAY + 2
+HAZARD_TABLE = WRITE_DELAY + 3
+#: P is written (MUL, DIV) at the end of X3 and read there by MAC and DIV (sequentially), but
+#: read in X2 by a post (an ALU operation on P or PQ, or a MUL's fused post): a post sees the
+#: P of instruction i from i + HAZARD_P on.
+HAZARD_P = 2
+#: (Hazard distances, in instructions from the writer: a register written by instruction i is
+#: read correctly from i + HAZARD_RF on; after a write of the angle register ``ang``, the fold
+#: flags are valid from i + HAZARD_FOLD, ``KD`` from i + HAZARD_KD, the table words ``TS``,
+#: ``TC`` from i + HAZARD_TABLE.)
 #: Saturation choices.
 SAT_NONE, SAT_W, SAT_W1 = 0, 1, 2
 
@@ -86,10 +105,13 @@ class Op(enum.IntEnum):
 #: ALU operations (they produce ``X`` and may write back).
 ALU_OPS = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 
+#: Width of the program counter and of branch targets (programs of up to 2**PC_WIDTH words).
+PC_WIDTH = 9
+
 #: Instruction fields, in bit order (name, width).
 FIELDS = (("op", 4), ("wen", 1), ("dst", 7), ("asp", 1), ("a", 7), ("bsp", 1), ("b", 7), ("sh", 5),
           ("rnd", 1), ("sat", 2), ("setf", 1), ("cond", 4), ("inv", 1), ("neg", 1), ("acc", 1),
-          ("asl", 1), ("out", 5), ("tgt", 8))
+          ("asl", 1), ("out", 5), ("tgt", PC_WIDTH))
 INSTR_LAYOUT = data.StructLayout({name: unsigned(width) for name, width in FIELDS})
 INSTR_WIDTH = sum(w for _, w in FIELDS)
 
@@ -243,6 +265,12 @@ class Assembler:
         fields = dict(op=int(op), wen=int(dst is not None), asp=asp, bsp=bsp, sh=sh, rnd=int(rnd),
                       sat=sat, setf=int(setf), cond=c, inv=inv, neg=int(neg), acc=int(acc),
                       asl=int(asl), out=self.outs.index(out) if out else 0)
+        if rnd and sh and op in (Op.MIN, Op.MAX, Op.SEL):
+            raise ValueError("Assembler: rnd only with ADD, SUB, RSUB and the posts, not with "
+                             "MIN, MAX or SEL")
+        if asl and not asp:
+            raise ValueError("Assembler: asl takes a special operand A only (it is shifted in "
+                             "the R stage)")
         if op in ALU_OPS and a_ref in (("s", 0), ("s", 1)) and (
                 b_ref != ("k", 0) or bsp or setf or asl or op != Op.ADD):
             raise ValueError("Assembler: an ALU operation on P or PQ must be ADD with B = 0, "
@@ -396,7 +424,9 @@ class Assembler:
                 if i in preds[k]:
                     regs = {r for r in eff[i][1] & eff[k][0] if isinstance(r, tuple) and
                             r[0] == "r"}
-                    height[i] = max(height[i], height[k] + (HAZARD_RF if regs else 1))
+                    gap = HAZARD_RF if regs else (HAZARD_P if "P" in eff[i][1] & eff[k][0]
+                                                  else 1)
+                    height[i] = max(height[i], height[k] + gap)
         seq = list(before[-HAZARD_TABLE:])
         done, order = set(), []
         while len(order) < n:
@@ -414,7 +444,7 @@ class Assembler:
             order.append(region[i])
         return order
 
-    # --- hazards of the three-stage execute (write back two instructions late) ------------------
+    # --- hazards of the four-stage execute (write back three instructions late) ------------------
     def _needs(self, hist, cur):
         """NOPs needed in front of ``cur``; ``hist`` holds the instructions before it, the
         latest last (``None`` for none)."""
@@ -427,6 +457,9 @@ class Assembler:
                                                (b_ref, f["bsp"], writer or op == Op.DIV))
                           if use and not sp and r[0] == "r"},
                 "writes": dst if (writer and f["wen"]) else None,
+                "pw": op in (Op.MUL, Op.DIV),
+                "pr": (op in ALU_OPS and f["asp"] and a_ref in (("s", 0), ("s", 1))) or
+                      (op == Op.MUL and bool(f["wen"] or f["out"])),
                 "ang": writer and f["out"] == self.outs.index("ang"),
                 "kd": f["asp"] and a_ref == ("s", self.specials.index("KD")) and writer,
                 "fold": f["cond"] in (self.conds.index(c) for c in ("SWAP", "NEGC", "NEGS")),
@@ -446,6 +479,8 @@ class Assembler:
             # k ≥ HAZARD_TABLE.
             if p["writes"] is not None and p["writes"] in c["reads"]:
                 n = max(n, HAZARD_RF - k)
+            if p["pw"] and c["pr"]:
+                n = max(n, HAZARD_P - k)
             if p["ang"]:
                 n = max(n, HAZARD_FOLD - k if c["fold"] else 0,
                         HAZARD_KD - k if c["kd"] else 0, HAZARD_TABLE - k if c["table"] else 0)
@@ -460,6 +495,11 @@ class Assembler:
         self.const(0)
         for i, entry in enumerate(instrs):
             n = self._needs(out, entry)
+            if entry[0]["op"] == Op.BR and i + 2 < len(instrs):
+                # Where a delay slot would need NOPs, they go in front of the branch.
+                hist = out + [None] * n + [entry]
+                n += max(self._needs(hist, instrs[i + 1]),
+                         self._needs(hist + [instrs[i + 1]], instrs[i + 2]))
             if n:
                 if i in slots:
                     raise ValueError(f"Assembler: hazard in a branch delay slot at {i}: "
@@ -563,8 +603,8 @@ class Assembler:
             f["dst"] = resolve(dst) if dst else 0
             f["tgt"] = self._labels[tgt] if tgt is not None else 0
             words.append(Instr(**f).encode())
-        if len(words) > 256:
-            raise ValueError(f"Assembler: {len(words)} instructions exceed 256")
+        if len(words) > 1 << PC_WIDTH:
+            raise ValueError(f"Assembler: {len(words)} instructions exceed {1 << PC_WIDTH}")
         symbols = dict(regs)
         symbols.update({f"k.{v}": a for v, a in kaddr.items()})
         return Program(words=words, rf_init=rf_init, regs=symbols, labels=dict(self._labels),
@@ -600,7 +640,7 @@ class Engine(wiring.Component):
     running : Out(1)
         The program runs (from the clock after ``start`` to its END).
     end : Out(1)
-        One-clock strobe: END in X2 (the instruction before it writes back in this clock;
+        One-clock strobe: END in X3 (the instruction before it writes back in this clock;
         from the next clock on every result is in place).
     <special> : In(shape)
         One port per user special operand.
@@ -609,7 +649,7 @@ class Engine(wiring.Component):
     <out> : Out(width), <out>_we : Out(1)
         Output registers (held) and their one-clock write strobes.
     trace_* : Out
-        Per-clock view of the instruction in X3 (write back), for the tests:
+        Per-clock view of the instruction in X4 (write back), for the tests:
         ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
         written back), ``trace_p`` (P as this instruction read it in X2, before its update).
     """
@@ -645,7 +685,7 @@ class Engine(wiring.Component):
             "running": Out(1),
             "end": Out(1),
             "trace_valid": Out(1),
-            "trace_pc": Out(8),
+            "trace_pc": Out(PC_WIDTH),
             "trace_wen": Out(1),
             "trace_dst": Out(7),
             "trace_y": Out(signed(WORD)),
@@ -669,15 +709,22 @@ class Engine(wiring.Component):
         w, q = self._width, self._div_bits
 
         # --- Fetch, register read, execute ---------------------------------------------------------
-        m.submodules.rom = rom = Memory(shape=INSTR_WIDTH, depth=max(len(prog.words), 2),
-                                        init=prog.words)
+        # The program ROM holds, beside each instruction, the key of its special operand A
+        # (``k + 1`` for the k-th (special, asl) pair the program uses, 0 for none; in the
+        # spare bits of the ROM's block RAM), decoded in R to the special's one-hot select.
+        keys = sorted({(ins.a, ins.asl) for ins in prog.instrs if ins.asp and ins.a >= 2})
+        key_w = max(1, (len(keys) + 1 - 1).bit_length())
+        rom_words = [word | ((keys.index((ins.a, ins.asl)) + 1 if ins.asp and ins.a >= 2 else 0)
+                             << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+        m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
+                                        depth=max(len(prog.words), 2), init=rom_words)
         m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init)
         rf_w = rf.write_port()
-        rf_a = rf.read_port(transparent_for=(rf_w,))
-        rf_b = rf.read_port(transparent_for=(rf_w,))
+        rf_a = rf.read_port()           # read-during-write: bypassed below (``use_a``, ``use_b``)
+        rf_b = rf.read_port()
         rom_r = rom.read_port()
 
-        pc = Signal(8)
+        pc = Signal(PC_WIDTH)
         f_valid = Signal()          # an instruction is being fetched (pc)
         r_valid = Signal()          # rom_r.data is an instruction in R
         x_valid = Signal()
@@ -686,9 +733,10 @@ class Engine(wiring.Component):
         x2_valid = Signal()
         ir3 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X3
         x3_valid = Signal()
-        ir1 = data.View(INSTR_LAYOUT, rom_r.data)
+        ir1 = data.View(INSTR_LAYOUT, rom_r.data[:INSTR_WIDTH])
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
-        m.d.sync += [ir.as_value().eq(rom_r.data), r_valid.eq(f_valid), x_valid.eq(r_valid)]
+        m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
+                     x_valid.eq(r_valid)]
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
@@ -712,40 +760,55 @@ class Engine(wiring.Component):
         # P and PQ are read in X2 (below), not through this mux.
         specials = [Const(0), Const(0), ts, tc, kd] + [getattr(self, f"s_{name}")
                                           for name in self._special_shapes]
-        # The special operands are selected in R (registered with the RF read).
+        # The special operands are selected in R (registered with the RF read) by an AND-OR
+        # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
+        # value shifted by the guard; a special A only), decoded from the key the ROM holds
+        # beside the instruction (no decode of the a field, no mux tree behind the ROM).
+        key = rom_r.data[INSTR_WIDTH:]
+        sel = Signal(max(1, len(keys)))
+        m.d.comb += sel.eq(Cat(*(key == k + 1 for k in range(len(keys)))))
+        terms = [Mux(sel[k], specials[i] << self._guard if asl else specials[i], 0)
+                 for k, (i, asl) in enumerate(keys)] or [Const(0)]
+        while len(terms) > 1:                   # a balanced OR tree
+            terms = [terms[j] | terms[j + 1] if j + 1 < len(terms) else terms[j]
+                     for j in range(0, len(terms), 2)]
         spec = Signal(signed(WORD))
-        with m.Switch(ir1.a):
-            for i, v in enumerate(specials):
-                with m.Case(i):
-                    m.d.sync += spec.eq(v)
-        a_raw = Mux(ir.asp, spec, rf_a.data)
-        a = Signal(signed(WORD))
-        m.d.comb += a.eq(Mux(ir.asl, a_raw << self._guard, a_raw))
+        m.d.comb += spec.eq(terms[0])
         bspec = Signal(signed(WORD))
         with m.Switch(ir1.b):
             for i, name in enumerate(prog.bspecials):
                 with m.Case(i):
-                    m.d.sync += bspec.eq(getattr(self, f"s_{name}"))
+                    m.d.comb += bspec.eq(getattr(self, f"s_{name}"))
+        # Operands A, B in X1: the register file's read data, or an alternative registered in
+        # R (``alt_a``, ``alt_b``, assigned below): the special operand, or the value written
+        # back (X4) in R's clock to the register read (the read-during-write bypass, in place
+        # of the memory's transparency): one select in front of the adder.
+        alt_a = Signal(signed(WORD), reset_less=True)
+        alt_b = Signal(signed(WORD), reset_less=True)
+        use_a = Signal()
+        use_b = Signal()
+        a = Signal(signed(WORD))
         b = Signal(signed(WORD))
-        m.d.comb += b.eq(Mux(ir.bsp, bspec, rf_b.data))
+        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a.data)), b.eq(Mux(use_b, alt_b, rf_b.data))]
 
-        # Flags: the sum itself is registered (``flag_sum``) and tested where the flags are read,
-        # which keeps the 49-bit zero test out of X1's adder path; N of a MAX (which adds
-        # B − A) is derived there too.
-        flag_sum = Signal(signed(WORD + 1))
+        # Flags: the sum's sign (``flag_s``) and its zero test, computed from the adder's
+        # operands beside the carry chain (below) and registered in four groups (``flag_zg``: a
+        # group is set where the sum is not zero), are registered; Z is their NOR and N of a
+        # MAX (which adds B − A) is derived where read.
+        flag_s = Signal()
         flag_max = Signal()
+        flag_zg = Signal(4)
         flag_z = Signal()
         flag_n = Signal()
-        m.d.comb += [flag_z.eq(flag_sum == 0),
-                     flag_n.eq(Mux(flag_max, ~flag_sum[-1] & ~flag_z, flag_sum[-1]))]
+        m.d.comb += [flag_z.eq(~flag_zg.any()),
+                     flag_n.eq(Mux(flag_max, ~flag_s & ~flag_z, flag_s))]
         conds = [Const(0), flag_n, flag_z, flag_n | flag_z, quad[0] ^ mu, quad[0] ^ quad[1],
                  quad[1]] + [getattr(self, f"c_{name}") for name in prog.conds[len(BUILTIN_CONDS):]]
-        cond_raw = Signal()
-        with m.Switch(ir.cond):
-            for i, v in enumerate(conds):
-                with m.Case(i):
-                    m.d.comb += cond_raw.eq(v)
-        c = cond_raw ^ ir.inv
+        # The condition by an AND-OR over a one-hot select decoded in R.
+        cond_sel = Signal(len(conds))
+        m.d.sync += cond_sel.eq(1 << ir1.cond)
+        c = Signal()
+        m.d.comb += c.eq(Cat(*(cond_sel[i] & v for i, v in enumerate(conds))).any() ^ ir.inv)
 
         # --- ALU ---------------------------------------------------------------------------------
         # The adder's mode and the result select are decoded in R (registered with the operands).
@@ -764,37 +827,100 @@ class Engine(wiring.Component):
         s = Signal(signed(WORD + 1))
         # One adder: A + B, A − B or B − A. MAX computes B − A, so that both MIN (A − B ≥ 0) and
         # MAX (A − B ≤ 0, i.e. B − A ≥ 0) select on the sum's sign alone.
-        m.d.comb += s.eq(Mux(d_inv_a, ~a, a) + Mux(d_inv_b, ~b, b) + (d_inv_a | d_inv_b))
-        x = Signal(signed(WORD + 1))
-        m.d.comb += x.eq(Mux(d_mm | d_sel, Mux((d_mm & ~s[-1]) | c, b, a), s))
-        # --- X2: rounding add (P read here); X3: shift, saturate, write back ------------------
-        x2 = Signal(signed(WORD + 1))
-        m.d.sync += [x2.eq(x), ir2.as_value().eq(ir.as_value())]
-        # P is read in X2 only (MUL and DIV update it at the end of X2): by a MUL's fused post
-        # and by an ALU operation whose A is P or PQ (B ignored); the choice is decoded in X1.
+        # A carry-select adder: the low half's carry picks one of two high halves (two short
+        # carry chains in parallel instead of one of WORD + 1 bits).
+        ea = Signal(signed(WORD + 1))
+        eb = Signal(signed(WORD + 1))
+        cin = d_inv_a | d_inv_b
+        m.d.comb += [ea.eq(Mux(d_inv_a, ~a, a)), eb.eq(Mux(d_inv_b, ~b, b))]
+        k = WORD // 2
+        lo = Signal(k + 2)
+        hi0 = Signal(WORD + 1 - k + 1)
+        hi1 = Signal(WORD + 1 - k + 1)
+        m.d.comb += [lo.eq(ea[:k] + eb[:k] + cin), hi0.eq(ea[k:] + eb[k:]),
+                     hi1.eq(ea[k:] + eb[k:] + 1),
+                     s.eq(Cat(lo[:k], Mux(lo[k], hi1[:WORD + 1 - k], hi0[:WORD + 1 - k])))]
+        # The sum is zero iff every bit's operand bits agree with the carry a zero sum would
+        # bring into it (cin into bit 0, ea | eb of the bit below): no carry chain in front.
+        carries = Cat(cin, (ea | eb)[:WORD])
+        s_nz = (ea ^ eb ^ carries)[:WORD + 1]
+        s_z4 = [s_nz[j:j + 4].any() for j in range(0, WORD + 1, 4)]     # two levels of OR4
+        s_zg = Cat(*(Cat(*s_z4[j:j + 4]).any() for j in range(0, len(s_z4), 4)))
+        # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
+        # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
+        # choice is made in X2 (``x2_b``: SEL, MIN or MAX take B), keeping every select off the
+        # carry chain's end and the condition's fan-out small.
+        # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
+        s2 = Signal(signed(WORD + 1), reset_less=True)
+        a2 = Signal(signed(WORD), reset_less=True)
+        b2 = Signal(signed(WORD), reset_less=True)
+        mm2 = Signal()
+        sel2 = Signal()
+        c2 = Signal()
+        m.d.sync += [s2.eq(s), a2.eq(a), b2.eq(b), mm2.eq(d_mm), sel2.eq(d_sel), c2.eq(c),
+                     ir2.as_value().eq(ir.as_value())]
+        x2_b = Signal()
+        m.d.comb += x2_b.eq((mm2 & (c2 | ~s2[-1])) | (sel2 & c2))
+        # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
+        # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
+        # of P, PQ, the sum, A (a2) and B (b2) under selects registered in X1.
         d_p = Signal()
         d_pq = Signal()
-        m.d.sync += [d_p.eq((ir.op == Op.MUL) | (ir.asp & (ir.a == 0))),
-                     d_pq.eq((ir.op != Op.MUL) & ir.asp & (ir.a == 1))]
+        k_s = Signal()
+        k_t = Signal()
+        p_read = (ir.op == Op.MUL) | (ir.asp & (ir.a == 0))
+        pq_read = (ir.op != Op.MUL) & ir.asp & (ir.a == 1)
+        m.d.sync += [d_p.eq(p_read), d_pq.eq(pq_read),
+                     k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
+                     k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
+        x2e = Signal(signed(WORD + 1))          # the ALU result X
+        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
         xp = Signal(signed(WORD + 1))
-        m.d.comb += xp.eq(Mux(d_p, p, Mux(d_pq, p[:q], x2)))
-        # Rounding constant 2**(sh−1) (− 1 for negative X), prepared in X1: no carry chain
-        # in front of the rounding adder.
-        h_one = Signal(unsigned(WORD))
-        h_mask = Signal(unsigned(WORD))
+        m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
+                          Mux(k_t & ~x2_b, a2, 0) | Mux(x2_b, b2, 0))
+        # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
+        # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
+        # rounding adder's operands).
+        h_mask = Signal(unsigned(WORD), reset_less=True)
+        rnd_p = Signal()
+        rnd_pq = Signal()
+        rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
-        m.d.sync += [h_one.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:], 0)),
-                     h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0))]
-        half = Signal(signed(WORD + 1))
-        m.d.comb += half.eq(Mux(xp[-1], h_mask, h_one))
-        # X3: the rounded sum registered; shift by sh (floor), saturate, write back.
+        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0)),
+                     rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
+                     rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
+        # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
+        # back (the barrel shift and the saturation test are in separate clocks).
         r3 = Signal(signed(WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
-        m.d.sync += [r3.eq(xp + half), x3_nz.eq(x2 != 0), ir3.as_value().eq(ir2.as_value())]
+        # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
+        # is short.
+        rx = Signal(WORD + 2)
+        rh = Signal(WORD + 2)
+        m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
+        # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
+        rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
+        kr = (WORD + 2) // 2
+        r_lo = Signal(kr + 1)
+        r_hi0 = Signal(WORD + 2 - kr)
+        r_hi1 = Signal(WORD + 2 - kr)
+        m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
+                     r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
+        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0))), x3_nz.eq(x2e != 0),
+                     ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(WORD + 2))
-        m.d.comb += shifted.eq(r3 >> ir3.sh)
+        x4_nz = Signal()
+        m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
+        # The fields X4 uses, registered from X3.
+        w4_sat = Signal(2)
+        w4_dst = Signal(7)
+        w4_out = Signal(5)
+        w4_wen = Signal()
+        w4_op = Signal(4)
+        m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
+                     w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
         y = Signal(signed(WORD))
-        with m.Switch(ir3.sat):
+        with m.Switch(w4_sat):
             for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
                 with m.Case(code):
                     lo, hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
@@ -805,68 +931,84 @@ class Engine(wiring.Component):
                 m.d.comb += y.eq(shifted)
 
         # --- Multiplier, divider step ----------------------------------------------------------
-        # Operands registered at the end of X1; product and P update in X2.
+        # Operands registered at the end of X1; the product registered at the end of X2 (the
+        # multiplier and its partial-product adders alone in X2); P updated in X3 (± product,
+        # DIV step), read in X2 by the posts (``HAZARD_P``) and in X3 by MAC and DIV.
         ma = Signal(signed(MUL_A))
         mb = Signal(signed(MUL_B))
         m_neg = Signal()
         m.d.sync += [ma.eq(a[:MUL_A]), mb.eq(b[:MUL_B]), m_neg.eq(ir.neg ^ c)]
-        prod = Signal(signed(MUL_A + MUL_B))
-        m.d.comb += prod.eq(ma * mb)
+        prod = Signal(signed(MUL_A + MUL_B), reset_less=True)
+        mb3 = Signal(signed(MUL_B), reset_less=True)
+        m_neg3 = Signal(reset_less=True)
+        m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(WORD + 1))
         m.d.comb += t2.eq(p << 1)
         div_diff = Signal(signed(WORD + 1))
-        m.d.comb += div_diff.eq((t2 >> q) - mb)
+        m.d.comb += div_diff.eq((t2 >> q) - mb3)
         div_ge = ~div_diff[-1]
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL)
         execute = x_valid & self.running
-        m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid)]
-        writes3 = x3_valid & ((ir3.op == Op.ADD) | (ir3.op == Op.SUB) | (ir3.op == Op.RSUB) |
-                              (ir3.op == Op.MIN) | (ir3.op == Op.MAX) | (ir3.op == Op.SEL) |
-                              (ir3.op == Op.MUL))
-        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it (trace only)
-        m.d.sync += p3.eq(p)
+        x4_valid = Signal()
+        m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
+        writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
+                              (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
+                              (w4_op == Op.MUL))
+        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it in X2 (trace)
+        p4 = Signal(signed(WORD))           # the same, in X4
+        m.d.sync += [p3.eq(p), p4.eq(p3)]
         m.d.comb += [
-            rf_w.addr.eq(ir3.dst),
+            rf_w.addr.eq(w4_dst),
             rf_w.data.eq(y),
-            rf_w.en.eq(writes3 & ir3.wen),
-            self.trace_valid.eq(x3_valid),
-            self.trace_wen.eq(rf_w.en),
-            self.trace_dst.eq(ir3.dst),
-            self.trace_y.eq(y),
-            self.trace_p.eq(p3),
+            rf_w.en.eq(writes4 & w4_wen),
         ]
-        x_pc = Signal(8)
-        r_pc = Signal(8)
-        x2_pc = Signal(8)
-        x3_pc = Signal(8)
-        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc)]
-        m.d.comb += self.trace_pc.eq(x3_pc)
+        m.d.sync += [
+            alt_a.eq(Mux(ir1.asp, spec, y)),
+            use_a.eq(ir1.asp | (rf_w.en & (rf_w.addr == ir1.a))),
+            alt_b.eq(Mux(ir1.bsp, bspec, y)),
+            use_b.eq(ir1.bsp | (rf_w.en & (rf_w.addr == ir1.b))),
+        ]
+        m.d.comb += [
+            self.trace_valid.eq(x4_valid),
+            self.trace_wen.eq(rf_w.en),
+            self.trace_dst.eq(w4_dst),
+            self.trace_y.eq(y),
+            self.trace_p.eq(p4),
+        ]
+        x_pc = Signal(PC_WIDTH)
+        r_pc = Signal(PC_WIDTH)
+        x2_pc = Signal(PC_WIDTH)
+        x3_pc = Signal(PC_WIDTH)
+        x4_pc = Signal(PC_WIDTH)
+        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc),
+                     x4_pc.eq(x3_pc)]
+        m.d.comb += self.trace_pc.eq(x4_pc)
 
-        # Outputs (written in X3, like the register file).
+        # Outputs (written in X4, like the register file).
         for i, (name, ow) in enumerate(self._out_widths.items(), start=1):
             reg = getattr(self, f"o_{name}")
             we = getattr(self, f"o_{name}_we")
-            m.d.comb += we.eq(writes3 & (ir3.out == i))
+            m.d.comb += we.eq(writes4 & (w4_out == i))
             with m.If(we):
-                m.d.sync += reg.eq(x3_nz if ow == 1 else y[:ow])
+                m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
 
         with m.If(execute):
             with m.If(is_alu & ir.setf):
-                # The sum (MAX: B − A); N, Z of A − B are derived from it where read.
-                m.d.sync += [flag_sum.eq(s), flag_max.eq(d_max)]
-        with m.If(x2_valid & (ir2.op == Op.MUL)):
+                # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
+                m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
+        with m.If(x3_valid & (ir3.op == Op.MUL)):
             # P ± prod: one adder, the carry-in negates.
-            m.d.sync += p.eq(Mux(ir2.acc, p, 0) + Mux(m_neg, ~prod, prod) + m_neg)
-        with m.If(x2_valid & (ir2.op == Op.DIV)):
+            m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)
+        with m.If(x3_valid & (ir3.op == Op.DIV)):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 
         # --- Sequencer -------------------------------------------------------------------------
-        # END stops the fetch in X1; ``end`` strobes with END in X2, when the instruction before
-        # it writes back (X3): from the next clock on every result is in place.
+        # END stops the fetch in X1; ``end`` strobes with END in X3, when the instruction before
+        # it writes back (X4): from the next clock on every result is in place.
         halt = execute & (ir.op == Op.END)
-        m.d.comb += self.end.eq(x2_valid & (ir2.op == Op.END))
+        m.d.comb += self.end.eq(x3_valid & (ir3.op == Op.END))
         with m.If(self.start & ~self.running):
             m.d.sync += [self.running.eq(1), pc.eq(0), f_valid.eq(1),
                          r_valid.eq(0), x_valid.eq(0)]

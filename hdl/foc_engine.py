@@ -223,7 +223,8 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     # --- SVPWM (width w + 1, frac w − 1: hdl/svpwm.py, min–max injection) --------------------------
     if int_guard != 8:
         raise ValueError("engine program: int_guard must be 8 (the SVPWM guard shift uses it)")
-    A.alu(Op.ADD, "r.qa", "r.ca", 0, asl=True)                       # α·2**8
+    A.mul("r.ca", 1 << 8)                                            # α·2**8
+    A.post("r.qa", 0)
     A.mul("r.cb", sv_k)
     A.post("r.qs", sv_kfrac)                                         # round(β·k, k_frac)
     A.alu(Op.ADD, "r.ta2", "r.qa", "r.qa")
@@ -239,22 +240,26 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.alu(Op.MAX, "r.d", "r.sp", 1 << sv_frac, setf=True)            # !LE: over-modulation
     A.alu(Op.SEL, None, 0, 1, cond="!LE", out="om")
     A.alu(Op.SUB, "r.bs", "r.d", "r.smm")                            # D − max − min
-    A.alu(Op.ADD, "r.d2", "r.d", "r.d")                              # 2D (over-modulation)
     for ph in "abc":                                                  # n = D + 2q − max − min
         A.alu(Op.ADD, f"r.n{ph}", "r.bs", f"r.t{ph}2")
+    # D = 2**F: (scale·n + 2**F) >> (F + 1) = round_shift (scale·n ≥ 0). The first product
+    # before the branch (the over-modulation path starts a new one).
+    A.mul("s.scale", "r.na")
     A.br("!LE", "om")                                                 # flags of D − 2**F
-    for ph in "abc":        # D = 2**F: (scale·n + 2**F) >> (F + 1) = round_shift (scale·n ≥ 0)
-        A.mul("s.scale", f"r.n{ph}")
+    A.alu(Op.ADD, "r.d2", "r.d", "r.d")     # delay slots (only the over-modulation path uses
+    A.alu(Op.ADD, "r.t", "r.na", "r.nb")    # them): 2D, na + nb
+    for ph in "abc":
+        if ph != "a":
+            A.mul("s.scale", f"r.n{ph}")
         A.emit(Op.ADD, a="s.P", b=0, sh=sv_frac + 1, rnd=True, out=f"d{ph}")
     A.end()
     # Over-modulation: the largest phase has n = 2D (duty = scale), the smallest n = 0 (duty 0),
     # the middle one n = Σn − 2D: one division.
     A.label("om")
-    A.alu(Op.ADD, "r.t", "r.na", "r.nb")
     A.mul("s.scale", "r.nc")                                          # scale·(Σn − 2D) + D
-    A.mac("s.scale", "r.t")
+    A.mac(1, "r.d")                   # (in this order: 2D and na + nb from the delay slots)
     A.mac("s.scale", "r.d2", neg=True)
-    A.mac(1, "r.d")
+    A.mac("s.scale", "r.t")
     for _ in range(count_width):
         A.emit(Op.DIV, b="r.d2")
     A.alu(Op.ADD, "r.qm", "s.PQ", 0)
@@ -309,7 +314,7 @@ def path_lengths(program):
 START_CLOCKS = 3
 #: Clocks from the accepted sample to ``o.valid`` beyond the executed instructions: the start,
 #: then END's X1 clock is the last instruction's; the write back of the instruction before
-#: END (X3) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
+#: END (X4) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
 PIPELINE_CLOCKS = START_CLOCKS + WRITE_DELAY - 1
 
 

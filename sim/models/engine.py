@@ -1,11 +1,12 @@
 # Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
 """Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
 clock (one instruction per clock, two branch delay slots) with the gateware's timing where a
-program can see it: register and output writes land ``WRITE_DELAY`` (2) instructions late (the
-X3 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
-words two (the special operands are registered in the R stage); flags and P are sequential.
-It records, per executed instruction, what the gateware shows on its ``trace_*`` ports in that
-instruction's X3 clock.
+program can see it: register and output writes land ``WRITE_DELAY`` (3) instructions late (the
+X4 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
+words two (the special operands are registered in the R stage); flags are sequential; P is
+sequential for MAC and DIV (X3) but a post reads it in X2, before the update of the
+instruction just before it (``HAZARD_P``). It records, per executed instruction, what the
+gateware shows on its ``trace_*`` ports in that instruction's X4 clock.
 
 Every value is checked against the widths the gateware gives it (multiplier operands
 ``signed(MUL_A)`` × ``signed(MUL_B)``, register file and ``P`` ``signed(WORD)``): a program that
@@ -105,8 +106,8 @@ class EngineModel:
         -------
         list of dict
             One entry per executed instruction (= per clock of the execute stage): ``pc``,
-            ``wen``, ``dst``, ``y`` (the post-processed result), ``p`` (P before the
-            instruction); ``outs`` holds the output registers afterwards.
+            ``wen``, ``dst``, ``y`` (the post-processed result), ``p`` (P as the instruction's
+            post reads it in X2); ``outs`` holds the output registers afterwards.
         """
         prog = self.program
         q = self.div_bits
@@ -114,6 +115,7 @@ class EngineModel:
         queue = collections.deque([0, 1, 2])
         fetch = 3
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
+        p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
         self.sreg = self.tbl + (self._fold(ang)[1],)
@@ -123,7 +125,9 @@ class EngineModel:
             ang = self.outs["ang"]
             _, kd_now, swap, negc, negs = self._fold(ang)
             ts, tc, kd = self.sreg                  # selected and registered in R
-            spec = [self.p, self.p & ((1 << q) - 1), ts, tc, kd] + [
+            # A post reads P in X2, before the update (X3) of the instruction before it.
+            p_x2, p_lag = p_lag, self.p
+            spec = [p_x2, p_x2 & ((1 << q) - 1), ts, tc, kd] + [
                 int(specials[name]) for name in prog.specials[len(BUILTIN_SPECIALS):]]
             cvals = [0, self.n, self.z, self.n | self.z, swap, negc, negs] + [
                 int(bool(conds[name])) for name in prog.conds[len(BUILTIN_CONDS):]]
@@ -141,7 +145,7 @@ class EngineModel:
             elif op == Op.SEL:
                 x = b if c else a
             elif ins.asp and ins.a in (0, 1):
-                x = a                   # P or PQ (read in X2; B is 0)
+                x = a                   # P or PQ (read in X2: p_x2; B is 0)
             else:
                 x = s
             sh = ins.sh
@@ -152,8 +156,8 @@ class EngineModel:
             if ins.sat in (SAT_W, SAT_W1):
                 sw = self.width + (ins.sat == SAT_W1)
                 y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
-            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": self.p}
-            writes = []                 # applied WRITE_DELAY instructions later (X3)
+            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": p_x2}
+            writes = []                 # applied WRITE_DELAY instructions later (X4)
             taken = False
             if op in ALU:
                 entry["y"] = y
@@ -167,7 +171,7 @@ class EngineModel:
                                    if self.out_widths[prog.outs[ins.out]] == 1 else y))
             elif op == Op.MUL:
                 if ins.wen or ins.out:                  # fused post of the old P
-                    x = self.p
+                    x = p_x2
                     y = (x + (1 << (sh - 1)) - (x < 0)) >> sh if (ins.rnd and sh) else x >> sh
                     if ins.sat in (SAT_W, SAT_W1):
                         sw = self.width + (ins.sat == SAT_W1)
@@ -193,7 +197,7 @@ class EngineModel:
                 taken = bool(c)
             trace.append(entry)
             # The table read port follows the angle register one clock behind; then the write
-            # back (X3) of the instruction WRITE_DELAY before this one lands.
+            # back (X4) of the instruction WRITE_DELAY before this one lands.
             self.sreg = self.tbl + (kd_now,)
             self.tbl = self._table_word(ang)
             pending.append(writes)
