@@ -233,7 +233,7 @@ class Top(wiring.Component):
         The current loop's implementation: ``"pipelined"`` (default, :class:`~.foc.CurrentLoop`:
         one pipeline stage per operation, 46–48 clocks) or ``"engine"``
         (:class:`~.foc_engine.EngineCurrentLoop`: the same results from a program on one
-        micro-sequenced datapath, 102–186 clocks, ≈ 1/3 of the LUTs, 4 multipliers; docs/ENGINE.md).
+        micro-sequenced datapath, 134–232 clocks, ≈ 1/3 of the LUTs, 4 multipliers; docs/ENGINE.md).
         Only the timing differs (:attr:`loop_latency`); ``mul_width`` does not apply to the engine.
     scope_ram : str
         The trace buffer's RAM (:class:`~.scope.Scope` ``ram``): ``"bram"`` (default, a
@@ -282,7 +282,7 @@ class Top(wiring.Component):
         :attr:`Gates.trip_latency` = 4.
     loop_latency : int
         Clocks from the ``sample`` strobe to the duties: ADC + current loop (its worst case: the
-        engine's latency depends on the program path, 91 … 169).
+        engine's latency depends on the program path, 134 … 232, docs/ENGINE.md).
     mt_edges : str
         The M/T edge mode (the parameter).
     mul_width : int
