@@ -447,7 +447,8 @@ class QuadratureDecoder(wiring.Component):
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        em_next, _ = _step(fwd_c, em, pp_q, cpr_pp[:CPR_WIDTH], em >= cpr_pp, em < pp_q)
+        em_next, _ = _step(fwd_c, em, pp_q, cpr_pp[:CPR_WIDTH], em >= cpr_pp[:CPR_WIDTH],
+                           em < pp_q)
         rm_next, cin = _step(fwd_c, rm, rp, cpr_rp[:CPR_WIDTH], rm >= cpr_rp, rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
