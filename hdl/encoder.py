@@ -674,18 +674,17 @@ class HallPlausibility(wiring.Component):
             tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 1, self.misses)),
         ]
 
-        # Clock 2: d = θ − boundary − offset (mod a turn); 2**aw − tolerance.
+        # Clock 2: d = θ − boundary − offset (mod a turn).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
         d2 = Signal(aw)
         tol2 = Signal(aw)
-        ntol2 = Signal(aw + 1)
         need2 = Signal(4)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
             restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
-            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1), ntol2.eq((1 << aw) - tol1),
+            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1),
         ]
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
@@ -697,9 +696,10 @@ class HallPlausibility(wiring.Component):
         m.d.comb += dd.eq(d2 - d_q)
         # The two checks never apply together: one magnitude comparison serves both. For x
         # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
-        # true for tol ≥ 2**(aw−1)): two comparisons side by side, no negation.
+        # true for tol ≥ 2**(aw−1)): two carry chains side by side, no negation; the second
+        # as x + tol < 2**aw (no carry out), so 2**aw − tol needs no subtractor of its own.
         x = Mux(aligned2, d2, dd)
-        over = (x > tol2) & (x < ntol2)
+        over = (x > tol2) & ~(x + tol2)[aw]
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
