@@ -576,7 +576,8 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: three 16-bit subtractions, two comparisons, a 6-entry constant table and ≈ 180
+    Cost: two 16-bit subtractions for ``d``, one for ``d − d_prev``, two magnitude tests (a
+    comparison and the carry out of ``x + tolerance``), a 6-entry constant table and ≈ 135
     flip-flops, no multiplier or divider. Pipelined in three clocks (the edge and the inputs
     registered; ``d``; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of
     clocks apart, the two clocks cost nothing.
