@@ -173,6 +173,22 @@ class GlitchFilter(wiring.Component):
         return m
 
 
+def _add(a, b, cin):
+    """``(a + b + cin) mod 2**len(a)`` on one carry chain (the carry-in as a low bit)."""
+    return (Cat(cin, a) + Cat(cin, b))[1:len(a) + 1]
+
+
+def _step(up, x, step, comp, ge_comp, lt_step):
+    """One modular step of ``x`` (``0 ≤ x < cpr``) by ``±step``, with ``comp = cpr − step``:
+    up ``x ≥ comp ? x − comp : x + step``, down ``x < step ? x + comp : x − step``, on one adder.
+    Returns the new value and the carry-in taken (up: the wrap; down: no wrap)."""
+    wrap = Mux(up, ge_comp, lt_step)
+    neg = up == wrap                    # up and wrapping, or down and not wrapping: subtract
+    operand = Mux(wrap, comp, step)
+    mask = (1 << len(x)) - 1
+    return _add(x, operand ^ Mux(neg, mask, 0), neg), neg
+
+
 class _Config(enum.Enum, shape=3):
     IDLE = 0
     START_P = 1
@@ -310,7 +326,6 @@ class QuadratureDecoder(wiring.Component):
         pp0 = self.pole_pairs.init
         z0 = self.z_offset.init
         qp0, rp0, qz0, rz0, valid0 = angle_constants(lines0, pp0, z0)
-        lines_q = Signal(LINES_WIDTH, init=lines0)
         pp_q = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_q = Signal(CPR_WIDTH, init=z0)
         qp = Signal(aw, init=qp0)
@@ -318,7 +333,6 @@ class QuadratureDecoder(wiring.Component):
         qz = Signal(aw, init=qz0)
         rz = Signal(CPR_WIDTH, init=rz0)
         valid = Signal(init=valid0)
-        cpr = Signal(CPR_WIDTH, init=4 * lines0)
         # cpr − Rz, cpr − z, cpr − Rp, cpr − pole_pairs, cpr − 1: the wrap tests of the
         # position steps and of the output sums as one comparison each, on registers. The
         # remainders Rz, Rp are below cpr (0 for cpr = 0), but z and pole_pairs may exceed cpr
@@ -329,10 +343,14 @@ class QuadratureDecoder(wiring.Component):
         cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
         cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
         cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)
-        # Pending configuration and its first quotient while the divisions run.
-        lines_p = Signal(LINES_WIDTH)
-        pp_p = Signal(POLE_PAIRS_WIDTH)
-        z_p = Signal(CPR_WIDTH)
+        # Pending configuration and its first quotient while the divisions run. When idle the
+        # pending values equal the committed ones (a commit copies them; they start equal), so
+        # the inputs are compared with them alone; whether ``lines`` or ``pole_pairs`` change is
+        # noted when the change is taken in (``lp_changed``) for the commit.
+        lines_p = Signal(LINES_WIDTH, init=lines0)
+        pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
+        z_p = Signal(CPR_WIDTH, init=z0)
+        lp_changed = Signal()
         qp_p = Signal(aw)
         rp_p = Signal(CPR_WIDTH)
         state = Signal(_Config)
@@ -361,10 +379,11 @@ class QuadratureDecoder(wiring.Component):
         remainder = div.o.payload.remainder
         with m.Switch(state):
             with m.Case(_Config.IDLE):
-                with m.If((self.lines != lines_q) | (self.pole_pairs != pp_q) |
-                          (self.z_offset != z_q)):
+                lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
+                with m.If(lp_change | (self.z_offset != z_p)):
                     m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                                 z_p.eq(self.z_offset), state.eq(_Config.START_P)]
+                                 z_p.eq(self.z_offset), lp_changed.eq(lp_change),
+                                 state.eq(_Config.START_P)]
             with m.Case(_Config.START_P, _Config.START_Z):
                 with m.If(div.i.ready):
                     m.d.sync += [timer.eq(0), state.eq(state.as_value() + 1)]
@@ -380,10 +399,10 @@ class QuadratureDecoder(wiring.Component):
                         m.d.sync += state.eq(_Config.IDLE)
         new_valid = ((lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p))
         restart = Signal()
-        m.d.comb += restart.eq(commit & ((lines_p != lines_q) | (pp_p != pp_q) | ~new_valid))
+        m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                lines_q.eq(lines_p), pp_q.eq(pp_p), z_q.eq(z_p), cpr.eq(cpr_p),
+                pp_q.eq(pp_p), z_q.eq(z_p),
                 qp.eq(qp_p), rp.eq(rp_p), qz.eq(quotient), rz.eq(remainder),
                 valid.eq(new_valid), cpr_rz.eq(cpr_p - remainder), cpr_z.eq(cpr_p - z_p),
                 cpr_rp.eq(cpr_p - rp_p), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
@@ -419,23 +438,23 @@ class QuadratureDecoder(wiring.Component):
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
         rm = Signal(CPR_WIDTH)          # em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
         # Each wrap test compares a register with a per-configuration constant, side by side
-        # with the candidate sums (em + p ≥ cpr ⇔ em ≥ cpr − p; rm − Rp < 0 ⇔ rm < Rp).
-        carry = rm >= cpr_rp
-        borrow = rm < rp
-        with m.If(valid & fwd):
-            m.d.sync += [
-                self.count.eq(Mux(self.count == cpr_m1, 0, self.count + 1)),
-                em.eq(Mux(em >= cpr_pp, em - cpr_pp, em + pp_q)),
-                rm.eq(Mux(carry, rm - cpr_rp, rm + rp)),
-                thm.eq(Mux(carry, thm + qp + 1, thm + qp)),
-            ]
-        with m.Elif(valid & bwd):
-            m.d.sync += [
-                self.count.eq(Mux(self.count == 0, cpr_m1, self.count - 1)),
-                em.eq(Mux(em < pp_q, em + cpr_pp, em - pp_q)),
-                rm.eq(Mux(borrow, rm + cpr_rp, rm - rp)),
-                thm.eq(Mux(borrow, thm - qp - 1, thm - qp)),
-            ]
+        # with the candidate sums (em + p ≥ cpr ⇔ em ≥ cpr − p; rm − Rp < 0 ⇔ rm < Rp). One adder
+        # per counter serves both directions: the wrap test picks the operand (the step or
+        # cpr − step) and whether it is subtracted (see _step). Counting only happens with a
+        # valid configuration, where cpr − pole_pairs and cpr − Rp lie in 1 … cpr − 1.
+        fwd_c = Signal()
+        m.d.comb += fwd_c.eq(fwd)
+        c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
+        count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
+                         (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
+        em_next, _ = _step(fwd_c, em, pp_q, cpr_pp[:CPR_WIDTH], em >= cpr_pp[:CPR_WIDTH],
+                           em < pp_q)
+        rm_next, cin = _step(fwd_c, rm, rp, cpr_rp[:CPR_WIDTH], rm >= cpr_rp, rm < rp)
+        # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
+        thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
+        with m.If(valid & (fwd | bwd)):
+            m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
+                         thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
         with m.If(valid & index & arm):
             m.d.sync += [self.aligned.eq(1), self.count.eq(0), em.eq(0), thm.eq(0), rm.eq(0)]
@@ -557,7 +576,8 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: three 16-bit subtractions, two comparisons, a 6-entry constant table and ≈ 180
+    Cost: two 16-bit subtractions for ``d``, one for ``d − d_prev``, two magnitude tests (a
+    comparison and the carry out of ``x + tolerance``), a 6-entry constant table and ≈ 135
     flip-flops, no multiplier or divider. Pipelined in three clocks (the edge and the inputs
     registered; ``d``; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of
     clocks apart, the two clocks cost nothing.
@@ -655,18 +675,17 @@ class HallPlausibility(wiring.Component):
             tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 1, self.misses)),
         ]
 
-        # Clock 2: d = θ − boundary − offset (mod a turn); 2**aw − tolerance.
+        # Clock 2: d = θ − boundary − offset (mod a turn).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
         d2 = Signal(aw)
         tol2 = Signal(aw)
-        ntol2 = Signal(aw + 1)
         need2 = Signal(4)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
             restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
-            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1), ntol2.eq((1 << aw) - tol1),
+            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1),
         ]
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
@@ -678,9 +697,10 @@ class HallPlausibility(wiring.Component):
         m.d.comb += dd.eq(d2 - d_q)
         # The two checks never apply together: one magnitude comparison serves both. For x
         # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
-        # true for tol ≥ 2**(aw−1)): two comparisons side by side, no negation.
+        # true for tol ≥ 2**(aw−1)): two carry chains side by side, no negation; the second
+        # as x + tol < 2**aw (no carry out), so 2**aw − tol needs no subtractor of its own.
         x = Mux(aligned2, d2, dd)
-        over = (x > tol2) & (x < ntol2)
+        over = (x > tol2) & ~(x + tol2)[aw]
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
