@@ -376,9 +376,11 @@ class PISpec(Elaboratable):
     Parameters
     ----------
     loop : type
-        The block whose PI is proved, :class:`~foc_servo.hdl.foc.CurrentLoop` or
-        :class:`~foc_servo.hdl.servo.Servo` (the speed loop): the PI parameters are its
-        defaults, as the top builds it.
+        The block whose PI parameters are proved, :class:`~foc_servo.hdl.foc.CurrentLoop` or
+        :class:`~foc_servo.hdl.servo.Servo` (the speed loop): its defaults, as the top builds
+        it. Since session 7 the speed loop no longer instantiates :class:`PI`: it computes the
+        same equations on a sequential datapath (docs/AREA.md §7.9), which is checked bit for
+        bit against the golden model in simulation, not by this proof.
     **params
         ``width``, ``kp_format``, ``kx_format``, ``int_guard`` overriding those.
     broken : bool
@@ -717,7 +719,8 @@ PROOFS = {p.name: p for p in (
     Proof("pi", PISpec, 5, 10,
           "current-loop PI: output within its limits, integrator within them, never wrapping"),
     Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,
-          "speed-loop PI (24 bit): the same properties"),
+          "PI at the speed loop's formats (24 bit): the same properties (the speed loop now "
+          "runs these equations on its sequential datapath, checked against the model only)"),
     Proof("hostlink", HostLinkSpec, 3, 20,
           "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
     Proof("regfile", RegFileSpec, 2, 4,
