@@ -38,7 +38,7 @@ from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .fixed import check_param, saturate
+from .fixed import check_param
 from .regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
@@ -245,12 +245,21 @@ class MTSpeed(wiring.Component):
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
         tc = Signal(w)
+        # TC + 1, kept as a second counter so that the expiry compare below has no incrementer
+        # in front of it (ECP5 Fmax: `tc + 1` → compare → the window enables was the top's
+        # critical path): +w FF.
+        tc1 = Signal(w, init=1)
         with m.If(tick):
-            m.d.sync += tc.eq(tc + 1)
+            m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1)]
 
-        # --- Window state. Invariant: pending == 0 implies m_acc == 0; have_ref == 0 implies
+        # --- Window state. Invariant: pending == 0 implies ΔM == 0; have_ref == 0 implies
         # pending == 0.
-        m_acc = Signal(signed(mw))      # net edges since the reference edge (saturating)
+        # Net edges since the reference edge, saturating to signed(mw), kept as magnitude and
+        # sign (ECP5 Fmax: the snapshot's |ΔM| is then one up/down step of a register, without a
+        # negation behind the signed add and its saturation). m_neg is meaningless when
+        # m_mag == 0.
+        m_mag = Signal(mw)              # |ΔM| <= 2**(mw - 1)
+        m_neg = Signal()                # ΔM < 0
         t_last = Signal(w)              # T of the last counted edge
         t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
@@ -260,18 +269,31 @@ class MTSpeed(wiring.Component):
         busy = Signal()                 # a computation is in flight
 
         step, neg = self.edge.step, self.edge.neg
-        m_e = Signal(signed(mw))        # the state including this clock's edge
+        mag_e = Signal(mw)              # the state including this clock's edge
+        neg_e = Signal()
         tl_e = Signal(w)
         pend_e = Signal()
-        m.d.comb += [m_e.eq(m_acc), tl_e.eq(t_last), pend_e.eq(pending)]
+        # A step away from zero (or from zero) adds 1 to the magnitude up to the limit of its
+        # sign (2**(mw − 1) − 1 positive, 2**(mw − 1) negative: saturate to signed(mw)); a step
+        # towards zero subtracts 1 (the sign is kept on reaching 0: a zero magnitude's sign is
+        # never used, the next step sets it and a snapshot of 0 reads 0). Both steps and the
+        # compares are formed from the registers in parallel; the edge only selects.
+        zero = m_mag == 0
+        away = zero | (neg == m_neg)
+        at_lim = m_mag == Mux(m_neg, 1 << (mw - 1), (1 << (mw - 1)) - 1)
+        mag_up = Signal(mw)
+        mag_dn = Signal(mw)
+        m.d.comb += [mag_up.eq(Mux(at_lim, m_mag, m_mag + 1)), mag_dn.eq(m_mag - 1)]
+        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), tl_e.eq(t_last), pend_e.eq(pending)]
         with m.If(step):
             m.d.comb += [
-                m_e.eq(saturate(m_acc + Mux(neg, -1, 1), signed(mw))),
+                mag_e.eq(Mux(away, mag_up, mag_dn)),
+                neg_e.eq(Mux(zero, neg, m_neg)),
                 tl_e.eq(tc),
                 pend_e.eq(1),
             ]
         # After this clock TC equals t_ref again: a whole span since the reference edge.
-        expire = have_ref & tick & ((tc + 1)[:w] == t_ref)
+        expire = have_ref & tick & (tc1 == t_ref)
         start = self.update & ~busy
 
         # The window's next state, written as flat enables (the expiry compare is the longest
@@ -282,7 +304,7 @@ class MTSpeed(wiring.Component):
         # * expiry without edges: the reference is dropped; any expiry not at a closing update
         #   also invalidates the last measurement;
         # * otherwise the edge of this clock (if any) is counted.
-        # t_last is always the last edge's T (no edge: unchanged); m_acc and pending are 0 while
+        # t_last is always the last edge's T (no edge: unchanged); ΔM and pending are 0 while
         # there is no reference, and at an expiry without edges.
         first = ~have_ref & step
         close = have_ref & pend_e & (start | expire)
@@ -290,7 +312,8 @@ class MTSpeed(wiring.Component):
         with m.If(first | close):
             m.d.sync += t_ref.eq(tl_e)
         with m.If(have_ref):
-            m.d.sync += [m_acc.eq(Mux(close, 0, m_e)), pending.eq(pend_e & ~close)]
+            m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
+                         pending.eq(pend_e & ~close)]
         with m.If(have_ref & expire & ~(start & pend_e)):
             m.d.sync += prev_valid.eq(0)
         with m.If(first):
@@ -312,7 +335,7 @@ class MTSpeed(wiring.Component):
             m.d.sync += busy.eq(1)
             with m.If(have_ref & pend_e):
                 m.d.sync += [mode.eq(WindowMode.FRESH),
-                             snap_dm.eq(Mux(m_e < 0, -m_e, m_e)), snap_neg.eq(m_e < 0),
+                             snap_dm.eq(mag_e), snap_neg.eq(neg_e),
                              snap_dt.eq(dt)]
             with m.Elif(have_ref & prev_valid):
                 m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_neg.eq(0),
