@@ -245,12 +245,19 @@ class MTSpeed(wiring.Component):
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
         tc = Signal(w)
-        # TC + 1, kept as a second counter so that the expiry compare below has no incrementer
-        # in front of it (ECP5 Fmax: `tc + 1` → compare → the window enables was the top's
-        # critical path): +w FF.
-        tc1 = Signal(w, init=1)
-        with m.If(tick):
-            m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1)]
+        # TC + 2 (and TC + 1 when TC does not tick every clock) as counters of their own, for the
+        # registered expiry compare below (`at_span`).
+        tc2 = Signal(w, init=2)
+        if r == 1:
+            m.d.sync += [tc.eq(tc + 1), tc2.eq(tc2 + 1)]
+        else:
+            tc1 = Signal(w, init=1)
+            with m.If(tick):
+                m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1), tc2.eq(tc2 + 1)]
+
+        def next_tc1_eq(x):
+            # TC + 1 of the next clock equals register x (a value held in this clock).
+            return (tc2 == x) if r == 1 else Mux(tick, tc2 == x, tc1 == x)
 
         # --- Window state. Invariant: pending == 0 implies ΔM == 0; have_ref == 0 implies
         # pending == 0.
@@ -293,7 +300,10 @@ class MTSpeed(wiring.Component):
                 pend_e.eq(1),
             ]
         # After this clock TC equals t_ref again: a whole span since the reference edge.
-        expire = have_ref & tick & (tc1 == t_ref)
+        # `at_span` is TC + 1 == t_ref, computed a clock ahead (ECP5 Fmax: the 2·w-bit compare
+        # and the incrementer were in front of the window's enables, the top's critical path).
+        at_span = Signal()              # invariant: at_span == ((tc + 1) mod 2**w == t_ref)
+        expire = have_ref & tick & at_span
         start = self.update & ~busy
 
         # The window's next state, written as flat enables (the expiry compare is the longest
@@ -311,6 +321,10 @@ class MTSpeed(wiring.Component):
         m.d.sync += t_last.eq(tl_e)
         with m.If(first | close):
             m.d.sync += t_ref.eq(tl_e)
+        # The next t_ref is tl_e: TC itself on an edge (TC + 1 of the next clock is TC + 1 or
+        # TC + 2 ≠ TC, as w >= 8) or t_last; otherwise t_ref is kept.
+        m.d.sync += at_span.eq(Mux(first | close, ~step & next_tc1_eq(t_last),
+                                   next_tc1_eq(t_ref)))
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]

@@ -575,3 +575,18 @@ def test_mt_window_count_saturates_both_ways():
     assert out["dm"].tolist() == [3, 1, -4, -3, -1, 0]
     assert out["fresh"].tolist() == [1, 1, 1, 1, 1, 1]
     assert out["speed"][-1] == 0
+
+
+@pytest.mark.parametrize("gap", [1, 2, 3])
+def test_mt_expiry_right_after_a_close(gap):
+    """A window closed a clock or two before its last edge expires in turn: two edges `gap`
+    clocks apart, no update for a whole TC span, so the first expires (its window closes on the
+    second, which becomes the reference) and the second expires `gap` clocks later; updates
+    around both expiries. The registered expiry compare (`at_span`) must follow the new
+    reference from the closing clock on."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=8, out_width=16, k_width=16, m_width=8)
+    span = 2 ** dut.tc_width
+    for up in range(20 + span - 3, 20 + span + gap + 3):
+        edges, neg = [20, 20 + gap], [0, 0]
+        out = both(dut, edges, neg, [up, up + 200], k=1000, end_cycle=up + 300)
+        assert out["stopped"][-1] == 1
