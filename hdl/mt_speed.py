@@ -123,8 +123,8 @@ class MTSpeed(wiring.Component):
         Scale factor, an integer: ``D_n = k·ΔM/ΔT`` in Q1.(out_width−1) of N_M;
         ``k = 60·2**(out_width−1)·f_TCLK / (lines·edges_per_line·N_M)`` (see
         :func:`foc_servo.sim.models.mt_speed.k_for`). Sampled 16 bits at a time, least
-        significant first, in the :attr:`k_chunks` clocks after the accepted update (hold it
-        steady; the register file changes it only at a commit).
+        significant first, in the clock of the accepted update and the :attr:`k_chunks` − 1
+        clocks after it (hold it steady; the register file changes it only at a commit).
     o : Out(stream.Signature(output_layout(out_width), always_ready=True))
         One 1-clock ``valid`` strobe :attr:`latency` clocks after each accepted update; payload
         held until the next. ``speed``: signed Q1.(out_width−1) of N_M, truncated toward zero,
@@ -379,9 +379,17 @@ class MTSpeed(wiring.Component):
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
         # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
         k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
+        # The multiplier's k operand from a register, `k_c` = word `left` of k_rev, loaded with
+        # the word of left's next value (ECP5 Fmax: no word multiplexer in front of the
+        # MULT18X18D). k is thus sampled a clock earlier than `pp` is formed. No reset: read
+        # only while `adding`, i.e. after a start has loaded it.
+        k_c = Signal(16, reset_less=True)
+        left_next = Signal(range(nk + 1))
+        m.d.comb += left_next.eq(Mux(start, nk, Mux(left != 0, left - 1, 0)))
         m.d.comb += t.eq(pp + carry)
         m.d.sync += [
-            pp.eq(k_rev.word_select(left, 16) * snap_dm),
+            k_c.eq(k_rev.word_select(left_next, 16)),
+            pp.eq(k_c * snap_dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
         ]
