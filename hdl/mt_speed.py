@@ -38,7 +38,7 @@ from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
 from .divider import Divider
-from .fixed import check_param, saturate
+from .fixed import check_param
 from .regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
@@ -123,8 +123,8 @@ class MTSpeed(wiring.Component):
         Scale factor, an integer: ``D_n = k·ΔM/ΔT`` in Q1.(out_width−1) of N_M;
         ``k = 60·2**(out_width−1)·f_TCLK / (lines·edges_per_line·N_M)`` (see
         :func:`foc_servo.sim.models.mt_speed.k_for`). Sampled 16 bits at a time, least
-        significant first, in the :attr:`k_chunks` clocks after the accepted update (hold it
-        steady; the register file changes it only at a commit).
+        significant first, in the clock of the accepted update and the :attr:`k_chunks` − 1
+        clocks after it (hold it steady; the register file changes it only at a commit).
     o : Out(stream.Signature(output_layout(out_width), always_ready=True))
         One 1-clock ``valid`` strobe :attr:`latency` clocks after each accepted update; payload
         held until the next. ``speed``: signed Q1.(out_width−1) of N_M, truncated toward zero,
@@ -245,12 +245,28 @@ class MTSpeed(wiring.Component):
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
         tc = Signal(w)
-        with m.If(tick):
-            m.d.sync += tc.eq(tc + 1)
+        # TC + 2 (and TC + 1 when TC does not tick every clock) as counters of their own, for the
+        # registered expiry compare below (`at_span`).
+        tc2 = Signal(w, init=2)
+        if r == 1:
+            m.d.sync += [tc.eq(tc + 1), tc2.eq(tc2 + 1)]
+        else:
+            tc1 = Signal(w, init=1)
+            with m.If(tick):
+                m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1), tc2.eq(tc2 + 1)]
 
-        # --- Window state. Invariant: pending == 0 implies m_acc == 0; have_ref == 0 implies
+        def next_tc1_eq(x):
+            # TC + 1 of the next clock equals register x (a value held in this clock).
+            return (tc2 == x) if r == 1 else Mux(tick, tc2 == x, tc1 == x)
+
+        # --- Window state. Invariant: pending == 0 implies ΔM == 0; have_ref == 0 implies
         # pending == 0.
-        m_acc = Signal(signed(mw))      # net edges since the reference edge (saturating)
+        # Net edges since the reference edge, saturating to signed(mw), kept as magnitude and
+        # sign (ECP5 Fmax: the snapshot's |ΔM| is then one up/down step of a register, without a
+        # negation behind the signed add and its saturation). m_neg is meaningless when
+        # m_mag == 0.
+        m_mag = Signal(mw)              # |ΔM| <= 2**(mw - 1)
+        m_neg = Signal()                # ΔM < 0
         t_last = Signal(w)              # T of the last counted edge
         t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
@@ -260,18 +276,34 @@ class MTSpeed(wiring.Component):
         busy = Signal()                 # a computation is in flight
 
         step, neg = self.edge.step, self.edge.neg
-        m_e = Signal(signed(mw))        # the state including this clock's edge
+        mag_e = Signal(mw)              # the state including this clock's edge
+        neg_e = Signal()
         tl_e = Signal(w)
         pend_e = Signal()
-        m.d.comb += [m_e.eq(m_acc), tl_e.eq(t_last), pend_e.eq(pending)]
+        # A step away from zero (or from zero) adds 1 to the magnitude up to the limit of its
+        # sign (2**(mw − 1) − 1 positive, 2**(mw − 1) negative: saturate to signed(mw)); a step
+        # towards zero subtracts 1 (the sign is kept on reaching 0: a zero magnitude's sign is
+        # never used, the next step sets it and a snapshot of 0 reads 0). Both steps and the
+        # compares are formed from the registers in parallel; the edge only selects.
+        zero = m_mag == 0
+        away = zero | (neg == m_neg)
+        at_lim = m_mag == Mux(m_neg, 1 << (mw - 1), (1 << (mw - 1)) - 1)
+        mag_up = Signal(mw)
+        mag_dn = Signal(mw)
+        m.d.comb += [mag_up.eq(Mux(at_lim, m_mag, m_mag + 1)), mag_dn.eq(m_mag - 1)]
+        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), tl_e.eq(t_last), pend_e.eq(pending)]
         with m.If(step):
             m.d.comb += [
-                m_e.eq(saturate(m_acc + Mux(neg, -1, 1), signed(mw))),
+                mag_e.eq(Mux(away, mag_up, mag_dn)),
+                neg_e.eq(Mux(zero, neg, m_neg)),
                 tl_e.eq(tc),
                 pend_e.eq(1),
             ]
         # After this clock TC equals t_ref again: a whole span since the reference edge.
-        expire = have_ref & tick & ((tc + 1)[:w] == t_ref)
+        # `at_span` is TC + 1 == t_ref, computed a clock ahead (ECP5 Fmax: the 2·w-bit compare
+        # and the incrementer were in front of the window's enables, the top's critical path).
+        at_span = Signal()              # invariant: at_span == ((tc + 1) mod 2**w == t_ref)
+        expire = have_ref & tick & at_span
         start = self.update & ~busy
 
         # The window's next state, written as flat enables (the expiry compare is the longest
@@ -282,15 +314,20 @@ class MTSpeed(wiring.Component):
         # * expiry without edges: the reference is dropped; any expiry not at a closing update
         #   also invalidates the last measurement;
         # * otherwise the edge of this clock (if any) is counted.
-        # t_last is always the last edge's T (no edge: unchanged); m_acc and pending are 0 while
+        # t_last is always the last edge's T (no edge: unchanged); ΔM and pending are 0 while
         # there is no reference, and at an expiry without edges.
         first = ~have_ref & step
         close = have_ref & pend_e & (start | expire)
         m.d.sync += t_last.eq(tl_e)
         with m.If(first | close):
             m.d.sync += t_ref.eq(tl_e)
+        # The next t_ref is tl_e: TC itself on an edge (TC + 1 of the next clock is TC + 1 or
+        # TC + 2 ≠ TC, as w >= 8) or t_last; otherwise t_ref is kept.
+        m.d.sync += at_span.eq(Mux(first | close, ~step & next_tc1_eq(t_last),
+                                   next_tc1_eq(t_ref)))
         with m.If(have_ref):
-            m.d.sync += [m_acc.eq(Mux(close, 0, m_e)), pending.eq(pend_e & ~close)]
+            m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
+                         pending.eq(pend_e & ~close)]
         with m.If(have_ref & expire & ~(start & pend_e)):
             m.d.sync += prev_valid.eq(0)
         with m.If(first):
@@ -312,7 +349,7 @@ class MTSpeed(wiring.Component):
             m.d.sync += busy.eq(1)
             with m.If(have_ref & pend_e):
                 m.d.sync += [mode.eq(WindowMode.FRESH),
-                             snap_dm.eq(Mux(m_e < 0, -m_e, m_e)), snap_neg.eq(m_e < 0),
+                             snap_dm.eq(mag_e), snap_neg.eq(neg_e),
                              snap_dt.eq(dt)]
             with m.Elif(have_ref & prev_valid):
                 m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_neg.eq(0),
@@ -342,9 +379,17 @@ class MTSpeed(wiring.Component):
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
         # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
         k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
+        # The multiplier's k operand from a register, `k_c` = word `left` of k_rev, loaded with
+        # the word of left's next value (ECP5 Fmax: no word multiplexer in front of the
+        # MULT18X18D). k is thus sampled a clock earlier than `pp` is formed. No reset: read
+        # only while `adding`, i.e. after a start has loaded it.
+        k_c = Signal(16, reset_less=True)
+        left_next = Signal(range(nk + 1))
+        m.d.comb += left_next.eq(Mux(start, nk, Mux(left != 0, left - 1, 0)))
         m.d.comb += t.eq(pp + carry)
         m.d.sync += [
-            pp.eq(k_rev.word_select(left, 16) * snap_dm),
+            k_c.eq(k_rev.word_select(left_next, 16)),
+            pp.eq(k_c * snap_dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
         ]

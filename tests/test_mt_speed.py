@@ -556,3 +556,37 @@ def test_mt_x4_quadrature_phase_error_at_low_speed():
     dt = np.diff(edges)
     whole = dt[:len(dt) // 4 * 4].reshape(-1, 4).sum(axis=1)
     np.testing.assert_allclose(whole / clk_hz, line_s, rtol=1e-4)
+
+
+def test_mt_window_count_saturates_both_ways():
+    """ΔM saturates to signed(m_width) in either direction and steps back from the limit; the
+    sign clears on crossing zero (the gateware keeps ΔM as magnitude and sign: its limits are
+    2**(m_width − 1) − 1 forward and 2**(m_width − 1) backward; a window back at 0 reads 0)."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=12, out_width=16, k_width=16, m_width=3)
+    k = 3000
+    fwd = [(100, 0)] + [(110 + 10 * i, 0) for i in range(6)]            # +6 → +3
+    fwd_back = [(300 + 10 * i, 0) for i in range(6)] + [(370, 1), (380, 1)]   # +3, −2 → +1
+    bwd = [(500 + 10 * i, 1) for i in range(7)]                        # −7 → −4
+    bwd_back = [(700 + 10 * i, 1) for i in range(6)] + [(770, 0)]      # −4, +1 → −3
+    cross = [(900, 0), (910, 1), (920, 1), (930, 1), (940, 0)]         # +1 −1 −1 −1 +1 → −1
+    back0 = [(1100, 1), (1110, 0)]                                     # −1 +1 → 0
+    edges, neg = zip(*(fwd + fwd_back + bwd + bwd_back + cross + back0))
+    out = both(dut, edges, neg, [200, 400, 600, 800, 1000, 1200], k=k, end_cycle=1300)
+    assert out["dm"].tolist() == [3, 1, -4, -3, -1, 0]
+    assert out["fresh"].tolist() == [1, 1, 1, 1, 1, 1]
+    assert out["speed"][-1] == 0
+
+
+@pytest.mark.parametrize("gap", [1, 2, 3])
+def test_mt_expiry_right_after_a_close(gap):
+    """A window closed a clock or two before its last edge expires in turn: two edges `gap`
+    clocks apart, no update for a whole TC span, so the first expires (its window closes on the
+    second, which becomes the reference) and the second expires `gap` clocks later; updates
+    around both expiries. The registered expiry compare (`at_span`) must follow the new
+    reference from the closing clock on."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=8, out_width=16, k_width=16, m_width=8)
+    span = 2 ** dut.tc_width
+    for up in range(20 + span - 3, 20 + span + gap + 3):
+        edges, neg = [20, 20 + gap], [0, 0]
+        out = both(dut, edges, neg, [up, up + 200], k=1000, end_cycle=up + 300)
+        assert out["stopped"][-1] == 1
