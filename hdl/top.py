@@ -619,15 +619,19 @@ class Top(wiring.Component):
             regs.scope_rd_data.eq(scope.rd_data),
         ]
         src = scope.src
-        # θ through a register (the encoder forms it from a sum and a wrap compare, and the
-        # Servo selects it): in the trace one clock late, like st_theta (docs/AREA.md §7.12).
+        # θ and the current references through registers (the encoder forms θ from a sum and a
+        # wrap compare, the Servo selects it and clamps or selects the references by mode): in
+        # the trace one clock late, like st_theta (docs/AREA.md §7.12).
         theta_q = Signal.like(servo.theta)
-        m.d.sync += theta_q.eq(servo.theta)
+        id_ref_q = Signal.like(servo.id_ref)
+        iq_ref_q = Signal.like(servo.iq_ref)
+        m.d.sync += [theta_q.eq(servo.theta), id_ref_q.eq(servo.id_ref),
+                     iq_ref_q.eq(servo.iq_ref)]
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),
             src.i_d.eq(cl.i_d), src.i_q.eq(cl.i_q),
-            src.i_d_ref.eq(servo.id_ref), src.i_q_ref.eq(servo.iq_ref),
+            src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q),
             src.i_alpha.eq(cl.i_alpha), src.i_beta.eq(cl.i_beta),
             src.u_d.eq(cl.u_d), src.u_q.eq(cl.u_q),
             src.u_alpha.eq(cl.u_alpha), src.u_beta.eq(cl.u_beta),
