@@ -258,10 +258,12 @@ class BoardTop(Elaboratable):
         family's multiplier width (:data:`MUL_WIDTH`), the board's scope RAM
         (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K) and register-file staging
         (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K).
-    current_loop : str
+    current_loop : str or None
         ``Top(current_loop=...)``, one of :data:`~foc_servo.hdl.top.CURRENT_LOOPS`:
-        ``"pipelined"`` (default, :class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
-        (:class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`).
+        ``"pipelined"`` (:class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
+        (:class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`); ``None`` (default): the board's
+        :attr:`~.platforms.Board.current_loop` (``"engine"`` on the iCEBreaker, else
+        ``"pipelined"``).
 
     Attributes
     ----------
@@ -280,9 +282,9 @@ class BoardTop(Elaboratable):
         ``clk_hz`` out of range, ``current_loop`` not one of the values, or an unknown board.
     """
 
-    def __init__(self, board, *, clk_hz=None, current_loop="pipelined"):
+    def __init__(self, board, *, clk_hz=None, current_loop=None):
         self._board = get_board(board)
-        check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
+        current_loop = _current_loop(self._board, current_loop)
         if clk_hz is None:
             clk_hz = 50e6
         if not _is_hz(clk_hz):
@@ -458,7 +460,15 @@ def synthesis_verilog(rtlil_text, *, name=NAME):
         return (work / f"{name}.v").read_text()
 
 
-def prepare(board, *, out_dir="build", clk_hz=None, current_loop="pipelined"):
+def _current_loop(board, current_loop):
+    """``current_loop`` checked, or the board's default for ``None``."""
+    if current_loop is None:
+        return board.current_loop
+    check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
+    return current_loop
+
+
+def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None):
     """Write ``board``'s build plan (sources, constraints, scripts) to ``out_dir/NAME``.
 
     Nothing is run: for a vendor board this is the Vivado / ISE tree, also archived as
@@ -646,7 +656,7 @@ def _run_bitstream(board, prep, stages):
     return result, logs
 
 
-def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", progress=False,
+def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=False,
           json=False):
     """Build the controller for ``board`` and print its utilisation beside paper Table 1.
 
@@ -659,9 +669,9 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", prog
         Everything goes to ``out_dir/board``.
     clk_hz : float or None
         System clock asked for, Hz (``None``: 50 MHz); the PLL's nearest is used and reported.
-    current_loop : str
-        The current-loop gateware, ``"pipelined"`` (default) or ``"engine"``
-        (:class:`BoardTop`).
+    current_loop : str or None
+        The current-loop gateware, ``"pipelined"`` or ``"engine"``; ``None`` (default): the
+        board's choice (``"engine"`` on the iCEBreaker; :class:`BoardTop`).
     progress : bool
         Stage lines on stderr while the tools run.
     json : bool
@@ -689,7 +699,7 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop="pipelined", prog
     """
     start = time.perf_counter()
     board = get_board(board)
-    check_choice("Build", "current_loop", current_loop, CURRENT_LOOPS)
+    current_loop = _current_loop(board, current_loop)
     stages = _Stages(board.name, progress)
     prep = stages.run("elaborate + write build plan",
                       lambda: prepare(board, out_dir=out_dir, clk_hz=clk_hz,

@@ -104,6 +104,10 @@ class Board:
     regs_staging : str
         ``Top(regs_staging=…)``: ``"bram"`` where flip-flops are short (iCE40 UP5K: the register
         file's ≈ 600 staging flip-flops in 2 block RAMs), else ``"ff"``.
+    current_loop : str
+        The default ``Top(current_loop=…)`` of ``foc-servo build`` for this board (``--current-loop``
+        overrides it): ``"engine"`` where LUTs and multipliers are short (iCE40 UP5K: the loop
+        engine, 5 SB_MAC16 in the whole top instead of 25), else ``"pipelined"``.
     """
     name: str
     title: str
@@ -117,6 +121,7 @@ class Board:
     notes: tuple = ()
     scope_ram: str = "bram"
     regs_staging: str = "ff"
+    current_loop: str = "pipelined"
 
     def platform(self, *, file_templates=None):
         """A fresh platform instance with the ``motor`` resource added; ``file_templates``
@@ -156,6 +161,7 @@ ICEBREAKER = Board(
     platform_class=ICEBreakerPlatform,
     scope_ram="ice40_spram",
     regs_staging="bram",
+    current_loop="engine",
     connectors={"pmod1a": ("pmod", 0), "pmod1b": ("pmod", 1), "pmod2": ("pmod", 2)},
     motor=_motor({
         "gate_h": ("pmod1a", "1 2 3"), "gate_l": ("pmod1a", "7 8 9"),

@@ -237,9 +237,10 @@ def build_parser():
     p.add_argument("--clk-mhz", type=float, default=None,
                    help="system clock, MHz (default: 50; the PLL's nearest is used)")
     from ..hdl.top import CURRENT_LOOPS
-    p.add_argument("--current-loop", choices=CURRENT_LOOPS, default="pipelined",
+    p.add_argument("--current-loop", choices=CURRENT_LOOPS, default=None,
                    help="current-loop gateware: pipelined (CurrentLoop) or engine "
-                        "(EngineCurrentLoop, fewer LUTs and multipliers) (default: %(default)s)")
+                        "(EngineCurrentLoop, fewer LUTs and multipliers) (default: the board's: "
+                        "engine on the iCEBreaker, pipelined elsewhere)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--json", action="store_true",
                    help="print the figures as one JSON object on the last line")

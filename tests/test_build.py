@@ -233,7 +233,7 @@ def test_top_runs_at_the_actual_pll_frequency(name, clk_hz, actual):
 def test_board_top_uses_the_family_multiplier_width(name, mul_width):
     """ECP5, Spartan-7, Spartan-6: 18-bit multiplier operands; iCE40: products not split
     (hdl/dsp.py)."""
-    widths = _inspect(lambda: BoardTop(name),
+    widths = _inspect(lambda: BoardTop(name, current_loop="pipelined"),
                       lambda top: (top.top.mul_width, top.top._loop.mul_width,
                                    top.top._servo.loop_params["mul_width"]))
     assert widths == (mul_width,) * 3
@@ -255,13 +255,25 @@ def test_board_top_builds_the_chosen_current_loop(kwargs, loop):
                      18)
 
 
+@pytest.mark.parametrize("name, default", [("icebreaker", "engine"), ("ulx3s", "pipelined"),
+                                           ("arty_s7", "pipelined"), ("atlys", "pipelined")])
+def test_board_default_current_loop(name, default):
+    """``current_loop=None`` (the CLI's default) takes the board's choice: the loop engine on the
+    UP5K, whose 8 SB_MAC16 the pipelined loop alone would exceed; an explicit value wins."""
+    assert get_board(name).current_loop == default
+    assert BoardTop(name).current_loop == default
+    assert BoardTop(name, current_loop=None).top.current_loop == default
+    other = "pipelined" if default == "engine" else "engine"
+    assert BoardTop(name, current_loop=other).current_loop == other
+
+
 def test_build_current_loop_errors(tmp_path):
     with pytest.raises(ValueError, match=r"^Build current_loop must be one of 'pipelined', "
                                          r"'engine', not 'cordic'$"):
         BoardTop("ulx3s", current_loop="cordic")
     with pytest.raises(TypeError, match=r"^Build current_loop must be a string, one of "
-                                        r"'pipelined', 'engine', not None$"):
-        BoardTop("icebreaker", current_loop=None)
+                                        r"'pipelined', 'engine', not 1$"):
+        BoardTop("icebreaker", current_loop=1)
     # checked before anything is written, also by prepare() and build()
     with pytest.raises(ValueError, match=r"^Build current_loop must be one of"):
         prepare("ulx3s", out_dir=tmp_path / "out", current_loop="Engine")

@@ -106,7 +106,7 @@ def test_simtop_builds_the_chosen_current_loop():
     assert isinstance(simtop.top._loop, EngineCurrentLoop)
 
 
-@pytest.mark.parametrize("args, passed", [([], "pipelined"),
+@pytest.mark.parametrize("args, passed", [([], None),          # None: the board's default
                                           (["--current-loop", "engine"], "engine"),
                                           (["--current-loop", "pipelined"], "pipelined")])
 def test_build_current_loop_option_reaches_build(monkeypatch, args, passed):
