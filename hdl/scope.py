@@ -272,6 +272,9 @@ class Scope(wiring.Component):
         n, depth, ab = self._channels, self._depth, self._abits
         width = self._width
 
+        # The channels' source codes, latched at arm and rotated by one channel with each step
+        # of `phase`: sel[0] is always the code of the channel sampled in this clock (no
+        # `sel[phase]` multiplexer in front of the source multiplexer).
         sel = Signal.like(self.sel)
         decim = Signal.like(self.decim)
         pre = Signal.like(self.pretrigger)
@@ -311,17 +314,20 @@ class Scope(wiring.Component):
         # Sample word: one multiplexer, the source code of the channel sampled in this clock.
         names = self.source_names
         sample = Signal(unsigned(width))
-        with m.Switch(sel[phase] if n > 1 else sel[0]):
+        with m.Switch(sel[0]):
             for code, name in enumerate(names):
                 with m.Case(code):
                     m.d.comb += sample.eq(self._aligned(name))
         if n > 1:
             with m.If(self.arm):
                 m.d.sync += phase.eq(0)
+            # `phase` steps n times per sample (0 → 1 → … → n − 1 → 0): so does the rotation, and
+            # sel is back in channel order when the sample is complete.
+            rotated = Cat(*(sel[(c + 1) % n] for c in range(n)))
             with m.Elif(take):
-                m.d.sync += [phase.eq(1), slot.eq(wr_ptr)]
+                m.d.sync += [phase.eq(1), slot.eq(wr_ptr), sel.eq(rotated)]
             with m.Elif(busy):
-                m.d.sync += phase.eq(Mux(phase == n - 1, 0, phase + 1))
+                m.d.sync += [phase.eq(Mux(phase == n - 1, 0, phase + 1)), sel.eq(rotated)]
 
         # The write of channel `phase` (word `channel · depth + ring slot`: slot `wr_ptr` with the
         # strobe, `slot` after it), registered: the RAM's data, write enable and write address
@@ -384,12 +390,16 @@ class Scope(wiring.Component):
             with m.If(take):
                 m.d.sync += wr_ptr.eq(wr_ptr + 1)
             with m.If(state == ScopeState.PRE):
-                left = depth - pre - take
+                # depth − pre − take samples are left. No subtractor behind `take` (a late
+                # signal: strobe, phase, decimation): with pre < depth, depth − pre − 1 = ~pre,
+                # so the count is ~pre or ~pre + 1 (both from registers), and it is zero only if
+                # `take` and pre = depth − 1 (all ones).
                 with m.If(event & full):
-                    with m.If(left == 0):
+                    with m.If(take & pre.all()):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
-                        m.d.sync += [state.eq(ScopeState.POST), post_left.eq(left)]
+                        m.d.sync += [state.eq(ScopeState.POST),
+                                     post_left.eq(Mux(take, ~pre, ~pre + 1))]
                 with m.Elif(take & (filled != depth - 1)):
                     m.d.sync += filled.eq(filled + 1)
             with m.Elif(state == ScopeState.POST):

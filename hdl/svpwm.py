@@ -518,18 +518,31 @@ class DCBusCompensation(wiring.Component):
         with m.If(self.i.ready):
             m.d.sync += [valid1.eq(self.i.valid), self.o.valid.eq(valid1)]
         for f in ("alpha", "beta"):
-            neg = Signal(name=f"neg_{f}")
+            # round_shift(u·gain, gf): the product's sign is u's (gain ≥ 0; 0 rounds to 0), so
+            # the rounding term is 2**(gf−1) − [u < 0], a concatenation of u's sign bit, < 2**gf.
+            # When a partial product has a shift ≥ gf (at mul_width 18: the gain's top bit,
+            # shift 17), the term fills that product's zero low bits as it is registered: the
+            # sum behind the registers is then one adder per extra product (one at 18), with
+            # nothing added for the rounding. Else (mul_width None) it is one more addend.
+            neg = self.i.payload[f][-1]
+            rounding = Cat(neg.replicate(gf - 1), ~neg)         # 2**(gf−1) − neg, gf bits
+            products = partial_products(self.i.payload[f], self.gain, mul_width=self._mul_width)
+            host = next((n for n, (_, s) in enumerate(products) if s >= gf), None)
             parts[f] = []
-            for n, (prod, s) in enumerate(partial_products(self.i.payload[f], self.gain,
-                                                           mul_width=self._mul_width)):
+            for n, (prod, s) in enumerate(products):
+                if n == host:
+                    merged = Cat(rounding, Const(0, s - gf), prod)
+                    prod, s = (merged.as_signed() if prod.shape().signed else merged), 0
                 reg = Signal(prod.shape(), name=f"pp_{f}{n}")
                 parts[f].append((reg, s))
                 with m.If(self.i.ready & self.i.valid):
                     m.d.sync += reg.eq(prod)
-            with m.If(self.i.ready & self.i.valid):
-                m.d.sync += neg.eq(self.i.payload[f][-1])
-            # round_shift(u·gain, gf): the product's sign is u's (gain ≥ 0; 0 rounds to 0).
-            rounded = (partial_sum(parts[f]) + (1 << (gf - 1)) - neg) >> gf
+            if host is None:
+                neg_q = Signal(name=f"neg_{f}")
+                with m.If(self.i.ready & self.i.valid):
+                    m.d.sync += neg_q.eq(neg)
+                parts[f].append((Cat(neg_q.replicate(gf - 1), ~neg_q), 0))
+            rounded = partial_sum(parts[f]) >> gf
             with m.If(self.i.ready & valid1):
                 m.d.sync += self.o.payload[f].eq(
                     saturate_bits(rounded, signed(self._out_width)))

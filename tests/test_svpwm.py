@@ -387,6 +387,53 @@ def test_dcbus_commands_scaled_saturated_pipelined():
     assert tuple(exp16[0]) == (FS - 1, -FS)                         # Q1.15 saturates
 
 
+
+@pytest.mark.parametrize("mul_width", [18, 12, None])
+@pytest.mark.parametrize("out_width", [16, 17])
+def test_dcbus_commands_match_the_model(mul_width, out_width):
+    """Random commands (and the extremes, and exact rounding ties) at gains below 1, near 2,
+    at 2 and above (the gain's top bit, a partial product of its own at mul_width 18) and at
+    the limit 3.5: bit for bit ``dcbus_apply``, whatever the products' split."""
+    dut = DCBusCompensation(out_width=out_width, gain_limit=3.5, mul_width=mul_width)
+    rng = np.random.default_rng(7)
+    buses = [(3000, 4000), (4000, 2500), (4000, 2000), (4000, 1500), (30000, 1), (4000, 4001)]
+    cmds = np.concatenate([
+        rng.integers(-FS, FS, size=(40, 2)),
+        [[FS - 1, -FS], [-FS, FS - 1], [0, -1], [1, -1], [0x4000, -0x4000], [-1, 1]],
+    ])
+    got = {}
+
+    async def testbench(ctx):
+        ctx.set(dut.o.ready, 1)
+        for u_rated, u_dc in buses:
+            ctx.set(dut.u_rated, u_rated)
+            ctx.set(dut.u_dc.payload, u_dc)
+            ctx.set(dut.u_dc.valid, 1)
+            await ctx.tick()
+            ctx.set(dut.u_dc.valid, 0)
+            await ctx.tick().repeat(dut.gain_latency)
+            gain = ctx.get(dut.gain)
+            out = []
+            for a, b in cmds:
+                ctx.set(dut.i.payload, {"alpha": int(a), "beta": int(b)})
+                ctx.set(dut.i.valid, 1)
+                await ctx.tick()
+                ctx.set(dut.i.valid, 0)
+                await ctx.tick()
+                assert ctx.get(dut.o.valid)
+                p = ctx.get(dut.o.payload)
+                out.append((p.alpha, p.beta))
+            got[u_rated, u_dc] = gain, out
+
+    simulate(dut, [testbench], name="test_dcbus_model")
+    for (u_rated, u_dc), (gain, out) in got.items():
+        g, _ = model.dcbus_gain(u_rated, u_dc, gain_limit_raw=dut.gain_limit_raw)
+        assert gain == g
+        np.testing.assert_array_equal(np.array(out), model.dcbus_apply(cmds, gain,
+                                                                       out_width=out_width))
+    assert {g for g, _ in got.values()} >= {dut.gain_limit_raw, 2 << 16}
+    assert any(g > 2 << 16 for g, _ in got.values() if g != dut.gain_limit_raw)
+
 # --- PWM timer ----------------------------------------------------------------------------------
 
 def record_timer(dut, clocks, actions):
