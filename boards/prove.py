@@ -397,7 +397,7 @@ class PISpec(Elaboratable):
         m = Module()
         cls = PI
         if self.broken:
-            cls = mutant(PI, ("i_c.eq(select(hi_g, lo_g, i_sum))", "i_c.eq(i_sum)"),
+            cls = mutant(PI, ("i_c.eq(Mux(gt, hi_g, Mux(lt, lo_g, i_sum)))", "i_c.eq(i_sum)"),
                          ("self.o.payload.eq(Mux(hold, clamp_k, clamp_c))",
                           "self.o.payload.eq(Mux(hold, u_k, u_c))"))
         pi = cls(**self.params)
