@@ -273,30 +273,16 @@ class PI(wiring.Component):
         # Clock 4: output candidates U = round_shift(P + I, g) with the new and with the kept
         # integrator, and their comparisons with the limits, made on P + I against thresholds
         # (u > H ⇔ x ≥ (H + 1)·2**g − 2**(g−1) + [x < 0]) so that they do not wait for U.
-        # The clamped case's comparisons are made on each of its three candidates and selected
-        # after (ECP5 Fmax: gt/lt → x_c → compare was the FOC block's critical path).
-        def compares(x):
-            neg = x[-1] if g > 0 else 0
-            return Mux(neg, x > t_hi, x >= t_hi), Mux(neg, x <= t_lo, x < t_lo)
-
-        def select(v_hi, v_lo, v_s):
-            return Mux(gt, v_hi, Mux(lt, v_lo, v_s))
-
-        x_c = select(x_hi, x_lo, x_s)
-        cmp_c = [compares(x) for x in (x_hi, x_lo, x_s)]
+        x_c = Mux(gt, x_hi, Mux(lt, x_lo, x_s))
         with m.If(stage[3]):
-            m.d.sync += i_c.eq(select(hi_g, lo_g, i_sum))
+            m.d.sync += i_c.eq(Mux(gt, hi_g, Mux(lt, lo_g, i_sum)))
         for k, x, u in (("c", x_c, u_c), ("k", x_k, u_k)):
-            if k == "c":
-                above_v = select(*(a for a, _ in cmp_c))
-                below_v = select(*(b for _, b in cmp_c))
-            else:
-                above_v, below_v = compares(x)
+            neg = x[-1] if g > 0 else 0
             with m.If(stage[3]):
                 m.d.sync += [
-                    u.eq(round_shift_signed(x, g, x[-1] if g > 0 else 0)),
-                    above[k].eq(above_v),
-                    below[k].eq(below_v),
+                    u.eq(round_shift_signed(x, g, neg)),
+                    above[k].eq(Mux(neg, x > t_hi, x >= t_hi)),
+                    below[k].eq(Mux(neg, x <= t_lo, x < t_lo)),
                 ]
         # Clock 5: conditional integration (b), output clamp, strobe on the next clock. A
         # clamped U is within [lim_lo, lim_hi] ⊂ signed(w): the saturation is a truncation.
