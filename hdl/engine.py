@@ -56,13 +56,21 @@ from amaranth.lib.wiring import In, Out
 from .fixed import check_param
 from .rotator import RotatorParams
 
-__all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
+__all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "P_WORD", "MUL_A",
+           "MUL_B",
            "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
            "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
-#: Width of the register file words, the ALU and the product register ``P``.
-WORD = 48
+#: Width of the register-file words and of the X1 ALU's operands (its sum has ``WORD + 1``
+#: bits). The current-loop program's widest register value is the PI's ``kp·E`` (``kp`` UQ(16, 8),
+#: ``E`` signed(16): ``|kp·E| < 2**31``), every other ≤ 28 bits; the interpreter raises on a
+#: write that does not fit.
+WORD = 32
+#: Width of the product register ``P`` and of the X2 post path (rounding add, shift,
+#: saturation, on ``P_WORD + 1`` bits): the over-modulation division's partial remainder
+#: ``2·P < 2**28 · 2**16`` needs 45 bits.
+P_WORD = 45
 #: Signed widths of the multiplier operands (A, B).
 MUL_A, MUL_B = 19, 28
 #: Register-file words.
@@ -689,7 +697,7 @@ class Engine(wiring.Component):
             "trace_wen": Out(1),
             "trace_dst": Out(7),
             "trace_y": Out(signed(WORD)),
-            "trace_p": Out(signed(WORD)),
+            "trace_p": Out(signed(P_WORD)),
         }
         for name, shape in self._special_shapes.items():
             members[f"s_{name}"] = In(shape)
@@ -756,7 +764,7 @@ class Engine(wiring.Component):
         tc = tab_r.data[ft:].as_signed()
 
         # --- Operands --------------------------------------------------------------------------------
-        p = Signal(signed(WORD))
+        p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
         specials = [Const(0), Const(0), ts, tc, kd] + [getattr(self, f"s_{name}")
                                           for name in self._special_shapes]
@@ -792,12 +800,12 @@ class Engine(wiring.Component):
         m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a.data)), b.eq(Mux(use_b, alt_b, rf_b.data))]
 
         # Flags: the sum's sign (``flag_s``) and its zero test, computed from the adder's
-        # operands beside the carry chain (below) and registered in four groups (``flag_zg``: a
+        # operands beside the carry chain (below) and registered in groups (``flag_zg``: a
         # group is set where the sum is not zero), are registered; Z is their NOR and N of a
         # MAX (which adds B − A) is derived where read.
         flag_s = Signal()
         flag_max = Signal()
-        flag_zg = Signal(4)
+        flag_zg = Signal(-(-(-(-(WORD + 1) // 4)) // 4))    # one per 16 bits of the sum
         flag_z = Signal()
         flag_n = Signal()
         m.d.comb += [flag_z.eq(~flag_zg.any()),
@@ -873,42 +881,42 @@ class Engine(wiring.Component):
         m.d.sync += [d_p.eq(p_read), d_pq.eq(pq_read),
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
-        x2e = Signal(signed(WORD + 1))          # the ALU result X
+        x2e = Signal(signed(P_WORD + 1))          # the ALU result X
         m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
-        xp = Signal(signed(WORD + 1))
+        xp = Signal(signed(P_WORD + 1))
         m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
                           Mux(k_t & ~x2_b, a2, 0) | Mux(x2_b, b2, 0))
         # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
-        h_mask = Signal(unsigned(WORD), reset_less=True)
+        h_mask = Signal(unsigned(P_WORD), reset_less=True)
         rnd_p = Signal()
         rnd_pq = Signal()
         rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
-        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0)),
+        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
                      rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
                      rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
         # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
         # back (the barrel shift and the saturation test are in separate clocks).
-        r3 = Signal(signed(WORD + 2))
+        r3 = Signal(signed(P_WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
         # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
         # is short.
-        rx = Signal(WORD + 2)
-        rh = Signal(WORD + 2)
+        rx = Signal(P_WORD + 2)
+        rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
         rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        kr = (WORD + 2) // 2
+        kr = (P_WORD + 2) // 2
         r_lo = Signal(kr + 1)
-        r_hi0 = Signal(WORD + 2 - kr)
-        r_hi1 = Signal(WORD + 2 - kr)
+        r_hi0 = Signal(P_WORD + 2 - kr)
+        r_hi1 = Signal(P_WORD + 2 - kr)
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
         m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0))), x3_nz.eq(x2e != 0),
                      ir3.as_value().eq(ir2.as_value())]
-        shifted = Signal(signed(WORD + 2))
+        shifted = Signal(signed(P_WORD + 2))
         x4_nz = Signal()
         m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
         # The fields X4 uses, registered from X3.
@@ -942,9 +950,9 @@ class Engine(wiring.Component):
         mb3 = Signal(signed(MUL_B), reset_less=True)
         m_neg3 = Signal(reset_less=True)
         m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
-        t2 = Signal(signed(WORD + 1))
+        t2 = Signal(signed(P_WORD + 1))
         m.d.comb += t2.eq(p << 1)
-        div_diff = Signal(signed(WORD + 1))
+        div_diff = Signal(signed(P_WORD + 1))
         m.d.comb += div_diff.eq((t2 >> q) - mb3)
         div_ge = ~div_diff[-1]
 
@@ -956,8 +964,8 @@ class Engine(wiring.Component):
         writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
                               (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
                               (w4_op == Op.MUL))
-        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it in X2 (trace)
-        p4 = Signal(signed(WORD))           # the same, in X4
+        p3 = Signal(signed(P_WORD))           # P as the instruction in X3 read it in X2 (trace)
+        p4 = Signal(signed(P_WORD))           # the same, in X4
         m.d.sync += [p3.eq(p), p4.eq(p3)]
         m.d.comb += [
             rf_w.addr.eq(w4_dst),
