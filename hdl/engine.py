@@ -726,10 +726,20 @@ class Engine(wiring.Component):
                              << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
                                         depth=max(len(prog.words), 2), init=rom_words)
-        m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init)
+        # The register file's read ports: asynchronous ports with their data registered here
+        # (the same clock as a synchronous port), so that yosys merges the registers into the
+        # block RAM and, with ``no_rw_check``, leaves out its read-during-write emulation (a
+        # register of the write data and an address compare, two LUT levels in front of the
+        # X1 adder on the iCE40): a collision's read data is never used, the engine bypasses
+        # it itself (``use_a``, ``use_b`` below).
+        m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init,
+                                      attrs={"no_rw_check": 1})
         rf_w = rf.write_port()
-        rf_a = rf.read_port()           # read-during-write: bypassed below (``use_a``, ``use_b``)
-        rf_b = rf.read_port()
+        rf_a = rf.read_port(domain="comb")
+        rf_b = rf.read_port(domain="comb")
+        rf_a_data = Signal(signed(WORD), reset_less=True)
+        rf_b_data = Signal(signed(WORD), reset_less=True)
+        m.d.sync += [rf_a_data.eq(rf_a.data), rf_b_data.eq(rf_b.data)]
         rom_r = rom.read_port()
 
         pc = Signal(PC_WIDTH)
@@ -797,7 +807,7 @@ class Engine(wiring.Component):
         use_b = Signal()
         a = Signal(signed(WORD))
         b = Signal(signed(WORD))
-        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a.data)), b.eq(Mux(use_b, alt_b, rf_b.data))]
+        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a_data)), b.eq(Mux(use_b, alt_b, rf_b_data))]
 
         # Flags: the sum's sign (``flag_s``) and its zero test, computed from the adder's
         # operands beside the carry chain (below) and registered in groups (``flag_zg``: a
