@@ -1,6 +1,7 @@
 # Ref: AREA.md §4 "Stage 2: one micro-sequenced datapath"; docs/ENGINE.md (ISA, pipeline); issue 7
-"""The loop engine: a micro-sequenced, single-issue datapath with one multiplier, a 48-bit ALU,
-a block-RAM register file, the rotator's sine table and a program ROM.
+"""The loop engine: a micro-sequenced, single-issue datapath with one multiplier, a 32-bit ALU
+(:data:`WORD`; the product register ``P`` and the post path :data:`P_WORD` = 45 bits), a
+block-RAM register file, the rotator's sine table and a program ROM.
 
 The instruction set, the encoding and a tiny assembler (:class:`Assembler`) are defined here and
 shared by the gateware (:class:`Engine`) and the bit-true interpreter
@@ -30,10 +31,10 @@ instruction the key of its special operand), R (operand RF read; the special ope
 shifted by ``asl``, or the value written back in this clock to the register read, registered;
 adder mode, condition and result select decoded and registered), X1 (operand select,
 carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
-A and B registered as they are), X2 (SEL/MIN/MAX choice, P read, rounding add; the product
-registered),
-X3 (barrel shift registered; P update: ± product, DIV step), X4 (saturate, write back to the RF
-and the output registers). Hence: a register written by instruction i is seen from instruction
+A and B registered as they are), X2 (SEL/MIN/MAX choice beside the rounding adder, P read,
+rounding add; the product registered), X3 (barrel shift and saturation test registered; P
+update: ± product, DIV step), X4 (saturation select, write back to the RF and the output
+registers). Hence: a register written by instruction i is seen from instruction
 i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
 fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
 sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
@@ -868,7 +869,7 @@ class Engine(wiring.Component):
         # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
         # choice is made in X2 (``x2_b``: SEL, MIN or MAX take B), keeping every select off the
         # carry chain's end and the condition's fan-out small.
-        # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
+        # --- X2: rounding add (P read here); X3: shift, saturation test; X4: write back ------
         s2 = Signal(signed(WORD + 1), reset_less=True)
         a2 = Signal(signed(WORD), reset_less=True)
         b2 = Signal(signed(WORD), reset_less=True)
@@ -880,22 +881,27 @@ class Engine(wiring.Component):
         x2_b = Signal()
         m.d.comb += x2_b.eq((mm2 & (c2 | ~s2[-1])) | (sel2 & c2))
         # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
-        # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
-        # of P, PQ, the sum, A (a2) and B (b2) under selects registered in X1.
-        d_p = Signal()
-        d_pq = Signal()
+        # an ALU operation whose A is P or PQ (B ignored). The rounding adder's operand ``xp``
+        # is an AND-OR of P (its low ``q`` bits for PQ) and the sum under selects registered
+        # in X1: one LUT level. SEL, MIN and MAX are never rounded: their choice of A or B
+        # (``x2m``, on the sum's sign) bypasses the adder (whose operands are then all 0) and
+        # is ORed into its result.
+        d_plo = Signal()
+        d_phi = Signal()
         k_s = Signal()
         k_t = Signal()
         p_read = (ir.op == Op.MUL) | (ir.asp & (ir.a == 0))
         pq_read = (ir.op != Op.MUL) & ir.asp & (ir.a == 1)
-        m.d.sync += [d_p.eq(p_read), d_pq.eq(pq_read),
+        m.d.sync += [d_plo.eq(p_read | pq_read), d_phi.eq(p_read),
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
         x2e = Signal(signed(P_WORD + 1))          # the ALU result X
         m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
+        x2m = Signal(signed(P_WORD + 2))          # SEL, MIN, MAX: X; else 0
+        m.d.comb += x2m.eq(Mux(k_t, Mux(x2_b, b2, a2), 0))
         xp = Signal(signed(P_WORD + 1))
-        m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
-                          Mux(k_t & ~x2_b, a2, 0) | Mux(x2_b, b2, 0))
+        m.d.comb += xp.eq(Cat(Mux(d_plo, p[:q], 0), Mux(d_phi, p[q:], 0)).as_signed() |
+                          Mux(k_s, s2, 0))
         # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
@@ -904,11 +910,12 @@ class Engine(wiring.Component):
         rnd_pq = Signal()
         rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
-        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
+        m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
+                                   (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
                      rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
                      rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
-        # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
-        # back (the barrel shift and the saturation test are in separate clocks).
+        # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
+        # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
         # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
@@ -924,11 +931,27 @@ class Engine(wiring.Component):
         r_hi1 = Signal(P_WORD + 2 - kr)
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
-        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0))), x3_nz.eq(x2e != 0),
+        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
+                     x3_nz.eq(x2e != 0),
                      ir3.as_value().eq(ir2.as_value())]
         shifted = Signal(signed(P_WORD + 2))
         x4_nz = Signal()
         m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
+        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
+        # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
+        # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
+        # selects (the test over ≈ 32 bits no longer in front of the write data and the
+        # R-stage bypass).
+        sat_mask = Signal(P_WORD + 2)
+        ones = Const((1 << (P_WORD + 2)) - 1, P_WORD + 2)
+        with m.Switch(ir2.sat):
+            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
+                with m.Case(code):
+                    m.d.sync += sat_mask.eq((ones << (ir2.sh + (sw - 1)))[:P_WORD + 2])
+            with m.Default():
+                m.d.sync += sat_mask.eq(0)
+        ovf4 = Signal()
+        m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
         # The fields X4 uses, registered from X3.
         w4_sat = Signal(2)
         w4_dst = Signal(7)
@@ -938,15 +961,11 @@ class Engine(wiring.Component):
         m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
                      w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
         y = Signal(signed(WORD))
-        with m.Switch(w4_sat):
-            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
-                with m.Case(code):
-                    lo, hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
-                    top = shifted[sw - 1:]          # fits signed(sw): these bits all equal
-                    m.d.comb += y.eq(Mux(top.all() | ~top.any(), shifted,
-                                         Mux(shifted[-1], lo, hi)))
-            with m.Default():
-                m.d.comb += y.eq(shifted)
+        lim = Signal(signed(WORD))
+        m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
+                               Mux(shifted[-1], -(1 << w), (1 << w) - 1),
+                               Mux(shifted[-1], -(1 << (w - 1)), (1 << (w - 1)) - 1)))
+        m.d.comb += y.eq(Mux(ovf4, lim, shifted))
 
         # --- Multiplier, divider step ----------------------------------------------------------
         # Operands registered at the end of X1; the product registered at the end of X2 (the
