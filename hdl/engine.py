@@ -1031,13 +1031,26 @@ class Engine(wiring.Component):
             with m.If(we):
                 m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
 
+        # The P update of a MUL, P_WORD bits (mod 2**P_WORD: the interpreter checks that P
+        # fits): a carry-select adder (two half-length chains; the low half's carry picks).
+        pa = Signal(P_WORD)
+        pb = Signal(P_WORD)
+        m.d.comb += [pa.eq(Mux(ir3.acc, p, 0)), pb.eq(Mux(m_neg3, ~prod, prod))]
+        kp = P_WORD // 2
+        p_lo = Signal(kp + 1)
+        p_hi0 = Signal(P_WORD - kp)
+        p_hi1 = Signal(P_WORD - kp)
+        p_sum = Signal(P_WORD)
+        m.d.comb += [p_lo.eq(pa[:kp] + pb[:kp] + m_neg3), p_hi0.eq(pa[kp:] + pb[kp:]),
+                     p_hi1.eq(pa[kp:] + pb[kp:] + 1),
+                     p_sum.eq(Cat(p_lo[:kp], Mux(p_lo[kp], p_hi1, p_hi0)))]
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
                 m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
         with m.If(x3_valid & (ir3.op == Op.MUL)):
-            # P ± prod: one adder, the carry-in negates.
-            m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)
+            # P ± prod: one adder, the carry-in negates; carry-select (``p_sum``, above).
+            m.d.sync += p.eq(p_sum)
         with m.If(x3_valid & (ir3.op == Op.DIV)):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 
