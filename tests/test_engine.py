@@ -57,6 +57,23 @@ def test_program_corners():
         assert bad == {}
 
 
+def test_program_widest_values_fit_the_words():
+    """The 32-bit register file (``WORD``) holds the widest value, the PI's ``kp·E``, at its
+    extremes (kp = 65 535, E = ±full scale); the interpreter would raise OverflowError on a
+    write that does not fit (and on P beyond ``P_WORD``), and the results match the model."""
+    vec = verify_foc.stimulus(0, seed=3)
+    n = vec["ia"].size
+    ext = {k: np.copy(v) for k, v in vec.items()}
+    ext.update(kp_d=np.full(n, 65535), kp_q=np.full(n, 65535), enable=np.ones(n, np.int64),
+               ol_enable=np.zeros(n, np.int64),
+               id_ref=np.where(np.arange(n) % 2, 32767, -32768),
+               iq_ref=np.where(np.arange(n) % 2, -32768, 32767))
+    exp, got, bad, em = _compare(ext)
+    assert bad == {}
+    widest = max(max(abs(t["y"]) for t in tr if t["y"] is not None) for tr in em.traces)
+    assert 1 << 30 < widest < 1 << (WORD - 1)
+
+
 def test_program_breaks_when_changed():
     """The comparison can fail: one rounding flag flipped in the program shows up."""
     prog = current_loop_program()
