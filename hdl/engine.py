@@ -17,7 +17,7 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     MIN  X = B if (c or A − B ≥ 0) else A      MAX  X = B if (c or A − B ≤ 0) else A
     SEL  X = B if c else A                     (flags of MIN, MAX, SEL: N, Z of A − B)
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
-           (rnd: not with MIN, MAX, SEL)
+           (rnd: not with MIN, MAX, SEL: the assembler refuses it, the gateware ignores it)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
