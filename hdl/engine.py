@@ -1,6 +1,7 @@
 # Ref: AREA.md §4 "Stage 2: one micro-sequenced datapath"; docs/ENGINE.md (ISA, pipeline); issue 7
-"""The loop engine: a micro-sequenced, single-issue datapath with one multiplier, a 48-bit ALU,
-a block-RAM register file, the rotator's sine table and a program ROM.
+"""The loop engine: a micro-sequenced, single-issue datapath with one multiplier, a 32-bit ALU
+(:data:`WORD`; the product register ``P`` and the post path :data:`P_WORD` = 45 bits), a
+block-RAM register file, the rotator's sine table and a program ROM.
 
 The instruction set, the encoding and a tiny assembler (:class:`Assembler`) are defined here and
 shared by the gateware (:class:`Engine`) and the bit-true interpreter
@@ -16,7 +17,7 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     MIN  X = B if (c or A − B ≥ 0) else A      MAX  X = B if (c or A − B ≤ 0) else A
     SEL  X = B if c else A                     (flags of MIN, MAX, SEL: N, Z of A − B)
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
-           (rnd: not with MIN, MAX, SEL)
+           (rnd: not with MIN, MAX, SEL: the assembler refuses it, the gateware ignores it)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
@@ -30,10 +31,10 @@ instruction the key of its special operand), R (operand RF read; the special ope
 shifted by ``asl``, or the value written back in this clock to the register read, registered;
 adder mode, condition and result select decoded and registered), X1 (operand select,
 carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
-A and B registered as they are), X2 (SEL/MIN/MAX choice, P read, rounding add; the product
-registered),
-X3 (barrel shift registered; P update: ± product, DIV step), X4 (saturate, write back to the RF
-and the output registers). Hence: a register written by instruction i is seen from instruction
+A and B registered as they are), X2 (SEL/MIN/MAX choice beside the rounding adder, P read,
+rounding add; the product registered), X3 (barrel shift and saturation test registered; P
+update: ± product, DIV step), X4 (saturation select, write back to the RF and the output
+registers). Hence: a register written by instruction i is seen from instruction
 i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
 fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
 sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
@@ -56,13 +57,21 @@ from amaranth.lib.wiring import In, Out
 from .fixed import check_param
 from .rotator import RotatorParams
 
-__all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "MUL_A", "MUL_B",
+__all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "P_WORD", "MUL_A",
+           "MUL_B",
            "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
            "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
 
-#: Width of the register file words, the ALU and the product register ``P``.
-WORD = 48
+#: Width of the register-file words and of the X1 ALU's operands (its sum has ``WORD + 1``
+#: bits). The current-loop program's widest register value is the PI's ``kp·E`` (``kp`` UQ(16, 8),
+#: ``E`` signed(16): ``|kp·E| < 2**31``), every other ≤ 28 bits; the interpreter raises on a
+#: write that does not fit.
+WORD = 32
+#: Width of the product register ``P`` and of the X2 post path (rounding add, shift,
+#: saturation, on ``P_WORD + 1`` bits): the over-modulation division's partial remainder
+#: ``2·P < 2**28 · 2**16`` needs 45 bits.
+P_WORD = 45
 #: Signed widths of the multiplier operands (A, B).
 MUL_A, MUL_B = 19, 28
 #: Register-file words.
@@ -689,7 +698,7 @@ class Engine(wiring.Component):
             "trace_wen": Out(1),
             "trace_dst": Out(7),
             "trace_y": Out(signed(WORD)),
-            "trace_p": Out(signed(WORD)),
+            "trace_p": Out(signed(P_WORD)),
         }
         for name, shape in self._special_shapes.items():
             members[f"s_{name}"] = In(shape)
@@ -718,10 +727,20 @@ class Engine(wiring.Component):
                              << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
                                         depth=max(len(prog.words), 2), init=rom_words)
-        m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init)
+        # The register file's read ports: asynchronous ports with their data registered here
+        # (the same clock as a synchronous port), so that yosys merges the registers into the
+        # block RAM and, with ``no_rw_check``, leaves out its read-during-write emulation (a
+        # register of the write data and an address compare, two LUT levels in front of the
+        # X1 adder on the iCE40): a collision's read data is never used, the engine bypasses
+        # it itself (``use_a``, ``use_b`` below).
+        m.submodules.rf = rf = Memory(shape=signed(WORD), depth=RF_DEPTH, init=prog.rf_init,
+                                      attrs={"no_rw_check": 1})
         rf_w = rf.write_port()
-        rf_a = rf.read_port()           # read-during-write: bypassed below (``use_a``, ``use_b``)
-        rf_b = rf.read_port()
+        rf_a = rf.read_port(domain="comb")
+        rf_b = rf.read_port(domain="comb")
+        rf_a_data = Signal(signed(WORD), reset_less=True)
+        rf_b_data = Signal(signed(WORD), reset_less=True)
+        m.d.sync += [rf_a_data.eq(rf_a.data), rf_b_data.eq(rf_b.data)]
         rom_r = rom.read_port()
 
         pc = Signal(PC_WIDTH)
@@ -756,7 +775,7 @@ class Engine(wiring.Component):
         tc = tab_r.data[ft:].as_signed()
 
         # --- Operands --------------------------------------------------------------------------------
-        p = Signal(signed(WORD))
+        p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
         specials = [Const(0), Const(0), ts, tc, kd] + [getattr(self, f"s_{name}")
                                           for name in self._special_shapes]
@@ -789,15 +808,15 @@ class Engine(wiring.Component):
         use_b = Signal()
         a = Signal(signed(WORD))
         b = Signal(signed(WORD))
-        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a.data)), b.eq(Mux(use_b, alt_b, rf_b.data))]
+        m.d.comb += [a.eq(Mux(use_a, alt_a, rf_a_data)), b.eq(Mux(use_b, alt_b, rf_b_data))]
 
         # Flags: the sum's sign (``flag_s``) and its zero test, computed from the adder's
-        # operands beside the carry chain (below) and registered in four groups (``flag_zg``: a
+        # operands beside the carry chain (below) and registered in groups (``flag_zg``: a
         # group is set where the sum is not zero), are registered; Z is their NOR and N of a
         # MAX (which adds B − A) is derived where read.
         flag_s = Signal()
         flag_max = Signal()
-        flag_zg = Signal(4)
+        flag_zg = Signal(-(-(-(-(WORD + 1) // 4)) // 4))    # one per 16 bits of the sum
         flag_z = Signal()
         flag_n = Signal()
         m.d.comb += [flag_z.eq(~flag_zg.any()),
@@ -850,7 +869,7 @@ class Engine(wiring.Component):
         # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
         # choice is made in X2 (``x2_b``: SEL, MIN or MAX take B), keeping every select off the
         # carry chain's end and the condition's fan-out small.
-        # --- X2: rounding add (P read here); X3: shift; X4: saturate, write back -------------
+        # --- X2: rounding add (P read here); X3: shift, saturation test; X4: write back ------
         s2 = Signal(signed(WORD + 1), reset_less=True)
         a2 = Signal(signed(WORD), reset_less=True)
         b2 = Signal(signed(WORD), reset_less=True)
@@ -862,55 +881,77 @@ class Engine(wiring.Component):
         x2_b = Signal()
         m.d.comb += x2_b.eq((mm2 & (c2 | ~s2[-1])) | (sel2 & c2))
         # P is read in X2 (MUL and DIV update it at the end of X3): by a MUL's fused post and by
-        # an ALU operation whose A is P or PQ (B ignored). The X2 operand ``xp`` is an AND-OR
-        # of P, PQ, the sum, A (a2) and B (b2) under selects registered in X1.
-        d_p = Signal()
-        d_pq = Signal()
+        # an ALU operation whose A is P or PQ (B ignored). The rounding adder's operand ``xp``
+        # is an AND-OR of P (its low ``q`` bits for PQ) and the sum under selects registered
+        # in X1: one LUT level. SEL, MIN and MAX are never rounded: their choice of A or B
+        # (``x2m``, on the sum's sign) bypasses the adder (whose operands are then all 0) and
+        # is ORed into its result.
+        d_plo = Signal()
+        d_phi = Signal()
         k_s = Signal()
         k_t = Signal()
         p_read = (ir.op == Op.MUL) | (ir.asp & (ir.a == 0))
         pq_read = (ir.op != Op.MUL) & ir.asp & (ir.a == 1)
-        m.d.sync += [d_p.eq(p_read), d_pq.eq(pq_read),
+        m.d.sync += [d_plo.eq(p_read | pq_read), d_phi.eq(p_read),
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
-        x2e = Signal(signed(WORD + 1))          # the ALU result X
+        x2e = Signal(signed(P_WORD + 1))          # the ALU result X
         m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
-        xp = Signal(signed(WORD + 1))
-        m.d.comb += xp.eq(Mux(d_p, p, 0) | Mux(d_pq, p[:q], 0) | Mux(k_s, s2, 0) |
-                          Mux(k_t & ~x2_b, a2, 0) | Mux(x2_b, b2, 0))
+        x2m = Signal(signed(P_WORD + 2))          # SEL, MIN, MAX: X; else 0
+        m.d.comb += x2m.eq(Mux(k_t, Mux(x2_b, b2, a2), 0))
+        xp = Signal(signed(P_WORD + 1))
+        m.d.comb += xp.eq(Cat(Mux(d_plo, p[:q], 0), Mux(d_phi, p[q:], 0)).as_signed() |
+                          Mux(k_s, s2, 0))
         # Rounding: X + 2**(sh−1) − (X < 0) = X + (2**(sh−1) − 1) + (X ≥ 0): the constant
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
-        h_mask = Signal(unsigned(WORD), reset_less=True)
+        h_mask = Signal(unsigned(P_WORD), reset_less=True)
         rnd_p = Signal()
         rnd_pq = Signal()
         rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
-        m.d.sync += [h_mask.eq(Mux(rounding, (Const(1, unsigned(WORD)) << ir.sh)[1:] - 1, 0)),
+        m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
+                                   (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
                      rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
                      rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
-        # X3: the rounded sum registered; shift by sh (floor), registered. X4: saturate, write
-        # back (the barrel shift and the saturation test are in separate clocks).
-        r3 = Signal(signed(WORD + 2))
+        # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
+        # registered. X4: the saturation select, write back.
+        r3 = Signal(signed(P_WORD + 2))
         x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
         # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
         # is short.
-        rx = Signal(WORD + 2)
-        rh = Signal(WORD + 2)
+        rx = Signal(P_WORD + 2)
+        rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
         rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        kr = (WORD + 2) // 2
+        kr = (P_WORD + 2) // 2
         r_lo = Signal(kr + 1)
-        r_hi0 = Signal(WORD + 2 - kr)
-        r_hi1 = Signal(WORD + 2 - kr)
+        r_hi0 = Signal(P_WORD + 2 - kr)
+        r_hi1 = Signal(P_WORD + 2 - kr)
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
-        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0))), x3_nz.eq(x2e != 0),
+        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
+                     x3_nz.eq(x2e != 0),
                      ir3.as_value().eq(ir2.as_value())]
-        shifted = Signal(signed(WORD + 2))
+        shifted = Signal(signed(P_WORD + 2))
         x4_nz = Signal()
         m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
+        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
+        # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
+        # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
+        # selects (the test over ≈ 32 bits no longer in front of the write data and the
+        # R-stage bypass).
+        sat_mask = Signal(P_WORD + 2)
+        ones = Const((1 << (P_WORD + 2)) - 1, P_WORD + 2)
+        with m.Switch(ir2.sat):
+            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
+                with m.Case(code):
+                    m.d.sync += sat_mask.eq((ones << (ir2.sh + (sw - 1)))[:P_WORD + 2])
+            with m.Default():
+                m.d.sync += sat_mask.eq(0)
+        ovf4 = Signal()
+        m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
         # The fields X4 uses, registered from X3.
         w4_sat = Signal(2)
         w4_dst = Signal(7)
@@ -920,15 +961,11 @@ class Engine(wiring.Component):
         m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
                      w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
         y = Signal(signed(WORD))
-        with m.Switch(w4_sat):
-            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
-                with m.Case(code):
-                    lo, hi = -(1 << (sw - 1)), (1 << (sw - 1)) - 1
-                    top = shifted[sw - 1:]          # fits signed(sw): these bits all equal
-                    m.d.comb += y.eq(Mux(top.all() | ~top.any(), shifted,
-                                         Mux(shifted[-1], lo, hi)))
-            with m.Default():
-                m.d.comb += y.eq(shifted)
+        lim = Signal(signed(WORD))
+        m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
+                               Mux(shifted[-1], -(1 << w), (1 << w) - 1),
+                               Mux(shifted[-1], -(1 << (w - 1)), (1 << (w - 1)) - 1)))
+        m.d.comb += y.eq(Mux(ovf4, lim, shifted))
 
         # --- Multiplier, divider step ----------------------------------------------------------
         # Operands registered at the end of X1; the product registered at the end of X2 (the
@@ -942,9 +979,9 @@ class Engine(wiring.Component):
         mb3 = Signal(signed(MUL_B), reset_less=True)
         m_neg3 = Signal(reset_less=True)
         m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
-        t2 = Signal(signed(WORD + 1))
+        t2 = Signal(signed(P_WORD + 1))
         m.d.comb += t2.eq(p << 1)
-        div_diff = Signal(signed(WORD + 1))
+        div_diff = Signal(signed(P_WORD + 1))
         m.d.comb += div_diff.eq((t2 >> q) - mb3)
         div_ge = ~div_diff[-1]
 
@@ -956,8 +993,8 @@ class Engine(wiring.Component):
         writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
                               (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
                               (w4_op == Op.MUL))
-        p3 = Signal(signed(WORD))           # P as the instruction in X3 read it in X2 (trace)
-        p4 = Signal(signed(WORD))           # the same, in X4
+        p3 = Signal(signed(P_WORD))           # P as the instruction in X3 read it in X2 (trace)
+        p4 = Signal(signed(P_WORD))           # the same, in X4
         m.d.sync += [p3.eq(p), p4.eq(p3)]
         m.d.comb += [
             rf_w.addr.eq(w4_dst),
@@ -994,13 +1031,26 @@ class Engine(wiring.Component):
             with m.If(we):
                 m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
 
+        # The P update of a MUL, P_WORD bits (mod 2**P_WORD: the interpreter checks that P
+        # fits): a carry-select adder (two half-length chains; the low half's carry picks).
+        pa = Signal(P_WORD)
+        pb = Signal(P_WORD)
+        m.d.comb += [pa.eq(Mux(ir3.acc, p, 0)), pb.eq(Mux(m_neg3, ~prod, prod))]
+        kp = P_WORD // 2
+        p_lo = Signal(kp + 1)
+        p_hi0 = Signal(P_WORD - kp)
+        p_hi1 = Signal(P_WORD - kp)
+        p_sum = Signal(P_WORD)
+        m.d.comb += [p_lo.eq(pa[:kp] + pb[:kp] + m_neg3), p_hi0.eq(pa[kp:] + pb[kp:]),
+                     p_hi1.eq(pa[kp:] + pb[kp:] + 1),
+                     p_sum.eq(Cat(p_lo[:kp], Mux(p_lo[kp], p_hi1, p_hi0)))]
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
                 m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
         with m.If(x3_valid & (ir3.op == Op.MUL)):
-            # P ± prod: one adder, the carry-in negates.
-            m.d.sync += p.eq(Mux(ir3.acc, p, 0) + Mux(m_neg3, ~prod, prod) + m_neg3)
+            # P ± prod: one adder, the carry-in negates; carry-select (``p_sum``, above).
+            m.d.sync += p.eq(p_sum)
         with m.If(x3_valid & (ir3.op == Op.DIV)):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 

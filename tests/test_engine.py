@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from amaranth.hdl import UnusedElaboratable, signed
 
-from foc_servo.hdl.engine import HAZARD_P, HAZARD_RF, Assembler, Engine, Op, SAT_W
+from foc_servo.hdl.engine import HAZARD_P, HAZARD_RF, WORD, Assembler, Engine, Op, SAT_W
 from foc_servo.hdl.foc import CurrentLoop
 from foc_servo.hdl.foc_engine import (OUTS, PIPELINE_CLOCKS, SPECIALS, EngineCurrentLoop,
                                       current_loop_program, path_lengths)
@@ -55,6 +55,23 @@ def test_program_corners():
     for v in (vec, extra):
         _, _, bad, _ = _compare(v)
         assert bad == {}
+
+
+def test_program_widest_values_fit_the_words():
+    """The 32-bit register file (``WORD``) holds the widest value, the PI's ``kp·E``, at its
+    extremes (kp = 65 535, E = ±full scale); the interpreter would raise OverflowError on a
+    write that does not fit (and on P beyond ``P_WORD``), and the results match the model."""
+    vec = verify_foc.stimulus(0, seed=3)
+    n = vec["ia"].size
+    ext = {k: np.copy(v) for k, v in vec.items()}
+    ext.update(kp_d=np.full(n, 65535), kp_q=np.full(n, 65535), enable=np.ones(n, np.int64),
+               ol_enable=np.zeros(n, np.int64),
+               id_ref=np.where(np.arange(n) % 2, 32767, -32768),
+               iq_ref=np.where(np.arange(n) % 2, -32768, 32767))
+    exp, got, bad, em = _compare(ext)
+    assert bad == {}
+    widest = max(max(abs(t["y"]) for t in tr if t["y"] is not None) for tr in em.traces)
+    assert 1 << 30 < widest < 1 << (WORD - 1)
 
 
 def test_program_breaks_when_changed():
@@ -113,7 +130,7 @@ def _small(build):
     build(A)
     A.end()
     prog = A.assemble()
-    return prog, EngineModel(prog, out_widths={"ang": 16, "r": 48})
+    return prog, EngineModel(prog, out_widths={"ang": 16, "r": WORD})
 
 
 def test_div_step_is_floor_division():
@@ -140,7 +157,7 @@ def test_rounding_saturation_and_overflow_check():
     for x in (-24, -8, 8, 24, -(1 << 30), 1 << 30):
         em.run({"x": x, "y": 0}, {})
         r = em.outs["r"]
-        r = r - (1 << 48) if r >> 47 else r
+        r = r - (1 << WORD) if r >> (WORD - 1) else r
         want = int(np.sign(x)) * ((abs(x) + 8) >> 4)           # half away from zero
         assert r == max(-32768, min(32767, want))
 
@@ -163,7 +180,7 @@ def test_assembler_errors():
                                          r"posts, not with MIN, MAX or SEL$"):
         A.alu(Op.MIN, "r.t", "r.u", 0, sh=2, rnd=True)
     A.alu(Op.ADD, "r.t", 1 << 50, 0)
-    with pytest.raises(ValueError, match=r"^Assembler: constant \d+ does not fit 48 bits"):
+    with pytest.raises(ValueError, match=rf"^Assembler: constant \d+ does not fit {WORD} bits"):
         A.assemble()
 
 

@@ -9,14 +9,14 @@ instruction just before it (``HAZARD_P``). It records, per executed instruction,
 gateware shows on its ``trace_*`` ports in that instruction's X4 clock.
 
 Every value is checked against the widths the gateware gives it (multiplier operands
-``signed(MUL_A)`` × ``signed(MUL_B)``, register file and ``P`` ``signed(WORD)``): a program that
+``signed(MUL_A)`` × ``signed(MUL_B)``, register file ``signed(WORD)``, ``P`` ``signed(P_WORD)``): a program that
 would overflow raises :exc:`OverflowError` here instead of wrapping there.
 """
 
 import collections
 
 from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD,
-                           WRITE_DELAY, Op)
+                           P_WORD, WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
 __all__ = ["EngineModel"]
@@ -187,12 +187,12 @@ class EngineModel:
                 _fits(a, MUL_A, f"multiplier A at pc {pc}")
                 _fits(b, MUL_B, f"multiplier B at pc {pc}")
                 prod = -(a * b) if (ins.neg ^ c) else a * b
-                self.p = _fits((self.p if ins.acc else 0) + prod, WORD, f"P at pc {pc}")
+                self.p = _fits((self.p if ins.acc else 0) + prod, P_WORD, f"P at pc {pc}")
             elif op == Op.DIV:
                 t2 = self.p << 1
                 if (t2 >> q) >= b:
                     t2 = t2 - (b << q) + 1
-                self.p = _fits(t2, WORD, f"P (DIV) at pc {pc}")
+                self.p = _fits(t2, P_WORD, f"P (DIV) at pc {pc}")
             elif op == Op.BR:
                 taken = bool(c)
             trace.append(entry)
