@@ -37,7 +37,7 @@ def _common(p):
                         "reference; slow) (default: %(default)s)")
     p.add_argument("--current-loop", choices=["pipelined", "engine"], default="pipelined",
                    help="current-loop gateware: pipelined (CurrentLoop, 46-48 clocks) or engine "
-                        "(EngineCurrentLoop, same results, 102-186 clocks, a third of the area) "
+                        "(EngineCurrentLoop, same results, 134-232 clocks, a third of the area) "
                         "(default: %(default)s)")
     p.add_argument("--pwm-khz", type=_number("kHz", 1, 100), default=10.0,
                    help="PWM (switching and current-loop sampling) frequency, kHz "
