@@ -225,6 +225,8 @@ class LinkCore(wiring.Component):
         Wire bytes to the host.
     bus : Out(RegBusSignature())
         Register bus master; ``lock`` is high from the first to the last access of a frame.
+        ``w_data`` is the frame buffer's output: meaningful with ``stb & we`` only (the bus
+        protocol), other values outside writes.
     frames_ok, crc_errors, framing_errors, rejected, dropped : Out(counter_width)
         Frames answered OK; BAD_CRC for a CRC mismatch; BAD_CRC for a damaged frame (COBS
         error, UART framing error); frames answered with BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or
@@ -281,7 +283,7 @@ class LinkCore(wiring.Component):
         bus = self.bus
 
         m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[])
-        wr = mem.write_port()
+        wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port()
 
         # --- receive state -----------------------------------------------------------------
@@ -295,8 +297,7 @@ class LinkCore(wiring.Component):
         hdr = [Signal(8, name=f"hdr{k}") for k in range(REQUEST_HEADER)]
         cmd_in, seq_in, count_in = hdr[0], hdr[1], hdr[4]
         addr_in = Cat(hdr[2], hdr[3])
-        wacc = Signal(32)                       # little-endian word assembly
-        bpos = Signal(2)
+        bpos = Signal(2)                        # byte lane of the next data byte (little endian)
         widx = Signal(range(mw + 1))
 
         # --- execution and reply state -----------------------------------------------------
@@ -412,7 +413,14 @@ class LinkCore(wiring.Component):
         bus_we = Signal()
         bus_addr = Signal(ADDR_WIDTH)
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
-                     bus.addr.eq(bus_addr), bus.w_data.eq(Mux(bus_stb, rd.data, 0))]
+                     bus.addr.eq(bus_addr), bus.w_data.eq(rd.data)]
+
+        # One CRC network for both directions: the decoded request byte while receiving, the
+        # reply byte `jb` in the reply's CRC pass.
+        emit = Signal()
+        dbyte = Signal(8)
+        crc_reply = Signal()
+        crc_next = crc16_byte(crc, Mux(crc_reply, jb, dbyte))
 
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)
@@ -433,8 +441,6 @@ class LinkCore(wiring.Component):
                 with m.If(self.rx_error):
                     m.d.sync += bad.eq(1)
                 byte = self.i.payload
-                emit = Signal()
-                dbyte = Signal(8)
                 with m.If(self.i.valid):
                     with m.If(skip):
                         with m.If(byte == 0):
@@ -455,7 +461,7 @@ class LinkCore(wiring.Component):
                         m.d.sync += cobs_left.eq(cobs_left - 1)
                         m.d.comb += [emit.eq(1), dbyte.eq(byte)]
                 with m.If(emit):
-                    m.d.sync += crc.eq(crc16_byte(crc, dbyte))
+                    m.d.sync += crc.eq(crc_next)
                     with m.If(length <= lmax):
                         m.d.sync += length.eq(length + 1)
                     with m.Switch(length):
@@ -463,11 +469,12 @@ class LinkCore(wiring.Component):
                             with m.Case(k):
                                 m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
-                            m.d.sync += [wacc.eq(Cat(wacc[8:], dbyte)), bpos.eq(bpos + 1)]
-                            with m.If((bpos == 3) & (widx < mw)):
-                                m.d.comb += [wr.addr.eq(widx), wr.data.eq(Cat(wacc[8:], dbyte)),
-                                             wr.en.eq(1)]
-                                m.d.sync += widx.eq(widx + 1)
+                            m.d.sync += bpos.eq(bpos + 1)
+                            with m.If(widx < mw):
+                                m.d.comb += [wr.addr.eq(widx), wr.data.eq(dbyte.replicate(4)),
+                                             wr.en.eq(1 << bpos)]
+                                with m.If(bpos == 3):
+                                    m.d.sync += widx.eq(widx + 1)
 
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & (count_in <= mw)
@@ -507,7 +514,9 @@ class LinkCore(wiring.Component):
                     with m.Else():
                         status(ReplyStatus.BAD_LENGTH)
                 with m.Else():
-                    with m.If(count_ok & (length == REQUEST_HEADER + CRC_BYTES + 4 * count_in)):
+                    # length = 5 + 4·count + 2 (≤ lmax, checked above): `count` whole words
+                    # after the header and the two CRC bytes, no adder or wide compare.
+                    with m.If(count_ok & (widx == count_in) & (bpos == CRC_BYTES)):
                         status(ReplyStatus.OK)
                         m.next = "ACHECK"
                     with m.Else():
@@ -544,7 +553,8 @@ class LinkCore(wiring.Component):
                         m.next = "REPLY"
                     with m.Else():
                         with m.If(~is_write):
-                            m.d.comb += [wr.addr.eq(idx), wr.data.eq(bus.r_data), wr.en.eq(1)]
+                            m.d.comb += [wr.addr.eq(idx), wr.data.eq(bus.r_data),
+                                         wr.en.eq(0b1111)]
                         with m.If(idx == count_in - 1):
                             with m.If(~is_write):
                                 m.d.sync += [nwords.eq(count_in), r_info.eq(count_in)]
@@ -575,7 +585,8 @@ class LinkCore(wiring.Component):
             # ends, CODE sends `blk + 1` and reads byte j = p again for DATA. The byte read in
             # those last clocks is never used.
             with m.State("CRC"):                    # CRC over the reply payload
-                m.d.sync += crc.eq(crc16_byte(crc, jb))
+                m.d.comb += crc_reply.eq(1)
+                m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
                     next_j(0, read=j + 1)
                     m.next = "SCAN"
