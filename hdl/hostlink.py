@@ -329,25 +329,23 @@ class LinkCore(wiring.Component):
                      dend_m2.eq(REPLY_HEADER + 4 * nwords - 2),
                      rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES),
                      rlen_m1.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES - 1)]
-        # p + blk and p + blk + 1 likewise: p and blk are set in REPLY / NEXT and SCAN, and read
-        # back in DATA and NEXT, at least one clock (CODE) later.
+        # p + blk, p + blk + 1 and p + blk − 1, the block's end: j, j + 1 and j − 1 in SCAN's
+        # last clock (blk = j − p then), registered there with the part flags of j and j + 1;
+        # read back in DATA and NEXT, at least one clock (CODE) later. No adder on p.
         pb = Signal.like(j)
         pb1 = Signal.like(j)
         pb_m1 = Signal(signed(len(j) + 2))     # p + blk − 1 (−1 when both are 0)
-        m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1), pb_m1.eq(p + blk - 1)]
-        # NEXT's test for another block after a 254-byte one, registered from the same values
-        # (blk is set at least a clock, CODE, before NEXT; rlen from the CRC pass on).
+        # NEXT's test for another block after a 254-byte one, registered (blk and pb are set
+        # at least a clock, CODE, before NEXT; rlen from the CRC pass on).
         more254 = Signal()
-        m.d.sync += more254.eq((blk == 254) & (p + blk != rlen))
-        # p + 253 (the longest COBS block's end, p + 254, less one), set with p: no adder before
-        # the SCAN state's comparison.
-        p253 = Signal(range((1 << len(j)) + 255), init=253)
+        m.d.sync += more254.eq((blk == 254) & (pb != rlen))
         # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
         # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
         # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
         # scan_end: j = rlen or j = p + 254, in SCAN. Both 0 outside those states. CRC starts
         # at j = 0 (dend − 1 ≥ 3), SCAN at j = 0 (rlen ≥ 6, p + 254 = 254), at p + blk + 1
         # after a zero (p + 254 is then farther), or at p + blk ≠ rlen after a 254-byte block.
+        # In SCAN, blk counts the bytes scanned (blk = j − p): j = p + 253 is blk = 253.
         crc_last = Signal()
         scan_end = Signal()
         m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
@@ -372,22 +370,20 @@ class LinkCore(wiring.Component):
             """Buffer address of reply byte ``value``."""
             return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
-        def parts(value):
-            """The part flags of reply byte ``value``."""
-            if value is j:
-                return flags
-            return Cat(value < REPLY_HEADER, value < dend, value == dend)
-
-        # j + 1's flags from j: j < 3, j ≤ dend − 2, j = dend − 1 (no adder in front).
+        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3,
+        # j ≤ dend − 2, j = dend − 1: no adder in front), and registers holding those of p
+        # (set with p) and of the block's end pb, pb1 (set in SCAN's last clock): no
+        # comparison of p, pb or pb1 with dend.
+        parts_0 = Const(0b011, 3)
         parts_j1 = Cat(j < REPLY_HEADER - 1, j <= dend_m2, j == dend_m1)
+        p_flags, pb_flags, pb1_flags = (Signal(3, name=n)
+                                        for n in ("p_flags", "pb_flags", "pb1_flags"))
 
-        def set_j(value, value_parts=None):
-            """j := ``value``, with its part flags (``parts(value)`` unless given)."""
-            value = Value.cast(value)
-            m.d.comb += [j_next.eq(value),
-                         flags_next.eq(parts(value) if value_parts is None else value_parts)]
+        def set_j(value, value_parts):
+            """j := ``value``, with its part flags ``value_parts``."""
+            m.d.comb += [j_next.eq(value), flags_next.eq(value_parts)]
 
-        def next_j(value, *, read=None, value_parts=None):
+        def next_j(value, value_parts, *, read=None):
             """:func:`set_j`, and the buffer reads reply byte ``read`` (default ``value``)."""
             set_j(value, value_parts)
             m.d.comb += rd_addr.eq(word(value if read is None else read))
@@ -574,8 +570,8 @@ class LinkCore(wiring.Component):
                         counter(self.crc_errors)
                 with m.Else():
                     counter(self.rejected)
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p253.eq(253)]
-                next_j(0)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
+                next_j(0, parts_0)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
@@ -588,25 +584,26 @@ class LinkCore(wiring.Component):
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    next_j(0, read=j + 1)
+                    next_j(0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
                     m.d.sync += crc_last.eq(j == dend_m2)
-                    next_j(j + 1, value_parts=parts_j1)
+                    next_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
                 with m.If(scan_end | (jb == 0)):
-                    m.d.sync += [blk.eq(j - p), blk_zero.eq(~scan_end)]
-                    next_j(p, read=j + 1)
+                    m.d.sync += [blk_zero.eq(~scan_end), pb.eq(j), pb1.eq(j + 1),
+                                 pb_m1.eq(j - 1), pb_flags.eq(flags), pb1_flags.eq(parts_j1)]
+                    next_j(p, p_flags, read=j + 1)
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += scan_end.eq((j == rlen_m1) | (j == p253))
-                    next_j(j + 1, value_parts=parts_j1)
+                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253)), blk.eq(blk + 1)]
+                    next_j(j + 1, parts_j1)
 
             with m.State("CODE"):
-                next_j(j)
+                next_j(j, flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
                     with m.If(blk == 0):
@@ -616,7 +613,7 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
-                next_j(j)
+                next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     with m.If(j == pb_m1):         # j + 1 = p + blk
@@ -624,12 +621,13 @@ class LinkCore(wiring.Component):
 
             with m.State("NEXT"):
                 with m.If(blk_zero):
-                    m.d.sync += [p.eq(pb1), p253.eq(pb1 + 253), scan_end.eq(pb1 == rlen)]
-                    next_j(pb1)
+                    m.d.sync += [p.eq(pb1), p_flags.eq(pb1_flags), blk.eq(0),
+                                 scan_end.eq(pb1 == rlen)]
+                    next_j(pb1, pb1_flags)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
-                    m.d.sync += [p.eq(pb), p253.eq(pb + 253)]
-                    next_j(pb)
+                    m.d.sync += [p.eq(pb), p_flags.eq(pb_flags), blk.eq(0)]
+                    next_j(pb, pb_flags)
                     m.next = "SCAN"
                 with m.Else():
                     m.next = "END"
