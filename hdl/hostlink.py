@@ -13,7 +13,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, signed
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -301,12 +301,15 @@ class LinkCore(wiring.Component):
         widx = Signal(range(mw + 1))
 
         # --- execution and reply state -----------------------------------------------------
-        idx = Signal(range(256))                # word index of the burst
+        idx = Signal(range(mw))                 # word index of the burst (< count ≤ max_words)
         is_write = Signal()
-        r_cmd, r_seq, r_info = Signal(8), Signal(8), Signal(8)
+        # The reply's cmd and seq are the request's header registers (cleared in CHECK where
+        # the reply carries 0).
+        r_cmd, r_seq, r_info = cmd_in, seq_in, Signal(8)
         r_status = Signal(8)
         framing = Signal()                      # the BAD_CRC is for a damaged frame
         nwords = Signal(range(mw + 1))          # data words in the reply
+        nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
         j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
         p = Signal.like(j)                      # COBS block start
         blk = Signal(range(255))                # COBS block length (non-zero bytes)
@@ -316,29 +319,18 @@ class LinkCore(wiring.Component):
         # Comb values used by other comb logic are expressions, not signals: pysim evaluates a
         # fragment's comb statements from committed values, so each signal-to-signal link costs
         # another delta cycle every clock.
-        # Index of the first CRC byte, and the reply length: registers following ``nwords``
-        # (set in the last ACCESS clock; read from the CRC state on, two clocks later), so no
-        # adder sits in front of the reply's byte selection and buffer address (100 MHz).
-        dend = Signal.like(j)
-        rlen = Signal.like(j)
-        dend_m1 = Signal.like(j)                # dend − 1 (the CRC pass's last byte)
-        dend_m2 = Signal.like(j)                # dend − 2 (≥ 2)
-        rlen_m1 = Signal.like(j)                # rlen − 1
-        m.d.sync += [dend.eq(REPLY_HEADER + 4 * nwords),
-                     dend_m1.eq(REPLY_HEADER + 4 * nwords - 1),
-                     dend_m2.eq(REPLY_HEADER + 4 * nwords - 2),
-                     rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES),
-                     rlen_m1.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES - 1)]
-        # p + blk, p + blk + 1 and p + blk − 1, the block's end: j, j + 1 and j − 1 in SCAN's
-        # last clock (blk = j − p then), registered there with the part flags of j and j + 1;
-        # read back in DATA and NEXT, at least one clock (CODE) later. No adder on p.
-        pb = Signal.like(j)
-        pb1 = Signal.like(j)
-        pb_m1 = Signal(signed(len(j) + 2))     # p + blk − 1 (−1 when both are 0)
-        # NEXT's test for another block after a 254-byte one, registered (blk and pb are set
-        # at least a clock, CODE, before NEXT; rlen from the CRC pass on).
+        # Index of the first CRC byte, and the reply length, as bit fields of the registers
+        # ``nwords`` and ``nwords + 1`` (4 + 4·n = 4·(n + 1)): no adder in front of the reply's
+        # byte selection and buffer address (100 MHz).
+        dend = Cat(Const(0, 2), nwords1)        # 4 + 4·nwords
+        dend_m1 = Cat(Const(3, 2), nwords)      # dend − 1 (the CRC pass's last byte)
+        dend_m2 = Cat(Const(2, 2), nwords)      # dend − 2 (≥ 2)
+        rlen = Cat(Const(2, 2), nwords1)        # dend + 2
+        rlen_m1 = Cat(Const(1, 2), nwords1)     # rlen − 1
+        # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
+        # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
+        # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
         more254 = Signal()
-        m.d.sync += more254.eq((blk == 254) & (pb != rlen))
         # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
         # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
         # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
@@ -372,12 +364,10 @@ class LinkCore(wiring.Component):
 
         # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3,
         # j ≤ dend − 2, j = dend − 1: no adder in front), and registers holding those of p
-        # (set with p) and of the block's end pb, pb1 (set in SCAN's last clock): no
-        # comparison of p, pb or pb1 with dend.
+        # (set with p): no comparison of p with dend.
         parts_0 = Const(0b011, 3)
         parts_j1 = Cat(j < REPLY_HEADER - 1, j <= dend_m2, j == dend_m1)
-        p_flags, pb_flags, pb1_flags = (Signal(3, name=n)
-                                        for n in ("p_flags", "pb_flags", "pb1_flags"))
+        p_flags = Signal(3)
 
         def set_j(value, value_parts):
             """j := ``value``, with its part flags ``value_parts``."""
@@ -402,14 +392,14 @@ class LinkCore(wiring.Component):
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
         # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
-        # the clock before every ACCESS, so word idx's address is loaded there. Outside
-        # ACCESS stb, we and addr are 0; lock is high in SETUP and ACCESS.
+        # the clock before every ACCESS, and `addr` is a_full, which holds word idx's address
+        # from SETUP to the access's ack. Outside ACCESS stb and we are 0 (addr is then
+        # meaningless, as the bus allows); lock is high in SETUP and ACCESS.
         bus_stb = Signal()
         bus_lock = Signal()
         bus_we = Signal()
-        bus_addr = Signal(ADDR_WIDTH)
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
-                     bus.addr.eq(bus_addr), bus.w_data.eq(rd.data)]
+                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd.data)]
 
         # One CRC network for both directions: the decoded request byte while receiving, the
         # reply byte `jb` in the reply's CRC pass.
@@ -475,15 +465,17 @@ class LinkCore(wiring.Component):
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & (count_in <= mw)
                 m.d.sync += [
-                    r_cmd.eq(Mux(length >= 3, cmd_in, 0)),
-                    r_seq.eq(Mux(length >= 4, seq_in, 0)),
-                    r_info.eq(0), nwords.eq(0), idx.eq(0), a_full.eq(addr_in), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in), framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
                 m.next = "REPLY"
 
                 def status(s):
                     m.d.sync += r_status.eq(s)
+                with m.If(length < 3):          # hdr0 / hdr1 hold CRC bytes, or nothing
+                    m.d.sync += r_cmd.eq(0)
+                with m.If(length < 4):
+                    m.d.sync += r_seq.eq(0)
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
                     m.d.sync += [framing.eq(1), r_cmd.eq(0), r_seq.eq(0)]
@@ -532,13 +524,12 @@ class LinkCore(wiring.Component):
                     m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write),
-                             bus_addr.eq(a_full[:ADDR_WIDTH])]
+                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write)]
                 m.next = "ACCESS"
 
             with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
-                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0), bus_addr.eq(0)]
+                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0)]
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
@@ -553,7 +544,8 @@ class LinkCore(wiring.Component):
                                          wr.en.eq(0b1111)]
                         with m.If(idx == count_in - 1):
                             with m.If(~is_write):
-                                m.d.sync += [nwords.eq(count_in), r_info.eq(count_in)]
+                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + 1),
+                                             r_info.eq(count_in)]
                             m.d.sync += bus_lock.eq(0)
                             m.next = "REPLY"
                         with m.Else():
@@ -561,15 +553,18 @@ class LinkCore(wiring.Component):
                             m.next = "SETUP"
 
             with m.State("REPLY"):
-                with m.If(r_status == ReplyStatus.OK):
-                    counter(self.frames_ok)
-                with m.Elif(r_status == ReplyStatus.BAD_CRC):
-                    with m.If(framing):
-                        counter(self.framing_errors)
-                    with m.Else():
-                        counter(self.crc_errors)
-                with m.Else():
-                    counter(self.rejected)
+                # One incrementer for the four reply counters (one of them counts per reply).
+                is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
+                which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
+                counted = (self.frames_ok, self.framing_errors, self.crc_errors, self.rejected)
+                bumped = Signal.like(self.frames_ok)
+                chosen = Const(0, len(bumped))
+                for w, c in zip(which, counted):
+                    chosen = chosen | Mux(w, c, 0)
+                m.d.comb += bumped.eq(chosen + 1)
+                for w, c in zip(which, counted):
+                    with m.If(w):
+                        m.d.sync += c.eq(bumped)
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 next_j(0, parts_0)
                 m.next = "CRC"
@@ -594,8 +589,7 @@ class LinkCore(wiring.Component):
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
                 with m.If(scan_end | (jb == 0)):
-                    m.d.sync += [blk_zero.eq(~scan_end), pb.eq(j), pb1.eq(j + 1),
-                                 pb_m1.eq(j - 1), pb_flags.eq(flags), pb1_flags.eq(parts_j1)]
+                    m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
                     next_j(p, p_flags, read=j + 1)
                     m.next = "CODE"
                 with m.Else():
@@ -616,18 +610,19 @@ class LinkCore(wiring.Component):
                 next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
-                    with m.If(j == pb_m1):         # j + 1 = p + blk
+                    m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
+                    with m.If(blk == 1):            # j + 1 = p + blk
                         m.next = "NEXT"
 
-            with m.State("NEXT"):
-                with m.If(blk_zero):
-                    m.d.sync += [p.eq(pb1), p_flags.eq(pb1_flags), blk.eq(0),
-                                 scan_end.eq(pb1 == rlen)]
-                    next_j(pb1, pb1_flags)
+            with m.State("NEXT"):                   # j = p + blk, the block's end
+                with m.If(blk_zero):                # the next block starts after the zero
+                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
+                                 scan_end.eq(j == rlen_m1)]
+                    next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
-                    m.d.sync += [p.eq(pb), p_flags.eq(pb_flags), blk.eq(0)]
-                    next_j(pb, pb_flags)
+                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
+                    next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
                     m.next = "END"
