@@ -598,7 +598,7 @@ class HostLinkSpec(Elaboratable):
             Assert(~in_state("ACHECK", "SETUP", "ACCESS") | (
                 (dut["crc"] == 0) & (dut["length"] >= CRC_BYTES)
                 & (dut["is_write"] == (dut_hdr[0] == Command.WRITE))
-                & (count_in != 0) & (dut["idx"] < count_in)),
+                & (count_in != 0) & (count_in <= self.max_words) & (dut["idx"] < count_in)),
                    "aux: hostlink checked frame"),
             Assert(~in_state("ACHECK") | ~dut["is_write"] | (dut["idx"] == 0)
                    | all_writable(addr_in, addr_in + dut["idx"]),

@@ -298,12 +298,13 @@ class LinkCore(wiring.Component):
         cmd_in, seq_in, count_in = hdr[0], hdr[1], hdr[4]
         addr_in = Cat(hdr[2], hdr[3])
         bpos = Signal(2)                        # byte lane of the next data byte (little endian)
-        widx = Signal(range(mw + 1))
 
         # --- execution and reply state -----------------------------------------------------
-        idx = Signal(range(mw))                 # word index of the burst (< count ≤ max_words)
+        # Word index: of the request's data words while receiving (saturating at max_words),
+        # then of the burst (< count ≤ max_words): one buffer address for both, no multiplexer.
+        idx = Signal(range(mw + 1))
         is_write = Signal()
-        # The reply's cmd and seq are the request's header registers (cleared in CHECK where
+        # The reply's cmd and seq are the request's header registers (cleared in REPLY where
         # the reply carries 0).
         r_cmd, r_seq, r_info = cmd_in, seq_in, Signal(8)
         r_status = Signal(8)
@@ -380,7 +381,7 @@ class LinkCore(wiring.Component):
 
         def reset_frame():
             m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), widx.eq(0)]
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
             m.d.sync += [h.eq(0) for h in hdr]
 
         # Address checks of word `idx`, decoded from the address bits. a_full = addr_in + idx
@@ -419,7 +420,7 @@ class LinkCore(wiring.Component):
         # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
         # state; the link's 100 MHz).
         rd_addr = Signal.like(rd.addr)
-        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx)]
+        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
             with m.State("RECV"):
@@ -456,32 +457,28 @@ class LinkCore(wiring.Component):
                                 m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
                             m.d.sync += bpos.eq(bpos + 1)
-                            with m.If(widx < mw):
-                                m.d.comb += [wr.addr.eq(widx), wr.data.eq(dbyte.replicate(4)),
+                            with m.If(idx < mw):
+                                m.d.comb += [wr.data.eq(dbyte.replicate(4)),
                                              wr.en.eq(1 << bpos)]
                                 with m.If(bpos == 3):
-                                    m.d.sync += widx.eq(widx + 1)
+                                    m.d.sync += idx.eq(idx + 1)
 
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & (count_in <= mw)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
+                    framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
                 m.next = "REPLY"
 
                 def status(s):
                     m.d.sync += r_status.eq(s)
-                with m.If(length < 3):          # hdr0 / hdr1 hold CRC bytes, or nothing
-                    m.d.sync += r_cmd.eq(0)
-                with m.If(length < 4):
-                    m.d.sync += r_seq.eq(0)
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
-                    m.d.sync += [framing.eq(1), r_cmd.eq(0), r_seq.eq(0)]
+                    m.d.sync += framing.eq(1)
                 with m.Elif((crc != 0) | (length < 2)):
                     status(ReplyStatus.BAD_CRC)
-                    m.d.sync += [r_cmd.eq(0), r_seq.eq(0)]
                 with m.Elif(length < REQUEST_HEADER + CRC_BYTES):
                     status(ReplyStatus.BAD_LENGTH)
                 with m.Elif((cmd_in != Command.PING) & (cmd_in != Command.READ)
@@ -504,7 +501,7 @@ class LinkCore(wiring.Component):
                 with m.Else():
                     # length = 5 + 4·count + 2 (≤ lmax, checked above): `count` whole words
                     # after the header and the two CRC bytes, no adder or wide compare.
-                    with m.If(count_ok & (widx == count_in) & (bpos == CRC_BYTES)):
+                    with m.If(count_ok & (idx == count_in) & (bpos == CRC_BYTES)):
                         status(ReplyStatus.OK)
                         m.next = "ACHECK"
                     with m.Else():
@@ -540,7 +537,7 @@ class LinkCore(wiring.Component):
                         m.next = "REPLY"
                     with m.Else():
                         with m.If(~is_write):
-                            m.d.comb += [wr.addr.eq(idx), wr.data.eq(bus.r_data),
+                            m.d.comb += [wr.data.eq(bus.r_data),
                                          wr.en.eq(0b1111)]
                         with m.If(idx == count_in - 1):
                             with m.If(~is_write):
@@ -553,6 +550,13 @@ class LinkCore(wiring.Component):
                             m.next = "SETUP"
 
             with m.State("REPLY"):
+                # The reply's cmd and seq: 0 for BAD_CRC, and where the request was too short
+                # to hold them (hdr0 / hdr1 then hold CRC bytes, or nothing). Cleared here, from
+                # registers, before the CRC pass reads them.
+                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 3)):
+                    m.d.sync += r_cmd.eq(0)
+                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 4)):
+                    m.d.sync += r_seq.eq(0)
                 # One incrementer for the four reply counters (one of them counts per reply).
                 is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
                 which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
