@@ -598,7 +598,7 @@ class HostLinkSpec(Elaboratable):
             Assert(~in_state("ACHECK", "SETUP", "ACCESS") | (
                 (dut["crc"] == 0) & (dut["length"] >= CRC_BYTES)
                 & (dut["is_write"] == (dut_hdr[0] == Command.WRITE))
-                & (count_in != 0) & (dut["idx"] < count_in)),
+                & (count_in != 0) & (count_in <= self.max_words) & (dut["idx"] < count_in)),
                    "aux: hostlink checked frame"),
             Assert(~in_state("ACHECK") | ~dut["is_write"] | (dut["idx"] == 0)
                    | all_writable(addr_in, addr_in + dut["idx"]),
@@ -607,14 +607,12 @@ class HostLinkSpec(Elaboratable):
                    | all_writable(addr_in, addr_in + count_in),
                    "aux: hostlink burst writable"),
             # The bus outputs are registers set one clock ahead (ACHECK / SETUP): tied to the
-            # state they imply.
+            # state they imply (bus.addr is a_full itself).
             Assert(~in_state("ACHECK", "SETUP", "ACCESS")
                    | (internal["a_full"] == (addr_in + dut["idx"])[:len(internal["a_full"])]),
                    "aux: hostlink word address"),
             Assert((internal["bus_stb"] == in_state("ACCESS"))
-                   & (internal["bus_we"] == (in_state("ACCESS") & dut["is_write"]))
-                   & (~in_state("ACCESS")
-                      | (internal["bus_addr"] == internal["a_full"][:len(internal["bus_addr"])])),
+                   & (internal["bus_we"] == (in_state("ACCESS") & dut["is_write"])),
                    "aux: hostlink bus registers"),
         ]
         return m

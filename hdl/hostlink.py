@@ -13,7 +13,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, signed
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -225,6 +225,8 @@ class LinkCore(wiring.Component):
         Wire bytes to the host.
     bus : Out(RegBusSignature())
         Register bus master; ``lock`` is high from the first to the last access of a frame.
+        ``w_data`` is the frame buffer's output: meaningful with ``stb & we`` only (the bus
+        protocol), other values outside writes.
     frames_ok, crc_errors, framing_errors, rejected, dropped : Out(counter_width)
         Frames answered OK; BAD_CRC for a CRC mismatch; BAD_CRC for a damaged frame (COBS
         error, UART framing error); frames answered with BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or
@@ -281,7 +283,7 @@ class LinkCore(wiring.Component):
         bus = self.bus
 
         m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[])
-        wr = mem.write_port()
+        wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port()
 
         # --- receive state -----------------------------------------------------------------
@@ -295,17 +297,20 @@ class LinkCore(wiring.Component):
         hdr = [Signal(8, name=f"hdr{k}") for k in range(REQUEST_HEADER)]
         cmd_in, seq_in, count_in = hdr[0], hdr[1], hdr[4]
         addr_in = Cat(hdr[2], hdr[3])
-        wacc = Signal(32)                       # little-endian word assembly
-        bpos = Signal(2)
-        widx = Signal(range(mw + 1))
+        bpos = Signal(2)                        # byte lane of the next data byte (little endian)
 
         # --- execution and reply state -----------------------------------------------------
-        idx = Signal(range(256))                # word index of the burst
+        # Word index: of the request's data words while receiving (saturating at max_words),
+        # then of the burst (< count ≤ max_words): one buffer address for both, no multiplexer.
+        idx = Signal(range(mw + 1))
         is_write = Signal()
-        r_cmd, r_seq, r_info = Signal(8), Signal(8), Signal(8)
+        # The reply's cmd and seq are the request's header registers (cleared in REPLY where
+        # the reply carries 0).
+        r_cmd, r_seq, r_info = cmd_in, seq_in, Signal(8)
         r_status = Signal(8)
         framing = Signal()                      # the BAD_CRC is for a damaged frame
         nwords = Signal(range(mw + 1))          # data words in the reply
+        nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
         j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
         p = Signal.like(j)                      # COBS block start
         blk = Signal(range(255))                # COBS block length (non-zero bytes)
@@ -315,38 +320,25 @@ class LinkCore(wiring.Component):
         # Comb values used by other comb logic are expressions, not signals: pysim evaluates a
         # fragment's comb statements from committed values, so each signal-to-signal link costs
         # another delta cycle every clock.
-        # Index of the first CRC byte, and the reply length: registers following ``nwords``
-        # (set in the last ACCESS clock; read from the CRC state on, two clocks later), so no
-        # adder sits in front of the reply's byte selection and buffer address (100 MHz).
-        dend = Signal.like(j)
-        rlen = Signal.like(j)
-        dend_m1 = Signal.like(j)                # dend − 1 (the CRC pass's last byte)
-        dend_m2 = Signal.like(j)                # dend − 2 (≥ 2)
-        rlen_m1 = Signal.like(j)                # rlen − 1
-        m.d.sync += [dend.eq(REPLY_HEADER + 4 * nwords),
-                     dend_m1.eq(REPLY_HEADER + 4 * nwords - 1),
-                     dend_m2.eq(REPLY_HEADER + 4 * nwords - 2),
-                     rlen.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES),
-                     rlen_m1.eq(REPLY_HEADER + 4 * nwords + CRC_BYTES - 1)]
-        # p + blk and p + blk + 1 likewise: p and blk are set in REPLY / NEXT and SCAN, and read
-        # back in DATA and NEXT, at least one clock (CODE) later.
-        pb = Signal.like(j)
-        pb1 = Signal.like(j)
-        pb_m1 = Signal(signed(len(j) + 2))     # p + blk − 1 (−1 when both are 0)
-        m.d.sync += [pb.eq(p + blk), pb1.eq(p + blk + 1), pb_m1.eq(p + blk - 1)]
-        # NEXT's test for another block after a 254-byte one, registered from the same values
-        # (blk is set at least a clock, CODE, before NEXT; rlen from the CRC pass on).
+        # Index of the first CRC byte, and the reply length, as bit fields of the registers
+        # ``nwords`` and ``nwords + 1`` (4 + 4·n = 4·(n + 1)): no adder in front of the reply's
+        # byte selection and buffer address (100 MHz).
+        dend = Cat(Const(0, 2), nwords1)        # 4 + 4·nwords
+        dend_m1 = Cat(Const(3, 2), nwords)      # dend − 1 (the CRC pass's last byte)
+        dend_m2 = Cat(Const(2, 2), nwords)      # dend − 2 (≥ 2)
+        rlen = Cat(Const(2, 2), nwords1)        # dend + 2
+        rlen_m1 = Cat(Const(1, 2), nwords1)     # rlen − 1
+        # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
+        # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
+        # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
         more254 = Signal()
-        m.d.sync += more254.eq((blk == 254) & (p + blk != rlen))
-        # p + 253 (the longest COBS block's end, p + 254, less one), set with p: no adder before
-        # the SCAN state's comparison.
-        p253 = Signal(range((1 << len(j)) + 255), init=253)
         # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
         # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
         # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
         # scan_end: j = rlen or j = p + 254, in SCAN. Both 0 outside those states. CRC starts
         # at j = 0 (dend − 1 ≥ 3), SCAN at j = 0 (rlen ≥ 6, p + 254 = 254), at p + blk + 1
         # after a zero (p + 254 is then farther), or at p + blk ≠ rlen after a 254-byte block.
+        # In SCAN, blk counts the bytes scanned (blk = j − p): j = p + 253 is blk = 253.
         crc_last = Signal()
         scan_end = Signal()
         m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
@@ -371,29 +363,25 @@ class LinkCore(wiring.Component):
             """Buffer address of reply byte ``value``."""
             return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
-        def parts(value):
-            """The part flags of reply byte ``value``."""
-            if value is j:
-                return flags
-            return Cat(value < REPLY_HEADER, value < dend, value == dend)
-
-        # j + 1's flags from j: j < 3, j ≤ dend − 2, j = dend − 1 (no adder in front).
+        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3,
+        # j ≤ dend − 2, j = dend − 1: no adder in front), and registers holding those of p
+        # (set with p): no comparison of p with dend.
+        parts_0 = Const(0b011, 3)
         parts_j1 = Cat(j < REPLY_HEADER - 1, j <= dend_m2, j == dend_m1)
+        p_flags = Signal(3)
 
-        def set_j(value, value_parts=None):
-            """j := ``value``, with its part flags (``parts(value)`` unless given)."""
-            value = Value.cast(value)
-            m.d.comb += [j_next.eq(value),
-                         flags_next.eq(parts(value) if value_parts is None else value_parts)]
+        def set_j(value, value_parts):
+            """j := ``value``, with its part flags ``value_parts``."""
+            m.d.comb += [j_next.eq(value), flags_next.eq(value_parts)]
 
-        def next_j(value, *, read=None, value_parts=None):
+        def next_j(value, value_parts, *, read=None):
             """:func:`set_j`, and the buffer reads reply byte ``read`` (default ``value``)."""
             set_j(value, value_parts)
             m.d.comb += rd_addr.eq(word(value if read is None else read))
 
         def reset_frame():
             m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), widx.eq(0)]
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
             m.d.sync += [h.eq(0) for h in hdr]
 
         # Address checks of word `idx`, decoded from the address bits. a_full = addr_in + idx
@@ -405,14 +393,21 @@ class LinkCore(wiring.Component):
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
         # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
-        # the clock before every ACCESS, so word idx's address is loaded there. Outside
-        # ACCESS stb, we and addr are 0; lock is high in SETUP and ACCESS.
+        # the clock before every ACCESS, and `addr` is a_full, which holds word idx's address
+        # from SETUP to the access's ack. Outside ACCESS stb and we are 0 (addr is then
+        # meaningless, as the bus allows); lock is high in SETUP and ACCESS.
         bus_stb = Signal()
         bus_lock = Signal()
         bus_we = Signal()
-        bus_addr = Signal(ADDR_WIDTH)
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
-                     bus.addr.eq(bus_addr), bus.w_data.eq(Mux(bus_stb, rd.data, 0))]
+                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd.data)]
+
+        # One CRC network for both directions: the decoded request byte while receiving, the
+        # reply byte `jb` in the reply's CRC pass.
+        emit = Signal()
+        dbyte = Signal(8)
+        crc_reply = Signal()
+        crc_next = crc16_byte(crc, Mux(crc_reply, jb, dbyte))
 
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)
@@ -425,7 +420,7 @@ class LinkCore(wiring.Component):
         # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
         # state; the link's 100 MHz).
         rd_addr = Signal.like(rd.addr)
-        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx)]
+        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
             with m.State("RECV"):
@@ -433,8 +428,6 @@ class LinkCore(wiring.Component):
                 with m.If(self.rx_error):
                     m.d.sync += bad.eq(1)
                 byte = self.i.payload
-                emit = Signal()
-                dbyte = Signal(8)
                 with m.If(self.i.valid):
                     with m.If(skip):
                         with m.If(byte == 0):
@@ -455,7 +448,7 @@ class LinkCore(wiring.Component):
                         m.d.sync += cobs_left.eq(cobs_left - 1)
                         m.d.comb += [emit.eq(1), dbyte.eq(byte)]
                 with m.If(emit):
-                    m.d.sync += crc.eq(crc16_byte(crc, dbyte))
+                    m.d.sync += crc.eq(crc_next)
                     with m.If(length <= lmax):
                         m.d.sync += length.eq(length + 1)
                     with m.Switch(length):
@@ -463,18 +456,18 @@ class LinkCore(wiring.Component):
                             with m.Case(k):
                                 m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
-                            m.d.sync += [wacc.eq(Cat(wacc[8:], dbyte)), bpos.eq(bpos + 1)]
-                            with m.If((bpos == 3) & (widx < mw)):
-                                m.d.comb += [wr.addr.eq(widx), wr.data.eq(Cat(wacc[8:], dbyte)),
-                                             wr.en.eq(1)]
-                                m.d.sync += widx.eq(widx + 1)
+                            m.d.sync += bpos.eq(bpos + 1)
+                            with m.If(idx < mw):
+                                m.d.comb += [wr.data.eq(dbyte.replicate(4)),
+                                             wr.en.eq(1 << bpos)]
+                                with m.If(bpos == 3):
+                                    m.d.sync += idx.eq(idx + 1)
 
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & (count_in <= mw)
                 m.d.sync += [
-                    r_cmd.eq(Mux(length >= 3, cmd_in, 0)),
-                    r_seq.eq(Mux(length >= 4, seq_in, 0)),
-                    r_info.eq(0), nwords.eq(0), idx.eq(0), a_full.eq(addr_in), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
+                    framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
                 m.next = "REPLY"
@@ -483,10 +476,9 @@ class LinkCore(wiring.Component):
                     m.d.sync += r_status.eq(s)
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
-                    m.d.sync += [framing.eq(1), r_cmd.eq(0), r_seq.eq(0)]
+                    m.d.sync += framing.eq(1)
                 with m.Elif((crc != 0) | (length < 2)):
                     status(ReplyStatus.BAD_CRC)
-                    m.d.sync += [r_cmd.eq(0), r_seq.eq(0)]
                 with m.Elif(length < REQUEST_HEADER + CRC_BYTES):
                     status(ReplyStatus.BAD_LENGTH)
                 with m.Elif((cmd_in != Command.PING) & (cmd_in != Command.READ)
@@ -507,7 +499,9 @@ class LinkCore(wiring.Component):
                     with m.Else():
                         status(ReplyStatus.BAD_LENGTH)
                 with m.Else():
-                    with m.If(count_ok & (length == REQUEST_HEADER + CRC_BYTES + 4 * count_in)):
+                    # length = 5 + 4·count + 2 (≤ lmax, checked above): `count` whole words
+                    # after the header and the two CRC bytes, no adder or wide compare.
+                    with m.If(count_ok & (idx == count_in) & (bpos == CRC_BYTES)):
                         status(ReplyStatus.OK)
                         m.next = "ACHECK"
                     with m.Else():
@@ -527,13 +521,12 @@ class LinkCore(wiring.Component):
                     m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write),
-                             bus_addr.eq(a_full[:ADDR_WIDTH])]
+                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write)]
                 m.next = "ACCESS"
 
             with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
-                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0), bus_addr.eq(0)]
+                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0)]
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
@@ -544,10 +537,12 @@ class LinkCore(wiring.Component):
                         m.next = "REPLY"
                     with m.Else():
                         with m.If(~is_write):
-                            m.d.comb += [wr.addr.eq(idx), wr.data.eq(bus.r_data), wr.en.eq(1)]
+                            m.d.comb += [wr.data.eq(bus.r_data),
+                                         wr.en.eq(0b1111)]
                         with m.If(idx == count_in - 1):
                             with m.If(~is_write):
-                                m.d.sync += [nwords.eq(count_in), r_info.eq(count_in)]
+                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + 1),
+                                             r_info.eq(count_in)]
                             m.d.sync += bus_lock.eq(0)
                             m.next = "REPLY"
                         with m.Else():
@@ -555,17 +550,27 @@ class LinkCore(wiring.Component):
                             m.next = "SETUP"
 
             with m.State("REPLY"):
-                with m.If(r_status == ReplyStatus.OK):
-                    counter(self.frames_ok)
-                with m.Elif(r_status == ReplyStatus.BAD_CRC):
-                    with m.If(framing):
-                        counter(self.framing_errors)
-                    with m.Else():
-                        counter(self.crc_errors)
-                with m.Else():
-                    counter(self.rejected)
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p253.eq(253)]
-                next_j(0)
+                # The reply's cmd and seq: 0 for BAD_CRC, and where the request was too short
+                # to hold them (hdr0 / hdr1 then hold CRC bytes, or nothing). Cleared here, from
+                # registers, before the CRC pass reads them.
+                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 3)):
+                    m.d.sync += r_cmd.eq(0)
+                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 4)):
+                    m.d.sync += r_seq.eq(0)
+                # One incrementer for the four reply counters (one of them counts per reply).
+                is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
+                which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
+                counted = (self.frames_ok, self.framing_errors, self.crc_errors, self.rejected)
+                bumped = Signal.like(self.frames_ok)
+                chosen = Const(0, len(bumped))
+                for w, c in zip(which, counted):
+                    chosen = chosen | Mux(w, c, 0)
+                m.d.comb += bumped.eq(chosen + 1)
+                for w, c in zip(which, counted):
+                    with m.If(w):
+                        m.d.sync += c.eq(bumped)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
+                next_j(0, parts_0)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
@@ -575,27 +580,28 @@ class LinkCore(wiring.Component):
             # ends, CODE sends `blk + 1` and reads byte j = p again for DATA. The byte read in
             # those last clocks is never used.
             with m.State("CRC"):                    # CRC over the reply payload
-                m.d.sync += crc.eq(crc16_byte(crc, jb))
+                m.d.comb += crc_reply.eq(1)
+                m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    next_j(0, read=j + 1)
+                    next_j(0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
                     m.d.sync += crc_last.eq(j == dend_m2)
-                    next_j(j + 1, value_parts=parts_j1)
+                    next_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
                 with m.If(scan_end | (jb == 0)):
-                    m.d.sync += [blk.eq(j - p), blk_zero.eq(~scan_end)]
-                    next_j(p, read=j + 1)
+                    m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
+                    next_j(p, p_flags, read=j + 1)
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += scan_end.eq((j == rlen_m1) | (j == p253))
-                    next_j(j + 1, value_parts=parts_j1)
+                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253)), blk.eq(blk + 1)]
+                    next_j(j + 1, parts_j1)
 
             with m.State("CODE"):
-                next_j(j)
+                next_j(j, flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
                     with m.If(blk == 0):
@@ -605,20 +611,22 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
-                next_j(j)
+                next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
-                    with m.If(j == pb_m1):         # j + 1 = p + blk
+                    m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
+                    with m.If(blk == 1):            # j + 1 = p + blk
                         m.next = "NEXT"
 
-            with m.State("NEXT"):
-                with m.If(blk_zero):
-                    m.d.sync += [p.eq(pb1), p253.eq(pb1 + 253), scan_end.eq(pb1 == rlen)]
-                    next_j(pb1)
+            with m.State("NEXT"):                   # j = p + blk, the block's end
+                with m.If(blk_zero):                # the next block starts after the zero
+                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
+                                 scan_end.eq(j == rlen_m1)]
+                    next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
-                    m.d.sync += [p.eq(pb), p253.eq(pb + 253)]
-                    next_j(pb)
+                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
+                    next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
                     m.next = "END"
