@@ -50,8 +50,9 @@ Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E
 the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
 kept and with the new integrator, the conditional-integration choice and the output rounding.
 The operand selects, write enables, flag captures and side actions are registers, loaded one
-clock ahead from a ROM word read two clocks ahead (its constant bits, plus a one-hot bit per
-clock whose selections flags steer, gated with those flags): no decode of the step counter.
+clock ahead from a ROM word read three clocks ahead and registered (its constant bits, plus a
+one-hot bit per clock whose selections flags steer, gated with those flags): no decode of the
+step counter.
 The longest path is then a register through the operand multiplexers and the adder into
 ``acc`` (100 MHz on an ECP5 is the target).
 
@@ -677,18 +678,19 @@ class SpeedLoop(wiring.Component):
         # The control word and events of clock ``c`` (loaded in the clock before) come from a
         # ROM word: its constant bits, and a one-hot "conditional" bit for each clock whose word
         # has flag-dependent bits (few: the selections steered by flags), ANDed with those
-        # terms. The ROM is read two clocks ahead (synchronous read port, address ``step + 2``;
-        # 1 when not running, for the clock after an accept), so the decode is a ROM register
-        # and a few gates, not a function of the step counter. Clock 0's word (loaded by the
-        # accepting clock) is a constant: the ROM's output register has no defined value at
-        # power-on.
+        # terms. The ROM is read three clocks ahead into a register (synchronous read port and
+        # one more register, so a block RAM's slow clock-to-out is off the path; address
+        # ``step + 3``, 2 in the accepting clock), so the decode is a register and a few gates,
+        # not a function of the step counter. The words of clocks 0 and 1 (loaded by the
+        # accepting clock and the next, ``first``) are constants: the ROM's output is not
+        # defined then (at power-on, after ``clear`` or the end of a run).
         fields = ctl + events
         terms = [decode(by_clock.get(c)) + decode_events(c) for c in range(clocks + 1)]
-        cond_clocks = [c for c, tc in enumerate(terms[1:], 1)
+        cond_clocks = [c for c, tc in enumerate(terms[2:], 2)
                        if any(isinstance(t, Value) for t in tc)]
         n_f, n_c = len(fields), len(cond_clocks)
-        words = [0]                     # clock 0: not read (the accept loads it); clocks + 1: 0
-        for c, tc in enumerate(terms[1:], 1):
+        words = [0, 0]                  # clocks 0, 1: not read; clocks + 1: 0
+        for c, tc in enumerate(terms[2:], 2):
             word = sum(1 << j for j, t in enumerate(tc) if isinstance(t, int) and t)
             if c in cond_clocks:
                 word |= 1 << (n_f + cond_clocks.index(c))
@@ -696,15 +698,19 @@ class SpeedLoop(wiring.Component):
         m.submodules.ctl_rom = rom = Memory(shape=unsigned(n_f + n_c), depth=clocks + 2,
                                             init=words)
         rom_rd = rom.read_port()
-        rom_q = rom_rd.data
-        m.d.comb += rom_rd.addr.eq(Mux(running, step + 2, 1))
+        rom_q = Signal(n_f + n_c)
+        m.d.sync += rom_q.eq(rom_rd.data)
+        m.d.comb += rom_rd.addr.eq(Mux(running & ~clear & (step != clocks - 1), step + 3,
+                                       Mux(accept, 2, 1)))
+        first = Signal()                # the clock after an accept (step 0)
+        m.d.sync += first.eq(accept)
         next_v = []
         for j in range(n_f):
             v = rom_q[j]
             for k, c in enumerate(cond_clocks):
                 if isinstance(terms[c][j], Value):
                     v = v | (rom_q[n_f + k] & terms[c][j])
-            next_v.append(v)
+            next_v.append(Mux(first, terms[1][j], v))
 
         with m.If(clear):
             m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl + events]
