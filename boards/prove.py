@@ -437,6 +437,150 @@ class PISpec(Elaboratable):
         return m
 
 
+# --- 3b. the sequential speed loop ---------------------------------------------------------
+
+def _fits(value, width):
+    """``value`` (a signed Value) is representable in signed(width)."""
+    top = value[width - 1:]
+    return (top == 0) | (top == (1 << len(top)) - 1)
+
+
+class SpeedLoopSpec(Elaboratable):
+    """Limit proof of the sequential :class:`~foc_servo.hdl.servo.SpeedLoop`, built as the top
+    builds it (``Servo`` defaults with the register map's gain formats).
+
+    Every input is ``AnySeq`` (speed sample and strobe, ``clear``, the sync reset, gains, limits,
+    profile inputs), with the one assumption the block documents (*Input timing*): the inputs a
+    run reads hold while it is in flight (``Assume``: equal to the previous clock's while
+    ``running``). Properties:
+
+    * ``speed output``: at each ``o.valid``, ``lim_lo <= o <= lim_hi`` (when ``lim_lo <=
+      lim_hi``);
+    * ``speed range``: in the clock after the integrator's write, the integrator is unchanged
+      (held) or within the PI's limits ``[lo_s, hi_s] · 2**g``, where ``lo_s``, ``hi_s`` are
+      ``sat((lim − ff) · 2**(width − 16))`` (checked below) and ``ff`` is 0 or within
+      ``[lim_lo, lim_hi]``: the PI's share plus the feed-forward stays within the current
+      limits;
+    * ``speed wrap``: every unsaturated (``raw``) register write from the adder is exact (the
+      value fits the register: the integrator, its candidate, ``R``, ``ff``, ``b − a``); the
+      block's own ``Assert`` that the adder never wraps is proved with them.
+
+    ``aux:`` assertions make the properties inductive at a small depth (a run is ~116 clocks):
+    the step counter stays in range and the control word is zero when idle; from the clock a
+    register is written in a run to the end of the run, ``ff``, ``lo_s``, ``hi_s``, the clamped
+    integrator candidate and the two clamped outputs ``O_k``, ``O_c`` are in their ranges. The
+    values in between (a clamp's compare-and-restore, the flags it leaves) come from the
+    operations of the last ≤ 10 clocks, inside the induction window. The clock of each write is
+    taken from the block's own program (:attr:`SpeedLoop._ops`), so the invariants follow a
+    rescheduled program.
+
+    Parameters
+    ----------
+    broken : bool
+        Prove a :func:`mutant` of :class:`SpeedLoop` whose profile clamp always finds the
+        reference "more than a step above" (flag ``UPR``, ``speed_ref − R > S``, forced): ``R``
+        steps up by ``S`` past ``speed_ref`` and out of its range: caught 12 clocks from
+        reset. (A mutant without the integrator's upper clamp has its first counterexample
+        most of a run deep, ~75 clocks from reset: the BMC had reached 35 clocks after 7
+        minutes, too slow to run here.)
+    """
+
+    def __init__(self, *, broken=False, **params):
+        from ..hdl.servo import SpeedLoop       # (imported here: keeps the module head as is)
+        self.cls = SpeedLoop
+        self.params = {"kp_format": REGMAP["pi_speed_kp"].fmt,
+                       "kx_format": REGMAP["pi_speed_kx"].fmt, "mul_width": None, **params}
+        self.broken = broken
+
+    def elaborate(self, platform):
+        m = Module()
+        cls = self.cls
+        if self.broken:
+            cls = mutant(self.cls, ("flags[fl].eq(tests[flag_test[fl]])",
+                                    "flags[fl].eq(tests[flag_test[fl]] | (fl == \"UPR\"))"))
+        sl = cls(**self.params)
+        w, g = sl.width, sl.int_guard
+        s_out = w - 16
+        m.submodules.speed_loop, internal = elaborate_with_internals(sl, platform)
+        _drive_inputs(m, sl)
+        running, step, acc = internal["running"], internal["step"], internal["acc"]
+
+        # The inputs a run reads hold while it is in flight.
+        held = Cat(sl.speed_ref, sl.speed_slew, sl.iq_ff, sl.ref_delay, sl.int_hold, sl.kp,
+                   sl.kx, sl.lim_lo, sl.lim_hi)
+        held_prev = _history(m, held, 1, "held")[0]
+        m.d.comb += Assume(~running | (held == held_prev))
+
+        # When is a register written in a run (step of the clock it is visible from).
+        ops = sl._ops
+
+        def visible(dest, which=-1):
+            return [op.clock for op in ops if dest in op.wr][which] + 2
+
+        def after(dest, which=-1):
+            return running & (step >= visible(dest, which))
+
+        lo, hi = sl.lim_lo, sl.lim_hi
+        ok = lo <= hi
+        ff, lo_s, hi_s = internal["ff"], internal["lo_s"], internal["hi_s"]
+        integ, i_c = internal["integ"], internal["i_c"]
+        o_k, o_c = internal["cb"], internal["ca"]
+
+        def sat_w(v):
+            return Mux(v > (1 << (w - 1)) - 1, (1 << (w - 1)) - 1,
+                       Mux(v < -(1 << (w - 1)), -(1 << (w - 1)), v))
+
+        wide = signed(64)
+        lo_spec, hi_spec = Signal(wide), Signal(wide)
+        m.d.comb += [lo_spec.eq(sat_w((lo - ff) * (1 << s_out))),
+                     hi_spec.eq(sat_w((hi - ff) * (1 << s_out)))]
+        lo_g, hi_g = Signal(wide), Signal(wide)
+        m.d.comb += [lo_g.eq(lo_s * (1 << g)), hi_g.eq(hi_s * (1 << g))]
+        integ_prev = _history(m, integ, 1, "integ")[0]
+
+        # Properties.
+        m.d.comb += [
+            Assert(~(sl.o.valid & ok) | ((sl.o.payload >= lo) & (sl.o.payload <= hi)),
+                   "speed output: outside [lim_lo, lim_hi]"),
+            Assert(~(ok & running & (step == visible("I")))
+                   | (integ == integ_prev) | ((integ >= lo_g) & (integ <= hi_g)),
+                   "speed range: integrator left the PI's limits"),
+        ]
+        registers = {"R": internal["R"], "FF": ff, "I": integ, "PR": i_c, "CB": o_k}
+        for dest, reg in registers.items():
+            ev = internal.get(f"wr_{dest.lower()}_raw")
+            if ev is None:
+                raise ValueError(f"SpeedLoopSpec: no raw write event of {dest} in SpeedLoop")
+            m.d.comb += Assert(~ev | _fits(acc, len(reg)),
+                               f"speed wrap: {dest} written unsaturated out of its range")
+
+        # aux: control state.
+        ctl = [s for name, s in internal.items()
+               if re.fullmatch(r"(a|b)_\w+|c_(sub|cin|en)|(wr|cap|act)_\w+", name)
+               and name not in ("b_n", "b_val")]
+        m.d.comb += [
+            Assert(~running | (step < sl._timing["clocks"]), "aux: speed step in range"),
+            Assert(running | ~Cat(*ctl).any(), "aux: speed control word idle"),
+        ]
+        # aux: the values a run has written stay in range until its end.
+        m.d.comb += [
+            Assert(~(ok & after("FF")) | (ff == 0) | ((ff >= lo) & (ff <= hi)),
+                   "aux: speed ff in the limits"),
+            Assert(~after("LO_S") | (lo_s == lo_spec), "aux: speed lo_s = sat((lo - ff) << s)"),
+            Assert(~after("HI_S") | (hi_s == hi_spec), "aux: speed hi_s = sat((hi - ff) << s)"),
+            Assert(~(ok & after("PR")) | ((i_c >= lo_g) & (i_c <= hi_g)),
+                   "aux: speed integrator candidate in the limits"),
+            Assert(~(ok & after("CB")) | ((o_k >= lo_s) & (o_k <= hi_s)),
+                   "aux: speed O_k in the limits"),
+            Assert(~(ok & after("CA")) | ((o_c >= lo_s) & (o_c <= hi_s)),
+                   "aux: speed O_c in the limits"),
+            # R written by a slew-limited step (the write the wrap property guards first); the
+            # output and integrator limits are a whole run deep (~117 clocks), beyond a quick BMC.
+            Cover(internal["wr_r_raw"] & (acc != sl.speed_ref) & (acc[:len(sl.speed_ref)] != 0)),
+        ]
+        return m
+
+
 # --- 4. host link -------------------------------------------------------------------------------
 
 def crc16_step(m, crc, byte, name):
@@ -718,7 +862,10 @@ PROOFS = {p.name: p for p in (
           "current-loop PI: output within its limits, integrator within them, never wrapping"),
     Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,
           "PI at the speed loop's formats (24 bit): the same properties (the speed loop now "
-          "runs these equations on its sequential datapath, checked against the model only)"),
+          "runs these equations on its sequential datapath: speed_loop)"),
+    Proof("speed_loop", SpeedLoopSpec, 12, 16,
+          "sequential SpeedLoop: output within the limits, integrator within the PI's limits, "
+          "no wrapping write or adder result"),
     Proof("hostlink", HostLinkSpec, 3, 20,
           "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
     Proof("regfile", RegFileSpec, 2, 4,
@@ -741,7 +888,9 @@ def sby_config(depth, *, mode="prove", engine=ENGINE, timeout_s=None, il_name="s
     return "\n".join([
         "[options]", *options, "",
         "[engines]", engine, "",
-        "[script]", f"read_rtlil {il_name}", "prep -top top", "",
+        # ROMs (memories without write ports, e.g. SpeedLoop's control ROM) as logic: a $mem's
+        # contents are state to smtbmc, arbitrary in the induction step.
+        "[script]", f"read_rtlil {il_name}", "prep -top top", "memory_map -rom-only", "",
         "[files]", il_name, "",
     ])
 

@@ -49,9 +49,12 @@ lists the operations; each is placed in the earliest clock its operands allow, a
 Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
 the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
 kept and with the new integrator, the conditional-integration choice and the output rounding.
-The operand selects, write enables, flag captures and side actions are registers, decoded one
-clock ahead from the step counter; the longest paths are that decode and a register through
-the operand multiplexers and the adder into ``acc`` (100 MHz on an ECP5 is the target).
+The operand selects, write enables, flag captures and side actions are registers, loaded one
+clock ahead from a ROM word read three clocks ahead and registered (its constant bits, plus a
+one-hot bit per clock whose selections flags steer, gated with those flags): no decode of the
+step counter.
+The longest path is then a register through the operand multiplexers and the adder into
+``acc`` (100 MHz on an ECP5 is the target).
 
 ``P`` and ``dI`` enter the adder saturated to signed(width + int_guard + 2), which changes no
 result: beyond that range ``P + I`` (or ``I + dI``) lies outside the limits·2**int_guard
@@ -82,6 +85,7 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 
 from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import enum, stream, wiring
+from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
@@ -588,7 +592,7 @@ class SpeedLoop(wiring.Component):
         fresh = Signal(init=1)          # after clear: every tap is to_pi(R)
         rc = Signal(range(2 * n + 1))
 
-        # Control word of the operation in the next clock (decoded from ``step``, registered).
+        # Control word of the operation in the next clock (from the ROM below, registered).
         a_names = ["ACC"] + sorted({op_a[1] for op in ops
                                     for op_a in ([x for _, x in op.a] if isinstance(op.a, list)
                                                  else [op.a])
@@ -601,32 +605,49 @@ class SpeedLoop(wiring.Component):
         c_en = Signal()
         ctl = [*a_sel.values(), *b_sel.values(), c_sub, c_cin, c_en]
 
+        # Python-folded logic: a term is 0, 1 or a Value (flag-dependent).
+        def t_and(x, y):
+            if isinstance(x, int) and isinstance(y, int):
+                return x & y
+            if isinstance(x, int) or isinstance(y, int):
+                c, v = (x, y) if isinstance(x, int) else (y, x)
+                return v if c else 0
+            return x & y
+
+        def t_or(x, y):
+            if isinstance(x, int) and isinstance(y, int):
+                return x | y
+            if isinstance(x, int) or isinstance(y, int):
+                c, v = (x, y) if isinstance(x, int) else (y, x)
+                return 1 if c else v
+            return x | y
+
+        def t_not(x):
+            return 1 - x if isinstance(x, int) else ~x
+
         def cond(c):
-            if c is None:
-                return 1
-            return c(cond_in)
+            return 1 if c is None else Value.cast(c(cond_in))
 
         def decode(op):
-            """Statements loading the control word with ``op``'s."""
+            """Terms of the control word for ``op`` (in the order of ``ctl``)."""
             if op is None or not op.alu:
-                return [s.eq(0) for s in ctl]
-            sel_v = {("a", k): Const(0) for k in a_sel}
-            sel_v.update({("b", k): Const(0) for k in b_sel})
+                return [0] * len(ctl)
+            sel_v = {("a", k): 0 for k in a_sel}
+            sel_v.update({("b", k): 0 for k in b_sel})
             for field, sel in (("a", op.a), ("b", op.b)):
                 choices = sel if isinstance(sel, list) else [(None, sel)]
-                taken = Const(0)
+                taken = 0
                 for c, name in choices:
-                    hit = Value.cast(cond(c)) & ~taken
-                    taken = taken | Value.cast(cond(c))
+                    hit = t_and(cond(c), t_not(taken))
+                    taken = t_or(taken, cond(c))
                     if name in (None, "Z"):
                         continue
                     key = name if field == "b" else name if name == "ACC" else name[1]
-                    sel_v[field, key] = sel_v[field, key] | hit
-            stmts = [(a_sel if f == "a" else b_sel)[k].eq(v) for (f, k), v in sel_v.items()]
+                    sel_v[field, key] = t_or(sel_v[field, key], hit)
             sub = cond(op.sub) if callable(op.sub) else int(op.sub)
             cin = sub if op.cin is None else op.cin
-            stmts += [c_sub.eq(sub), c_cin.eq(cin), c_en.eq(1)]
-            return stmts
+            return ([sel_v["a", k] for k in a_sel] + [sel_v["b", k] for k in b_sel]
+                    + [sub, cin, 1])
 
         by_clock = {op.clock: op for op in ops}
         # Events of a clock (registered one clock ahead, like the control word): writes and flag
@@ -642,31 +663,63 @@ class SpeedLoop(wiring.Component):
                                                    [("act", k) for k in ev_act])}
 
         def decode_events(c):
-            """Statements loading the event bits of clock ``c``."""
-            v = [Const(0)] * len(events)
+            """Terms of the event bits of clock ``c`` (in the order of ``events``)."""
+            v = [0] * len(events)
             prev, now = by_clock.get(c - 1), by_clock.get(c)
             for dest, kind in (prev.wr.items() if prev else ()):
                 kind, wc = kind if isinstance(kind, tuple) else (kind, None)
-                v[ev_index["wr", dest, kind]] = Value.cast(cond(wc))
+                v[ev_index["wr", dest, kind]] = cond(wc)
             for fl in (prev.flags if prev else ()):
-                v[ev_index["flag", fl]] = Const(1)
+                v[ev_index["flag", fl]] = 1
             for act in (now.act if now else ()):
-                v[ev_index["act", act]] = Const(1)
-            return [sig.eq(val) for sig, val in zip(events, v)]
+                v[ev_index["act", act]] = 1
+            return v
+
+        # The control word and events of clock ``c`` (loaded in the clock before) come from a
+        # ROM word: its constant bits, and a one-hot "conditional" bit for each clock whose word
+        # has flag-dependent bits (few: the selections steered by flags), ANDed with those
+        # terms. The ROM is read three clocks ahead into a register (synchronous read port and
+        # one more register, so a block RAM's slow clock-to-out is off the path; address
+        # ``step + 3``, 2 in the accepting clock), so the decode is a register and a few gates,
+        # not a function of the step counter. The words of clocks 0 and 1 (loaded by the
+        # accepting clock and the next, ``first``) are constants: the ROM's output is not
+        # defined then (at power-on, after ``clear`` or the end of a run).
+        fields = ctl + events
+        terms = [decode(by_clock.get(c)) + decode_events(c) for c in range(clocks + 1)]
+        cond_clocks = [c for c, tc in enumerate(terms[2:], 2)
+                       if any(isinstance(t, Value) for t in tc)]
+        n_f, n_c = len(fields), len(cond_clocks)
+        words = [0, 0]                  # clocks 0, 1: not read; clocks + 1: 0
+        for c, tc in enumerate(terms[2:], 2):
+            word = sum(1 << j for j, t in enumerate(tc) if isinstance(t, int) and t)
+            if c in cond_clocks:
+                word |= 1 << (n_f + cond_clocks.index(c))
+            words.append(word)
+        m.submodules.ctl_rom = rom = Memory(shape=unsigned(n_f + n_c), depth=clocks + 2,
+                                            init=words)
+        rom_rd = rom.read_port()
+        rom_q = Signal(n_f + n_c)
+        m.d.sync += rom_q.eq(rom_rd.data)
+        m.d.comb += rom_rd.addr.eq(Mux(running & ~clear & (step != clocks - 1), step + 3,
+                                       Mux(accept, 2, 1)))
+        first = Signal()                # the clock after an accept (step 0)
+        m.d.sync += first.eq(accept)
+        next_v = []
+        for j in range(n_f):
+            v = rom_q[j]
+            for k, c in enumerate(cond_clocks):
+                if isinstance(terms[c][j], Value):
+                    v = v | (rom_q[n_f + k] & terms[c][j])
+            next_v.append(Mux(first, terms[1][j], v))
 
         with m.If(clear):
             m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl + events]
         with m.Elif(accept):
-            m.d.sync += [running.eq(1), step.eq(0)] + decode(by_clock.get(0))
-            m.d.sync += decode_events(0)
+            m.d.sync += [running.eq(1), step.eq(0)] + [s.eq(v) for s, v in zip(fields, terms[0])]
         with m.Elif(running):
-            m.d.sync += step.eq(step + 1)
-            with m.Switch(step):
-                for c in range(clocks):
-                    with m.Case(c):
-                        m.d.sync += decode(by_clock.get(c + 1)) + decode_events(c + 1)
-                        if c == clocks - 1:
-                            m.d.sync += running.eq(0)
+            m.d.sync += [step.eq(step + 1)] + [s.eq(v) for s, v in zip(fields, next_v)]
+            with m.If(step == clocks - 1):
+                m.d.sync += running.eq(0)
         with m.Else():
             m.d.sync += [s.eq(0) for s in events]
 

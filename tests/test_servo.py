@@ -440,6 +440,17 @@ def test_profile_run_in_the_second_clock_after_a_one_clock_clear():
     assert got[run + RL][3] == b + SLEW
 
 
+def test_speed_loop_run_in_the_first_clock_after_power_on():
+    # A run accepted in clock 0, a full-scale error against a 1/4 current limit. (Its first
+    # control word is a constant, not the control ROM's output register, which is undefined
+    # at power-on in hardware; the simulator starts it at 0, which happens to be harmless
+    # here, so the speed_loop proof, not this test, guards that.)
+    kw = dict(speed=-(1 << 30), speed_ref=1 << 30, lim_lo=-8192, lim_hi=8192)
+    seq = [loop_inputs(valid=1, **kw)] + [loop_inputs(**kw) for _ in range(LAT)]
+    got, _ = speed_loop_clocks(seq)
+    assert got[LAT][:3] == (1, 8192, 1)
+
+
 def test_servo_mode_changes_at_loop_boundary():
     seq = [base_inputs(mode=CURRENT, iq_set=1000, id_set=-200) for _ in range(12)]
     for t in (2, 8):
