@@ -4,17 +4,22 @@
 Timing (``t`` = the clock ``bus.stb`` rises for an access)::
 
     t      stb, addr, we, w_data (held by the master until ack)
-           write: staging / immediate register loaded at the end of t; the address decoded
-           into a registered word select
+           write: staging / immediate register loaded at the end of t (address compared in
+           full); the word select looked up from the word index (:func:`word_index`: a choice
+           of address bits, no compare) and whether the address's block is the map's, both
+           registered
     t + 1  a strobe register's pulse; the read multiplexer (word select → the word's value,
-           status inputs sampled in this clock) into the registered read data
+           status inputs sampled in this clock) into the registered read data; the status
+           looked up from the word select
     t + 2  ack, status, r_data; the master may start the next access in t + 3 (stb is still
            high in t + 1 and t + 2 and is not taken as a new access)
 
 The read is split over two clocks (:attr:`RegisterFile.latency` 2) so that neither the address
 decode nor the word multiplexer sits behind the other in one clock (the whole top's 100 MHz on
 the ECP5: the 16-bit compares and the ~130-way 32-bit multiplexer in series measured 10.2 ns
-alone, 14.6 ns in the routed top, docs/AREA.md §7.7).
+alone, 14.6 ns in the routed top, docs/AREA.md §7.7). Session 8 took the status and the word
+select's encoder off the address compares (docs/AREA.md, "Session 8: register file"): the
+clock t logic behind ``bus.addr`` is the write enables and two look-ups of ten address bits.
 
 Shadowing: a write to a shadowed ``rw`` register loads its staging register; the staging
 registers of all shadowed registers are copied to the active ones (the Out members) at the end of
@@ -31,18 +36,20 @@ format (the top word of a signed register sign-extended), and a second half of t
 holds the reset values (initial contents, never written). The bus timing is the same, ``ack``
 two clocks after the access is taken::
 
-    t      address decoded → registered slot and word format (no staging register loaded)
-    t + 1  write: the RAM's word written (w_data still held, formatted); read: the RAM read
+    t      word select registered, as with "ff" (no staging register loaded)
+    t + 1  the slot and word format looked up from the word select; write: the RAM's word
+           written (w_data still held, formatted); read: the RAM read
     t + 2  ack; a read's r_data is the RAM's read data
 
 ``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
 ``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
 never deferred); the RAM reads slot ``i`` in clock ``s + i`` and the active register word of
-slot ``i`` changes at the end of clock ``s + 1 + i``, so every active value is the new one from
-clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy (clocks ``s`` …
-``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in ``s``) is taken
-in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the host link
-waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
+slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
+register started by the copy, not by a compare of the slot counter), so every active value is the
+new one from clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy
+(clocks ``s`` … ``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in
+``s``) is taken in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the
+host link waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
 keeps its contents) the same sequencer walks the reset values into the staging slots
 (:attr:`~RegisterFile.reset_clocks` clocks, accesses held off, commits ignored), so reads after
 a reset return the reset values, as with ``"ff"``. Strobes, immediate registers, status and the
