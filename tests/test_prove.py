@@ -27,6 +27,7 @@ CAUGHT_BY = {
     "pi_speed": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "hostlink": r"hostlink crc: a write without a frame with a valid CRC",
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
+    "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }
 QUICK = ("deadtime", "fault", "abs_compare")
 SLOW = tuple(name for name in PROOFS if name not in QUICK)
