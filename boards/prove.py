@@ -50,8 +50,8 @@ from ..hdl.gates import Gates
 from ..hdl.hostlink import LinkCore
 from ..hdl.pi import PI
 from ..hdl.protect import FAULTS, Protection
-from ..hdl.regmap import REGMAP, Access
-from ..hdl.regs import RegisterFile
+from ..hdl.regmap import REGMAP, Access, RegMap
+from ..hdl.regs import RegisterFile, staging_slots
 from ..hdl.servo import Servo
 from ..hdl.top import regmap_address_map
 from ..host.protocol import CRC_BYTES, REQUEST_HEADER, Command
@@ -771,33 +771,65 @@ class RegFileSpec(Elaboratable):
     The bus (``addr``, ``we``, ``w_data``, ``stb``, ``lock``), ``commit``, the status (``ro``)
     inputs and the window data are ``AnySeq``. An *access* starts in a clock with ``stb`` high
     that is not one of the two clocks after an access start (the register file's documented
-    protocol: ``stb`` held until ``ack``, two clocks after the start). Properties, for every register of the map:
+    protocol: ``stb`` held until ``ack``, two clocks after the start; with ``staging="bram"``
+    also not while a copy or the reset walk holds accesses off). Properties, for every register
+    of the map:
 
     * ``rw``: its written value (the staging register of a shadowed one, else the port) differs
       from the previous clock's only after a write access to one of its words;
     * shadowed ``rw``: its active value (the port) only ever changes to the staged value;
     * ``strobe``: it pulses only after a write access to it.
 
+    With ``staging="bram"`` (``copy_last=("pwm_symmetric",)``, as the iCEBreaker builds it) the
+    staging values are the RAM's words, so for a shadowed ``rw`` register instead:
+
+    * the bus writes a staging word only in the clock after a write access to that word's
+      address (the reset walk writes only while it runs, and never starts again);
+    * its active value changes only in the load clock of one of its slots, ``i + 1`` clocks after
+      a ``commit`` with ``lock`` low, and loads the RAM word read in the clock before, which is
+      slot ``i``'s (the active value is a staged word; the RAM's contents are not modelled).
+
     Parameters
     ----------
     regmap : RegMap
         The register map (default :data:`~foc_servo.hdl.regmap.REGMAP`).
+    staging : str
+        ``"ff"`` (default) or ``"bram"``.
     broken : bool
         Prove a :func:`mutant` of :class:`RegisterFile` that also takes a write in the two
-        clocks after an access (``access = stb`` instead of ``stb & ~pending & ~ack``).
+        clocks after an access (``access = stb`` instead of ``stb & ~pending & ~ack``). With
+        ``staging="bram"`` on :data:`BROKEN_BRAM_REGS` of the map only: after power-on the
+        reset walk holds every access off for one clock per staging slot (48 with the whole
+        map), longer than a BMC depth that runs in seconds.
     """
 
-    def __init__(self, *, regmap=REGMAP, broken=False):
+    #: The registers of the ``staging="bram"`` broken variant's map (3 staging slots).
+    BROKEN_BRAM_REGS = ("mode", "clear_faults", "i_q_ref", "pwm_symmetric", "prot_oc_limit",
+                        "st_mode")
+
+    def __init__(self, *, regmap=REGMAP, staging="ff", broken=False):
         self.regmap = regmap
+        self.staging = staging
         self.broken = broken
 
     def elaborate(self, platform):
         m = Module()
+        bram = self.staging == "bram"
         cls = RegisterFile
-        if self.broken:
+        if self.broken and bram:
+            cls = mutant(RegisterFile, ('access.eq(bus.stb & ~pending & ~bus.ack & ~stage["hold"])',
+                                        'access.eq(bus.stb & ~stage["hold"])'))
+        elif self.broken:
             cls = mutant(RegisterFile, ("access.eq(bus.stb & ~pending & ~bus.ack)",
                                         "access.eq(bus.stb)"))
-        regs = cls(self.regmap)
+        regmap = self.regmap
+        if bram and self.broken:
+            regmap = RegMap([r for r in regmap if r.name in self.BROKEN_BRAM_REGS],
+                            regmap.windows)
+        if bram:
+            regs = cls(regmap, staging="bram", copy_last=("pwm_symmetric",))
+        else:
+            regs = cls(regmap)
         m.submodules.regs, internal = elaborate_with_internals(regs, platform)
         _drive_inputs(m, regs)
         bus = regs.bus
@@ -806,14 +838,17 @@ class RegFileSpec(Elaboratable):
         # documented protocol: stb is held until ack, in the second clock after the access).
         started = Signal(name="spec_started")
         access = Signal(name="spec_access")
-        m.d.comb += access.eq(bus.stb & ~started & ~bus.ack)
+        m.d.comb += access.eq(bus.stb & ~started & ~bus.ack
+                              & (~internal["hold"] if bram else 1))
         m.d.sync += started.eq(access)
         m.d.comb += Assert(started == internal["pending"], "aux: regfile access in flight")
         access = access & bus.we
         written = {}
-        for addr, r, _ in self.regmap.words():
+        for addr, r, _ in regmap.words():
             written[r.name] = written.get(r.name, Const(0, 1)) | (access & (bus.addr == addr))
-        for r in self.regmap:
+        if bram:
+            m.d.comb += self._bram(m, regs, internal, access)
+        for r in regmap:
             if r.access not in (Access.RW, Access.STROBE):
                 continue
             wrote = _history(m, written[r.name], 1, f"wrote_{r.name}")[0]
@@ -821,6 +856,8 @@ class RegFileSpec(Elaboratable):
             if r.access is Access.STROBE:
                 m.d.comb += Assert(~port | wrote, f"regfile: {r.name} pulsed unwritten")
                 continue
+            if bram and r.shadow is not None:
+                continue                        # self._bram
             value = internal[f"{r.name}_staged"] if r.shadow is not None else port
             prev = _history(m, value, 1, f"held_{r.name}")[0]
             m.d.comb += Assert((value == prev) | wrote, f"regfile: {r.name} changed unwritten")
@@ -828,9 +865,48 @@ class RegFileSpec(Elaboratable):
                 active_prev = _history(m, port, 1, f"active_{r.name}")[0]
                 m.d.comb += Assert((port == active_prev) | (port.as_unsigned() == prev),
                                    f"regfile: {r.name} active value not staged")
-        m.d.comb += Cover(Cat(*(_bits(getattr(regs, r.name)) for r in self.regmap
+        m.d.comb += Cover(Cat(*(_bits(getattr(regs, r.name)) for r in regmap
                                 if r.access is Access.STROBE)).any())
         return m
+
+    def _bram(self, m, regs, internal, access):
+        """The ``staging="bram"`` properties of the shadowed registers (see the class)."""
+        bus = regs.bus
+        slots = staging_slots(regs.regmap, regs.copy_last)
+        n = len(slots)
+        ld, cnt, run, walk = (internal[k] for k in ("copy_ld", "cnt", "run", "walk"))
+        wr_en, wr_addr, load_walk = internal["wr__en"], internal["wr__addr"], internal["load_walk"]
+        rd_prev = _history(m, internal["rd__addr"], 1, "rd_addr")[0]
+        walk_prev = _history(m, walk, 1, "walk", init=1)[0]
+        # The spec's own record of the commits with lock low in the last n clocks.
+        copy = Signal(n, name="spec_copy")
+        m.d.sync += copy.eq(Cat(regs.commit & ~bus.lock, copy[:-1]))
+        out = [
+            Assert(run | ((cnt == 0) & ~walk), "aux: regfile idle sequencer"),
+            Assert(~walk | run, "aux: regfile walk runs"),
+            Assert(~walk | walk_prev, "regfile: reset walk restarted"),
+            Assert(~load_walk | walk_prev, "regfile: walk write outside the walk"),
+        ]
+        for i in range(n):
+            out += [
+                Assert(~ld[i] | ((cnt == (i + 1) % n) & ~walk & ~internal["pending"]
+                                 & (run == (i < n - 1))), f"aux: regfile copy load {i}"),
+                Assert(~ld[i] | copy[i], f"regfile: slot {i} copied without a commit"),
+                Assert(~ld[i] | (rd_prev == i), f"regfile: slot {i} copied from another word"),
+            ]
+        changed = {}
+        for i, (addr, r, k) in enumerate(slots):
+            wrote = _history(m, access & (bus.addr == addr), 1, f"wrote_{addr:04x}")[0]
+            out.append(Assert(~(wr_en & ~load_walk & (wr_addr == i)) | wrote,
+                              f"regfile: {r.name} changed unwritten"))
+            changed[r.name] = changed.get(r.name, Const(0, 1)) | ld[i]
+        for name, loaded in changed.items():
+            port = _bits(getattr(regs, name))
+            prev = _history(m, port, 1, f"active_{name}")[0]
+            loaded_prev = _history(m, loaded, 1, f"loaded_{name}")[0]
+            out.append(Assert((port == prev) | loaded_prev,
+                              f"regfile: {name} active value changed without a copy"))
+        return out
 
 
 # --- the runner --------------------------------------------------------------------------------
@@ -842,13 +918,15 @@ class Proof:
     ``depth`` is the induction length ``k`` (a little above the least that proves it);
     ``broken_depth`` the BMC depth for the broken variant and for the cover run, deep enough to
     reach the shortest counterexample (so that a broken variant comes out ``failed``, not
-    ``unknown``) and every ``Cover``.
+    ``unknown``) and every ``Cover``; ``cover_depth``, if not 0, the cover run's instead
+    (``regfile_bram``: its broken variant runs on a smaller map, the cover on the whole one).
     """
     name: str
     spec: object                    # callable(broken=bool) -> Elaboratable
     depth: int
     broken_depth: int
     summary: str
+    cover_depth: int = 0            # the cover run's depth when not broken_depth
 
 
 PROOFS = {p.name: p for p in (
@@ -870,6 +948,10 @@ PROOFS = {p.name: p for p in (
           "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
     Proof("regfile", RegFileSpec, 2, 4,
           "RegisterFile: a register changes only after a bus write to it"),
+    Proof("regfile_bram", functools.partial(RegFileSpec, staging="bram"), 2, 10,
+          "RegisterFile(staging='bram'): a staging word changes only after a bus write to it, "
+          "an active register only in a copy after an unlocked commit, from its slot",
+          cover_depth=54),
 )}
 
 #: The default ``[engines]`` line: smtbmc with yices; ``--keep-going`` reports every assertion a
@@ -990,7 +1072,8 @@ def _run_one(proof, *, broken, cover, out, timeout_s, engine, progress):
         # Properties not inductive at this depth (no counterexample from reset in `depth`).
         result["induction_failed"] = _failed_asserts(text, messages, "induction")
     if cover:
-        word, _, seconds, log = _sby(workdir, il_text, mode="cover", depth=proof.broken_depth,
+        word, _, seconds, log = _sby(workdir, il_text, mode="cover",
+                                     depth=proof.cover_depth or proof.broken_depth,
                                      engine=engine, timeout_s=timeout_s,
                                      label=f"cover {name}", progress=progress)
         result["cover"] = {"PASS": "covered", "FAIL": "uncovered"}.get(word, "unknown")

@@ -4,17 +4,22 @@
 Timing (``t`` = the clock ``bus.stb`` rises for an access)::
 
     t      stb, addr, we, w_data (held by the master until ack)
-           write: staging / immediate register loaded at the end of t; the address decoded
-           into a registered word select
+           write: staging / immediate register loaded at the end of t (address compared in
+           full); the word select looked up from the word index (:func:`word_index`: a choice
+           of address bits, no compare) and whether the address's block is the map's, both
+           registered
     t + 1  a strobe register's pulse; the read multiplexer (word select → the word's value,
-           status inputs sampled in this clock) into the registered read data
+           status inputs sampled in this clock) into the registered read data; the status
+           looked up from the word select
     t + 2  ack, status, r_data; the master may start the next access in t + 3 (stb is still
            high in t + 1 and t + 2 and is not taken as a new access)
 
 The read is split over two clocks (:attr:`RegisterFile.latency` 2) so that neither the address
 decode nor the word multiplexer sits behind the other in one clock (the whole top's 100 MHz on
 the ECP5: the 16-bit compares and the ~130-way 32-bit multiplexer in series measured 10.2 ns
-alone, 14.6 ns in the routed top, docs/AREA.md §7.7).
+alone, 14.6 ns in the routed top, docs/AREA.md §7.7). Session 8 took the status and the word
+select's encoder off the address compares (docs/AREA.md, "Session 8: register file"): the
+clock t logic behind ``bus.addr`` is the write enables and two look-ups of ten address bits.
 
 Shadowing: a write to a shadowed ``rw`` register loads its staging register; the staging
 registers of all shadowed registers are copied to the active ones (the Out members) at the end of
@@ -31,23 +36,27 @@ format (the top word of a signed register sign-extended), and a second half of t
 holds the reset values (initial contents, never written). The bus timing is the same, ``ack``
 two clocks after the access is taken::
 
-    t      address decoded → registered slot and word format (no staging register loaded)
-    t + 1  write: the RAM's word written (w_data still held, formatted); read: the RAM read
+    t      word select registered, as with "ff" (no staging register loaded)
+    t + 1  the slot and word format looked up from the word select; write: the RAM's word
+           written (w_data still held, formatted); read: the RAM read
     t + 2  ack; a read's r_data is the RAM's read data
 
 ``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
 ``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
 never deferred); the RAM reads slot ``i`` in clock ``s + i`` and the active register word of
-slot ``i`` changes at the end of clock ``s + 1 + i``, so every active value is the new one from
-clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy (clocks ``s`` …
-``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in ``s``) is taken
-in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the host link
-waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
+slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
+register started by the copy, not by a compare of the slot counter), so every active value is the
+new one from clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy
+(clocks ``s`` … ``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in
+``s``) is taken in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the
+host link waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
 keeps its contents) the same sequencer walks the reset values into the staging slots
 (:attr:`~RegisterFile.reset_clocks` clocks, accesses held off, commits ignored), so reads after
 a reset return the reset values, as with ``"ff"``. Strobes, immediate registers, status and the
 windows are as with ``"ff"``.
 """
+
+import itertools
 
 from amaranth.hdl import Cat, Module, Mux, Signal, Value, unsigned
 from amaranth.lib import wiring
@@ -59,7 +68,7 @@ from .bus import DATA_WIDTH, RegBusSignature, Status
 from .fixed import check_choice
 from .regmap import REGMAP, Access, RegMap
 
-__all__ = ["RegisterFile", "STAGINGS", "staging_slots"]
+__all__ = ["RegisterFile", "STAGINGS", "staging_slots", "word_index"]
 
 #: Values of ``RegisterFile(staging=...)``.
 STAGINGS = ("ff", "bram")
@@ -74,6 +83,42 @@ def staging_slots(regmap, copy_last=()):
              if r.access is Access.RW and r.shadow is not None]
     last = [w for name in copy_last for w in words if w[1].name == name]
     return [w for w in words if w[1].name not in copy_last] + last
+
+
+def word_index(regmap):
+    """The register file's word index of ``regmap``: ``(block_bits, picked)``.
+
+    The word addresses fall into blocks of ``2 ** block_bits`` words (``addr >> block_bits``);
+    ``picked`` are the fewest bit positions of the block number that tell the blocks apart. An
+    address's *index* is ``Cat(addr[:block_bits], addr[block_bits + p] for p in picked)``: the
+    index of every word of the map is distinct, and it is a mere choice of address wires, no
+    logic. The access clock registers the index and whether ``addr``'s block is one of the
+    map's; the read multiplexer and the status look-up of the next clock work on the index alone.
+    ``block_bits`` is chosen (0 … 8) for the shortest index, then the largest ``block_bits``."""
+    addrs = [a for a, _, _ in regmap.words()]
+    best = None
+    for b in range(9):
+        blocks = sorted({a >> b for a in addrs})
+        for n in range(17 - b):
+            if (1 << n) < len(blocks):
+                continue
+            picked = next((sub for sub in itertools.combinations(range(16 - b), n)
+                           if len({tuple((blk >> p) & 1 for p in sub) for blk in blocks})
+                           == len(blocks)), None)
+            if picked is not None:
+                break
+        key = (b + len(picked), -b)
+        if best is None or key < best[0]:
+            best = (key, b, picked)
+    return best[1], best[2]
+
+
+def _index_of(addr, block_bits, picked):
+    """The index (:func:`word_index`) of address ``addr`` as an integer."""
+    idx = addr & ((1 << block_bits) - 1)
+    for j, p in enumerate(picked):
+        idx |= ((addr >> (block_bits + p)) & 1) << (block_bits + j)
+    return idx
 
 
 def _bits(port):
@@ -175,6 +220,7 @@ class RegisterFile(wiring.Component):
         self._staging = staging
         self._copy_last = copy_last
         self._slots = staging_slots(regmap, copy_last) if staging == "bram" else []
+        self._slot_of = {a: i for i, (a, _, _) in enumerate(self._slots)}
         if staging == "bram" and not self._slots:
             raise ValueError("RegisterFile staging='bram' needs a shadowed rw register in the "
                              "regmap, not none")
@@ -203,18 +249,26 @@ class RegisterFile(wiring.Component):
         m = Module()
         bus = self.bus
         bram = self._staging == "bram"
+        words = self._regmap.words()
+        block_bits, picked = word_index(self._regmap)
+        blocks = sorted({a >> block_bits for a, _, _ in words})
 
         access = Signal()
         pending = Signal()                      # t + 1 of an access: the read multiplexer
         r_data = Signal(DATA_WIDTH)
         win_hit = {w.name: Signal(name=f"{w.name}_hit") for w in self._regmap.windows}
         win_pend = {w.name: Signal(name=f"{w.name}_pend") for w in self._regmap.windows}
-        status_p = Signal(Status)
-        words = self._regmap.words()
-        # Word select: 1 + the index of the addressed register word (0: none, reads 0).
+        # The access's address, registered in t for t + 1: its word index (word_index(), a
+        # choice of address bits), whether its block is one of the map's, and we.
+        index = Cat(bus.addr[:block_bits], *(bus.addr[block_bits + p] for p in picked))
+        # Word select: 1 + the index of the addressed word in words (0: none), looked up from
+        # the word index (valid with blk_ok).
         sel = Signal(range(len(words) + 1))
+        blk_ok = Signal()
+        we = Signal(name="we_p")
+        win_wr = Signal()                       # a write to a window (read only)
         if bram:
-            stage = self._stage(m, pending)
+            stage = self._stage(m, pending, sel, blk_ok, we)
             m.d.comb += access.eq(bus.stb & ~pending & ~bus.ack & ~stage["hold"])
         else:
             stage = None
@@ -250,48 +304,61 @@ class RegisterFile(wiring.Component):
                 held[r.name] = 0
                 m.d.sync += port.eq(0)
 
-        # t: address decode → writes, status, word select (registered).
+        # t: the writes (address compared in full); the index, block and window hits registered.
         with m.If(access):
-            m.d.sync += [
-                status_p.eq(Status.BAD_ADDRESS),
-                sel.eq(0),
-                *(hit.eq(0) for hit in win_pend.values()),
-            ]
-            with m.Switch(bus.addr):
+            m.d.sync += [we.eq(bus.we), blk_ok.eq(0), win_wr.eq(0),
+                         *(hit.eq(0) for hit in win_pend.values())]
+            with m.Switch(bus.addr[block_bits:]):
+                for blk in blocks:
+                    with m.Case(blk):
+                        m.d.sync += blk_ok.eq(1)
+            with m.Switch(index):
                 for i, (addr, r, k) in enumerate(words):
-                    with m.Case(addr):
-                        if held[r.name] is None:
-                            self._staged_word(m, stage, addr, status_p)
-                        else:
-                            self._word(m, r, k, held[r.name], status_p)
-                            with m.If(~bus.we):
-                                m.d.sync += sel.eq(i + 1)
-                for w in self._regmap.windows:
-                    pattern = format(w.addr >> w.addr_width, f"0{16 - w.addr_width}b")
-                    with m.Case(pattern + "-" * w.addr_width):
-                        with m.If(bus.we):
-                            m.d.sync += status_p.eq(Status.READ_ONLY)
-                        with m.Else():
-                            m.d.sync += [status_p.eq(Status.OK), win_pend[w.name].eq(1)]
-        # t + 1: word select → read data; status and window hit passed on (all for t + 2).
+                    with m.Case(_index_of(addr, block_bits, picked)):
+                        m.d.sync += sel.eq(i + 1)
+                with m.Default():
+                    m.d.sync += sel.eq(0)
+            with m.If(bus.we):
+                with m.Switch(bus.addr):
+                    for addr, r, k in words:
+                        if held[r.name] is not None and r.access in (Access.RW, Access.STROBE):
+                            with m.Case(addr):
+                                self._write(m, r, k, held[r.name])
+            for w in self._regmap.windows:
+                with m.If(bus.addr[w.addr_width:] == w.addr >> w.addr_width):
+                    m.d.sync += [win_pend[w.name].eq(~bus.we), win_wr.eq(bus.we)]
+        # t + 1: word select → read data and status; window hits passed on (all for t + 2).
+        word = Signal(DATA_WIDTH)               # the selected word's value (readable words)
+        known = Signal()                        # sel is a word (blk_ok: the address is)
+        read_only = Signal()                    # ... a read-only one (ro, const)
+        with m.Switch(sel):
+            for i, (addr, r, k) in enumerate(words):
+                with m.Case(i + 1):
+                    m.d.comb += [known.eq(1),
+                                 read_only.eq(r.access in (Access.RO, Access.CONST))]
+                    if held[r.name] is not None:
+                        m.d.comb += word.eq(self._read_word(r, k, held[r.name]))
         with m.If(pending):
-            m.d.sync += [bus.status.eq(status_p),
+            m.d.sync += [r_data.eq(Mux(blk_ok & ~we, word, 0)),
                          *(win_hit[n].eq(win_pend[n]) for n in win_hit)]
             if bram:
                 m.d.sync += stage["hit"].eq(stage["pend"])
-            with m.Switch(sel):
-                with m.Case(0):
-                    m.d.sync += r_data.eq(0)
-                for i, (addr, r, k) in enumerate(words):
-                    if held[r.name] is None:
-                        continue
-                    with m.Case(i + 1):
-                        m.d.sync += r_data.eq(self._read_word(r, k, held[r.name]))
+            with m.If(blk_ok & known):
+                m.d.sync += bus.status.eq(Mux(we & read_only, Status.READ_ONLY, Status.OK))
+            with m.Else():
+                m.d.sync += bus.status.eq(Status.BAD_ADDRESS)
+            with m.If(win_wr):
+                m.d.sync += bus.status.eq(Status.READ_ONLY)
+            for hit in win_pend.values():
+                with m.If(hit):
+                    m.d.sync += bus.status.eq(Status.OK)
         return m
 
-    def _stage(self, m, pending):
-        """The staging RAM, its copy / reset-walk sequencer and the active registers' loads
-        (``staging="bram"``). Returns the signals the bus logic uses."""
+    def _stage(self, m, pending, sel, blk_ok, we):
+        """The staging RAM, its copy / reset-walk sequencer, the active registers' loads and the
+        access's staging slot in t + 1 (``staging="bram"``; ``sel``, ``blk_ok``, ``we``: the
+        access's registered word select, block hit and direction). Returns the signals the bus
+        logic uses."""
         bus = self.bus
         slots = self._slots
         n = len(slots)
@@ -312,9 +379,10 @@ class RegisterFile(wiring.Component):
         load = Signal()                         # rd.data holds slot dst: load it
         load_walk = Signal()                    # a load of the walk: into the RAM's slot dst
         dst = Signal(range(n))
-        slot = Signal(range(n))                 # the access's slot (t → t + 1)
+        slot = Signal(range(n))                 # the access's slot (in t + 1)
         formats = self._formats()
         fmt = Signal(range(max(1, len(formats))))       # its word format (index in formats)
+        staged = Signal()                       # sel is a staged word
         wr_pend = Signal()                      # t + 1 of a write to a staged word
         pend = Signal(name="stage_pend")        # t + 1 of a read of a staged word
         hit = Signal(name="stage_hit")          # t + 2 of it: bus.r_data from the RAM
@@ -337,16 +405,25 @@ class RegisterFile(wiring.Component):
             m.d.sync += [load.eq(0), load_walk.eq(0)]
         m.d.comb += rd.addr.eq(Mux(pending, slot, Cat(cnt, walk)))   # cnt: log2(base) bits
 
-        # Active registers: slot dst's word from the RAM in a load clock of a copy.
-        with m.If(load & ~load_walk):
-            with m.Switch(dst):
-                for i, (_, r, k) in enumerate(slots):
-                    with m.Case(i):
-                        lo, hi = r.word_slice(k)
-                        m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd.data[:hi - lo])
+        # Active registers: slot i's word from the RAM in the copy's load clock s + 1 + i, told
+        # by a one-hot shift register (no compare of dst per slot).
+        ld = Signal(n, name="copy_ld")
+        m.d.sync += ld.eq(Cat(start, ld[:-1]))
+        for i, (_, r, k) in enumerate(slots):
+            with m.If(ld[i]):
+                lo, hi = r.word_slice(k)
+                m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd.data[:hi - lo])
 
-        # The RAM's write port: the walk's load, or a bus write in t + 1 (w_data still held).
-        m.d.sync += [wr_pend.eq(0), pend.eq(0)]
+        # t + 1: the access's slot and word format, looked up from the word select.
+        with m.Switch(sel):
+            for i, (addr, r, k) in enumerate(self._regmap.words()):
+                if addr in self._slot_of:
+                    with m.Case(i + 1):
+                        m.d.comb += [staged.eq(1), slot.eq(self._slot_of[addr]),
+                                     fmt.eq(formats.index(self._word_format(r, k)))]
+        m.d.comb += [wr_pend.eq(pending & blk_ok & staged & we),
+                     pend.eq(pending & blk_ok & staged & ~we)]
+
         w_fmt = Signal(DATA_WIDTH)
         with m.Switch(fmt):
             for j, (width, signed) in enumerate(formats):
@@ -358,9 +435,7 @@ class RegisterFile(wiring.Component):
             wr.data.eq(Mux(load_walk, rd.data, w_fmt)),
             wr.en.eq((load & load_walk) | wr_pend),
         ]
-        return {"hold": hold, "rd": rd, "slot": slot, "fmt": fmt, "wr_pend": wr_pend,
-                "pend": pend, "hit": hit, "index": {a: i for i, (a, _, _) in enumerate(slots)},
-                "formats": formats}
+        return {"hold": hold, "rd": rd, "pend": pend, "hit": hit}
 
     @staticmethod
     def _word_format(r, k):
@@ -376,16 +451,6 @@ class RegisterFile(wiring.Component):
                 out.append(self._word_format(r, k))
         return out
 
-    def _staged_word(self, m, stage, addr, status):
-        """The access logic of a staged word (``staging="bram"``, inside its address ``Case``):
-        the slot and format for t + 1, where a write goes into the RAM and a read reads it."""
-        _, r, k = self._slots[stage["index"][addr]]
-        m.d.sync += [status.eq(Status.OK), stage["slot"].eq(stage["index"][addr]),
-                     stage["fmt"].eq(stage["formats"].index(self._word_format(r, k)))]
-        with m.If(self.bus.we):
-            m.d.sync += stage["wr_pend"].eq(1)
-        with m.Else():
-            m.d.sync += stage["pend"].eq(1)
     @staticmethod
     def _read_word(r, k, held):
         """The bus word ``k`` of register ``r`` holding ``held`` (a value or a constant)."""
@@ -397,17 +462,12 @@ class RegisterFile(wiring.Component):
             word = word.as_signed()             # sign-extended to the bus width
         return word
 
-    def _word(self, m, r, k, held, status):
-        """The write and status logic of word ``k`` of register ``r`` (inside its address
-        ``Case``; ``status`` the register passed on to ``bus.status``)."""
+    def _write(self, m, r, k, held):
+        """A write to word ``k`` of ``rw`` / ``strobe`` register ``r`` holding ``held`` (inside
+        its address ``Case`` of a write access, clock t)."""
         bus = self.bus
         lo, hi = r.word_slice(k)
-        with m.If(bus.we):
-            if r.access is Access.STROBE:
-                m.d.sync += [status.eq(Status.OK), getattr(self, r.name).eq(bus.w_data[0])]
-            elif r.access is Access.RW:
-                m.d.sync += [status.eq(Status.OK), held[lo:hi].eq(bus.w_data[:hi - lo])]
-            else:
-                m.d.sync += status.eq(Status.READ_ONLY)
-        with m.Else():
-            m.d.sync += status.eq(Status.OK)
+        if r.access is Access.STROBE:
+            m.d.sync += getattr(self, r.name).eq(bus.w_data[0])
+        else:
+            m.d.sync += held[lo:hi].eq(bus.w_data[:hi - lo])

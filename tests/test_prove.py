@@ -29,6 +29,7 @@ CAUGHT_BY = {
     "speed_loop": r"speed wrap: R written unsaturated out of its range",
     "hostlink": r"hostlink crc: a write without a frame with a valid CRC",
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
+    "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }
 QUICK = ("deadtime", "fault", "abs_compare")
 SLOW = tuple(name for name in PROOFS if name not in QUICK)

@@ -8,7 +8,7 @@ from amaranth.hdl import signed, unsigned
 
 from foc_servo.hdl.bus import Status
 from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
-from foc_servo.hdl.regs import RegisterFile, staging_slots
+from foc_servo.hdl.regs import RegisterFile, staging_slots, word_index
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.regs import RegisterFileModel
 from foc_servo.sim.verify import regs as verify_regs
@@ -265,6 +265,20 @@ def test_random_comparison_detects_a_model_that_ignores_lock(monkeypatch):
     fig = run(400, seed=1)
     assert fig["mismatches"] > 0
     assert re.match(r"^clock \d+: \(got, expected\) \{", fig["first_mismatch"])
+
+
+def test_word_index_tells_every_word_apart_with_the_fewest_address_bits():
+    block_bits, picked = word_index(REGMAP)
+    assert (block_bits, picked) == (6, (1, 2, 3, 4))      # addr[0:6], addr[7:11]
+    bits = list(range(block_bits)) + [block_bits + p for p in picked]
+    words = [a for a, _, _ in REGMAP.words()]
+    index = {sum(((a >> b) & 1) << j for j, b in enumerate(bits)) for a in words}
+    assert len(index) == len(words)
+    blocks = {a >> block_bits for a in words}
+    assert len({tuple((blk >> p) & 1 for p in picked) for blk in blocks}) == len(blocks)
+    # (word_index tries blocks of 1 … 256 words: none gives this map an index under 10 bits.)
+    small = build_regmap(Scales(clk_hz=50e6, pwm_hz=20e3, i_fs_a=10, u_fs_v=24, n_fs_rpm=6000))
+    assert word_index(small) == (block_bits, picked)      # constants do not move addresses
 
 
 def test_register_file_converts_to_verilog():

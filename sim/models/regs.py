@@ -32,12 +32,16 @@ class RegisterFileModel:
         Bus reply registers (``r_data_reg`` is the register behind the window mux).
     pending, status_p, sel, win_pend
         The access's first-clock registers (t): the read multiplexer runs in t + 1 on the word
-        ``sel`` (``(register, k)`` or ``None``), ``ack`` and the reply show in t + 2.
+        ``sel`` (``(register, k)`` or ``None``), ``ack`` and the reply show in t + 2. (The
+        gateware registers a word select and looks the status up from it in t + 1; deciding
+        ``status_p`` in t gives the same bus reply.)
     mem, rd_data, run, walk, cnt, load, load_walk, dst, slot, wr_pend, stage_pend, stage_hit
         ``staging="bram"``: the staging RAM (slots, then the reset values from ``base``), its
         read data register, and the copy / reset-walk sequencer and access registers of
         :class:`~foc_servo.hdl.regs.RegisterFile` (same names). ``staged`` then holds only the
-        immediate registers; :meth:`staged_value` reads any register's staging value.
+        immediate registers; :meth:`staged_value` reads any register's staging value. (The
+        gateware's slot is looked up in t + 1 from its word select, not registered; its copy
+        loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
     """
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
