@@ -323,7 +323,7 @@ class LinkCore(wiring.Component):
         # Index of the first CRC byte, and the reply length, as bit fields of the registers
         # ``nwords`` and ``nwords + 1`` (4 + 4·n = 4·(n + 1)): no adder in front of the reply's
         # byte selection and buffer address (100 MHz).
-        dend = Cat(Const(0, 2), nwords1)        # 4 + 4·nwords
+        # dend = 4 + 4·nwords = Cat(0b00, nwords1) itself is not needed: only its neighbours are.
         dend_m1 = Cat(Const(3, 2), nwords)      # dend − 1 (the CRC pass's last byte)
         dend_m2 = Cat(Const(2, 2), nwords)      # dend − 2 (≥ 2)
         rlen = Cat(Const(2, 2), nwords1)        # dend + 2

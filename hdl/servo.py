@@ -83,7 +83,7 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 ``id_ref``) plus the PI clear signals and a reference-step strobe for the trace buffer.
 """
 
-from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed, unsigned
+from amaranth.hdl import Assert, Cat, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import enum, stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
