@@ -698,7 +698,9 @@ class PWMTimer(wiring.Component):
             m.d.comb += self.pwm[p].eq(Mux(sym, level_sym, level_asym))
 
         m.d.comb += [
-            self.period_start.eq(pos == 0),
+            # `first` is pos = 0, registered: the period event leaves a flip-flop, not a compare
+            # of the counter (it fans out across the die: M/T, the register file, the loops).
+            self.period_start.eq(first),
             self.sample.eq(pos == Mux(self.sample_custom, self.sample_point, n)),
         ]
         return m
