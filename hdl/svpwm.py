@@ -592,7 +592,8 @@ class PWMTimer(wiring.Component):
     pwm : Out(data.StructLayout({"a", "b", "c": 1}))
         Phase levels (from registers through comparators; :class:`Gates` registers them).
     period_start : Out(1)
-        High during ``pos = 0``, the first clock with the new duties: the loop tick.
+        High during ``pos = 0``, the first clock with the new duties: the loop tick. Straight
+        from a flip-flop (set in the clock before), so its fan-out starts at a register.
     sample : Out(1)
         One-clock ADC conversion-start strobe.
     position : Out(range(2N))
