@@ -194,8 +194,8 @@ def cmd_fmax(args):
     results, lines = {}, []
     for name in names:
         keep = Path(args.out) / name if args.out else None
-        r = results[name] = fmax_block(name, freq_mhz=args.freq_mhz, seed=args.seed,
-                                       keep_dir=keep, progress=not args.quiet)
+        r = results[name] = fmax_block(name, family=args.family, freq_mhz=args.freq_mhz,
+                                       seed=args.seed, keep_dir=keep, progress=not args.quiet)
         cp = r["critical_path"] or {}
         lines.append(f"{name:<10} {r['fmax_mhz'] or 0:7.2f} MHz  ({r['wall_s']:.0f} s)  "
                      f"{cp.get('from')} → {cp.get('to')}: {cp.get('delay_ns')} ns, "
@@ -246,13 +246,19 @@ def build_parser():
                    help="print the figures as one JSON object on the last line")
     p.set_defaults(func=cmd_build)
 
-    p = sub.add_parser("fmax", help="ECP5-85F Fmax of one block alone (yosys synth_ecp5 + "
-                                    "nextpnr-ecp5, ports registered): Fmax and critical path")
+    p = sub.add_parser("fmax", help="Fmax of one block alone on the ECP5-85F or the iCE40 UP5K "
+                                    "(yosys + nextpnr, ports registered): Fmax, critical path "
+                                    "and utilisation")
     p.add_argument("--block", action="append",
-                   help="catalogue block or uart_rx / uart_tx (repeatable; default: every block "
-                        "but the top)")
-    p.add_argument("--freq-mhz", type=float, default=100.0,
-                   help="clock constraint for nextpnr, MHz (default: %(default)s)")
+                   help="catalogue block, uart_rx / uart_tx or foc_engine (repeatable; default: "
+                        "every block but the top)")
+    from ..boards.fmax import FAMILIES
+    p.add_argument("--family", choices=list(FAMILIES), default="ecp5",
+                   help="ecp5 (ECP5-85F, synth_ecp5) or ice40 (UP5K, synth_ice40 -dsp; the "
+                        "utilisation's ICESTORM_LC must fit 5 280) (default: %(default)s)")
+    p.add_argument("--freq-mhz", type=float, default=None,
+                   help="clock constraint for nextpnr, MHz (default: 100 on the ECP5, 33.333 on "
+                        "the iCE40)")
     p.add_argument("--seed", type=int, default=1, help="nextpnr seed (default: %(default)s)")
     p.add_argument("--out", default=None, help="keep netlists, logs and reports in OUT/BLOCK")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
