@@ -253,7 +253,8 @@ class BoardTop(Elaboratable):
     board : str or Board
         A :data:`~.platforms.BOARDS` name.
     clk_hz : float or None
-        System clock asked for, Hz, within :data:`CLOCK_RANGE_HZ`; ``None``: 50 MHz. The PLL
+        System clock asked for, Hz, within :data:`CLOCK_RANGE_HZ`; ``None``: the board's
+        :attr:`~.platforms.Board.clk_hz` (50 MHz; 33.333 MHz on the iCEBreaker). The PLL
         gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
         family's multiplier width (:data:`MUL_WIDTH`), the board's scope RAM
         (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K) and register-file staging
@@ -286,7 +287,7 @@ class BoardTop(Elaboratable):
         self._board = get_board(board)
         current_loop = _current_loop(self._board, current_loop)
         if clk_hz is None:
-            clk_hz = 50e6
+            clk_hz = self._board.clk_hz
         if not _is_hz(clk_hz):
             raise TypeError(f"Build clk_hz must be a number of Hz or None, not {clk_hz!r}")
         lo, hi = CLOCK_RANGE_HZ
@@ -668,7 +669,8 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=Fa
     out_dir : str or Path
         Everything goes to ``out_dir/board``.
     clk_hz : float or None
-        System clock asked for, Hz (``None``: 50 MHz); the PLL's nearest is used and reported.
+        System clock asked for, Hz (``None``: the board's, 50 MHz; 33.333 MHz on the
+        iCEBreaker); the PLL's nearest is used and reported.
     current_loop : str or None
         The current-loop gateware, ``"pipelined"`` or ``"engine"``; ``None`` (default): the
         board's choice (``"engine"`` on the iCEBreaker; :class:`BoardTop`).

@@ -108,6 +108,9 @@ class Board:
         The default ``Top(current_loop=…)`` of ``foc-servo build`` for this board (``--current-loop``
         overrides it): ``"engine"`` where LUTs and multipliers are short (iCE40 UP5K: the loop
         engine, 5 SB_MAC16 in the whole top instead of 25), else ``"pipelined"``.
+    clk_hz : float
+        The system clock ``foc-servo build`` asks the PLL for when ``--clk-mhz`` is not given,
+        Hz: 50 MHz, the paper's 33.333 MHz on the iCE40 UP5K (its logic does not reach 50).
     """
     name: str
     title: str
@@ -122,6 +125,7 @@ class Board:
     scope_ram: str = "bram"
     regs_staging: str = "ff"
     current_loop: str = "pipelined"
+    clk_hz: float = 50e6
 
     def platform(self, *, file_templates=None):
         """A fresh platform instance with the ``motor`` resource added; ``file_templates``
@@ -162,6 +166,7 @@ ICEBREAKER = Board(
     scope_ram="ice40_spram",
     regs_staging="bram",
     current_loop="engine",
+    clk_hz=33.333e6,
     connectors={"pmod1a": ("pmod", 0), "pmod1b": ("pmod", 1), "pmod2": ("pmod", 2)},
     motor=_motor({
         "gate_h": ("pmod1a", "1 2 3"), "gate_l": ("pmod1a", "7 8 9"),

@@ -235,7 +235,8 @@ def build_parser():
     p.add_argument("--board", required=True, choices=list(BOARDS), help="the board")
     p.add_argument("--out", default="build", help="output folder (default: %(default)s)")
     p.add_argument("--clk-mhz", type=float, default=None,
-                   help="system clock, MHz (default: 50; the PLL's nearest is used)")
+                   help="system clock, MHz (default: the board's, 50; 33.333 on the iCEBreaker; "
+                        "the PLL's nearest is used)")
     from ..hdl.top import CURRENT_LOOPS
     p.add_argument("--current-loop", choices=CURRENT_LOOPS, default=None,
                    help="current-loop gateware: pipelined (CurrentLoop) or engine "
