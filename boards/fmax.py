@@ -70,15 +70,25 @@ class Harness(wiring.Component):
         self._block = block
         super().__init__()
 
-    def elaborate(self, platform):
-        m = Module()
-        m.submodules.dut = block = self._block
+    def _ports(self):
         inputs, outputs = [], []
-        for _, member, value in block.signature.flatten(block):
+        for _, member, value in self._block.signature.flatten(self._block):
             value = Value.cast(value)
             if isinstance(value, Const):        # always_ready / always_valid constants
                 continue
             (inputs if member.flow == In else outputs).append(value)
+        return inputs, outputs
+
+    @property
+    def port_bits(self):
+        """Bits of the block's ports: the flip-flops of the two scan chains (subtract them from
+        a utilisation's flip-flops, and on the iCE40 from its logic cells, for the block's own)."""
+        return sum(len(v) for ports in self._ports() for v in ports)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.dut = self._block
+        inputs, outputs = self._ports()
         if inputs:
             chain_i = Signal(sum(len(v) for v in inputs))
             m.d.sync += chain_i.eq(Cat(self.si, chain_i[:-1]))
@@ -207,7 +217,9 @@ def fmax_block(name, block=None, *, family="ecp5", freq_mhz=None, seed=1, keep_d
         ``logic_levels``, ``through``: the signals on the way), ``dsp_path_ns`` (iCE40: the
         worst path through an unregistered SB_MAC16, which nextpnr times as three pieces of a
         pseudo-clock; their sum bounds ``fmax_mhz`` too; ``None`` without such paths),
-        ``utilisation`` (nextpnr cell → used), ``wall_s``.
+        ``utilisation`` (nextpnr cell → used; it includes the harness' scan chains, one
+        flip-flop per port bit, each in its own logic cell on the iCE40), ``port_bits`` (the
+        block's port bits, :attr:`Harness.port_bits`), ``wall_s``.
 
     Raises
     ------
@@ -235,6 +247,7 @@ def fmax_block(name, block=None, *, family="ecp5", freq_mhz=None, seed=1, keep_d
         work.mkdir(parents=True, exist_ok=True)
         harness = Harness(block)
         (work / f"{name}.il").write_text(rtlil.convert(harness, name=name))
+        port_bits = harness.port_bits
 
         def say(text):
             if progress:
@@ -276,6 +289,7 @@ def fmax_block(name, block=None, *, family="ecp5", freq_mhz=None, seed=1, keep_d
         "critical_path": _critical_path(report),
         "dsp_path_ns": dsp_ns,
         "utilisation": util,
+        "port_bits": port_bits,
         "wall_s": round(time.perf_counter() - start, 1),
     }
     say(f"{result['fmax_mhz']} MHz")

@@ -28,6 +28,7 @@ def test_harness_leaves_three_pins_and_keeps_every_port():
               if line.lstrip().startswith("wire") and line.split()[-1] in ("\\chain_i",
                                                                           "\\chain_o")]
     assert sum(widths) == 757
+    assert h.port_bits == 757
 
 
 def test_harness_rejects_a_non_component():
@@ -132,3 +133,4 @@ def test_ice40_fmax_of_the_gates_routes_and_reports(capsys):
     assert doc["fmax_mhz"] > 33.333 and doc["timing_met"]
     assert 50 < doc["utilisation"]["ICESTORM_LC"] < 1000
     assert doc["dsp_path_ns"] is None
+    assert 0 < doc["port_bits"] < doc["utilisation"]["ICESTORM_LC"]     # the scan chains
