@@ -37,7 +37,6 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
-from .divider import Divider
 from .fixed import check_param
 from .regmap import MT_EDGES_PER_LINE
 
@@ -207,11 +206,11 @@ class MTSpeed(wiring.Component):
         return min(self._out_width - 1, self._k_width + self._m_width - 1)
 
     @property
-    def divider_latency(self):
-        """:attr:`Divider.latency` of the divider built in :meth:`elaborate`
-        (``quotient_width + 2``; not built here, so that an unelaborated MTSpeed leaves no unused
-        divider behind; the tests measure :attr:`latency` cycle by cycle)."""
-        return self._quotient_width + 2
+    def divide_steps(self):
+        """Restoring-division steps, one per clock: ``quotient_width + 1`` with
+        ``quotient_width = min(out_width − 1, k_width + m_width − 1)``, the first one only
+        deciding saturation (see :meth:`elaborate`)."""
+        return self._quotient_width + 1
 
     @property
     def k_chunks(self):
@@ -219,21 +218,19 @@ class MTSpeed(wiring.Component):
 
     @property
     def latency(self):
-        return self.divider_latency + self.k_chunks + 2
-
-    def _make_divider(self):
-        return Divider(width=self._k_width + self._m_width - 1, divisor_width=self._tc_width,
-                       signed=False, quotient_width=self._quotient_width)
+        return 2 + self.k_chunks + self.divide_steps + 1
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.divider = div = self._make_divider()
         w, ow, mw = self._tc_width, self._out_width, self._m_width
         r = self._tclk_ratio
         s_max = (1 << (ow - 1)) - 1
+        ones = (1 << w) - 1
 
-        # --- TC: free-running at clk/r. Its wrap is modular time (differences are taken mod
-        # 2**w), made safe by the expiry below.
+        # --- Time: instead of a free-running TC and the latched T of the reference and last
+        # edges, the *ages* of those two edges, counting TCLK ticks modulo 2**w (the same
+        # differences: age = TC − T mod 2**w). age_last restarts at each counted edge; age_ref
+        # takes age_last's value when the last edge becomes the reference.
         tick = Signal()
         if r == 1:
             m.d.comb += tick.eq(1)
@@ -244,41 +241,30 @@ class MTSpeed(wiring.Component):
                 m.d.comb += tick.eq(1)
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
-        tc = Signal(w)
-        # TC + 2 (and TC + 1 when TC does not tick every clock) as counters of their own, for the
-        # registered expiry compare below (`at_span`).
-        tc2 = Signal(w, init=2)
-        if r == 1:
-            m.d.sync += [tc.eq(tc + 1), tc2.eq(tc2 + 1)]
-        else:
-            tc1 = Signal(w, init=1)
-            with m.If(tick):
-                m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1), tc2.eq(tc2 + 1)]
+        age_ref = Signal(w)             # TC − T(reference edge) mod 2**w
+        age_last = Signal(w)            # TC − T(last counted edge) mod 2**w
+        # `at_span`: age_ref == 2**w − 1, registered from age_ref's next value: with a tick this
+        # clock, TC + 1 == T(reference), a whole span since the reference edge.
+        at_span = Signal()              # invariant: at_span == (age_ref == 2**w − 1)
 
-        def next_tc1_eq(x):
-            # TC + 1 of the next clock equals register x (a value held in this clock).
-            return (tc2 == x) if r == 1 else Mux(tick, tc2 == x, tc1 == x)
-
-        # --- Window state. Invariant: pending == 0 implies ΔM == 0; have_ref == 0 implies
-        # pending == 0.
+        # --- Window state. Invariant: pending == 0 implies ΔM == 0 and (with have_ref)
+        # age_last == age_ref; have_ref == 0 implies pending == 0.
         # Net edges since the reference edge, saturating to signed(mw), kept as magnitude and
         # sign (ECP5 Fmax: the snapshot's |ΔM| is then one up/down step of a register, without a
         # negation behind the signed add and its saturation). m_neg is meaningless when
         # m_mag == 0.
         m_mag = Signal(mw)              # |ΔM| <= 2**(mw - 1)
         m_neg = Signal()                # ΔM < 0
-        t_last = Signal(w)              # T of the last counted edge
-        t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
         have_ref = Signal()             # a reference edge younger than the TC span exists
-        prev = Signal(signed(ow))       # last fresh measurement, |prev| <= s_max
-        prev_valid = Signal()           # a measurement since reset / the last expiry
+        # A fresh measurement since reset / the last expiry: set when a fresh window is
+        # snapshotted, cleared by an expiry (also one during the computation).
+        prev_valid = Signal()
         busy = Signal()                 # a computation is in flight
 
         step, neg = self.edge.step, self.edge.neg
         mag_e = Signal(mw)              # the state including this clock's edge
         neg_e = Signal()
-        tl_e = Signal(w)
         pend_e = Signal()
         # A step away from zero (or from zero) adds 1 to the magnitude up to the limit of its
         # sign (2**(mw − 1) − 1 positive, 2**(mw − 1) negative: saturate to signed(mw)); a step
@@ -291,40 +277,34 @@ class MTSpeed(wiring.Component):
         mag_up = Signal(mw)
         mag_dn = Signal(mw)
         m.d.comb += [mag_up.eq(Mux(at_lim, m_mag, m_mag + 1)), mag_dn.eq(m_mag - 1)]
-        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), tl_e.eq(t_last), pend_e.eq(pending)]
+        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), pend_e.eq(pending)]
         with m.If(step):
             m.d.comb += [
                 mag_e.eq(Mux(away, mag_up, mag_dn)),
                 neg_e.eq(Mux(zero, neg, m_neg)),
-                tl_e.eq(tc),
                 pend_e.eq(1),
             ]
-        # After this clock TC equals t_ref again: a whole span since the reference edge.
-        # `at_span` is TC + 1 == t_ref, computed a clock ahead (ECP5 Fmax: the 2·w-bit compare
-        # and the incrementer were in front of the window's enables, the top's critical path).
-        at_span = Signal()              # invariant: at_span == ((tc + 1) mod 2**w == t_ref)
         expire = have_ref & tick & at_span
         start = self.update & ~busy
 
-        # The window's next state, written as flat enables (the expiry compare is the longest
-        # path into them; ECP5 Fmax):
+        # The window's next state, written as flat enables:
         # * no reference: the first edge becomes the reference;
         # * update, or expiry (update period > span), with edges since the reference: close the
         #   window on its last edge, which becomes the new reference;
         # * expiry without edges: the reference is dropped; any expiry not at a closing update
         #   also invalidates the last measurement;
         # * otherwise the edge of this clock (if any) is counted.
-        # t_last is always the last edge's T (no edge: unchanged); ΔM and pending are 0 while
-        # there is no reference, and at an expiry without edges.
+        # ΔM and pending are 0 while there is no reference, and at an expiry without edges.
         first = ~have_ref & step
         close = have_ref & pend_e & (start | expire)
-        m.d.sync += t_last.eq(tl_e)
-        with m.If(first | close):
-            m.d.sync += t_ref.eq(tl_e)
-        # The next t_ref is tl_e: TC itself on an edge (TC + 1 of the next clock is TC + 1 or
-        # TC + 2 ≠ TC, as w >= 8) or t_last; otherwise t_ref is kept.
-        m.d.sync += at_span.eq(Mux(first | close, ~step & next_tc1_eq(t_last),
-                                   next_tc1_eq(t_ref)))
+        age_last_nx = Signal(w)
+        age_ref_nx = Signal(w)
+        m.d.comb += [
+            age_last_nx.eq(Mux(step, 0, age_last) + tick),
+            age_ref_nx.eq(Mux(first | close, age_last_nx, age_ref + tick)),
+        ]
+        m.d.sync += [age_last.eq(age_last_nx), age_ref.eq(age_ref_nx),
+                     at_span.eq(age_ref_nx == ones)]
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
@@ -335,47 +315,52 @@ class MTSpeed(wiring.Component):
         with m.Elif(expire & ~pend_e):
             m.d.sync += have_ref.eq(0)
 
-        # --- Computation: snapshot at the update, product, divide, select. The window's ΔM is
-        # kept as magnitude and sign: the divider is unsigned, the sign goes on the result.
+        # --- Computation: snapshot, product, division, result, all on one data path.
+        # Snapshot at the update (clock u): the dividend's factor `dm` = |ΔM| (fresh), 1 (bounded)
+        # or 0 (stopped), the divisor `dv` = ΔT (fresh: age_ref − age_last, or age_ref when the
+        # last edge is in this clock) or the ticks elapsed since the reference (bounded:
+        # age_ref), and the sign `sgn` of the result (ΔM's, or the last output's when bounded).
+        # A zero `dm` (stopped, or a net-zero fresh window) sets dv's bit 0 a clock later: the
+        # quotient is then 0/dv = 0 (also for ΔT = 0), so the result needs no override.
         mode = Signal(WindowMode)
-        snap_dm = Signal(mw)            # |ΔM| <= 2**(mw - 1)
-        snap_neg = Signal()             # ΔM < 0
-        snap_dt = Signal(w)
-        # ΔT of a fresh window (last edge − reference) or the time elapsed since the reference
-        # (bounded): one subtractor.
+        dm = Signal(mw)                 # |ΔM| <= 2**(mw - 1)
+        dv = Signal(w)                  # divisor
+        sgn = Signal()
+        p = self.o.payload
         dt = Signal(w)
-        m.d.comb += dt.eq(Mux(pend_e, tl_e, tc) - t_ref)
+        m.d.comb += dt.eq(Mux(pending & ~step, age_ref - age_last, age_ref))
         with m.If(start):
-            m.d.sync += busy.eq(1)
+            m.d.sync += [busy.eq(1), dv.eq(dt)]
             with m.If(have_ref & pend_e):
-                m.d.sync += [mode.eq(WindowMode.FRESH),
-                             snap_dm.eq(mag_e), snap_neg.eq(neg_e),
-                             snap_dt.eq(dt)]
+                m.d.sync += [mode.eq(WindowMode.FRESH), dm.eq(mag_e), sgn.eq(neg_e),
+                             prev_valid.eq(1)]
             with m.Elif(have_ref & prev_valid):
-                m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_neg.eq(0),
-                             snap_dt.eq(dt)]
+                m.d.sync += [mode.eq(WindowMode.BOUND), dm.eq(1), sgn.eq(p.speed[-1])]
             with m.Else():
-                m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_neg.eq(0),
-                             snap_dt.eq(1)]
+                m.d.sync += [mode.eq(WindowMode.STOPPED), dm.eq(0), sgn.eq(0)]
 
         # k·|ΔM| on 16-bit chunks of k, least significant first, in two stages (the multiplier
         # and the carry adder in separate clocks: ECP5 Fmax). Clock u + 1 + c (c = 0 … nk − 1):
         # `pp` = k_c·|ΔM|. Clock u + 2 + c: t = pp + carry; t's low 16 bits are bits 16c … 16c + 15
-        # of the product (shifted into `low`), the rest is the next carry. The last t (clock
-        # u + nk + 1, `ready`) goes straight into the divider, unregistered: the product is
-        # Cat(low, t), ready in the same clock as with a single stage.
+        # of the product, written straight into their place in the division register `acc`,
+        # the rest is the next carry; the last t (clock u + nk + 1, `ready`) is the product's top.
         nk = self.k_chunks
-        low = Signal(16 * (nk - 1))                     # bits 0 … 16(nk − 1) − 1 of the product
+        qs = self.divide_steps          # quotient bits computed, the top one only saturates
+        aw = qs + w                     # acc = Cat(quo, rem)
+        acc = Signal(aw)
+        quo, rem = acc[:qs], acc[qs:]
+        # Product bits at or above aw (only when k_width + m_width − 1 > aw): the quotient
+        # saturates.
+        hi = Signal()
         carry = Signal(mw)                              # (pp + carry) >> 16 < 2**mw
         # The registered partial product k_c·|ΔM|: no reset (it is rewritten every clock and
         # only read while `adding`), so that iCE40 synthesis takes it into the SB_MAC16's own
         # pipeline register and keeps the carry add in the SB_MAC16's adder.
         pp = Signal(16 + mw, reset_less=True)
         t = Signal(16 + mw)                             # pp + carry < 2**(16 + mw)
-        prod = Cat(low, t)[:self._k_width + mw - 1]     # k·|ΔM| < 2**(k_width + mw - 1)
         left = Signal(range(nk + 1))                    # chunks still to multiply
         adding = Signal()                               # pp holds a partial product
-        ready = Signal()                                # prod is complete: divider input
+        ready = Signal()                                # t is the product's last chunk
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
         # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
         k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
@@ -389,62 +374,88 @@ class MTSpeed(wiring.Component):
         m.d.comb += t.eq(pp + carry)
         m.d.sync += [
             k_c.eq(k_rev.word_select(left_next, 16)),
-            pp.eq(k_c * snap_dm),
+            pp.eq(k_c * dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
         ]
         with m.If(start):
-            m.d.sync += [carry.eq(0), left.eq(nk)]
+            m.d.sync += [carry.eq(0), left.eq(nk), hi.eq(0)]
         with m.Else():
             with m.If(left != 0):
                 m.d.sync += left.eq(left - 1)
             with m.If(adding & ~ready):
                 m.d.sync += carry.eq(t[16:])
-                if nk > 1:
-                    m.d.sync += low.eq(Cat(low[16:], t[:16]))
-        m.d.comb += [
-            div.i.valid.eq(ready),                      # the divider is idle: one at a time
-            div.i.payload.dividend.eq(prod),
-            div.i.payload.divisor.eq(snap_dt),
-            div.o.ready.eq(1),
-        ]
+        with m.If(left == nk):                          # clock u + 1: dm is the snapshot
+            with m.If(dm == 0):
+                m.d.sync += dv[0].eq(1)
 
-        # |quotient| saturated to s_max: inside the divider (ovf, div0: all ones = s_max) when
-        # it computes out_width − 1 bits; a narrower quotient saturates only on ΔT = 0.
-        q = div.o.payload.quotient
-        if self._quotient_width < ow - 1:
-            q = Mux(div.o.payload.div0, s_max, q)
-        # The result, with the sign applied beside the bound's compare rather than after it
-        # (ECP5 Fmax): two carry chains side by side from the quotient register, then one LUT
-        # per bit. `sq` = ±q with the sign of ΔM (fresh) or of the last measurement (bounded),
-        # as (q ^ −s) + s; `lt` = q < |prev| from the sign of q − |prev|, formed as
-        # q + (prev ^ −p) + p, p = (prev >= 0), in ow + 1 bits (the second operand sign-extended:
-        # its top bit is always 1), the carry-in p entering through a low bit set to 1: one
-        # adder chain.
-        sgn = Signal()
-        m.d.comb += sgn.eq(Mux(mode == WindowMode.FRESH, snap_neg, prev[-1]))
+        # Restoring division of acc = the product by dv, one quotient bit per clock, MSB first:
+        # trial = 2·rem + next dividend bit, subtract dv when it fits. The first of the qs steps
+        # sees trial = product >> (qs − 1) and sets the top quotient bit iff
+        # product >= dv·2**(qs − 1), i.e. iff the quotient needs more than qs − 1 bits (or
+        # dv = 0): then the result saturates, whatever the later (meaningless) bits. Otherwise
+        # the partial remainder is below dv from then on and `quo[:qs − 1]` ends as the
+        # truncated quotient.
+        count = Signal(range(qs + 1))                   # division steps still to run
+        fin = Signal()                                  # acc holds the result
+        trial = acc[qs - 1:]                            # w + 1 bits
+        diff = Signal(w + 2)
+        m.d.comb += diff.eq(trial - dv)                 # top bit set iff trial < dv
+        fits = ~diff[-1]
+        m.d.sync += fin.eq(count == 1)
+        with m.If(count != 0):
+            m.d.sync += [
+                acc.eq(Cat(fits, quo[:-1], Mux(fits, diff, trial)[:w])),
+                count.eq(count - 1),
+            ]
+        for c in range(nk):
+            lo = 16 * c
+            if lo >= aw:
+                part, top = Const(0, 1), (t if c == nk - 1 else t[:16])
+            elif c == nk - 1:
+                part, top = t[:aw - lo], t[aw - lo:]
+            else:
+                part, top = t[:min(16, aw - lo)], t[min(16, aw - lo):16]
+            with m.If(adding & (left == nk - 1 - c)):
+                if lo < aw:                             # the last one zero-extended
+                    m.d.sync += acc[lo:lo + 16 if c < nk - 1 else aw].eq(part)
+                if len(top):
+                    with m.If(top != 0):
+                        m.d.sync += hi.eq(1)
+        with m.If(ready):
+            m.d.sync += count.eq(qs)
+
+        # The result from the final acc: |q| = quo[:qs − 1], or s_max when saturated (top
+        # quotient bit or `hi`). The sign is applied beside the bound's compare rather than after
+        # it (ECP5 Fmax): two carry chains side by side, then the output register's enable.
+        # `sq` = ±q with `sgn`, as (q ^ −s) + s; `lt` = q < |last output| from the sign of
+        # q − |o.speed|, formed as q + (o ^ −p) + p, p = (o >= 0), in ow + 1 bits (the second
+        # operand sign-extended: its top bit is always 1), the carry-in p entering through a low
+        # bit set to 1: one adder chain. A bounded result never exceeds the last fresh
+        # measurement: as the bound k/elapsed only falls while the window stays open, the last
+        # output is min(bound, last fresh) already, so `lt` compares with o.speed itself and
+        # a bound at or above it leaves o.speed as it is.
+        wide = quo[-1] | hi
         q_x = Signal(ow)                                # q zero-extended (q <= s_max)
-        m.d.comb += q_x.eq(q)
+        if qs - 1 >= ow - 1:
+            m.d.comb += q_x.eq(Mux(wide, s_max, quo[:ow - 1]))
+        else:
+            m.d.comb += q_x.eq(Mux(wide, s_max, quo[:qs - 1]))
         sq = Signal(signed(ow))
         m.d.comb += sq.eq((q_x ^ sgn.replicate(ow)) + sgn)
-        pos = ~prev[-1]
-        diff = Signal(ow + 2)
-        m.d.comb += diff.eq(Cat(Const(1, 1), q_x, Const(0, 1))
-                            + Cat(pos, prev.as_unsigned() ^ pos.replicate(ow), Const(1, 1)))
-        lt = diff[-1]                                   # q − |prev| < 0
-        use_prev = (mode == WindowMode.BOUND) & ~lt     # never above the last measurement
-        kill = (mode == WindowMode.STOPPED) | ((mode == WindowMode.FRESH) & (snap_dm == 0))
-        speed = Signal(signed(ow))                      # 0/0 (net-zero window, ΔT = 0) is 0
-        m.d.comb += speed.eq(Mux(kill, 0, Mux(use_prev, prev, sq)))
-        p = self.o.payload
-        m.d.sync += self.o.valid.eq(div.o.valid)
-        with m.If(div.o.valid):
+        pos = ~p.speed[-1]
+        cmp = Signal(ow + 2)
+        m.d.comb += cmp.eq(Cat(Const(1, 1), q_x, Const(0, 1))
+                           + Cat(pos, p.speed.as_unsigned() ^ pos.replicate(ow), Const(1, 1)))
+        lt = cmp[-1]                                    # q − |o.speed| < 0
+        keep = (mode == WindowMode.BOUND) & ~lt         # never above the last measurement
+        m.d.sync += self.o.valid.eq(fin)
+        with m.If(fin):
             m.d.sync += [
                 busy.eq(0),
-                p.speed.eq(speed),
                 p.stopped.eq(mode == WindowMode.STOPPED),
                 p.fresh.eq(mode == WindowMode.FRESH),
             ]
-            with m.If(mode == WindowMode.FRESH):
-                m.d.sync += [prev.eq(speed), prev_valid.eq(1)]
+            with m.If(~keep):
+                m.d.sync += p.speed.eq(sq)
         return m

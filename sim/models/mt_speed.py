@@ -196,6 +196,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
             out_cycle = c + 1 + params.k_chunks + lat_div   # divider o.valid
             if have_ref and pend_e:
                 mode, snap_dm, snap_dt, snap_t = FRESH, m_e, (tl_e - t_ref) & wmask, tl_e
+                prev_valid = True
             elif have_ref and prev_valid:
                 mode, snap_dm, snap_dt, snap_t = BOUND, 1, (tc - t_ref) & wmask, tc
             else:
@@ -224,7 +225,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
             q = _magnitude(k * abs(snap_dm), snap_dt, s_max)
             if mode == FRESH:
                 speed = fresh_speed(k, snap_dm, snap_dt, out_width=ow)
-                prev, prev_neg, prev_valid = abs(speed), snap_dm < 0, True
+                prev, prev_neg = abs(speed), snap_dm < 0
                 stopped, fresh = 0, 1
             elif mode == BOUND:
                 mag = min(q, prev)
