@@ -349,9 +349,9 @@ class MTSpeed(wiring.Component):
         aw = qs + w                     # acc = Cat(quo, rem)
         acc = Signal(aw)
         quo, rem = acc[:qs], acc[qs:]
-        # Product bits at or above aw (only when k_width + m_width − 1 > aw): the quotient
-        # saturates.
-        hi = Signal()
+        # The quotient saturates: product bits at or above aw (only when k_width + m_width − 1
+        # > aw), or the first division step's quotient bit.
+        sat = Signal()
         carry = Signal(mw)                              # (pp + carry) >> 16 < 2**mw
         # The registered partial product k_c·|ΔM|: no reset (it is rewritten every clock and
         # only read while `adding`), so that iCE40 synthesis takes it into the SB_MAC16's own
@@ -379,7 +379,7 @@ class MTSpeed(wiring.Component):
             ready.eq(left == 1),
         ]
         with m.If(start):
-            m.d.sync += [carry.eq(0), left.eq(nk), hi.eq(0)]
+            m.d.sync += [carry.eq(0), left.eq(nk), sat.eq(0)]
         with m.Else():
             with m.If(left != 0):
                 m.d.sync += left.eq(left - 1)
@@ -405,9 +405,13 @@ class MTSpeed(wiring.Component):
         m.d.sync += fin.eq(count == 1)
         with m.If(count != 0):
             m.d.sync += [
-                acc.eq(Cat(fits, quo[:-1], Mux(fits, diff, trial)[:w])),
+                # The quotient bits enter as q ^ sgn: quo ends as q ^ −sgn, once saturated as
+                # all ones ^ −sgn.
+                acc.eq(Cat((fits | sat) ^ sgn, quo[:-1], Mux(fits, diff, trial)[:w])),
                 count.eq(count - 1),
             ]
+            with m.If((count == qs) & fits):
+                m.d.sync += sat.eq(1)
         for c in range(nk):
             lo = 16 * c
             if lo >= aw:
@@ -421,34 +425,23 @@ class MTSpeed(wiring.Component):
                     m.d.sync += acc[lo:lo + 16 if c < nk - 1 else aw].eq(part)
                 if len(top):
                     with m.If(top != 0):
-                        m.d.sync += hi.eq(1)
+                        m.d.sync += sat.eq(1)
         with m.If(ready):
             m.d.sync += count.eq(qs)
 
-        # The result from the final acc: |q| = quo[:qs − 1], or s_max when saturated (top
-        # quotient bit or `hi`). The sign is applied beside the bound's compare rather than after
-        # it (ECP5 Fmax): two carry chains side by side, then the output register's enable.
-        # `sq` = ±q with `sgn`, as (q ^ −s) + s; `lt` = q < |last output| from the sign of
-        # q − |o.speed|, formed as q + (o ^ −p) + p, p = (o >= 0), in ow + 1 bits (the second
-        # operand sign-extended: its top bit is always 1), the carry-in p entering through a low
-        # bit set to 1: one adder chain. A bounded result never exceeds the last fresh
-        # measurement: as the bound k/elapsed only falls while the window stays open, the last
-        # output is min(bound, last fresh) already, so `lt` compares with o.speed itself and
-        # a bound at or above it leaves o.speed as it is.
-        wide = quo[-1] | hi
-        q_x = Signal(ow)                                # q zero-extended (q <= s_max)
-        if qs - 1 >= ow - 1:
-            m.d.comb += q_x.eq(Mux(wide, s_max, quo[:ow - 1]))
-        else:
-            m.d.comb += q_x.eq(Mux(wide, s_max, quo[:qs - 1]))
-        sq = Signal(signed(ow))
-        m.d.comb += sq.eq((q_x ^ sgn.replicate(ow)) + sgn)
-        pos = ~p.speed[-1]
-        cmp = Signal(ow + 2)
-        m.d.comb += cmp.eq(Cat(Const(1, 1), q_x, Const(0, 1))
-                           + Cat(pos, p.speed.as_unsigned() ^ pos.replicate(ow), Const(1, 1)))
-        lt = cmp[-1]                                    # q − |o.speed| < 0
-        keep = (mode == WindowMode.BOUND) & ~lt         # never above the last measurement
+        # The result from the final acc. quo[:qs − 1] = q ^ −sgn, q = the truncated quotient
+        # or, saturated, all ones; `qx` = that extended to ow bits with the sign (q <= s_max:
+        # its bit ow − 1 is 0), so that ±q = qx + sgn (two's complement), an incrementer.
+        qx = Signal(ow)
+        m.d.comb += qx.eq(Cat(quo[:qs - 1], (sat ^ sgn).replicate(ow - qs), sgn))
+        # A bounded result never exceeds the last fresh measurement: as the bound k/elapsed only
+        # falls while the window stays open, the last output o.speed is min(bound, last fresh)
+        # already, with the sign `sgn`; a bound q at or above |o.speed| leaves it as it is.
+        # q < |o.speed| is qx[:ow − 1] < o.speed[:ow − 1] (sgn = 0) or >= (sgn = 1: −q > o.speed,
+        # i.e. ~q >= o.speed, both negative): one compare of ow − 1 bits.
+        lt = Signal()
+        m.d.comb += lt.eq((qx[:ow - 1] < p.speed[:ow - 1]) ^ sgn)
+        keep = (mode == WindowMode.BOUND) & ~lt
         m.d.sync += self.o.valid.eq(fin)
         with m.If(fin):
             m.d.sync += [
@@ -457,5 +450,5 @@ class MTSpeed(wiring.Component):
                 p.fresh.eq(mode == WindowMode.FRESH),
             ]
             with m.If(~keep):
-                m.d.sync += p.speed.eq(sq)
+                m.d.sync += p.speed.eq(qx + sgn)
         return m
