@@ -274,13 +274,12 @@ class MTSpeed(wiring.Component):
         zero = m_mag == 0
         away = zero | (neg == m_neg)
         at_lim = m_mag == Mux(m_neg, 1 << (mw - 1), (1 << (mw - 1)) - 1)
-        mag_up = Signal(mw)
-        mag_dn = Signal(mw)
-        m.d.comb += [mag_up.eq(Mux(at_lim, m_mag, m_mag + 1)), mag_dn.eq(m_mag - 1)]
+        mag_s = Signal(mw)              # m_mag ± 1: one adder
+        m.d.comb += mag_s.eq(m_mag + Cat(Const(1, 1), (~away).replicate(mw - 1)))
         m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), pend_e.eq(pending)]
         with m.If(step):
             m.d.comb += [
-                mag_e.eq(Mux(away, mag_up, mag_dn)),
+                mag_e.eq(Mux(away & at_lim, m_mag, mag_s)),
                 neg_e.eq(Mux(zero, neg, m_neg)),
                 pend_e.eq(1),
             ]
