@@ -241,8 +241,8 @@ class MTSpeed(wiring.Component):
                 m.d.comb += tick.eq(1)
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
-        age_ref = Signal(w)             # TC − T(reference edge) mod 2**w
-        age_last = Signal(w)            # TC − T(last counted edge) mod 2**w
+        age_ref = Signal(w, reset_less=True)   # TC − T(reference edge) mod 2**w
+        age_last = Signal(w, reset_less=True)  # TC − T(last counted edge) mod 2**w
         # `at_span`: age_ref == 2**w − 1, registered from age_ref's next value: with a tick this
         # clock, TC + 1 == T(reference), a whole span since the reference edge.
         at_span = Signal()              # invariant: at_span == (age_ref == 2**w − 1)
@@ -299,7 +299,7 @@ class MTSpeed(wiring.Component):
         age_last_nx = Signal(w)
         age_ref_nx = Signal(w)
         m.d.comb += [
-            age_last_nx.eq(Mux(step, 0, age_last) + tick),
+            age_last_nx.eq(Mux(step, tick, age_last + tick)),
             age_ref_nx.eq(Mux(first | close, age_last_nx, age_ref + tick)),
         ]
         m.d.sync += [age_last.eq(age_last_nx), age_ref.eq(age_ref_nx),
