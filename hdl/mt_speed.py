@@ -245,7 +245,9 @@ class MTSpeed(wiring.Component):
         age_last = Signal(w, reset_less=True)  # TC − T(last counted edge) mod 2**w
         # `at_span`: age_ref == 2**w − 1, registered from age_ref's next value: with a tick this
         # clock, TC + 1 == T(reference), a whole span since the reference edge.
-        at_span = Signal()              # invariant: at_span == (age_ref == 2**w − 1)
+        ref_inc = Signal(w + 1)         # age_ref + tick; bit w: a whole span since the reference
+        m.d.comb += ref_inc.eq(age_ref + tick)
+        at_span = ref_inc[w]
 
         # --- Window state. Invariant: pending == 0 implies ΔM == 0 and (with have_ref)
         # age_last == age_ref; have_ref == 0 implies pending == 0.
@@ -283,7 +285,7 @@ class MTSpeed(wiring.Component):
                 neg_e.eq(Mux(zero, neg, m_neg)),
                 pend_e.eq(1),
             ]
-        expire = have_ref & tick & at_span
+        expire = have_ref & at_span
         start = self.update & ~busy
 
         # The window's next state, written as flat enables:
@@ -300,10 +302,9 @@ class MTSpeed(wiring.Component):
         age_ref_nx = Signal(w)
         m.d.comb += [
             age_last_nx.eq(Mux(step, tick, age_last + tick)),
-            age_ref_nx.eq(Mux(first | close, age_last_nx, age_ref + tick)),
+            age_ref_nx.eq(Mux(first | close, age_last_nx, ref_inc[:w])),
         ]
-        m.d.sync += [age_last.eq(age_last_nx), age_ref.eq(age_ref_nx),
-                     at_span.eq(age_ref_nx == ones)]
+        m.d.sync += [age_last.eq(age_last_nx), age_ref.eq(age_ref_nx)]
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
