@@ -362,18 +362,21 @@ class MTSpeed(wiring.Component):
         adding = Signal()                               # pp holds a partial product
         ready = Signal()                                # t is the product's last chunk
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
-        # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
-        k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
-        # The multiplier's k operand from a register, `k_c` = word `left` of k_rev, loaded with
-        # the word of left's next value (ECP5 Fmax: no word multiplexer in front of the
-        # MULT18X18D). k is thus sampled a clock earlier than `pp` is formed. No reset: read
-        # only while `adding`, i.e. after a start has loaded it.
+        # The multiplier's k operand from a register, `k_c` (ECP5 Fmax: no word multiplexer in
+        # front of the MULT18X18D), loaded a clock before `pp` is formed with it: k is sampled in
+        # clocks u … u + nk − 1. No reset: read only while `adding`, i.e. after a start.
         k_c = Signal(16, reset_less=True)
-        left_next = Signal(range(nk + 1))
-        m.d.comb += left_next.eq(Mux(start, nk, Mux(left != 0, left - 1, 0)))
         m.d.comb += t.eq(pp + carry)
+        # Chunk c is loaded in clock u + c: chunk 0 at the start, chunk c >= 1 while left ==
+        # nk + 1 − c. Other clocks load don't-care values (k_c is read only while `adding`).
+        chunks = [k_pad[16 * c:16 * c + 16] for c in range(nk)]
+        k_sel = chunks[-1]
+        for c in reversed(range(1, nk - 1)):
+            k_sel = Mux(left == nk + 1 - c, chunks[c], k_sel)
+        if nk > 1:
+            k_sel = Mux(start, chunks[0], k_sel)
+        m.d.sync += k_c.eq(k_sel)
         m.d.sync += [
-            k_c.eq(k_rev.word_select(left_next, 16)),
             pp.eq(k_c * dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
