@@ -242,7 +242,9 @@ class MTSpeed(wiring.Component):
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
         age_ref = Signal(w, reset_less=True)   # TC − T(reference edge) mod 2**w
-        age_last = Signal(w, reset_less=True)  # TC − T(last counted edge) mod 2**w
+        # ~(TC − T(last counted edge)) mod 2**w: kept inverted (a down-counter), so that the
+        # subtraction age_ref − age_last is age_ref + n_last + 1, without inverters (iCE40).
+        n_last = Signal(w, reset_less=True)
         # `at_span`: age_ref == 2**w − 1, registered from age_ref's next value: with a tick this
         # clock, TC + 1 == T(reference), a whole span since the reference edge.
         ref_inc = Signal(w + 1)         # age_ref + tick; bit w: a whole span since the reference
@@ -301,10 +303,10 @@ class MTSpeed(wiring.Component):
         age_last_nx = Signal(w)
         age_ref_nx = Signal(w)
         m.d.comb += [
-            age_last_nx.eq(Mux(step, tick, age_last + tick)),
+            age_last_nx.eq(Mux(step, tick, ~n_last + tick)),
             age_ref_nx.eq(Mux(first | close, age_last_nx, ref_inc[:w])),
         ]
-        m.d.sync += [age_last.eq(age_last_nx), age_ref.eq(age_ref_nx)]
+        m.d.sync += [n_last.eq(~age_last_nx), age_ref.eq(age_ref_nx)]
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
@@ -324,13 +326,15 @@ class MTSpeed(wiring.Component):
         # quotient is then 0/dv = 0 (also for ΔT = 0), so the result needs no override.
         mode = Signal(WindowMode)
         dm = Signal(mw)                 # |ΔM| <= 2**(mw - 1)
-        dv = Signal(w)                  # divisor
+        n_dv = Signal(w)                # ~divisor (inverted: the division subtracts it)
         sgn = Signal()
         p = self.o.payload
         dt = Signal(w)
-        m.d.comb += dt.eq(Mux(pending & ~step, age_ref - age_last, age_ref))
+        dt_sub = Signal(w + 1)          # age_ref − age_last: the +1 as a carry in at bit 0
+        m.d.comb += dt_sub.eq(Cat(Const(1, 1), age_ref) + Cat(Const(1, 1), n_last))
+        m.d.comb += dt.eq(Mux(pending & ~step, dt_sub[1:], age_ref))
         with m.If(start):
-            m.d.sync += [busy.eq(1), dv.eq(dt)]
+            m.d.sync += [busy.eq(1), n_dv.eq(~dt)]
             with m.If(have_ref & pend_e):
                 m.d.sync += [mode.eq(WindowMode.FRESH), dm.eq(mag_e), sgn.eq(neg_e),
                              prev_valid.eq(1)]
@@ -390,7 +394,7 @@ class MTSpeed(wiring.Component):
                 m.d.sync += carry.eq(t[16:])
         with m.If(left == nk):                          # clock u + 1: dm is the snapshot
             with m.If(dm == 0):
-                m.d.sync += dv[0].eq(1)
+                m.d.sync += n_dv[0].eq(0)
 
         # Restoring division of acc = the product by dv, one quotient bit per clock, MSB first:
         # trial = 2·rem + next dividend bit, subtract dv when it fits. The first of the qs steps
@@ -402,8 +406,10 @@ class MTSpeed(wiring.Component):
         count = Signal(range(qs + 1))                   # division steps still to run
         fin = Signal()                                  # acc holds the result
         trial = acc[qs - 1:]                            # w + 1 bits
-        diff = Signal(w + 2)
-        m.d.comb += diff.eq(trial - dv)                 # top bit set iff trial < dv
+        diff_c = Signal(w + 3)
+        m.d.comb += diff_c.eq(Cat(Const(1, 1), trial)
+                              + Cat(Const(1, 1), n_dv, Const(0b11, 2)))
+        diff = diff_c[1:]                               # trial − dv: top bit set iff trial < dv
         fits = ~diff[-1]
         m.d.sync += fin.eq(count == 1)
         with m.If(count != 0):
