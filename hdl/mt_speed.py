@@ -416,7 +416,7 @@ class MTSpeed(wiring.Component):
             m.d.sync += [
                 # The quotient bits enter as q ^ sgn: quo ends as q ^ −sgn, once saturated as
                 # all ones ^ −sgn.
-                acc.eq(Cat((fits | sat) ^ sgn, quo[:-1], Mux(fits, diff, trial)[:w])),
+                acc.eq(Cat((fits | sat) ^ ~sgn, quo[:-1], Mux(fits, diff, trial)[:w])),
                 count.eq(count - 1),
             ]
             with m.If((count == qs) & fits):
@@ -441,15 +441,16 @@ class MTSpeed(wiring.Component):
         # The result from the final acc. quo[:qs − 1] = q ^ −sgn, q = the truncated quotient
         # or, saturated, all ones; `qx` = that extended to ow bits with the sign (q <= s_max:
         # its bit ow − 1 is 0), so that ±q = qx + sgn (two's complement), an incrementer.
-        qx = Signal(ow)
-        m.d.comb += qx.eq(Cat(quo[:qs - 1], (sat ^ sgn).replicate(ow - qs), sgn))
+        nqx = Signal(ow)
+        m.d.comb += nqx.eq(Cat(quo[:qs - 1], (sat ^ ~sgn).replicate(ow - qs), ~sgn))
         # A bounded result never exceeds the last fresh measurement: as the bound k/elapsed only
         # falls while the window stays open, the last output o.speed is min(bound, last fresh)
         # already, with the sign `sgn`; a bound q at or above |o.speed| leaves it as it is.
         # q < |o.speed| is qx[:ow − 1] < o.speed[:ow − 1] (sgn = 0) or >= (sgn = 1: −q > o.speed,
         # i.e. ~q >= o.speed, both negative): one compare of ow − 1 bits.
-        lt = Signal()
-        m.d.comb += lt.eq((qx[:ow - 1] < p.speed[:ow - 1]) ^ sgn)
+        lt_c = Signal(ow)
+        m.d.comb += lt_c.eq(p.speed[:ow - 1] + nqx[:ow - 1])
+        lt = lt_c[-1] ^ sgn
         keep = (mode == WindowMode.BOUND) & ~lt
         m.d.sync += self.o.valid.eq(fin)
         with m.If(fin):
@@ -459,5 +460,5 @@ class MTSpeed(wiring.Component):
                 p.fresh.eq(mode == WindowMode.FRESH),
             ]
             with m.If(~keep):
-                m.d.sync += p.speed.eq(qx + sgn)
+                m.d.sync += p.speed.eq(~(nqx - sgn))
         return m
