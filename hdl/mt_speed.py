@@ -241,13 +241,21 @@ class MTSpeed(wiring.Component):
                 m.d.comb += tick.eq(1)
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
-        age_ref = Signal(w, reset_less=True)   # TC − T(reference edge) mod 2**w
         # ~(TC − T(last counted edge)) mod 2**w: kept inverted (a down-counter), so that the
         # subtraction age_ref − age_last is age_ref + n_last + 1, without inverters (iCE40).
         n_last = Signal(w, reset_less=True)
-        # `at_span`: age_ref == 2**w − 1, registered from age_ref's next value: with a tick this
-        # clock, TC + 1 == T(reference), a whole span since the reference edge.
-        ref_inc = Signal(w + 1)         # age_ref + tick; bit w: a whole span since the reference
+        # The reference's age `age_ref` = TC − T(reference edge) mod 2**w is the register
+        # `ref_reg`, except in the clock after the window closed on an earlier edge (`load`):
+        # the new reference is then the last edge, whose age is ~n_last. (The register takes
+        # it then, a clock late, so that n_last's down-counter feeds its own flip-flop only:
+        # iCE40 packing.)
+        ref_reg = Signal(w, reset_less=True)
+        load = Signal()
+        age_ref = Signal(w)
+        m.d.comb += age_ref.eq(Mux(load, ~n_last, ref_reg))
+        # age_ref + tick; the carry out: TC + 1 == T(reference) with a tick this clock, a whole
+        # span since the reference edge.
+        ref_inc = Signal(w + 1)
         m.d.comb += ref_inc.eq(age_ref + tick)
         at_span = ref_inc[w]
 
@@ -300,13 +308,12 @@ class MTSpeed(wiring.Component):
         # ΔM and pending are 0 while there is no reference, and at an expiry without edges.
         first = ~have_ref & step
         close = have_ref & pend_e & (start | expire)
-        age_last_nx = Signal(w)
-        age_ref_nx = Signal(w)
-        m.d.comb += [
-            age_last_nx.eq(Mux(step, tick, ~n_last + tick)),
-            age_ref_nx.eq(Mux(first | close, age_last_nx, ref_inc[:w])),
+        # An edge in this clock: its age is 0 now, `tick` in the next clock.
+        m.d.sync += [
+            n_last.eq(Mux(step, ~Cat(tick, Const(0, w - 1)), n_last - tick)),
+            ref_reg.eq(Mux((first | close) & step, tick, ref_inc[:w])),
+            load.eq(close & ~step),
         ]
-        m.d.sync += [n_last.eq(~age_last_nx), age_ref.eq(age_ref_nx)]
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
