@@ -1,14 +1,20 @@
 # Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
 """M/T speed measurement: edges counted over a window that starts and ends on an edge.
 
-MC counts encoder edges (signed by direction), TC runs free at f_TCLK, T latches TC at every
-counted edge. At each speed-update strobe the window closes on the last counted edge:
-``ΔM`` = edges since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges,
-and the foundation :class:`~foc_servo.hdl.divider.Divider` computes ``D_n = k·ΔM/ΔT``: unsigned,
-``k·|ΔM| / ΔT``, with ``out_width − 1`` quotient bits (a larger quotient saturates inside the
-divider, see ``Divider.quotient_width``), then the sign of ΔM applied to the result. This is
-``trunc(k·ΔM/ΔT)`` saturated to ±(2**(out_width−1) − 1), as a signed division would give, in
-half the clocks and without the signed divider's negations and 64-bit saturation compares.
+MC counts encoder edges (signed by direction), TC runs at f_TCLK, T latches TC at every counted
+edge. At each speed-update strobe the window closes on the last counted edge: ``ΔM`` = edges
+since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges, and
+``D_n = k·ΔM/ΔT`` is computed unsigned, ``k·|ΔM| / ΔT`` with ``min(out_width − 1, k_width +
+m_width − 1)`` quotient bits (a larger quotient saturates), then the sign of ΔM applied to the
+result: ``trunc(k·ΔM/ΔT)`` saturated to ±(2**(out_width−1) − 1), as a signed division would give.
+
+One result per update period (thousands of clocks) needs no parallel hardware, so the block is
+one sequential data path (iCE40 area, session 9): the product ``k·|ΔM|`` is formed 16 bits of
+``k`` at a time on one multiplier and written straight into the register of a restoring
+division, whose first step decides saturation and whose quotient bits enter with the result's
+sign already applied (see :meth:`MTSpeed.elaborate`). TC and the T latches are not stored as
+such: the gateware keeps the *ages* of the reference and last edges (TC − T mod 2**tc_width),
+which give ΔT, the elapsed time and the expiry (the age counter's carry out) directly.
 
 Window rules (the golden model :mod:`foc_servo.sim.models.mt_speed` reproduces them clock for
 clock):
@@ -136,16 +142,20 @@ class MTSpeed(wiring.Component):
     ----------
     latency : int
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
-        ``o.valid`` high in clock ``u + latency``): 1 (snapshot) + :attr:`k_chunks` (partial
-        products; each one's carry add runs a clock later, the last one straight into the
-        divider's input) + 1 (divider input) + the divider's ``latency`` + 1 (output register) =
-        ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the defaults).
+        ``o.valid`` high in clock ``u + latency``): 1 (snapshot; the multiplier's first k
+        chunk) + 1 (first partial product) + :attr:`k_chunks` (carry adds, the product's
+        chunks written into the division register) + :attr:`divide_steps` + 1 (output
+        register) = ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the
+        defaults, as with the separate divider before session 9).
     k_chunks : int
         ``ceil(k_width / 16)``: ``k·|ΔM|`` is computed as ``k_chunks`` products of 16 bits of
         ``k`` and ``|ΔM|``, one per clock, least significant first (one 16 × ``m_width``
         multiplier instead of ``k_chunks``; the result is the exact product). Each partial
         product is registered before its carry add (ECP5 Fmax: the multiplier and the adder
-        chain in separate clocks), without adding a clock to :attr:`latency`.
+        chain in separate clocks).
+    divide_steps : int
+        ``min(out_width − 1, k_width + m_width − 1) + 1``: clocks of the restoring division
+        (one quotient bit each; the first decides saturation).
     tclk_ratio : int
         System clocks per TC tick.
     tclk_hz : float
@@ -207,9 +217,6 @@ class MTSpeed(wiring.Component):
 
     @property
     def divide_steps(self):
-        """Restoring-division steps, one per clock: ``quotient_width + 1`` with
-        ``quotient_width = min(out_width − 1, k_width + m_width − 1)``, the first one only
-        deciding saturation (see :meth:`elaborate`)."""
         return self._quotient_width + 1
 
     @property
@@ -224,8 +231,6 @@ class MTSpeed(wiring.Component):
         m = Module()
         w, ow, mw = self._tc_width, self._out_width, self._m_width
         r = self._tclk_ratio
-        s_max = (1 << (ow - 1)) - 1
-        ones = (1 << w) - 1
 
         # --- Time: instead of a free-running TC and the latched T of the reference and last
         # edges, the *ages* of those two edges, counting TCLK ticks modulo 2**w (the same
@@ -359,7 +364,7 @@ class MTSpeed(wiring.Component):
         qs = self.divide_steps          # quotient bits computed, the top one only saturates
         aw = qs + w                     # acc = Cat(quo, rem)
         acc = Signal(aw)
-        quo, rem = acc[:qs], acc[qs:]
+        quo = acc[:qs]                  # rem = acc[qs:]
         # The quotient saturates: product bits at or above aw (only when k_width + m_width − 1
         # > aw), or the first division step's quotient bit.
         sat = Signal()
@@ -405,11 +410,15 @@ class MTSpeed(wiring.Component):
 
         # Restoring division of acc = the product by dv, one quotient bit per clock, MSB first:
         # trial = 2·rem + next dividend bit, subtract dv when it fits. The first of the qs steps
-        # sees trial = product >> (qs − 1) and sets the top quotient bit iff
-        # product >= dv·2**(qs − 1), i.e. iff the quotient needs more than qs − 1 bits (or
-        # dv = 0): then the result saturates, whatever the later (meaningless) bits. Otherwise
-        # the partial remainder is below dv from then on and `quo[:qs − 1]` ends as the
-        # truncated quotient.
+        # sees trial = product >> (qs − 1) (w + 1 bits: the product is below 2**aw unless `sat`
+        # is already set) and fits iff product >= dv·2**(qs − 1), i.e. iff the quotient needs
+        # more than qs − 1 bits (or dv = 0): then `sat` is set and the result saturates,
+        # whatever the later (meaningless) remainders. Otherwise the partial remainder is below
+        # dv from then on, as in a divider whose dividend has qs − 1 bits above the divisor's,
+        # and the qs − 1 later steps give the truncated quotient q. No separate compare of the
+        # dividend's top against the divisor, no division-by-zero flag.
+        # The divisor is kept inverted: trial − dv = trial + ~dv + 1, the +1 through a low bit
+        # (iCE40: no inverters in front of the carry chain).
         count = Signal(range(qs + 1))                   # division steps still to run
         fin = Signal()                                  # acc holds the result
         trial = acc[qs - 1:]                            # w + 1 bits
@@ -421,8 +430,8 @@ class MTSpeed(wiring.Component):
         m.d.sync += fin.eq(count == 1)
         with m.If(count != 0):
             m.d.sync += [
-                # The quotient bits enter as q ^ sgn: quo ends as q ^ −sgn, once saturated as
-                # all ones ^ −sgn.
+                # Quotient bits enter as ~(q ^ sgn), all ones for q once saturated: quo[:qs − 1]
+                # ends as ~(q ^ −sgn).
                 acc.eq(Cat((fits | sat) ^ ~sgn, quo[:-1], Mux(fits, diff, trial)[:w])),
                 count.eq(count - 1),
             ]
@@ -445,16 +454,17 @@ class MTSpeed(wiring.Component):
         with m.If(ready):
             m.d.sync += count.eq(qs)
 
-        # The result from the final acc. quo[:qs − 1] = q ^ −sgn, q = the truncated quotient
-        # or, saturated, all ones; `qx` = that extended to ow bits with the sign (q <= s_max:
-        # its bit ow − 1 is 0), so that ±q = qx + sgn (two's complement), an incrementer.
+        # The result from the final acc: `nqx` = ~(qx), qx = q ^ −sgn in ow bits (q < 2**(qs − 1)
+        # <= 2**(ow − 1), or q = s_max saturated), so that the result ±q = qx + sgn =
+        # ~(nqx − sgn): a decrement, its operands straight from registers.
         nqx = Signal(ow)
         m.d.comb += nqx.eq(Cat(quo[:qs - 1], (sat ^ ~sgn).replicate(ow - qs), ~sgn))
         # A bounded result never exceeds the last fresh measurement: as the bound k/elapsed only
         # falls while the window stays open, the last output o.speed is min(bound, last fresh)
         # already, with the sign `sgn`; a bound q at or above |o.speed| leaves it as it is.
-        # q < |o.speed| is qx[:ow − 1] < o.speed[:ow − 1] (sgn = 0) or >= (sgn = 1: −q > o.speed,
-        # i.e. ~q >= o.speed, both negative): one compare of ow − 1 bits.
+        # In a bounded update sgn is o.speed's sign, so q < |o.speed| is qx[:ow − 1] <
+        # o.speed[:ow − 1] (sgn = 0) or >= (sgn = 1: −q > o.speed, i.e. ~q >= o.speed, both
+        # negative): one compare of ow − 1 bits, the carry out of o.speed + ~qx.
         lt_c = Signal(ow)
         m.d.comb += lt_c.eq(p.speed[:ow - 1] + nqx[:ow - 1])
         lt = lt_c[-1] ^ sgn
