@@ -286,8 +286,8 @@ class MTSpeed(wiring.Component):
         # A step away from zero (or from zero) adds 1 to the magnitude up to the limit of its
         # sign (2**(mw − 1) − 1 positive, 2**(mw − 1) negative: saturate to signed(mw)); a step
         # towards zero subtracts 1 (the sign is kept on reaching 0: a zero magnitude's sign is
-        # never used, the next step sets it and a snapshot of 0 reads 0). Both steps and the
-        # compares are formed from the registers in parallel; the edge only selects.
+        # never used, the next step sets it and a snapshot of 0 reads 0). One adder, its
+        # operand +1 or −1 by the edge's direction; the compares are formed from the registers.
         zero = m_mag == 0
         away = zero | (neg == m_neg)
         at_lim = m_mag == Mux(m_neg, 1 << (mw - 1), (1 << (mw - 1)) - 1)
