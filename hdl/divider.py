@@ -5,7 +5,7 @@ Restoring shift-subtract division on magnitudes, one quotient bit per clock, the
 the quotient is truncated toward zero and the remainder takes the dividend's sign (C99), so
 ``dividend == quotient * divisor + remainder`` and ``|remainder| < |divisor|``. Division by zero
 and the one signed overflow (``min / -1``) saturate and are flagged; nothing wraps. The latency
-is the same for every operand pair, division by zero included, so the M/T speed timing is fixed.
+is the same for every operand pair, division by zero included, so its users' timing is fixed.
 
 An unsigned divider may compute fewer quotient bits than the dividend has (``quotient_width``):
 a quotient that needs more saturates. The test for it is one comparison before the first step,

@@ -1,14 +1,20 @@
 # Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
 """M/T speed measurement: edges counted over a window that starts and ends on an edge.
 
-MC counts encoder edges (signed by direction), TC runs free at f_TCLK, T latches TC at every
-counted edge. At each speed-update strobe the window closes on the last counted edge:
-``ΔM`` = edges since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges,
-and the foundation :class:`~foc_servo.hdl.divider.Divider` computes ``D_n = k·ΔM/ΔT``: unsigned,
-``k·|ΔM| / ΔT``, with ``out_width − 1`` quotient bits (a larger quotient saturates inside the
-divider, see ``Divider.quotient_width``), then the sign of ΔM applied to the result. This is
-``trunc(k·ΔM/ΔT)`` saturated to ±(2**(out_width−1) − 1), as a signed division would give, in
-half the clocks and without the signed divider's negations and 64-bit saturation compares.
+MC counts encoder edges (signed by direction), TC runs at f_TCLK, T latches TC at every counted
+edge. At each speed-update strobe the window closes on the last counted edge: ``ΔM`` = edges
+since the previous window's last edge, ``ΔT = T2 - T1`` between those two edges, and
+``D_n = k·ΔM/ΔT`` is computed unsigned, ``k·|ΔM| / ΔT`` with ``min(out_width − 1, k_width +
+m_width − 1)`` quotient bits (a larger quotient saturates), then the sign of ΔM applied to the
+result: ``trunc(k·ΔM/ΔT)`` saturated to ±(2**(out_width−1) − 1), as a signed division would give.
+
+One result per update period (thousands of clocks) needs no parallel hardware, so the block is
+one sequential data path (iCE40 area, session 9): the product ``k·|ΔM|`` is formed 16 bits of
+``k`` at a time on one multiplier and written straight into the register of a restoring
+division, whose first step decides saturation and whose quotient bits enter with the result's
+sign already applied (see :meth:`MTSpeed.elaborate`). TC and the T latches are not stored as
+such: the gateware keeps the *ages* of the reference and last edges (TC − T mod 2**tc_width),
+which give ΔT, the elapsed time and the expiry (the age counter's carry out) directly.
 
 Window rules (the golden model :mod:`foc_servo.sim.models.mt_speed` reproduces them clock for
 clock):
@@ -37,7 +43,6 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
-from .divider import Divider
 from .fixed import check_param
 from .regmap import MT_EDGES_PER_LINE
 
@@ -137,16 +142,20 @@ class MTSpeed(wiring.Component):
     ----------
     latency : int
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
-        ``o.valid`` high in clock ``u + latency``): 1 (snapshot) + :attr:`k_chunks` (partial
-        products; each one's carry add runs a clock later, the last one straight into the
-        divider's input) + 1 (divider input) + the divider's ``latency`` + 1 (output register) =
-        ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the defaults).
+        ``o.valid`` high in clock ``u + latency``): 1 (snapshot; the multiplier's first k
+        chunk) + 1 (first partial product) + :attr:`k_chunks` (carry adds, the product's
+        chunks written into the division register) + :attr:`divide_steps` + 1 (output
+        register) = ``min(out_width − 1, k_width + m_width − 1) + k_chunks + 4`` (38 for the
+        defaults, as with the separate divider before session 9).
     k_chunks : int
         ``ceil(k_width / 16)``: ``k·|ΔM|`` is computed as ``k_chunks`` products of 16 bits of
         ``k`` and ``|ΔM|``, one per clock, least significant first (one 16 × ``m_width``
         multiplier instead of ``k_chunks``; the result is the exact product). Each partial
         product is registered before its carry add (ECP5 Fmax: the multiplier and the adder
-        chain in separate clocks), without adding a clock to :attr:`latency`.
+        chain in separate clocks).
+    divide_steps : int
+        ``min(out_width − 1, k_width + m_width − 1) + 1``: clocks of the restoring division
+        (one quotient bit each; the first decides saturation).
     tclk_ratio : int
         System clocks per TC tick.
     tclk_hz : float
@@ -207,11 +216,8 @@ class MTSpeed(wiring.Component):
         return min(self._out_width - 1, self._k_width + self._m_width - 1)
 
     @property
-    def divider_latency(self):
-        """:attr:`Divider.latency` of the divider built in :meth:`elaborate`
-        (``quotient_width + 2``; not built here, so that an unelaborated MTSpeed leaves no unused
-        divider behind; the tests measure :attr:`latency` cycle by cycle)."""
-        return self._quotient_width + 2
+    def divide_steps(self):
+        return self._quotient_width + 1
 
     @property
     def k_chunks(self):
@@ -219,21 +225,17 @@ class MTSpeed(wiring.Component):
 
     @property
     def latency(self):
-        return self.divider_latency + self.k_chunks + 2
-
-    def _make_divider(self):
-        return Divider(width=self._k_width + self._m_width - 1, divisor_width=self._tc_width,
-                       signed=False, quotient_width=self._quotient_width)
+        return 2 + self.k_chunks + self.divide_steps + 1
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.divider = div = self._make_divider()
         w, ow, mw = self._tc_width, self._out_width, self._m_width
         r = self._tclk_ratio
-        s_max = (1 << (ow - 1)) - 1
 
-        # --- TC: free-running at clk/r. Its wrap is modular time (differences are taken mod
-        # 2**w), made safe by the expiry below.
+        # --- Time: instead of a free-running TC and the latched T of the reference and last
+        # edges, the *ages* of those two edges, counting TCLK ticks modulo 2**w (the same
+        # differences: age = TC − T mod 2**w). age_last restarts at each counted edge; age_ref
+        # takes age_last's value when the last edge becomes the reference.
         tick = Signal()
         if r == 1:
             m.d.comb += tick.eq(1)
@@ -244,87 +246,79 @@ class MTSpeed(wiring.Component):
                 m.d.comb += tick.eq(1)
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
-        tc = Signal(w)
-        # TC + 2 (and TC + 1 when TC does not tick every clock) as counters of their own, for the
-        # registered expiry compare below (`at_span`).
-        tc2 = Signal(w, init=2)
-        if r == 1:
-            m.d.sync += [tc.eq(tc + 1), tc2.eq(tc2 + 1)]
-        else:
-            tc1 = Signal(w, init=1)
-            with m.If(tick):
-                m.d.sync += [tc.eq(tc + 1), tc1.eq(tc1 + 1), tc2.eq(tc2 + 1)]
+        # ~(TC − T(last counted edge)) mod 2**w: kept inverted (a down-counter), so that the
+        # subtraction age_ref − age_last is age_ref + n_last + 1, without inverters (iCE40).
+        n_last = Signal(w, reset_less=True)
+        # The reference's age `age_ref` = TC − T(reference edge) mod 2**w is the register
+        # `ref_reg`, except in the clock after the window closed on an earlier edge (`load`):
+        # the new reference is then the last edge, whose age is ~n_last. (The register takes
+        # it then, a clock late, so that n_last's down-counter feeds its own flip-flop only:
+        # iCE40 packing.)
+        ref_reg = Signal(w, reset_less=True)
+        load = Signal()
+        age_ref = Signal(w)
+        m.d.comb += age_ref.eq(Mux(load, ~n_last, ref_reg))
+        # age_ref + tick; the carry out: TC + 1 == T(reference) with a tick this clock, a whole
+        # span since the reference edge.
+        ref_inc = Signal(w + 1)
+        m.d.comb += ref_inc.eq(age_ref + tick)
+        at_span = ref_inc[w]
 
-        def next_tc1_eq(x):
-            # TC + 1 of the next clock equals register x (a value held in this clock).
-            return (tc2 == x) if r == 1 else Mux(tick, tc2 == x, tc1 == x)
-
-        # --- Window state. Invariant: pending == 0 implies ΔM == 0; have_ref == 0 implies
-        # pending == 0.
+        # --- Window state. Invariant: pending == 0 implies ΔM == 0 and (with have_ref)
+        # age_last == age_ref; have_ref == 0 implies pending == 0.
         # Net edges since the reference edge, saturating to signed(mw), kept as magnitude and
         # sign (ECP5 Fmax: the snapshot's |ΔM| is then one up/down step of a register, without a
         # negation behind the signed add and its saturation). m_neg is meaningless when
         # m_mag == 0.
         m_mag = Signal(mw)              # |ΔM| <= 2**(mw - 1)
         m_neg = Signal()                # ΔM < 0
-        t_last = Signal(w)              # T of the last counted edge
-        t_ref = Signal(w)               # T of the reference edge (the previous window's last)
         pending = Signal()              # edges counted since the reference
         have_ref = Signal()             # a reference edge younger than the TC span exists
-        prev = Signal(signed(ow))       # last fresh measurement, |prev| <= s_max
-        prev_valid = Signal()           # a measurement since reset / the last expiry
+        # A fresh measurement since reset / the last expiry: set when a fresh window is
+        # snapshotted, cleared by an expiry (also one during the computation).
+        prev_valid = Signal()
         busy = Signal()                 # a computation is in flight
 
         step, neg = self.edge.step, self.edge.neg
         mag_e = Signal(mw)              # the state including this clock's edge
         neg_e = Signal()
-        tl_e = Signal(w)
         pend_e = Signal()
         # A step away from zero (or from zero) adds 1 to the magnitude up to the limit of its
         # sign (2**(mw − 1) − 1 positive, 2**(mw − 1) negative: saturate to signed(mw)); a step
         # towards zero subtracts 1 (the sign is kept on reaching 0: a zero magnitude's sign is
-        # never used, the next step sets it and a snapshot of 0 reads 0). Both steps and the
-        # compares are formed from the registers in parallel; the edge only selects.
+        # never used, the next step sets it and a snapshot of 0 reads 0). One adder, its
+        # operand +1 or −1 by the edge's direction; the compares are formed from the registers.
         zero = m_mag == 0
         away = zero | (neg == m_neg)
         at_lim = m_mag == Mux(m_neg, 1 << (mw - 1), (1 << (mw - 1)) - 1)
-        mag_up = Signal(mw)
-        mag_dn = Signal(mw)
-        m.d.comb += [mag_up.eq(Mux(at_lim, m_mag, m_mag + 1)), mag_dn.eq(m_mag - 1)]
-        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), tl_e.eq(t_last), pend_e.eq(pending)]
+        mag_s = Signal(mw)              # m_mag ± 1: one adder
+        m.d.comb += mag_s.eq(m_mag + Cat(Const(1, 1), (~away).replicate(mw - 1)))
+        m.d.comb += [mag_e.eq(m_mag), neg_e.eq(m_neg), pend_e.eq(pending)]
         with m.If(step):
             m.d.comb += [
-                mag_e.eq(Mux(away, mag_up, mag_dn)),
+                mag_e.eq(Mux(away & at_lim, m_mag, mag_s)),
                 neg_e.eq(Mux(zero, neg, m_neg)),
-                tl_e.eq(tc),
                 pend_e.eq(1),
             ]
-        # After this clock TC equals t_ref again: a whole span since the reference edge.
-        # `at_span` is TC + 1 == t_ref, computed a clock ahead (ECP5 Fmax: the 2·w-bit compare
-        # and the incrementer were in front of the window's enables, the top's critical path).
-        at_span = Signal()              # invariant: at_span == ((tc + 1) mod 2**w == t_ref)
-        expire = have_ref & tick & at_span
+        expire = have_ref & at_span
         start = self.update & ~busy
 
-        # The window's next state, written as flat enables (the expiry compare is the longest
-        # path into them; ECP5 Fmax):
+        # The window's next state, written as flat enables:
         # * no reference: the first edge becomes the reference;
         # * update, or expiry (update period > span), with edges since the reference: close the
         #   window on its last edge, which becomes the new reference;
         # * expiry without edges: the reference is dropped; any expiry not at a closing update
         #   also invalidates the last measurement;
         # * otherwise the edge of this clock (if any) is counted.
-        # t_last is always the last edge's T (no edge: unchanged); ΔM and pending are 0 while
-        # there is no reference, and at an expiry without edges.
+        # ΔM and pending are 0 while there is no reference, and at an expiry without edges.
         first = ~have_ref & step
         close = have_ref & pend_e & (start | expire)
-        m.d.sync += t_last.eq(tl_e)
-        with m.If(first | close):
-            m.d.sync += t_ref.eq(tl_e)
-        # The next t_ref is tl_e: TC itself on an edge (TC + 1 of the next clock is TC + 1 or
-        # TC + 2 ≠ TC, as w >= 8) or t_last; otherwise t_ref is kept.
-        m.d.sync += at_span.eq(Mux(first | close, ~step & next_tc1_eq(t_last),
-                                   next_tc1_eq(t_ref)))
+        # An edge in this clock: its age is 0 now, `tick` in the next clock.
+        m.d.sync += [
+            n_last.eq(Mux(step, ~Cat(tick, Const(0, w - 1)), n_last - tick)),
+            ref_reg.eq(Mux((first | close) & step, tick, ref_inc[:w])),
+            load.eq(close & ~step),
+        ]
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
@@ -335,116 +329,153 @@ class MTSpeed(wiring.Component):
         with m.Elif(expire & ~pend_e):
             m.d.sync += have_ref.eq(0)
 
-        # --- Computation: snapshot at the update, product, divide, select. The window's ΔM is
-        # kept as magnitude and sign: the divider is unsigned, the sign goes on the result.
+        # --- Computation: snapshot, product, division, result, all on one data path.
+        # Snapshot at the update (clock u): the dividend's factor `dm` = |ΔM| (fresh), 1 (bounded)
+        # or 0 (stopped), the divisor `dv` = ΔT (fresh: age_ref − age_last, or age_ref when the
+        # last edge is in this clock) or the ticks elapsed since the reference (bounded:
+        # age_ref), and the sign `sgn` of the result (ΔM's, or the last output's when bounded).
+        # A zero `dm` (stopped, or a net-zero fresh window) sets dv's bit 0 a clock later: the
+        # quotient is then 0/dv = 0 (also for ΔT = 0), so the result needs no override.
         mode = Signal(WindowMode)
-        snap_dm = Signal(mw)            # |ΔM| <= 2**(mw - 1)
-        snap_neg = Signal()             # ΔM < 0
-        snap_dt = Signal(w)
-        # ΔT of a fresh window (last edge − reference) or the time elapsed since the reference
-        # (bounded): one subtractor.
+        dm = Signal(mw)                 # |ΔM| <= 2**(mw - 1)
+        n_dv = Signal(w)                # ~divisor (inverted: the division subtracts it)
+        sgn = Signal()
+        p = self.o.payload
         dt = Signal(w)
-        m.d.comb += dt.eq(Mux(pend_e, tl_e, tc) - t_ref)
+        dt_sub = Signal(w + 1)          # age_ref − age_last: the +1 as a carry in at bit 0
+        m.d.comb += dt_sub.eq(Cat(Const(1, 1), age_ref) + Cat(Const(1, 1), n_last))
+        m.d.comb += dt.eq(Mux(pending & ~step, dt_sub[1:], age_ref))
         with m.If(start):
-            m.d.sync += busy.eq(1)
+            m.d.sync += [busy.eq(1), n_dv.eq(~dt)]
             with m.If(have_ref & pend_e):
-                m.d.sync += [mode.eq(WindowMode.FRESH),
-                             snap_dm.eq(mag_e), snap_neg.eq(neg_e),
-                             snap_dt.eq(dt)]
+                m.d.sync += [mode.eq(WindowMode.FRESH), dm.eq(mag_e), sgn.eq(neg_e),
+                             prev_valid.eq(1)]
             with m.Elif(have_ref & prev_valid):
-                m.d.sync += [mode.eq(WindowMode.BOUND), snap_dm.eq(1), snap_neg.eq(0),
-                             snap_dt.eq(dt)]
+                m.d.sync += [mode.eq(WindowMode.BOUND), dm.eq(1), sgn.eq(p.speed[-1])]
             with m.Else():
-                m.d.sync += [mode.eq(WindowMode.STOPPED), snap_dm.eq(0), snap_neg.eq(0),
-                             snap_dt.eq(1)]
+                m.d.sync += [mode.eq(WindowMode.STOPPED), dm.eq(0), sgn.eq(0)]
 
         # k·|ΔM| on 16-bit chunks of k, least significant first, in two stages (the multiplier
         # and the carry adder in separate clocks: ECP5 Fmax). Clock u + 1 + c (c = 0 … nk − 1):
         # `pp` = k_c·|ΔM|. Clock u + 2 + c: t = pp + carry; t's low 16 bits are bits 16c … 16c + 15
-        # of the product (shifted into `low`), the rest is the next carry. The last t (clock
-        # u + nk + 1, `ready`) goes straight into the divider, unregistered: the product is
-        # Cat(low, t), ready in the same clock as with a single stage.
+        # of the product, written straight into their place in the division register `acc`,
+        # the rest is the next carry; the last t (clock u + nk + 1, `ready`) is the product's top.
         nk = self.k_chunks
-        low = Signal(16 * (nk - 1))                     # bits 0 … 16(nk − 1) − 1 of the product
+        qs = self.divide_steps          # quotient bits computed, the top one only saturates
+        aw = qs + w                     # acc = Cat(quo, rem)
+        acc = Signal(aw)
+        quo = acc[:qs]                  # rem = acc[qs:]
+        # The quotient saturates: product bits at or above aw (only when k_width + m_width − 1
+        # > aw), or the first division step's quotient bit.
+        sat = Signal()
         carry = Signal(mw)                              # (pp + carry) >> 16 < 2**mw
         # The registered partial product k_c·|ΔM|: no reset (it is rewritten every clock and
         # only read while `adding`), so that iCE40 synthesis takes it into the SB_MAC16's own
         # pipeline register and keeps the carry add in the SB_MAC16's adder.
         pp = Signal(16 + mw, reset_less=True)
         t = Signal(16 + mw)                             # pp + carry < 2**(16 + mw)
-        prod = Cat(low, t)[:self._k_width + mw - 1]     # k·|ΔM| < 2**(k_width + mw - 1)
         left = Signal(range(nk + 1))                    # chunks still to multiply
         adding = Signal()                               # pp holds a partial product
-        ready = Signal()                                # prod is complete: divider input
+        ready = Signal()                                # t is the product's last chunk
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
-        # Word `left` (nk … 1) is chunk nk − left: the chunks in reverse order after a zero word.
-        k_rev = Cat(Const(0, 16), *reversed([k_pad[16 * c:16 * c + 16] for c in range(nk)]))
-        # The multiplier's k operand from a register, `k_c` = word `left` of k_rev, loaded with
-        # the word of left's next value (ECP5 Fmax: no word multiplexer in front of the
-        # MULT18X18D). k is thus sampled a clock earlier than `pp` is formed. No reset: read
-        # only while `adding`, i.e. after a start has loaded it.
+        # The multiplier's k operand from a register, `k_c` (ECP5 Fmax: no word multiplexer in
+        # front of the MULT18X18D), loaded a clock before `pp` is formed with it: k is sampled in
+        # clocks u … u + nk − 1. No reset: read only while `adding`, i.e. after a start.
         k_c = Signal(16, reset_less=True)
-        left_next = Signal(range(nk + 1))
-        m.d.comb += left_next.eq(Mux(start, nk, Mux(left != 0, left - 1, 0)))
         m.d.comb += t.eq(pp + carry)
+        # Chunk c is loaded in clock u + c: chunk 0 at the start, chunk c >= 1 while left ==
+        # nk + 1 − c. Other clocks load don't-care values (k_c is read only while `adding`).
+        chunks = [k_pad[16 * c:16 * c + 16] for c in range(nk)]
+        k_sel = chunks[-1]
+        for c in reversed(range(1, nk - 1)):
+            k_sel = Mux(left == nk + 1 - c, chunks[c], k_sel)
+        if nk > 1:
+            k_sel = Mux(start, chunks[0], k_sel)
+        m.d.sync += k_c.eq(k_sel)
         m.d.sync += [
-            k_c.eq(k_rev.word_select(left_next, 16)),
-            pp.eq(k_c * snap_dm),
+            pp.eq(k_c * dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
         ]
         with m.If(start):
-            m.d.sync += [carry.eq(0), left.eq(nk)]
+            m.d.sync += [carry.eq(0), left.eq(nk), sat.eq(0)]
         with m.Else():
             with m.If(left != 0):
                 m.d.sync += left.eq(left - 1)
             with m.If(adding & ~ready):
                 m.d.sync += carry.eq(t[16:])
-                if nk > 1:
-                    m.d.sync += low.eq(Cat(low[16:], t[:16]))
-        m.d.comb += [
-            div.i.valid.eq(ready),                      # the divider is idle: one at a time
-            div.i.payload.dividend.eq(prod),
-            div.i.payload.divisor.eq(snap_dt),
-            div.o.ready.eq(1),
-        ]
+        with m.If(left == nk):                          # clock u + 1: dm is the snapshot
+            with m.If(dm == 0):
+                m.d.sync += n_dv[0].eq(0)
 
-        # |quotient| saturated to s_max: inside the divider (ovf, div0: all ones = s_max) when
-        # it computes out_width − 1 bits; a narrower quotient saturates only on ΔT = 0.
-        q = div.o.payload.quotient
-        if self._quotient_width < ow - 1:
-            q = Mux(div.o.payload.div0, s_max, q)
-        # The result, with the sign applied beside the bound's compare rather than after it
-        # (ECP5 Fmax): two carry chains side by side from the quotient register, then one LUT
-        # per bit. `sq` = ±q with the sign of ΔM (fresh) or of the last measurement (bounded),
-        # as (q ^ −s) + s; `lt` = q < |prev| from the sign of q − |prev|, formed as
-        # q + (prev ^ −p) + p, p = (prev >= 0), in ow + 1 bits (the second operand sign-extended:
-        # its top bit is always 1), the carry-in p entering through a low bit set to 1: one
-        # adder chain.
-        sgn = Signal()
-        m.d.comb += sgn.eq(Mux(mode == WindowMode.FRESH, snap_neg, prev[-1]))
-        q_x = Signal(ow)                                # q zero-extended (q <= s_max)
-        m.d.comb += q_x.eq(q)
-        sq = Signal(signed(ow))
-        m.d.comb += sq.eq((q_x ^ sgn.replicate(ow)) + sgn)
-        pos = ~prev[-1]
-        diff = Signal(ow + 2)
-        m.d.comb += diff.eq(Cat(Const(1, 1), q_x, Const(0, 1))
-                            + Cat(pos, prev.as_unsigned() ^ pos.replicate(ow), Const(1, 1)))
-        lt = diff[-1]                                   # q − |prev| < 0
-        use_prev = (mode == WindowMode.BOUND) & ~lt     # never above the last measurement
-        kill = (mode == WindowMode.STOPPED) | ((mode == WindowMode.FRESH) & (snap_dm == 0))
-        speed = Signal(signed(ow))                      # 0/0 (net-zero window, ΔT = 0) is 0
-        m.d.comb += speed.eq(Mux(kill, 0, Mux(use_prev, prev, sq)))
-        p = self.o.payload
-        m.d.sync += self.o.valid.eq(div.o.valid)
-        with m.If(div.o.valid):
+        # Restoring division of acc = the product by dv, one quotient bit per clock, MSB first:
+        # trial = 2·rem + next dividend bit, subtract dv when it fits. The first of the qs steps
+        # sees trial = product >> (qs − 1) (w + 1 bits: the product is below 2**aw unless `sat`
+        # is already set) and fits iff product >= dv·2**(qs − 1), i.e. iff the quotient needs
+        # more than qs − 1 bits (or dv = 0): then `sat` is set and the result saturates,
+        # whatever the later (meaningless) remainders. Otherwise the partial remainder is below
+        # dv from then on, as in a divider whose dividend has qs − 1 bits above the divisor's,
+        # and the qs − 1 later steps give the truncated quotient q. No separate compare of the
+        # dividend's top against the divisor, no division-by-zero flag.
+        # The divisor is kept inverted: trial − dv = trial + ~dv + 1, the +1 through a low bit
+        # (iCE40: no inverters in front of the carry chain).
+        count = Signal(range(qs + 1))                   # division steps still to run
+        fin = Signal()                                  # acc holds the result
+        trial = acc[qs - 1:]                            # w + 1 bits
+        diff_c = Signal(w + 3)
+        m.d.comb += diff_c.eq(Cat(Const(1, 1), trial)
+                              + Cat(Const(1, 1), n_dv, Const(0b11, 2)))
+        diff = diff_c[1:]                               # trial − dv: top bit set iff trial < dv
+        fits = ~diff[-1]
+        m.d.sync += fin.eq(count == 1)
+        with m.If(count != 0):
+            m.d.sync += [
+                # Quotient bits enter as ~(q ^ sgn), all ones for q once saturated: quo[:qs − 1]
+                # ends as ~(q ^ −sgn).
+                acc.eq(Cat((fits | sat) ^ ~sgn, quo[:-1], Mux(fits, diff, trial)[:w])),
+                count.eq(count - 1),
+            ]
+            with m.If((count == qs) & fits):
+                m.d.sync += sat.eq(1)
+        for c in range(nk):
+            lo = 16 * c
+            if lo >= aw:
+                part, top = Const(0, 1), (t if c == nk - 1 else t[:16])
+            elif c == nk - 1:
+                part, top = t[:aw - lo], t[aw - lo:]
+            else:
+                part, top = t[:min(16, aw - lo)], t[min(16, aw - lo):16]
+            with m.If(adding & (left == nk - 1 - c)):
+                if lo < aw:                             # the last one zero-extended
+                    m.d.sync += acc[lo:lo + 16 if c < nk - 1 else aw].eq(part)
+                if len(top):
+                    with m.If(top != 0):
+                        m.d.sync += sat.eq(1)
+        with m.If(ready):
+            m.d.sync += count.eq(qs)
+
+        # The result from the final acc: `nqx` = ~(qx), qx = q ^ −sgn in ow bits (q < 2**(qs − 1)
+        # <= 2**(ow − 1), or q = s_max saturated), so that the result ±q = qx + sgn =
+        # ~(nqx − sgn): a decrement, its operands straight from registers.
+        nqx = Signal(ow)
+        m.d.comb += nqx.eq(Cat(quo[:qs - 1], (sat ^ ~sgn).replicate(ow - qs), ~sgn))
+        # A bounded result never exceeds the last fresh measurement: as the bound k/elapsed only
+        # falls while the window stays open, the last output o.speed is min(bound, last fresh)
+        # already, with the sign `sgn`; a bound q at or above |o.speed| leaves it as it is.
+        # In a bounded update sgn is o.speed's sign, so q < |o.speed| is qx[:ow − 1] <
+        # o.speed[:ow − 1] (sgn = 0) or >= (sgn = 1: −q > o.speed, i.e. ~q >= o.speed, both
+        # negative): one compare of ow − 1 bits, the carry out of o.speed + ~qx.
+        lt_c = Signal(ow)
+        m.d.comb += lt_c.eq(p.speed[:ow - 1] + nqx[:ow - 1])
+        lt = lt_c[-1] ^ sgn
+        keep = (mode == WindowMode.BOUND) & ~lt
+        m.d.sync += self.o.valid.eq(fin)
+        with m.If(fin):
             m.d.sync += [
                 busy.eq(0),
-                p.speed.eq(speed),
                 p.stopped.eq(mode == WindowMode.STOPPED),
                 p.fresh.eq(mode == WindowMode.FRESH),
             ]
-            with m.If(mode == WindowMode.FRESH):
-                m.d.sync += [prev.eq(speed), prev_valid.eq(1)]
+            with m.If(~keep):
+                m.d.sync += p.speed.eq(~(nqx - sgn))
         return m

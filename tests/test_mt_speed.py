@@ -590,3 +590,58 @@ def test_mt_expiry_right_after_a_close(gap):
         edges, neg = [20, 20 + gap], [0, 0]
         out = both(dut, edges, neg, [up, up + 200], k=1000, end_cycle=up + 300)
         assert out["stopped"][-1] == 1
+
+
+def test_mt_expiry_during_the_computation_invalidates_it():
+    """A fresh window whose new reference (its last edge) expires while the division runs: the
+    expiry clears the 'measurement valid' flag and the result does not set it again (it is set
+    at the fresh snapshot), so a single new edge afterwards reads stopped until a whole new
+    window is measured, as documented (before session 9 it read the stale measurement bounded
+    by k/elapsed)."""
+    dut = MTSpeed(clk_hz=1e6, tc_width=8, out_width=16, k_width=16, m_width=8)
+    span, lat, k = 2 ** dut.tc_width, dut.latency, 1000
+    # Reference at 10, last edge at 11; the update at 262 closes the window (ΔM = 1, ΔT = 1)
+    # on the edge at 11, which expires in clock 11 + span − 1 = 266, inside the computation.
+    u = 11 + span - 5
+    assert u < 10 + span and u + lat > 11 + span
+    # A new reference edge at 320, then an update at 400 (stopped: no measurement since the
+    # expiry), an edge at 450 and the update at 500 (fresh: ΔM = 1, ΔT = 130).
+    edges, neg = [10, 11, 320, 450], [0, 0, 0, 0]
+    ups = [u, 400, 500]
+    out = both(dut, edges, neg, ups, k=k, end_cycle=600)
+    assert out["update"].tolist() == ups
+    assert out["fresh"].tolist() == [1, 0, 1]
+    assert out["speed"].tolist() == [k, 0, k // 130]
+    assert out["stopped"].tolist() == [0, 1, 0]
+
+
+@pytest.mark.parametrize("config, k_values", [
+    ({}, [0, 2 ** 48 - 1, 3 * 2 ** 40 + 12345, 2 ** 31 * 7, 2 ** 31 * 150, 98_765_432_100,
+          2 ** 25 + 1]),
+    ({"out_width": 16, "k_width": 24, "m_width": 8, "tc_width": 12},
+     [1, 2 ** 24 - 1, 2 ** 15 * 9, 2 ** 15 * 200, 777_777]),
+])
+def test_mt_division_random_windows_through_the_gateware(config, k_values):
+    """Short random windows (1 … 40 edges both ways, 0 … 3000 clocks) on the top's instance
+    (48-bit k, 63-bit product, 32 quotient steps) and a narrow one whose product (31 bits)
+    exceeds the division register (28 bits): fresh quotients small, large, exact and saturated;
+    gateware == model == exact k·ΔM/ΔT, clock for clock."""
+    dut = MTSpeed(clk_hz=50e6, **config)
+    rng = np.random.default_rng(9)
+    lat = dut.latency
+    for k in k_values:
+        edges, neg, ups = [], [], []
+        c = 5
+        for _ in range(25):
+            n = int(rng.integers(1, 41))
+            gap = int(rng.choice([0, 1, 2, 7, 100, 3000])) // max(n, 1) + 1
+            direction = bool(rng.integers(0, 2))
+            for _ in range(n):
+                c += gap
+                edges.append(c)
+                neg.append(direction if rng.random() < 0.85 else not direction)
+            c += 1
+            ups.append(c)
+            c += lat
+        out = both(dut, edges, neg, ups, k=k, end_cycle=c + lat + 2)
+        assert out["fresh"].sum() >= 20

@@ -3,7 +3,7 @@
 helper, and an ideal-encoder edge generator.
 
 The model works on integer clock timestamps: it visits only the clocks where something happens
-(an edge strobe, an update strobe, the divider's result, a reference expiry) and applies there
+(an edge strobe, an update strobe, the division's result, a reference expiry) and applies there
 exactly the gateware's next-state function; in between only TC advances, which is a function of
 the clock number (``TC = floor(cycle / tclk_ratio) mod 2**tc_width``, cycle 0 = first clock after
 reset). So it reproduces every output of the gateware (value and clock) for runs of millions of
@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .divider import latency as divider_latency
 from ...hdl.regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTParams", "k_for", "fresh_speed", "simulate", "ideal_encoder_edges", "STOPPED",
@@ -84,12 +83,13 @@ class MTParams:
 
     @property
     def quotient_width(self):
-        """Quotient bits of the unsigned divider: ``min(out_width − 1, k_width + m_width − 1)``."""
+        """Quotient bits of the unsigned division: ``min(out_width − 1, k_width + m_width − 1)``."""
         return min(self.out_width - 1, self.k_width + self.m_width - 1)
 
     @property
-    def divider_latency(self):
-        return divider_latency(self.quotient_width)
+    def divide_steps(self):
+        """Clocks of the division: one per quotient bit, plus the saturation step."""
+        return self.quotient_width + 1
 
     @property
     def k_chunks(self):
@@ -98,12 +98,14 @@ class MTParams:
 
     @property
     def latency(self):
-        return self.divider_latency + self.k_chunks + 2
+        """:attr:`MTSpeed.latency`: snapshot, first partial product, ``k_chunks`` carry adds,
+        ``divide_steps``, output register."""
+        return 2 + self.k_chunks + self.divide_steps + 1
 
 
 def _magnitude(n, d, s_max):
     """The unsigned division ``n / d`` (n, d >= 0) truncated and saturated to ``s_max`` (the
-    divider's narrow quotient; ``d = 0`` saturates)."""
+    narrow quotient; ``d = 0`` saturates)."""
     return s_max if d == 0 else min(n // d, s_max)
 
 
@@ -147,7 +149,6 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
     span, wmask = 1 << w, (1 << w) - 1
     s_max = (1 << (ow - 1)) - 1
     m_lo, m_hi = -(1 << (mw - 1)), (1 << (mw - 1)) - 1
-    lat_div = params.divider_latency
     edges = [int(c) for c in edge_cycles]
     negs = [bool(x) for x in edge_neg]
     ups = [int(c) for c in update_cycles]
@@ -162,7 +163,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
     m_acc = t_last = t_ref = prev = 0       # prev: last fresh output, as magnitude and sign
     prev_neg = False
     mode = snap_dm = snap_dt = snap_t = 0
-    out_cycle = inf                 # clock in which the divider's o.valid is high
+    out_cycle = inf                 # clock in which the result is ready (o.valid − 1)
     up_cycle = 0
     out = {key: [] for key in ("cycle", "speed", "stopped", "fresh", "update", "dm", "dt",
                                "t_end")}
@@ -193,9 +194,11 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
         if start:
             busy = True
             up_cycle = c
-            out_cycle = c + 1 + params.k_chunks + lat_div   # divider o.valid
+            out_cycle = c + params.latency - 1
             if have_ref and pend_e:
                 mode, snap_dm, snap_dt, snap_t = FRESH, m_e, (tl_e - t_ref) & wmask, tl_e
+                # Valid from the snapshot: an expiry while it is computed invalidates it.
+                prev_valid = True
             elif have_ref and prev_valid:
                 mode, snap_dm, snap_dt, snap_t = BOUND, 1, (tc - t_ref) & wmask, tc
             else:
@@ -224,7 +227,7 @@ def simulate(edge_cycles, edge_neg, update_cycles, *, k, params=MTParams(), end_
             q = _magnitude(k * abs(snap_dm), snap_dt, s_max)
             if mode == FRESH:
                 speed = fresh_speed(k, snap_dm, snap_dt, out_width=ow)
-                prev, prev_neg, prev_valid = abs(speed), snap_dm < 0, True
+                prev, prev_neg = abs(speed), snap_dm < 0
                 stopped, fresh = 0, 1
             elif mode == BOUND:
                 mag = min(q, prev)
