@@ -60,7 +60,8 @@ class RegisterFileModel:
         self.copied = len(self.slots)
         consts = []
         if self.bram:                   # the immediate words after the copied ones; consts
-            self.slots = ram_slots(regmap, copy_last)
+            # (the copied ones from this module's staging_slots: a test reorders them)
+            self.slots += ram_slots(regmap, copy_last)[self.copied:]
             consts = [(a, r, k) for a, r, k in regmap.words() if r.access is Access.CONST]
         self._slot_of = {addr: i for i, (addr, _, _) in enumerate(self.slots)}
         n = len(self.slots)
