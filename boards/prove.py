@@ -51,7 +51,7 @@ from ..hdl.hostlink import LinkCore
 from ..hdl.pi import PI
 from ..hdl.protect import FAULTS, Protection
 from ..hdl.regmap import REGMAP, Access, RegMap
-from ..hdl.regs import RegisterFile, staging_slots
+from ..hdl.regs import RegisterFile, ram_slots, staging_slots
 from ..hdl.servo import Servo
 from ..hdl.top import regmap_address_map
 from ..host.protocol import CRC_BYTES, REQUEST_HEADER, Command
@@ -783,8 +783,9 @@ class RegFileSpec(Elaboratable):
     With ``staging="bram"`` (``copy_last=("pwm_symmetric",)``, as the iCEBreaker builds it) the
     staging values are the RAM's words, so for a shadowed ``rw`` register instead:
 
-    * the bus writes a staging word only in the clock after a write access to that word's
-      address (the reset walk writes only while it runs, and never starts again);
+    * the bus writes a staging word (also an immediate register's copy in the RAM, session 9)
+      only in the clock after a write access to that word's address (the reset walk writes only
+      while it runs, and never starts again);
     * its active value changes only in the load clock of one of its slots, ``i + 1`` clocks after
       a ``commit`` with ``lock`` low, and loads the RAM word read in the clock before, which is
       slot ``i``'s (the active value is a staged word; the RAM's contents are not modelled).
@@ -799,11 +800,12 @@ class RegFileSpec(Elaboratable):
         Prove a :func:`mutant` of :class:`RegisterFile` that also takes a write in the two
         clocks after an access (``access = stb`` instead of ``stb & ~pending & ~ack``). With
         ``staging="bram"`` on :data:`BROKEN_BRAM_REGS` of the map only: after power-on the
-        reset walk holds every access off for one clock per staging slot (48 with the whole
+        reset walk holds every access off for one clock per staging slot (63 with the whole
         map), longer than a BMC depth that runs in seconds.
     """
 
-    #: The registers of the ``staging="bram"`` broken variant's map (3 staging slots).
+    #: The registers of the ``staging="bram"`` broken variant's map (3 copied staging slots and
+    #: one immediate: 4 RAM slots).
     BROKEN_BRAM_REGS = ("mode", "clear_faults", "i_q_ref", "pwm_symmetric", "prot_oc_limit",
                         "st_mode")
 
@@ -895,11 +897,12 @@ class RegFileSpec(Elaboratable):
                 Assert(~ld[i] | (rd_prev == i), f"regfile: slot {i} copied from another word"),
             ]
         changed = {}
-        for i, (addr, r, k) in enumerate(slots):
+        for i, (addr, r, k) in enumerate(ram_slots(regs.regmap, regs.copy_last)):
             wrote = _history(m, access & (bus.addr == addr), 1, f"wrote_{addr:04x}")[0]
             out.append(Assert(~(wr_en & ~load_walk & (wr_addr == i)) | wrote,
                               f"regfile: {r.name} changed unwritten"))
-            changed[r.name] = changed.get(r.name, Const(0, 1)) | ld[i]
+            if i < n:
+                changed[r.name] = changed.get(r.name, Const(0, 1)) | ld[i]
         for name, loaded in changed.items():
             port = _bits(getattr(regs, name))
             prev = _history(m, port, 1, f"active_{name}")[0]
@@ -951,7 +954,7 @@ PROOFS = {p.name: p for p in (
     Proof("regfile_bram", functools.partial(RegFileSpec, staging="bram"), 2, 10,
           "RegisterFile(staging='bram'): a staging word changes only after a bus write to it, "
           "an active register only in a copy after an unlocked commit, from its slot",
-          cover_depth=54),
+          cover_depth=69),
 )}
 
 #: The default ``[engines]`` line: smtbmc with yices; ``--keep-going`` reports every assertion a

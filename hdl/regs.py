@@ -5,12 +5,13 @@ Timing (``t`` = the clock ``bus.stb`` rises for an access)::
 
     t      stb, addr, we, w_data (held by the master until ack)
            write: staging / immediate register loaded at the end of t (address compared in
-           full); the word select looked up from the word index (:func:`word_index`: a choice
-           of address bits, no compare) and whether the address's block is the map's, both
-           registered
-    t + 1  a strobe register's pulse; the read multiplexer (word select → the word's value,
-           status inputs sampled in this clock) into the registered read data; the status
-           looked up from the word select
+           full: its block and its offset in the block, each decoded once); the word select
+           and a one-hot select of the read multiplexer's words looked up from the word index
+           (:func:`word_index`: a choice of address bits, no compare) and whether the
+           address's block is the map's, all registered
+    t + 1  a strobe register's pulse; the read multiplexer (one-hot select → the word's
+           value, an AND-OR; status inputs sampled in this clock) into the registered read
+           data; the status looked up from the word select
     t + 2  ack, status, r_data; the master may start the next access in t + 3 (stb is still
            high in t + 1 and t + 2 and is not taken as a new access)
 
@@ -19,7 +20,8 @@ decode nor the word multiplexer sits behind the other in one clock (the whole to
 the ECP5: the 16-bit compares and the ~130-way 32-bit multiplexer in series measured 10.2 ns
 alone, 14.6 ns in the routed top, docs/AREA.md §7.7). Session 8 took the status and the word
 select's encoder off the address compares (docs/AREA.md, "Session 8: register file"): the
-clock t logic behind ``bus.addr`` is the write enables and two look-ups of ten address bits.
+clock t logic behind ``bus.addr`` is the write enables and look-ups of ten address bits.
+Session 9 replaced the decode of ``sel`` in front of the multiplexer by the one-hot select.
 
 Shadowing: a write to a shadowed ``rw`` register loads its staging register; the staging
 registers of all shadowed registers are copied to the active ones (the Out members) at the end of
@@ -29,36 +31,42 @@ held high over it) are applied together at the first commit after the frame. Imm
 registers return the staging value (what the host wrote), which equals the active value once
 committed.
 
-Staging in block RAM (``staging="bram"``; docs/AREA.md §7.11). The staging registers are one
-RAM of :attr:`~RegisterFile.slots` 32-bit words (one per shadowed register word, slot = index in
-:func:`staging_slots`: address order, ``copy_last`` registers at the end), each held in its read
-format (the top word of a signed register sign-extended), and a second half of the same RAM
-holds the reset values (initial contents, never written). The bus timing is the same, ``ack``
-two clocks after the access is taken::
+Staging in block RAM (``staging="bram"``; docs/AREA.md §7.11, "Session 9: register file"). The
+staging registers are one RAM of :attr:`~RegisterFile.slots` 32-bit words: one per shadowed
+register word (the *copied* slots: index in :func:`staging_slots`, address order, ``copy_last``
+registers at the end), then one per immediate register word (a copy of the Out member, which
+reads return; written with it, never copied), each held in its read format (the top word of a
+signed register sign-extended). A second part of the same RAM holds the slots' reset values and
+after them the ``const`` words (initial contents, never written; reads of a const word return
+it). The read multiplexer is left with the read-only status words. The bus timing is the same,
+``ack`` two clocks after the access is taken::
 
-    t      word select registered, as with "ff" (no staging register loaded)
-    t + 1  the slot and word format looked up from the word select; write: the RAM's word
+    t      word select registered, as with "ff"; an immediate register or strobe written
+    t + 1  the RAM word and word format looked up from the word select; write: the RAM's word
            written (w_data still held, formatted); read: the RAM read
     t + 2  ack; a read's r_data is the RAM's read data
 
 ``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
 ``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
-never deferred); the RAM reads slot ``i`` in clock ``s + i`` and the active register word of
-slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
+never deferred); the RAM reads copied slot ``i`` in clock ``s + i`` and the active register word
+of slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
 register started by the copy, not by a compare of the slot counter), so every active value is the
-new one from clock ``s + commit_clocks`` (``slots + 1``). While the RAM is read for the copy
-(clocks ``s`` … ``s + slots − 1``) no access is taken: an access whose ``stb`` rises then (or in
-``s``) is taken in ``s + slots`` and acked two clocks later (the bus allows any ``ack`` delay; the
-host link waits). A frame therefore never lands between two copied words. After a domain reset (block RAM
-keeps its contents) the same sequencer walks the reset values into the staging slots
-(:attr:`~RegisterFile.reset_clocks` clocks, accesses held off, commits ignored), so reads after
-a reset return the reset values, as with ``"ff"``. Strobes, immediate registers, status and the
-windows are as with ``"ff"``.
+new one from clock ``s + commit_clocks`` (copied slots + 1). While the RAM is read for the copy
+(clocks ``s`` … ``s + commit_clocks − 2``) no access is taken: an access whose ``stb`` rises then
+(or in ``s``) is taken in ``s + commit_clocks − 1`` and acked two clocks later (the bus allows any
+``ack`` delay; the host link waits). A frame therefore never lands between two copied words.
+After a domain reset (block RAM keeps its contents) the same sequencer walks the reset values
+into every slot (:attr:`~RegisterFile.reset_clocks` = ``slots`` clocks, accesses held off,
+commits ignored), so reads after a reset return the reset values, as with ``"ff"``. No read of
+the RAM is used in a clock that writes the same word (a write's own ``t + 1``; the walk reads
+the reset part while it writes a slot), so the RAM's read-during-write result is left undefined
+(``no_rw_check``). Strobes, the immediate registers' Out members, status and the windows are as
+with ``"ff"``.
 """
 
 import itertools
 
-from amaranth.hdl import Cat, Module, Mux, Signal, Value, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -68,7 +76,7 @@ from .bus import DATA_WIDTH, RegBusSignature, Status
 from .fixed import check_choice
 from .regmap import REGMAP, Access, RegMap
 
-__all__ = ["RegisterFile", "STAGINGS", "staging_slots", "word_index"]
+__all__ = ["RegisterFile", "STAGINGS", "ram_slots", "staging_slots", "word_index"]
 
 #: Values of ``RegisterFile(staging=...)``.
 STAGINGS = ("ff", "bram")
@@ -83,6 +91,14 @@ def staging_slots(regmap, copy_last=()):
              if r.access is Access.RW and r.shadow is not None]
     last = [w for name in copy_last for w in words if w[1].name == name]
     return [w for w in words if w[1].name not in copy_last] + last
+
+
+def ram_slots(regmap, copy_last=()):
+    """Every staging RAM slot of ``regmap`` (``staging="bram"``): the copied slots
+    (:func:`staging_slots`), then one per word of an immediate (unshadowed) ``rw`` register in
+    address order (read back from the RAM, never copied)."""
+    return staging_slots(regmap, copy_last) + [
+        (a, r, k) for a, r, k in regmap.words() if r.access is Access.RW and r.shadow is None]
 
 
 def word_index(regmap):
@@ -119,6 +135,14 @@ def _index_of(addr, block_bits, picked):
     for j, p in enumerate(picked):
         idx |= ((addr >> (block_bits + p)) & 1) << (block_bits + j)
     return idx
+
+
+def _or_tree(values):
+    """The OR of ``values`` as a balanced tree."""
+    while len(values) > 1:
+        values = [values[i] | values[i + 1] if i + 1 < len(values) else values[i]
+                  for i in range(0, len(values), 2)]
+    return values[0] if values else Const(0, 1)
 
 
 def _bits(port):
@@ -175,16 +199,17 @@ class RegisterFile(wiring.Component):
     staging : str
         The parameter.
     slots : int
-        Words in the staging RAM (``"bram"``; 0 for ``"ff"``).
+        Staging slots in the RAM (``"bram"``: one per word of a shadowed or immediate ``rw``
+        register; 0 for ``"ff"``).
     commit_clocks : int
         Clocks from a ``commit`` that is taken (clock ``s``) to the clock from which every active
-        value is the new one (``s + commit_clocks``): 1 (``"ff"``), ``slots + 1`` (``"bram"``:
-        slot ``i`` changes at the end of clock ``s + 1 + i``).
+        value is the new one (``s + commit_clocks``): 1 (``"ff"``), ``len(staging_slots()) + 1``
+        (``"bram"``: copied slot ``i`` changes at the end of clock ``s + 1 + i``).
     commit_latency : int
         The same as :attr:`commit_clocks` (kept for the existing callers).
     reset_clocks : int
         ``"bram"``: clocks after a reset during which accesses are held off while the reset
-        values are written back into the staging RAM (``slots``); ``"ff"``: 0.
+        values are written back into every staging slot (``slots``); ``"ff"``: 0.
 
     Raises
     ------
@@ -220,10 +245,20 @@ class RegisterFile(wiring.Component):
         self._staging = staging
         self._copy_last = copy_last
         self._slots = staging_slots(regmap, copy_last) if staging == "bram" else []
-        self._slot_of = {a: i for i, (a, _, _) in enumerate(self._slots)}
+        self._copied = len(self._slots)
         if staging == "bram" and not self._slots:
             raise ValueError("RegisterFile staging='bram' needs a shadowed rw register in the "
                              "regmap, not none")
+        # "bram": the immediate rw words after the copied slots (read back from the RAM, never
+        # copied), the const words in the RAM's reset half after the reset values (read only).
+        self._consts = []
+        if staging == "bram":
+            self._slots = ram_slots(regmap, copy_last)
+            self._consts = [(a, r, k) for a, r, k in regmap.words() if r.access is Access.CONST]
+        self._slot_of = {a: i for i, (a, _, _) in enumerate(self._slots)}
+        base = 1 << ceil_log2(len(self._slots)) if self._slots else 0
+        self._ram_addr = {**self._slot_of, **{a: base + len(self._slots) + j
+                                               for j, (a, _, _) in enumerate(self._consts)}}
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         for r in regmap:
             if r.access is Access.RW:
@@ -241,7 +276,7 @@ class RegisterFile(wiring.Component):
     staging = property(lambda self: self._staging)
     copy_last = property(lambda self: self._copy_last)
     slots = property(lambda self: len(self._slots))
-    commit_clocks = property(lambda self: len(self._slots) + 1)
+    commit_clocks = property(lambda self: self._copied + 1)
     commit_latency = commit_clocks
     reset_clocks = property(lambda self: len(self._slots))
 
@@ -277,7 +312,7 @@ class RegisterFile(wiring.Component):
 
         out = r_data
         if bram:
-            out = Mux(stage["hit"], stage["rd"].data, out)
+            out = Mux(stage["hit"], stage["rd_data"], out)
         for w in self._regmap.windows:
             m.d.comb += getattr(self, f"{w.name}_rd_addr").eq(bus.addr[:w.addr_width])
             out = Mux(win_hit[w.name], getattr(self, f"{w.name}_rd_data"), out)
@@ -318,17 +353,36 @@ class RegisterFile(wiring.Component):
                         m.d.sync += sel.eq(i + 1)
                 with m.Default():
                     m.d.sync += sel.eq(0)
-            with m.If(bus.we):
-                with m.Switch(bus.addr):
-                    for addr, r, k in words:
-                        if held[r.name] is not None and r.access in (Access.RW, Access.STROBE):
-                            with m.Case(addr):
-                                self._write(m, r, k, held[r.name])
+            # The write enables: the address's block (one 16 − block_bits bit compare per block
+            # with writable words) and its offset in the block (one compare per offset), each
+            # decoded once and shared by the words, then ANDed per word.
+            wr_blk, wr_off = {}, {}
+            for addr, r, k in words:
+                if held[r.name] is not None and r.access in (Access.RW, Access.STROBE):
+                    blk, off = addr >> block_bits, addr & ((1 << block_bits) - 1)
+                    if blk not in wr_blk:
+                        wr_blk[blk] = Signal(name=f"wr_blk{blk:x}")
+                        m.d.comb += wr_blk[blk].eq(bus.we & (bus.addr[block_bits:] == blk))
+                    if off not in wr_off:
+                        wr_off[off] = Signal(name=f"wr_off{off:x}")
+                        m.d.comb += wr_off[off].eq(bus.addr[:block_bits] == off)
+                    with m.If(wr_blk[blk] & wr_off[off]):
+                        self._write(m, r, k, held[r.name])
             for w in self._regmap.windows:
                 with m.If(bus.addr[w.addr_width:] == w.addr >> w.addr_width):
                     m.d.sync += [win_pend[w.name].eq(~bus.we), win_wr.eq(bus.we)]
         # t + 1: word select → read data and status; window hits passed on (all for t + 2).
-        word = Signal(DATA_WIDTH)               # the selected word's value (readable words)
+        # The selected word's value (the words of the multiplexer), its bits zero-extended; the
+        # sign extension of a signed word of width w is one sign bit per w (``sign[w]``, an
+        # AND-OR over those words only) ORed into bits w … 31 after the multiplexer, rather
+        # than the sign bit in every upper bit of the multiplexer. The multiplexer is an AND-OR
+        # on a one-hot word select registered in t (``hot``, one bit per word of the
+        # multiplexer, looked up from the index like ``sel``), not on a decode of ``sel``.
+        muxed = [(i, r, k, held[r.name]) for i, (addr, r, k) in enumerate(words)
+                 if held[r.name] is not None and addr not in self._ram_addr
+                 and (not isinstance(held[r.name], int) or r.read_word(held[r.name], k))]
+        word = Signal(DATA_WIDTH)
+        sign = {}
         known = Signal()                        # sel is a word (blk_ok: the address is)
         read_only = Signal()                    # ... a read-only one (ro, const)
         with m.Switch(sel):
@@ -336,10 +390,41 @@ class RegisterFile(wiring.Component):
                 with m.Case(i + 1):
                     m.d.comb += [known.eq(1),
                                  read_only.eq(r.access in (Access.RO, Access.CONST))]
-                    if held[r.name] is not None:
-                        m.d.comb += word.eq(self._read_word(r, k, held[r.name]))
+
+        def part(r, k, held_r):
+            """The word's value (zero-extended) and its sign bit if it is sign-extended, else
+            ``None``."""
+            lo, hi = r.word_slice(k)
+            if (isinstance(held_r, int) or not r.signed or k != r.words - 1
+                    or hi - lo == DATA_WIDTH):
+                return self._read_word(r, k, held_r), None
+            if hi - lo not in sign:
+                sign[hi - lo] = Signal(name=f"sign{hi - lo}")
+            return held_r[lo:hi], held_r[hi - 1]
+
+        if muxed:
+            hot = Signal(len(muxed), name="hot")
+            with m.If(access):
+                m.d.sync += hot.eq(0)
+                with m.Switch(index):
+                    for j, (i, r, k, _) in enumerate(muxed):
+                        with m.Case(_index_of(words[i][0], block_bits, picked)):
+                            m.d.sync += hot.eq(1 << j)
+            terms, sign_terms = [], {}
+            for j, (i, r, k, held_r) in enumerate(muxed):
+                value, sx = part(r, k, held_r)
+                value = Value.cast(value)
+                terms.append(value & hot[j].replicate(len(value)))
+                if sx is not None:
+                    sign_terms.setdefault(len(value), []).append(sx & hot[j])
+            m.d.comb += word.eq(_or_tree(terms))
+            for w, bits in sign_terms.items():
+                m.d.comb += sign[w].eq(_or_tree(bits))
+        value = word
+        for w, bit in sign.items():
+            value = value | Cat(Const(0, w), bit.replicate(DATA_WIDTH - w))
         with m.If(pending):
-            m.d.sync += [r_data.eq(Mux(blk_ok & ~we, word, 0)),
+            m.d.sync += [r_data.eq(Mux(blk_ok & ~we, value, 0)),
                          *(win_hit[n].eq(win_pend[n]) for n in win_hit)]
             if bram:
                 m.d.sync += stage["hit"].eq(stage["pend"])
@@ -361,14 +446,24 @@ class RegisterFile(wiring.Component):
         logic uses."""
         bus = self.bus
         slots = self._slots
-        n = len(slots)
+        n = len(slots)                          # staging slots: copied, then immediate
+        nc = self._copied
         base = 1 << ceil_log2(n)                # the reset values' half: slot i at base + i
         # One word per slot in its read format (``Register.read_word``: the top word of a
-        # signed register sign-extended), so that a read returns the RAM's data as it is.
+        # signed register sign-extended), so that a read returns the RAM's data as it is; the
+        # const words after the reset values.
         resets = [r.read_word(r.bits(r.reset), k) for _, r, k in slots]
-        m.submodules.staging = mem = Memory(shape=DATA_WIDTH, depth=base + n,
-                                            init=resets + [0] * (base - n) + resets)
-        rd = mem.read_port()
+        consts = [r.read_word(r.bits(r.reset), k) for _, r, k in self._consts]
+        # The read port is asynchronous with a register behind it, which yosys merges into a
+        # synchronous block RAM port; ``no_rw_check`` lets it leave a read of the word being
+        # written undefined (no read-first emulation: no read's data is used in a clock that
+        # writes its word, see below), which an Amaranth synchronous read port cannot say.
+        m.submodules.staging = mem = Memory(shape=DATA_WIDTH, depth=base + n + len(consts),
+                                            init=resets + [0] * (base - n) + resets + consts,
+                                            attrs={"no_rw_check": 1})
+        rd = mem.read_port(domain="comb")
+        rd_data = Signal(DATA_WIDTH, reset_less=True)     # the RAM's read data
+        m.d.sync += rd_data.eq(rd.data)
         wr = mem.write_port()
 
         hold = Signal()                         # the RAM read port busy: no access taken
@@ -376,15 +471,17 @@ class RegisterFile(wiring.Component):
         run = Signal(init=1)                    # a copy or the walk reads slot cnt next
         walk = Signal(init=1)                   # the reading is the reset walk
         cnt = Signal(range(n))
+        last = Signal()                         # cnt is the copy's / the walk's last slot
         load = Signal()                         # rd.data holds slot dst: load it
         load_walk = Signal()                    # a load of the walk: into the RAM's slot dst
         dst = Signal(range(n))
-        slot = Signal(range(n))                 # the access's slot (in t + 1)
+        ram_addr = Signal(range(len(mem.init))) # the access's RAM word (in t + 1)
         formats = self._formats()
         fmt = Signal(range(max(1, len(formats))))       # its word format (index in formats)
-        staged = Signal()                       # sel is a staged word
+        staged = Signal()                       # sel is a staged word (written in the RAM)
+        in_ram = Signal()                       # sel is read from the RAM (staged or const)
         wr_pend = Signal()                      # t + 1 of a write to a staged word
-        pend = Signal(name="stage_pend")        # t + 1 of a read of a staged word
+        pend = Signal(name="stage_pend")        # t + 1 of a read of a RAM word
         hit = Signal(name="stage_hit")          # t + 2 of it: bus.r_data from the RAM
 
         m.d.comb += [
@@ -392,37 +489,43 @@ class RegisterFile(wiring.Component):
             hold.eq(start | run),
         ]
         # The copy / walk: read slot cnt (base + cnt in the walk) in one clock, load it in the
-        # next. The bus read of a staged word uses the read port in t + 1 (pending), which
-        # never coincides with a reading clock (start needs pending low; accesses are held off
-        # while reading).
+        # next. The copy reads the copied slots (0 … nc − 1), the walk every slot. The bus read
+        # of a RAM word uses the read port in t + 1 (pending), which never coincides with a
+        # reading clock (start needs pending low; accesses are held off while reading).
+        if nc == n:
+            m.d.comb += last.eq(cnt == n - 1)
+        else:
+            m.d.comb += last.eq(Mux(walk, cnt == n - 1, cnt == nc - 1))
         with m.If(start | run):
             m.d.sync += [load.eq(1), load_walk.eq(walk), dst.eq(cnt)]
-            with m.If(cnt == n - 1):
+            with m.If(last):
                 m.d.sync += [cnt.eq(0), run.eq(0), walk.eq(0)]
             with m.Else():
                 m.d.sync += [cnt.eq(cnt + 1), run.eq(1)]
         with m.Else():
             m.d.sync += [load.eq(0), load_walk.eq(0)]
-        m.d.comb += rd.addr.eq(Mux(pending, slot, Cat(cnt, walk)))   # cnt: log2(base) bits
+        m.d.comb += rd.addr.eq(Mux(pending, ram_addr, Cat(cnt, walk)))   # cnt: log2(base) bits
 
-        # Active registers: slot i's word from the RAM in the copy's load clock s + 1 + i, told
-        # by a one-hot shift register (no compare of dst per slot).
-        ld = Signal(n, name="copy_ld")
+        # Active registers: copied slot i's word from the RAM in the copy's load clock
+        # s + 1 + i, told by a one-hot shift register (no compare of dst per slot).
+        ld = Signal(nc, name="copy_ld")
         m.d.sync += ld.eq(Cat(start, ld[:-1]))
-        for i, (_, r, k) in enumerate(slots):
+        for i, (_, r, k) in enumerate(slots[:nc]):
             with m.If(ld[i]):
                 lo, hi = r.word_slice(k)
-                m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd.data[:hi - lo])
+                m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd_data[:hi - lo])
 
-        # t + 1: the access's slot and word format, looked up from the word select.
+        # t + 1: the access's RAM word and word format, looked up from the word select.
         with m.Switch(sel):
-            for i, (addr, r, k) in enumerate(self._regmap.words()):
-                if addr in self._slot_of:
+            for i, (a, r, k) in enumerate(self._regmap.words()):
+                if a in self._ram_addr:
                     with m.Case(i + 1):
-                        m.d.comb += [staged.eq(1), slot.eq(self._slot_of[addr]),
-                                     fmt.eq(formats.index(self._word_format(r, k)))]
+                        m.d.comb += [in_ram.eq(1), ram_addr.eq(self._ram_addr[a])]
+                        if a in self._slot_of:
+                            m.d.comb += [staged.eq(1),
+                                         fmt.eq(formats.index(self._word_format(r, k)))]
         m.d.comb += [wr_pend.eq(pending & blk_ok & staged & we),
-                     pend.eq(pending & blk_ok & staged & ~we)]
+                     pend.eq(pending & blk_ok & in_ram & ~we)]
 
         w_fmt = Signal(DATA_WIDTH)
         with m.Switch(fmt):
@@ -431,11 +534,11 @@ class RegisterFile(wiring.Component):
                     word = bus.w_data[:width]
                     m.d.comb += w_fmt.eq(word.as_signed() if signed else word)
         m.d.comb += [
-            wr.addr.eq(Mux(load_walk, dst, slot)),
-            wr.data.eq(Mux(load_walk, rd.data, w_fmt)),
+            wr.addr.eq(Mux(load_walk, dst, ram_addr)),
+            wr.data.eq(Mux(load_walk, rd_data, w_fmt)),
             wr.en.eq((load & load_walk) | wr_pend),
         ]
-        return {"hold": hold, "rd": rd, "pend": pend, "hit": hit}
+        return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
 
     @staticmethod
     def _word_format(r, k):

@@ -326,10 +326,13 @@ def test_bram_staging_slots_and_timing_attributes():
         [w for w in shadowed if w[1] != "pwm_symmetric"]
         + [w for w in shadowed if w[1] == "pwm_symmetric"])
     assert [a for a, _, _ in staging_slots(REGMAP)] == [a for a, _ in shadowed]
+    immediate = [a for a, r, _ in REGMAP.words() if r.access is Access.RW and r.shadow is None]
     dut = RegisterFile(**BRAM)
-    assert dut.staging == "bram" and dut.slots == len(slots) == 48
+    # The RAM's slots: the 48 copied words, then the 15 immediate ones (read back, walked).
+    assert len(slots) == 48 and len(immediate) == 15
+    assert dut.staging == "bram" and dut.slots == len(slots) + len(immediate) == 63
     assert dut.latency == 2 and dut.commit_clocks == dut.commit_latency == 49
-    assert dut.reset_clocks == 48
+    assert dut.reset_clocks == 63
     ff = RegisterFile()
     assert (ff.staging, ff.slots, ff.commit_clocks, ff.reset_clocks) == ("ff", 0, 1, 0)
     assert set(dut.signature.members) == set(ff.signature.members)

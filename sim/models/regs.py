@@ -12,7 +12,7 @@ from amaranth.utils import ceil_log2
 from ...hdl.bus import Status
 from ...hdl.fixed import check_choice
 from ...hdl.regmap import REGMAP, Access, RegMap
-from ...hdl.regs import STAGINGS, staging_slots
+from ...hdl.regs import STAGINGS, ram_slots, staging_slots
 
 __all__ = ["RegisterFileModel"]
 
@@ -36,10 +36,12 @@ class RegisterFileModel:
         gateware registers a word select and looks the status up from it in t + 1; deciding
         ``status_p`` in t gives the same bus reply.)
     mem, rd_data, run, walk, cnt, load, load_walk, dst, slot, wr_pend, stage_pend, stage_hit
-        ``staging="bram"``: the staging RAM (slots, then the reset values from ``base``), its
-        read data register, and the copy / reset-walk sequencer and access registers of
-        :class:`~foc_servo.hdl.regs.RegisterFile` (same names). ``staged`` then holds only the
-        immediate registers; :meth:`staged_value` reads any register's staging value. (The
+        ``staging="bram"``: the staging RAM (slots: the copied ones, then the immediate
+        registers' words; from ``base`` the reset values, then the const words), its read data
+        register, and the copy / reset-walk sequencer and access registers of
+        :class:`~foc_servo.hdl.regs.RegisterFile` (same names; ``slot`` is the access's RAM
+        word). ``staged`` then holds only the immediate registers (whose reads, and the const
+        words', come from the RAM); :meth:`staged_value` reads any register's staging value. (The
         gateware's slot is looked up in t + 1 from its word select, not registered; its copy
         loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
     """
@@ -55,12 +57,21 @@ class RegisterFileModel:
         self._shadowed = [r.name for r in self._rw if r.shadow is not None]
         self.bram = staging == "bram"
         self.slots = staging_slots(regmap, copy_last) if self.bram else []
+        self.copied = len(self.slots)
+        consts = []
+        if self.bram:                   # the immediate words after the copied ones; consts
+            # (the copied ones from this module's staging_slots: a test reorders them)
+            self.slots += ram_slots(regmap, copy_last)[self.copied:]
+            consts = [(a, r, k) for a, r, k in regmap.words() if r.access is Access.CONST]
         self._slot_of = {addr: i for i, (addr, _, _) in enumerate(self.slots)}
         n = len(self.slots)
         self.base = 1 << ceil_log2(n) if n else 0
+        self._ram_addr = {**self._slot_of, **{a: self.base + n + j
+                                               for j, (a, _, _) in enumerate(consts)}}
         resets = [r.read_word(r.bits(r.reset), k) for _, r, k in self.slots]
-        self.mem = resets + [0] * (self.base - n) + resets
-        self.commit_clocks = n + 1
+        self.mem = (resets + [0] * (self.base - n) + resets
+                    + [r.read_word(r.bits(r.reset), k) for _, r, k in consts])
+        self.commit_clocks = self.copied + 1
         self.reset()
 
     def reset(self):
@@ -161,21 +172,21 @@ class RegisterFileModel:
                 if r.access is Access.STROBE:
                     self.status_p = Status.OK.value
                     self.strobes[r.name] = w_data & 1
-                elif r.access is Access.RW and addr in self._slot_of:
-                    self.status_p = Status.OK.value
-                    self.slot = self._slot_of[addr]
-                    self.wr_pend = 1
                 elif r.access is Access.RW:
                     self.status_p = Status.OK.value
-                    self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
+                    if addr in self._slot_of:           # "bram": the RAM in t + 1
+                        self.slot = self._slot_of[addr]
+                        self.wr_pend = 1
+                    if r.shadow is None or not self.bram:
+                        self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
                     if r.shadow is None:
                         self.active[r.name] = self.staged[r.name]
                 else:
                     self.status_p = Status.READ_ONLY.value
             else:
                 self.status_p = Status.OK.value
-                if addr in self._slot_of:
-                    self.slot = self._slot_of[addr]
+                if addr in self._ram_addr:
+                    self.slot = self._ram_addr[addr]
                     self.stage_pend = 1
                 else:
                     self.sel = (r, k)
@@ -198,7 +209,7 @@ class RegisterFileModel:
         if self.load:
             if self.load_walk:
                 self.mem[self.dst] = self.rd_data
-            else:
+            else:                                     # a copied slot
                 _, r, k = self.slots[self.dst]
                 self.active[r.name] = r.write_word(self.active[r.name], k, self.rd_data)
         if self.wr_pend:                              # t + 1 of a write: w_data still held
@@ -208,7 +219,7 @@ class RegisterFileModel:
         self.wr_pend = 0
         if reading:
             self.load, self.load_walk, self.dst = 1, self.walk, self.cnt
-            if self.cnt == n - 1:
+            if self.cnt == (n if self.walk else self.copied) - 1:
                 self.cnt, self.run, self.walk = 0, 0, 0
             else:
                 self.cnt, self.run = self.cnt + 1, 1
