@@ -493,7 +493,7 @@ class SpeedLoopSpec(Elaboratable):
         self.broken = broken
 
     def elaborate(self, platform):
-        from ..hdl.servo import _RF_WORDS
+        from ..hdl.servo import _RF_WORDS, _rf_address
         m = Module()
         cls = self.cls
         if self.broken:
@@ -564,7 +564,7 @@ class SpeedLoopSpec(Elaboratable):
                   "HIG": w + g, "I": w + g, "PR": w + g, "FFS": w, "SPD": sw}
         raw_dests = {d for op in ops for d, k in op.wr.items() if k == "raw"} - {"R"}
         for dest in sorted(raw_dests):
-            m.d.comb += Assert(~(wr_rf & wr_raw & (wr_addr == _RF_WORDS.index(dest)))
+            m.d.comb += Assert(~(wr_rf & wr_raw & (wr_addr == _rf_address(dest)))
                                | _fits(acc, widths[dest]),
                                f"speed wrap: {dest} written unsaturated out of its range")
         # aux: every register-file word holds a value of its width (the RAM is wider).

@@ -33,26 +33,40 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
 (``mv`` is then never set: no hold).
 
-**Sequential datapath.** A run is a fixed program of 67 operations on one adder
+**Sequential datapath.** A run is a fixed program of 75 operations on one adder
 ``acc ← A + (B or ~B) + cin`` (width ``max(speed_width + 2, width + int_guard + 3, width + 4)``),
 ``A`` being 0, ``acc`` or ``acc >> k`` with the rounding increment of ``round_shift(acc, k)`` as
-carry in, ``B`` one of the registers and inputs; results are written from ``acc`` (truncated
-when exact, else saturated to signed(width) or signed(16) by bit tests), comparisons leave
+carry in, ``B`` the read port of a register file or one of the special sources (``R``, the
+inputs ``speed_ref``, ``speed_slew``, and ``iq_ff``, ``lim_lo``, ``lim_hi`` times
+``2**(width − 16)``, the multiplier's product); results are written from ``acc`` (truncated
+when exact, else saturated to signed(width), that times ``2**int_guard``, or signed(16) by bit
+tests), comparisons leave
 flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E + E[n−1])`` and
 ``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own adder of
 ``width + 3`` bits, plus ``int_guard − frac`` for a gain whose product is shifted left, then right
-shifts that keep the rounding bits): no hard multiplier. The
-reference history is a ring of ``max_delay`` registers, rotated twice per run (refilled with
-``to_pi(R)`` after ``clear``, then read: taps ``d − 1`` and ``d`` as they pass). ``_program``
-lists the operations; each is placed in the earliest clock its operands allow, and the timing
-(``latency``, ``interval``, ``ref_latency``) follows from the list (:func:`speed_loop_timing`).
-Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
-the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
-kept and with the new integrator, the conditional-integration choice and the output rounding.
-The operand selects, write enables, flag captures and side actions are registers, loaded one
-clock ahead from a ROM word read three clocks ahead and registered (its constant bits, plus a
-one-hot bit per clock whose selections flags steer, gated with those flags): no decode of the
-step counter.
+shifts that keep the rounding bits): no hard multiplier.
+
+**Register file.** The state and the temporaries are words of one RAM (a block RAM; width
+``max(width + int_guard, speed_width)``, one write and one synchronous read port, not
+transparent): the integrator, ``E[n−1]``, the PI's limits (also times ``2**int_guard``),
+``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the candidates and
+temporaries, and the reference history, a ring buffer of ``max_delay + 1`` slots: this run's
+``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot ``slot − min(k,
+age)``, ``age`` counting the runs since ``clear`` (so that after ``clear`` every tap is the
+first run's), and both advance at the end of a run. The integrator and ``E[n−1]`` read as 0
+after ``clear`` until a run has ended (``zst``). A word written from ``acc`` in clock ``t``
+is read by an operation in ``t + 2`` (its address is presented one clock ahead); ``R`` and the
+output are flip-flops (readable in ``t + 1``). ``_program`` lists the operations; each is
+placed in the earliest clock its operands allow, and the timing (``latency``, ``interval``,
+``ref_latency``) follows from the list (:func:`speed_loop_timing`). Per run: profile and ``R``
+(clocks 1 … 13), interpolation (``f·(b − a)`` as seven conditional additions), ``E``,
+``kx·(E + E[n−1])`` (while the feed-forward and the PI limits are formed), ``dI``, ``I_c``,
+``kp·E``, then ``U`` with the kept and with the new integrator, the conditional-integration
+choice and the output rounding. The operand selects (the B source as a code, decoded into
+the special sources' selects and the read address), write enables, flag captures and side
+actions are registers, loaded one clock ahead from a ROM word read three clocks ahead and
+registered (its constant bits, plus a one-hot bit per clock whose selections flags or
+``ref_delay`` steer, gated with those terms): no decode of the step counter.
 The longest path is then a register through the operand multiplexers and the adder into
 ``acc`` (100 MHz on an ECP5 is the target).
 
@@ -145,11 +159,11 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
 # --- The speed loop's micro-program ---------------------------------------------------------------
 #
 # One adder ``acc ← A + (B or ~B) + cin`` does all the arithmetic of a run; a shift-add multiplier
-# (own small adder, one bit of the multiplier per clock) forms kx·(E + E[n−1]) and kp·E; a ring of
-# shift registers holds the reference history. ``_program`` lists the operations in order and
-# places each in the earliest clock its operands allow (a register written from ``acc`` is
-# readable two clocks after the operation that formed the value; a flag steers the selection of an
-# operation three clocks after that value). Everything here is Python at elaboration time: the
+# (own small adder, one bit of the multiplier per clock) forms kx·(E + E[n−1]) and kp·E; a register
+# file (block RAM) holds the state, the temporaries and the reference history. ``_program`` lists
+# the operations in order and places each in the earliest clock its operands allow (a word written
+# from ``acc`` is readable three clocks after the operation that formed the value, a flip-flop two;
+# a flag steers the selection of an operation three clocks after that value). Everything here is Python at elaboration time: the
 # timing (``latency``, ``interval``, the clock ``ref_int`` changes) follows from the list.
 
 
@@ -172,10 +186,12 @@ class _Op:
     condition a function of the flags and inputs, evaluated when the operation is decoded).
     ``b``: a source name, ``None`` (0), or such a list. ``sub``: subtract ``b`` (``~b`` with carry
     in 1), a bool or a condition; ``cin``: the carry in when it is not ``sub``'s. ``wr``: dest →
-    kind (``"raw"``, ``"w"``, ``"wshl"``, ``"q16"``) or (kind, condition): written from ``acc``
+    kind (``"raw"``, ``"w"``, ``"wg"`` (``"w"`` times ``2**g``), ``"q16"``) or (kind, condition):
+    written from ``acc``
     in the clock after the operation. ``flags``: flag → ``"neg"``, ``"nneg"``, ``"nz"``, ``"pos"``
     of the result, captured in the clock after. ``uses``: flags the conditions read. ``act``:
-    side actions in the operation's clock (``"ring"``, ``"mult_x"``, ``"mult_p"``, ``"shin"``).
+    side actions in the operation's clock (``"mult_x"``, ``"mult_p"``: start a multiplication of
+    ``acc``; ``"shin"``: advance the history ring).
     """
 
     def __init__(self, a="Z", b=None, *, sub=False, cin=None, wr=None, flags=None, uses=(),
@@ -204,6 +220,13 @@ class _Op:
 #: Words of the register file (block RAM) at fixed addresses; the history of ``to_pi(R)`` follows
 #: them (``TP``, the tap of this run, and the taps ``TAPA`` = d − 1, ``TAPB`` = d it reads).
 _RF_WORDS = ("CA", "CB", "EP", "LO_S", "HI_S", "LOG", "HIG", "I", "PR", "FFS", "SPD")
+
+
+def _rf_address(name):
+    """Address of a fixed register-file word (0 is not used: B code 0 is "no source")."""
+    return _RF_WORDS.index(name) + 1
+
+
 #: Register-file names read at a run-dependent history address (readiness follows ``TP``).
 _ALIAS = {"TAPA": "TP", "TAPB": "TP"}
 #: Destinations that are flip-flops (written from ``acc``, readable two clocks later); the others
@@ -436,8 +459,8 @@ class SpeedLoop(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from a valid speed sample that runs the loop to ``o.valid`` (119 with the
-        defaults; 115 with the top's ``kx_format`` UQ(24, 20); 143 with ``delay_width`` 7).
+        Clocks from a valid speed sample that runs the loop to ``o.valid`` (124 with the
+        defaults, also with ``delay_width`` 7; 120 with the top's ``kx_format`` UQ(24, 20)).
         Computed from the program of a run.
     interval : int
         Minimum clocks between runs: :attr:`latency` + 1.
@@ -527,17 +550,18 @@ class SpeedLoop(wiring.Component):
         # presented one clock ahead, from the next control word).
         n_slots = n + 1                 # a power of two
         slot_w = exact_log2(n_slots)
-        h_base = -(-len(_RF_WORDS) // n_slots) * n_slots
+        h_base = -(-(len(_RF_WORDS) + 1) // n_slots) * n_slots
         rf_depth = 1 << ceil_log2(h_base + n_slots)
         rfw = max(w + g, sw, w + 1)
-        rf_addr = {name: k for k, name in enumerate(_RF_WORDS)}
+        rf_addr = {name: _rf_address(name) for name in _RF_WORDS}
         rf_rd_addr = Signal(range(rf_depth))
         rf_rd_data = Signal(signed(rfw))
         rf_wr_en = Signal()
         rf_wr_addr = Signal(range(rf_depth))
         rf_wr_data = Signal(signed(rfw))
         if self._RF_IN_FFS:
-            words = [Signal(signed(rfw), name=f"rf_{name.lower()}") for name in _RF_WORDS]
+            words = [Signal(signed(rfw), name="rf_w0")]
+            words += [Signal(signed(rfw), name=f"rf_{name.lower()}") for name in _RF_WORDS]
             words += [Signal(signed(rfw), name=f"rf_w{k}") for k in range(len(words), h_base)]
             words += [Signal(signed(rfw), name=f"rf_h{k}") for k in range(n_slots)]
             words += [Signal(signed(rfw), name=f"rf_w{k}")
@@ -634,7 +658,6 @@ class SpeedLoop(wiring.Component):
         # B selects: one flip-flop per special source; the register-file words share one
         # (``b_rf``: B is the read port's data) and are told apart by the read address.
         b_sel = {k: Signal(name=f"b_{k.lower()}") for k in b_names if k not in rf_addr_of}
-        b_sel_rf = {k: None for k in b_names if k in rf_addr_of}
         b_rf = Signal()
         c_sub = Signal()
         c_cin = Signal()
@@ -709,8 +732,12 @@ class SpeedLoop(wiring.Component):
             return v
 
         # The control word and events of clock ``c`` (loaded in the clock before) come from a
-        # ROM word: its constant bits, and a one-hot "conditional" bit for each clock whose word
-        # has flag- or input-dependent bits (the selections steered by flags and ``ref_delay``),
+        # ROM word. Three fields are codes (decoded in the loading clock): the B source (0: none;
+        # one code per register-file name and special source), the register-file write (0: none;
+        # one code per destination and kind) and the flags captured (one code per set of flags
+        # an operation leaves); the rest are one bit each (A selects, carry, enable, the writes
+        # of ``R`` and the output, side actions). A clock whose word depends on flags or
+        # ``ref_delay`` (the selections they steer) has a one-hot "conditional" bit in the word,
         # ANDed with those terms. The ROM is read three clocks ahead into a register (synchronous
         # read port and one more register, so a block RAM's slow clock-to-out is off the path;
         # address ``step + 3``, 2 in the accepting clock), so the decode is a register and a few
@@ -718,13 +745,62 @@ class SpeedLoop(wiring.Component):
         # accepting clock and the next, ``first``) are constants: the ROM's output is not
         # defined then (at power-on, after ``clear`` or the end of a run).
         keys = ctl_keys + ev_keys
-        terms = [decode(by_clock.get(c)) + decode_events(c) for c in range(clocks + 1)]
+        terms = [dict(zip(keys, decode(by_clock.get(c)) + decode_events(c)))
+                 for c in range(clocks + 1)]
+        rf_pairs = [(d, k) for d, k in wr_pairs if d not in _FF_DESTS]
+        cap_sets = sorted({tuple(sorted(op.flags)) for op in ops if op.flags})
+        # B codes: a register-file word's address, then the history names, then the specials
+        # (so that the read address is the code, or a tap's address); write codes: kind and
+        # address (the history slot of ``TP`` for its code).
+        b_code = dict(rf_addr)
+        for k in ("TP", "TAPA", "TAPB", *sorted(b_sel)):
+            b_code[k] = len(b_code) + 1
+        rf_code_max = b_code["TAPB"]
+        ab = ceil_log2(max(rf_depth, rf_code_max + 1))
+        wr_kinds = {"w": 0, "raw": 1, "wg": 2}
+        groups = {                      # field → {key: code}
+            "b": {("b", k): b_code[k] for k in b_names},
+            "wrf": {("wr", d, k): (wr_kinds[k] << ab) | b_code[d] for d, k in rf_pairs},
+        }
+        grouped = {key for codes in groups.values() for key in codes}
+        grouped |= {("flag", f) for f in flag_names}
+        bits = [key for key in keys if key not in grouped]
+
+        def cap_code(tc):
+            if not all(isinstance(tc["flag", f], int) for f in flag_names):
+                raise NotImplementedError("SpeedLoop: a conditional flag capture")
+            got = tuple(f for f in flag_names if tc["flag", f])
+            return cap_sets.index(got) + 1 if got else 0
+
+        def code_terms(field, tc):
+            """``(constant code, [(term, code)])`` of a code field in a clock's terms."""
+            const, alts = 0, []
+            for key, code in groups[field].items():
+                t = tc[key]
+                if isinstance(t, int):
+                    const |= code if t else 0
+                else:
+                    alts.append((t, code))
+            return const, alts
+
+        widths = {"b": ceil_log2(max(b_code.values()) + 1), "wrf": ab + 2,
+                  "cap": ceil_log2(len(cap_sets) + 1)}
+        layout = {}                     # field → (offset, width) in the ROM word
+        pos = len(bits)
+        for field, fw in widths.items():
+            layout[field] = (pos, fw)
+            pos += fw
+        n_f = pos
         cond_clocks = [c for c, tc in enumerate(terms[2:], 2)
-                       if any(isinstance(t, Value) for t in tc)]
-        n_f, n_c = len(keys), len(cond_clocks)
+                       if any(not isinstance(t, int) for t in tc.values())]
+        n_c = len(cond_clocks)
         words = [0, 0]                  # clocks 0, 1: not read; clocks + 1: 0
         for c, tc in enumerate(terms[2:], 2):
-            word = sum(1 << j for j, t in enumerate(tc) if isinstance(t, int) and t)
+            word = sum(1 << j for j, key in enumerate(bits)
+                       if isinstance(tc[key], int) and tc[key])
+            for field in ("b", "wrf"):
+                word |= code_terms(field, tc)[0] << layout[field][0]
+            word |= cap_code(tc) << layout["cap"][0]
             if c in cond_clocks:
                 word |= 1 << (n_f + cond_clocks.index(c))
             words.append(word)
@@ -737,13 +813,41 @@ class SpeedLoop(wiring.Component):
                                        Mux(accept, 2, 1)))
         first = Signal()                # the clock after an accept (step 0)
         m.d.sync += first.eq(accept)
-        nv = {}                         # key → the bit for the next clock (when loading)
-        for j, key in enumerate(keys):
+
+        def expr(const, alts):
+            v = const
+            for t, code in alts:
+                v = v | Mux(t, code, 0)
+            return v
+
+        nv = {}                         # key / field → the value for the next clock (loading)
+        for j, key in enumerate(bits):
             v = rom_q[j]
             for k, c in enumerate(cond_clocks):
-                if isinstance(terms[c][j], Value):
-                    v = v | (rom_q[n_f + k] & terms[c][j])
-            nv[key] = Mux(accept, terms[0][j], Mux(first, terms[1][j], v))
+                if not isinstance(terms[c][key], int):
+                    v = v | (rom_q[n_f + k] & terms[c][key])
+            nv[key] = Mux(accept, terms[0][key], Mux(first, terms[1][key], v))
+        for field in ("b", "wrf", "cap"):
+            off, fw = layout[field]
+            v = rom_q[off:off + fw]
+            for k, c in enumerate(cond_clocks):
+                if field != "cap":
+                    const, alts = code_terms(field, terms[c])
+                    if alts:
+                        v = v | Mux(rom_q[n_f + k], expr(0, alts), 0)
+            if field == "cap":
+                c0, c1 = cap_code(terms[0]), cap_code(terms[1])
+            else:
+                c0, c1 = (expr(*code_terms(field, terms[c])) for c in (0, 1))
+            sig = Signal(fw, name=f"next_{field}")
+            m.d.comb += sig.eq(Mux(accept, c0, Mux(first, c1, v)))
+            nv[field] = sig
+        # Decoded codes.
+        for k in b_sel:
+            nv["b", k] = nv["b"] == b_code[k]
+        for f in flag_names:
+            nv["flag", f] = Cat(*[nv["cap"] == j + 1 for j, s in enumerate(cap_sets)
+                                  if f in s]).any()
 
         # The registered control: selects, carry, enable; events of FF destinations, flag
         # captures and side actions; the register file's B select and write port.
@@ -758,28 +862,20 @@ class SpeedLoop(wiring.Component):
         ctl_load = [(a_sel[k], nv["a", k]) for k in a_sel]
         ctl_load += [(b_sel[k], nv["b", k]) for k in b_sel]
         # The integrator and E[n−1] read as 0 while ``zst`` (constant during a run).
-        b_rf_v = 0
-        for k in b_sel_rf:
-            b_rf_v = b_rf_v | (nv["b", k] & (~zst if k in ("I", "EP") else 1))
+        b_rf_v = ((nv["b"] != 0) & (nv["b"] <= rf_code_max)
+                  & ~(zst & ((nv["b"] == b_code["I"]) | (nv["b"] == b_code["EP"]))))
         ctl_load += [(b_rf, b_rf_v), (c_sub, nv["c", "sub"]), (c_cin, nv["c", "cin"]),
                      (c_en, nv["c", "en"])]
         ev_load = [(ev_wr[k], nv[("wr", *k)]) for k in ev_wr]
         ev_load += [(ev_flag[f], nv["flag", f]) for f in flag_names]
         ev_load += [(ev_act[a], nv["act", a]) for a in ev_act]
-        rf_pairs = [(d, k) for d, k in wr_pairs if d not in _FF_DESTS]
-        en_v = addr_v = raw_v = g_v = 0
-        for d, k in rf_pairs:
-            e = nv["wr", d, k]
-            en_v = en_v | e
-            addr_v = addr_v | Mux(e, rf_addr_of[d], 0)
-            if k == "raw":
-                raw_v = raw_v | e
-            elif k == "wg":
-                g_v = g_v | e
-        ev_load += [(wr_rf, en_v), (wr_rf_addr, addr_v), (wr_rf_raw, raw_v), (wr_rf_g, g_v)]
-        rd_v = 0
-        for k in b_sel_rf:
-            rd_v = rd_v | Mux(nv["b", k], rf_addr_of[k], 0)
+        wr_a, wr_k = nv["wrf"][:ab], nv["wrf"][ab:]
+        ev_load += [(wr_rf, wr_a != 0),
+                    (wr_rf_addr, Mux(wr_a == b_code["TP"], rf_addr_of["TP"], wr_a)),
+                    (wr_rf_raw, wr_k == wr_kinds["raw"]), (wr_rf_g, wr_k == wr_kinds["wg"])]
+        rd_v = nv["b"][:ab]
+        for k in ("TP", "TAPA", "TAPB"):
+            rd_v = Mux(nv["b"] == b_code[k], rf_addr_of[k], rd_v)
         m.d.comb += rf_rd_addr.eq(rd_v)
         ctl = [s for s, _ in ctl_load]
         events = [s for s, _ in ev_load]
