@@ -47,8 +47,8 @@ flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E 
 shifts that keep the rounding bits): no hard multiplier.
 
 **Register file.** The state and the temporaries are words of one RAM (a block RAM; width
-``max(width + int_guard, speed_width)``, one write and one synchronous read port, not
-transparent): the integrator, ``E[n−1]``, the PI's limits (also times ``2**int_guard``),
+``max(width + int_guard, speed_width)``, one write and one synchronous read port; no word is
+read in the clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times ``2**int_guard``),
 ``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the candidates and
 temporaries, and the reference history, a ring buffer of ``max_delay + 1`` slots: this run's
 ``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot ``slot − min(k,
@@ -363,6 +363,13 @@ def _program(sw, w, kp_format, kx_format, g, n_taps):
         for kind in ("mult_x", "mult_p"):
             if kind in op.act:
                 mult_ready = c + mult_clocks[kind] + 2
+    # No operation reads a register-file word in the clock it is written (its address is
+    # presented in the clock before the operation): the read port's transparency is moot.
+    writes = {op.clock + 1: _ALIAS.get(d, d) for op in ops for d in op.wr if d not in _FF_DESTS}
+    for op in ops:
+        if writes.get(op.clock - 1) in {_ALIAS.get(s, s) for s in op.sources()}:
+            raise RuntimeError(f"SpeedLoop program: clock {op.clock} reads "
+                               f"{writes[op.clock - 1]} as it is written")
     last = clock + 1
     out_op = next(op for op in ops if "OPAY" in op.wr)
     r_op = next(op for op in ops if "R" in op.wr)
@@ -546,8 +553,11 @@ class SpeedLoop(wiring.Component):
         # Register file: the words of ``_RF_WORDS`` at addresses 0, 1, …, then the history ring
         # of ``n + 1`` slots (``to_pi(R)`` of this run and the ``n`` before it) at ``h_base``, a
         # multiple of its size; one write port (from ``acc``, or the speed sample in the
-        # accepting clock) and one synchronous read port, not transparent (its address is
-        # presented one clock ahead, from the next control word).
+        # accepting clock) and one synchronous read port (its address is presented one clock
+        # ahead, from the next control word). The program never reads a word in the clock it is
+        # written (``_program`` checks it), so the read port's transparency changes nothing; a
+        # transparent port costs less on the iCE40 (yosys's bypass for a block RAM that has
+        # neither behaviour: the write data registered, no second register of the read data).
         n_slots = n + 1                 # a power of two
         slot_w = exact_log2(n_slots)
         h_base = -(-(len(_RF_WORDS) + 1) // n_slots) * n_slots
@@ -566,13 +576,14 @@ class SpeedLoop(wiring.Component):
             words += [Signal(signed(rfw), name=f"rf_h{k}") for k in range(n_slots)]
             words += [Signal(signed(rfw), name=f"rf_w{k}")
                       for k in range(len(words), rf_depth)]
-            m.d.sync += rf_rd_data.eq(Array(words)[rf_rd_addr])
+            m.d.sync += rf_rd_data.eq(Mux(rf_wr_en & (rf_wr_addr == rf_rd_addr), rf_wr_data,
+                                          Array(words)[rf_rd_addr]))
             with m.If(rf_wr_en):
                 m.d.sync += Array(words)[rf_wr_addr].eq(rf_wr_data)
         else:
             m.submodules.rf = rf = Memory(shape=signed(rfw), depth=rf_depth, init=[])
-            rf_rd = rf.read_port()
             rf_wr = rf.write_port()
+            rf_rd = rf.read_port(transparent_for=(rf_wr,))
             m.d.comb += [rf_rd.addr.eq(rf_rd_addr), rf_rd_data.eq(rf_rd.data),
                          rf_wr.en.eq(rf_wr_en), rf_wr.addr.eq(rf_wr_addr),
                          rf_wr.data.eq(rf_wr_data)]
@@ -637,16 +648,20 @@ class SpeedLoop(wiring.Component):
         else:
             prd = prod
         prd_inc = half & (~prod[-1] | sticky)
+        # One adder: ``hi ± mc`` while multiplier bits remain (subtracted for a signed
+        # multiplier's sign bit), ``hi + 0`` (a plain shift) after them.
+        m_add = Signal()
+        m_sub = Signal()
+        m_t = Signal(signed(mcw + 2))
+        m.d.comb += [m_add.eq(lo[0] & (m_shift != 0)),
+                     m_sub.eq(m_signed & (m_shift == 1)),
+                     m_t.eq(hi + Mux(m_add, Mux(m_sub, ~mc, mc), 0) + (m_add & m_sub))]
         with m.If(m_cnt != 0):
-            m.d.sync += m_cnt.eq(m_cnt - 1)
+            m.d.sync += [m_cnt.eq(m_cnt - 1), hi.eq(m_t >> 1), lo.eq(Cat(lo[1:], m_t[0]))]
             with m.If(m_shift != 0):
                 m.d.sync += m_shift.eq(m_shift - 1)
-                addend = Mux(lo[0], mc, 0)
-                t = Mux(m_signed & (m_shift == 1), hi - addend, hi + addend)
-                m.d.sync += [hi.eq(t >> 1), lo.eq(Cat(lo[1:], t[0]))]
             with m.Else():
-                m.d.sync += [hi.eq(hi >> 1), lo.eq(Cat(lo[1:], hi[0])), half.eq(lo[0]),
-                             sticky.eq(sticky | half)]
+                m.d.sync += [half.eq(lo[0]), sticky.eq(sticky | half)]
 
         # Control word of the operation in the next clock (from the ROM below, registered).
         a_names = ["ACC"] + sorted({op_a[1] for op in ops
