@@ -48,14 +48,14 @@ shifts that keep the rounding bits): no hard multiplier.
 
 **Register file.** The state and the temporaries are words of one RAM (a block RAM; width
 ``max(width + int_guard, speed_width)``, one write and one synchronous read port; no word is
-read in the clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times ``2**int_guard``),
-``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the candidates and
-temporaries, and the reference history, a ring buffer of ``max_delay + 1`` slots: this run's
-``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot ``slot − min(k,
-age)``, ``age`` counting the runs since ``clear`` (so that after ``clear`` every tap is the
-first run's), and both advance at the end of a run. The integrator and ``E[n−1]`` read as 0
-after ``clear`` until a run has ended (``zst``). A word written from ``acc`` in clock ``t``
-is read by an operation in ``t + 2`` (its address is presented one clock ahead); ``R`` and the
+read in the clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times
+``2**int_guard``), ``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the
+candidates and temporaries, and the reference history, a ring buffer of ``max_delay + 1``
+slots: this run's ``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot
+``slot − min(k, age)``, ``age`` counting the runs since ``clear`` (so that after ``clear`` every
+tap is the first run's), and both advance at the end of a run. The integrator and ``E[n−1]``
+read as 0 after ``clear`` until a run has ended (``zst``). A word written from ``acc`` in clock
+``t`` is read by an operation in ``t + 2`` (its address is presented one clock ahead); ``R`` and the
 output are flip-flops (readable in ``t + 1``). ``_program`` lists the operations; each is
 placed in the earliest clock its operands allow, and the timing (``latency``, ``interval``,
 ``ref_latency``) follows from the list (:func:`speed_loop_timing`). Per run: profile and ``R``
@@ -163,8 +163,9 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
 # file (block RAM) holds the state, the temporaries and the reference history. ``_program`` lists
 # the operations in order and places each in the earliest clock its operands allow (a word written
 # from ``acc`` is readable three clocks after the operation that formed the value, a flip-flop two;
-# a flag steers the selection of an operation three clocks after that value). Everything here is Python at elaboration time: the
-# timing (``latency``, ``interval``, the clock ``ref_int`` changes) follows from the list.
+# a flag steers the selection of an operation three clocks after that value). Everything here is
+# Python at elaboration time: the timing (``latency``, ``interval``, the clock ``ref_int`` changes)
+# follows from the list.
 
 
 def speed_loop_timing(speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
@@ -576,8 +577,9 @@ class SpeedLoop(wiring.Component):
             words += [Signal(signed(rfw), name=f"rf_h{k}") for k in range(n_slots)]
             words += [Signal(signed(rfw), name=f"rf_w{k}")
                       for k in range(len(words), rf_depth)]
-            m.d.sync += rf_rd_data.eq(Mux(rf_wr_en & (rf_wr_addr == rf_rd_addr), rf_wr_data,
-                                          Array(words)[rf_rd_addr]))
+            # Not transparent, unlike the RAM's port: the same, since no word a run uses is read
+            # in the clock it is written (the ``Assert`` below).
+            m.d.sync += rf_rd_data.eq(Array(words)[rf_rd_addr])
             with m.If(rf_wr_en):
                 m.d.sync += Array(words)[rf_wr_addr].eq(rf_wr_data)
         else:
@@ -892,6 +894,10 @@ class SpeedLoop(wiring.Component):
         for k in ("TP", "TAPA", "TAPB"):
             rd_v = Mux(nv["b"] == b_code[k], rf_addr_of[k], rd_v)
         m.d.comb += rf_rd_addr.eq(rd_v)
+        # (Checked at each clock edge in every simulation and proved with ``speed_loop``.)
+        m.d.sync += Assert(~(rf_wr_en & (rf_wr_addr == rf_rd_addr) & ~clear & (accept | running)
+                             & b_rf_v),
+                           "SpeedLoop: a register-file word read in the clock it is written")
         ctl = [s for s, _ in ctl_load]
         events = [s for s, _ in ev_load]
 
