@@ -493,13 +493,17 @@ class SpeedLoopSpec(Elaboratable):
         self.broken = broken
 
     def elaborate(self, platform):
+        from ..hdl.servo import _RF_WORDS, _rf_address
         m = Module()
         cls = self.cls
         if self.broken:
             cls = mutant(self.cls, ("flags[fl].eq(tests[flag_test[fl]])",
                                     "flags[fl].eq(tests[flag_test[fl]] | (fl == \"UPR\"))"))
+        # The register file as flip-flops (same timing), so that the invariants can name its
+        # words ``rf_<word>`` and ``rf_h<slot>``.
+        cls = type(cls.__name__, (cls,), {"_RF_IN_FFS": True})
         sl = cls(**self.params)
-        w, g = sl.width, sl.int_guard
+        w, g, sw = sl.width, sl.int_guard, sl.speed_width
         s_out = w - 16
         m.submodules.speed_loop, internal = elaborate_with_internals(sl, platform)
         _drive_inputs(m, sl)
@@ -522,9 +526,11 @@ class SpeedLoopSpec(Elaboratable):
 
         lo, hi = sl.lim_lo, sl.lim_hi
         ok = lo <= hi
-        ff, lo_s, hi_s = internal["ff"], internal["lo_s"], internal["hi_s"]
-        integ, i_c = internal["integ"], internal["i_c"]
-        o_k, o_c = internal["cb"], internal["ca"]
+        rf = {name: internal[f"rf_{name.lower()}"] for name in _RF_WORDS}
+        ff_s, lo_s, hi_s = rf["FFS"], rf["LO_S"], rf["HI_S"]       # ff_s = ff·2**s_out
+        integ, i_c = rf["I"], rf["PR"]
+        o_k, o_c = rf["CB"], rf["CA"]
+        zst = internal["zst"]           # integrator and E[n−1] read as 0
 
         def sat_w(v):
             return Mux(v > (1 << (w - 1)) - 1, (1 << (w - 1)) - 1,
@@ -532,11 +538,13 @@ class SpeedLoopSpec(Elaboratable):
 
         wide = signed(64)
         lo_spec, hi_spec = Signal(wide), Signal(wide)
-        m.d.comb += [lo_spec.eq(sat_w((lo - ff) * (1 << s_out))),
-                     hi_spec.eq(sat_w((hi - ff) * (1 << s_out)))]
+        m.d.comb += [lo_spec.eq(sat_w(lo * (1 << s_out) - ff_s)),
+                     hi_spec.eq(sat_w(hi * (1 << s_out) - ff_s))]
         lo_g, hi_g = Signal(wide), Signal(wide)
         m.d.comb += [lo_g.eq(lo_s * (1 << g)), hi_g.eq(hi_s * (1 << g))]
-        integ_prev = _history(m, integ, 1, "integ")[0]
+        integ_eff = Signal.like(integ)
+        m.d.comb += integ_eff.eq(Mux(zst, 0, integ))
+        integ_prev = _history(m, integ_eff, 1, "integ")[0]
 
         # Properties.
         m.d.comb += [
@@ -546,13 +554,24 @@ class SpeedLoopSpec(Elaboratable):
                    | (integ == integ_prev) | ((integ >= lo_g) & (integ <= hi_g)),
                    "speed range: integrator left the PI's limits"),
         ]
-        registers = {"R": internal["R"], "FF": ff, "I": integ, "PR": i_c, "CB": o_k}
-        for dest, reg in registers.items():
-            ev = internal.get(f"wr_{dest.lower()}_raw")
-            if ev is None:
-                raise ValueError(f"SpeedLoopSpec: no raw write event of {dest} in SpeedLoop")
-            m.d.comb += Assert(~ev | _fits(acc, len(reg)),
+        # Raw (unsaturated) writes: R (a flip-flop) and register-file words, each within the
+        # width of the value it holds.
+        m.d.comb += Assert(~internal["wr_r_raw"] | _fits(acc, sw),
+                           "speed wrap: R written unsaturated out of its range")
+        wr_rf, wr_raw, wr_addr = (internal["wr_rf"], internal["wr_rf_raw"],
+                                  internal["wr_rf_addr"])
+        widths = {"CA": w, "CB": w + 1, "EP": w, "LO_S": w, "HI_S": w, "LOG": w + g,
+                  "HIG": w + g, "I": w + g, "PR": w + g, "FFS": w, "SPD": sw}
+        raw_dests = {d for op in ops for d, k in op.wr.items() if k == "raw"} - {"R"}
+        for dest in sorted(raw_dests):
+            m.d.comb += Assert(~(wr_rf & wr_raw & (wr_addr == _rf_address(dest)))
+                               | _fits(acc, widths[dest]),
                                f"speed wrap: {dest} written unsaturated out of its range")
+        # aux: every register-file word holds a value of its width (the RAM is wider).
+        for name, width in widths.items():
+            m.d.comb += Assert(_fits(rf[name], width), f"aux: speed word {name} in range")
+        for k in range(sl.max_delay + 1):
+            m.d.comb += Assert(_fits(internal[f"rf_h{k}"], w), f"aux: speed history {k} in range")
 
         # aux: control state.
         ctl = [s for name, s in internal.items()
@@ -564,10 +583,13 @@ class SpeedLoopSpec(Elaboratable):
         ]
         # aux: the values a run has written stay in range until its end.
         m.d.comb += [
-            Assert(~(ok & after("FF")) | (ff == 0) | ((ff >= lo) & (ff <= hi)),
+            Assert(~(ok & after("FFS")) | (ff_s == 0)
+                   | ((ff_s >= lo * (1 << s_out)) & (ff_s <= hi * (1 << s_out))),
                    "aux: speed ff in the limits"),
             Assert(~after("LO_S") | (lo_s == lo_spec), "aux: speed lo_s = sat((lo - ff) << s)"),
             Assert(~after("HI_S") | (hi_s == hi_spec), "aux: speed hi_s = sat((hi - ff) << s)"),
+            Assert(~after("LOG") | (rf["LOG"] == lo_g), "aux: speed log = lo_s << g"),
+            Assert(~after("HIG") | (rf["HIG"] == hi_g), "aux: speed hig = hi_s << g"),
             Assert(~(ok & after("PR")) | ((i_c >= lo_g) & (i_c <= hi_g)),
                    "aux: speed integrator candidate in the limits"),
             Assert(~(ok & after("CB")) | ((o_k >= lo_s) & (o_k <= hi_s)),

@@ -33,26 +33,40 @@ the lag of the plant behind the profile is never integrated. With ``ref_delay = 
 ``int_hold = 0`` the PI sees ``R[n]``; with ``S = 0`` and ``F = 0`` too, the loop has no profile
 (``mv`` is then never set: no hold).
 
-**Sequential datapath.** A run is a fixed program of 67 operations on one adder
+**Sequential datapath.** A run is a fixed program of 75 operations on one adder
 ``acc ← A + (B or ~B) + cin`` (width ``max(speed_width + 2, width + int_guard + 3, width + 4)``),
 ``A`` being 0, ``acc`` or ``acc >> k`` with the rounding increment of ``round_shift(acc, k)`` as
-carry in, ``B`` one of the registers and inputs; results are written from ``acc`` (truncated
-when exact, else saturated to signed(width) or signed(16) by bit tests), comparisons leave
+carry in, ``B`` the read port of a register file or one of the special sources (``R``, the
+inputs ``speed_ref``, ``speed_slew``, and ``iq_ff``, ``lim_lo``, ``lim_hi`` times
+``2**(width − 16)``, the multiplier's product); results are written from ``acc`` (truncated
+when exact, else saturated to signed(width), that times ``2**int_guard``, or signed(16) by bit
+tests), comparisons leave
 flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E + E[n−1])`` and
 ``kp·E`` come from a shift-add multiplier (one multiplier bit per clock on its own adder of
 ``width + 3`` bits, plus ``int_guard − frac`` for a gain whose product is shifted left, then right
-shifts that keep the rounding bits): no hard multiplier. The
-reference history is a ring of ``max_delay`` registers, rotated twice per run (refilled with
-``to_pi(R)`` after ``clear``, then read: taps ``d − 1`` and ``d`` as they pass). ``_program``
-lists the operations; each is placed in the earliest clock its operands allow, and the timing
-(``latency``, ``interval``, ``ref_latency``) follows from the list (:func:`speed_loop_timing`).
-Per run: profile and ``R`` (clocks 1 … 13), interpolation, ``E``, ``kx·(E + E[n−1])`` (while
-the feed-forward and the PI limits are formed), ``dI``, ``I_c``, ``kp·E``, then ``U`` with the
-kept and with the new integrator, the conditional-integration choice and the output rounding.
-The operand selects, write enables, flag captures and side actions are registers, loaded one
-clock ahead from a ROM word read three clocks ahead and registered (its constant bits, plus a
-one-hot bit per clock whose selections flags steer, gated with those flags): no decode of the
-step counter.
+shifts that keep the rounding bits): no hard multiplier.
+
+**Register file.** The state and the temporaries are words of one RAM (a block RAM; width
+``max(width + int_guard, speed_width)``, one write and one synchronous read port; no word is
+read in the clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times
+``2**int_guard``), ``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the
+candidates and temporaries, and the reference history, a ring buffer of ``max_delay + 1``
+slots: this run's ``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot
+``slot − min(k, age)``, ``age`` counting the runs since ``clear`` (so that after ``clear`` every
+tap is the first run's), and both advance at the end of a run. The integrator and ``E[n−1]``
+read as 0 after ``clear`` until a run has ended (``zst``). A word written from ``acc`` in clock
+``t`` is read by an operation in ``t + 2`` (its address is presented one clock ahead); ``R`` and the
+output are flip-flops (readable in ``t + 1``). ``_program`` lists the operations; each is
+placed in the earliest clock its operands allow, and the timing (``latency``, ``interval``,
+``ref_latency``) follows from the list (:func:`speed_loop_timing`). Per run: profile and ``R``
+(clocks 1 … 13), interpolation (``f·(b − a)`` as seven conditional additions), ``E``,
+``kx·(E + E[n−1])`` (while the feed-forward and the PI limits are formed), ``dI``, ``I_c``,
+``kp·E``, then ``U`` with the kept and with the new integrator, the conditional-integration
+choice and the output rounding. The operand selects (the B source as a code, decoded into
+the special sources' selects and the read address), write enables, flag captures and side
+actions are registers, loaded one clock ahead from a ROM word read three clocks ahead and
+registered (its constant bits, plus a one-hot bit per clock whose selections flags or
+``ref_delay`` steer, gated with those terms): no decode of the step counter.
 The longest path is then a register through the operand multiplexers and the adder into
 ``acc`` (100 MHz on an ECP5 is the target).
 
@@ -83,8 +97,9 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 ``id_ref``) plus the PI clear signals and a reference-step strobe for the trace buffer.
 """
 
-from amaranth.hdl import Assert, Cat, Module, Mux, Signal, Value, signed, unsigned
+from amaranth.hdl import Array, Assert, C, Cat, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import enum, stream, wiring
+from amaranth.utils import ceil_log2, exact_log2
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
@@ -144,12 +159,13 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
 # --- The speed loop's micro-program ---------------------------------------------------------------
 #
 # One adder ``acc ← A + (B or ~B) + cin`` does all the arithmetic of a run; a shift-add multiplier
-# (own small adder, one bit of the multiplier per clock) forms kx·(E + E[n−1]) and kp·E; a ring of
-# shift registers holds the reference history. ``_program`` lists the operations in order and
-# places each in the earliest clock its operands allow (a register written from ``acc`` is
-# readable two clocks after the operation that formed the value; a flag steers the selection of an
-# operation three clocks after that value). Everything here is Python at elaboration time: the
-# timing (``latency``, ``interval``, the clock ``ref_int`` changes) follows from the list.
+# (own small adder, one bit of the multiplier per clock) forms kx·(E + E[n−1]) and kp·E; a register
+# file (block RAM) holds the state, the temporaries and the reference history. ``_program`` lists
+# the operations in order and places each in the earliest clock its operands allow (a word written
+# from ``acc`` is readable three clocks after the operation that formed the value, a flip-flop two;
+# a flag steers the selection of an operation three clocks after that value). Everything here is
+# Python at elaboration time: the timing (``latency``, ``interval``, the clock ``ref_int`` changes)
+# follows from the list.
 
 
 def speed_loop_timing(speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
@@ -171,10 +187,12 @@ class _Op:
     condition a function of the flags and inputs, evaluated when the operation is decoded).
     ``b``: a source name, ``None`` (0), or such a list. ``sub``: subtract ``b`` (``~b`` with carry
     in 1), a bool or a condition; ``cin``: the carry in when it is not ``sub``'s. ``wr``: dest →
-    kind (``"raw"``, ``"w"``, ``"wshl"``, ``"q16"``) or (kind, condition): written from ``acc``
+    kind (``"raw"``, ``"w"``, ``"wg"`` (``"w"`` times ``2**g``), ``"q16"``) or (kind, condition):
+    written from ``acc``
     in the clock after the operation. ``flags``: flag → ``"neg"``, ``"nneg"``, ``"nz"``, ``"pos"``
     of the result, captured in the clock after. ``uses``: flags the conditions read. ``act``:
-    side actions in the operation's clock (``"ring"``, ``"mult_x"``, ``"mult_p"``, ``"shin"``).
+    side actions in the operation's clock (``"mult_x"``, ``"mult_p"``: start a multiplication of
+    ``acc``; ``"shin"``: advance the history ring).
     """
 
     def __init__(self, a="Z", b=None, *, sub=False, cin=None, wr=None, flags=None, uses=(),
@@ -200,8 +218,21 @@ class _Op:
         return not (self.a == "Z" and self.b is None and not self.sub)
 
 
-#: B sources that are shifted views of a register (readiness follows the register).
-_ALIAS = {"CB1": "CB", "CB2": "CB", "FFS": "FF", "HIG": "HI_S", "LOG": "LO_S"}
+#: Words of the register file (block RAM) at fixed addresses; the history of ``to_pi(R)`` follows
+#: them (``TP``, the tap of this run, and the taps ``TAPA`` = d − 1, ``TAPB`` = d it reads).
+_RF_WORDS = ("CA", "CB", "EP", "LO_S", "HI_S", "LOG", "HIG", "I", "PR", "FFS", "SPD")
+
+
+def _rf_address(name):
+    """Address of a fixed register-file word (0 is not used: B code 0 is "no source")."""
+    return _RF_WORDS.index(name) + 1
+
+
+#: Register-file names read at a run-dependent history address (readiness follows ``TP``).
+_ALIAS = {"TAPA": "TP", "TAPB": "TP"}
+#: Destinations that are flip-flops (written from ``acc``, readable two clocks later); the others
+#: are register-file words (readable three clocks later: written, then read one clock ahead).
+_FF_DESTS = ("R", "OPAY")
 
 
 def _program(sw, w, kp_format, kx_format, g, n_taps):
@@ -238,37 +269,40 @@ def _program(sw, w, kp_format, kx_format, g, n_taps):
         _Op("ACC", "S", sub=True, flags={"UPR": "pos"}),
         _Op("ACC", "S"),
         _Op("ACC", "S", flags={"DNR": "neg"}),
-        _Op(act="ring"),
         # plan = R ± S (up / dn) or speed_ref → R.
         _Op("Z", [(updn, "R"), (None, "SREF")], uses=("UPR", "DNR")),
         _Op("ACC", [(updn, "S")], sub=dn, uses=("UPR", "DNR"), wr={"R": "raw"}),
     ]
-    # ff = clamp(±iq_ff, lim_lo, lim_hi) (up / dn), else 0; the PI limits
-    # sat((lim − ff)·2**s_out). Placed while the multiplier forms kx·(E + E[n−1]).
+    # ff·2**s_out = clamp(±iq_ff, lim_lo, lim_hi)·2**s_out (up / dn), else 0 (the inputs enter
+    # the adder shifted left by s_out); the PI limits sat((lim − ff)·2**s_out) and the same
+    # times 2**g. Placed while the multiplier forms kx·(E + E[n−1]).
     ff_ops = [_Op("Z", [(updn, "IQFF")], sub=dn, uses=("UPR", "DNR"))]
     ff_ops += clamp_ops("LIM_HI", "LIM_LO", "FA", "FL", None)
     sel = ff_ops[-1]                    # the select also gives 0 when the profile does not move
     sel.a = [(lambda f: ~updn(f) | f["FA"] | f["FL"], "Z"), (None, "ACC")]
     sel.b = [(lambda f: updn(f) & f["FA"], "LIM_HI"), (lambda f: updn(f) & f["FL"], "LIM_LO")]
     sel.uses = ("FA", "FL", "UPR", "DNR")
-    sel.wr = {"FF": "raw"}
+    sel.wr = {"FFS": "raw"}
     ff_ops += [
         _Op("Z", "LIM_LO"),
-        _Op("ACC", "FF", sub=True, wr={"LO_S": "wshl"}),
+        _Op("ACC", "FFS", sub=True, wr={"LO_S": "w"}),
+        _Op(wr={"LOG": "wg"}),          # acc kept: the same value, saturated, times 2**g
         _Op("Z", "LIM_HI"),
-        _Op("ACC", "FF", sub=True, wr={"HI_S": "wshl"}),
+        _Op("ACC", "FFS", sub=True, wr={"HI_S": "w"}),
+        _Op(wr={"HIG": "wg"}),
     ]
+    # Interpolation a + round_shift(f·(b − a), 3), a = tap d − 1, b = tap d: CB = b − a, then
+    # f·CB as f additions (2**DELAY_FRAC − 1 conditional ones).
     ops += [
-        # Interpolation a + round_shift(f·(b − a), 3): CA = a, CB = b from the ring.
-        _Op("Z", "CB"),
-        _Op("ACC", "CA", sub=True, wr={"CB": "raw"}),
+        _Op("Z", "TAPB"),
+        _Op("ACC", "TAPA", sub=True, wr={"CB": "raw"}),
     ]
-    for k in range(DELAY_FRAC):
+    for k in range((1 << DELAY_FRAC) - 1):
         ops.append(_Op("Z" if k == 0 else "ACC",
-                       [((lambda k: lambda f: f[f"f{k}"])(k), "CB" if k == 0 else f"CB{k}")]))
+                       [((lambda k: lambda f: f["frac"] > k)(k), "CB")]))
     ops += [
         _Op(rnd(DELAY_FRAC)),
-        _Op("ACC", "CA", wr={"CB": "w"}),
+        _Op("ACC", "TAPA", wr={"CB": "w"}),
         # d = 0: the reference is to_pi(plan) (R now holds the plan).
         _Op("Z", "R"),
         _Op(rnd(s_in), wr={"CB": ("w", lambda f: f["d0"])}),
@@ -285,9 +319,10 @@ def _program(sw, w, kp_format, kx_format, g, n_taps):
         _Op(act="mult_x", uses=("DNZ", "MVD")),                    # kx·(E + E[n−1])
         _Op("Z", "CA", wr={"EP": "w"}),                             # E[n−1] ← E
         *ff_ops,
-        # dI, I + dI, I_c = clamp(I + dI, lo·2**g, hi·2**g) → PR.
-        _Op("Z", "PRD", flags={"DIP": "pos", "DIN": "neg"}),
-        _Op("ACC", "I", act="mult_p"),                              # kp·E
+        # dI, I + dI, I_c = clamp(I + dI, lo·2**g, hi·2**g) → PR; kp·E starts on E in acc.
+        _Op("Z", "CA"),
+        _Op("Z", "PRD", flags={"DIP": "pos", "DIN": "neg"}, act="mult_p"),
+        _Op("ACC", "I"),
     ]
     ops += clamp_ops("HIG", "LOG", "GT", "LT", {"PR": "raw"})
     # U with the kept integrator → O_k (CB), then with I_c → O_c (CA).
@@ -309,8 +344,7 @@ def _program(sw, w, kp_format, kx_format, g, n_taps):
     ready = {}                      # register / flag → first clock it may be read
     flag_ready = {}                 # flag → first clock an operation may be decoded with it
     clock = -1
-    ring_ready = mult_ready = 0
-    ring_clocks = 2 * n_taps
+    mult_ready = 0
     for op in ops:
         c = clock + 1
         for s in op.sources():
@@ -318,27 +352,26 @@ def _program(sw, w, kp_format, kx_format, g, n_taps):
             c = max(c, ready.get(s, 0))
             if s == "PRD":
                 c = max(c, mult_ready)
-            if s in ("CA", "CB"):
-                c = max(c, ring_ready)
         for fl in op.uses:
             c = max(c, flag_ready[fl])
-        if "ring" in op.act:
-            c = max(c, ready.get("TP", 0))
-        if "shin" in op.act:
-            c = max(c, ring_ready)
         if "mult_x" in op.act or "mult_p" in op.act:
-            c = max(c, mult_ready, ready.get("CA", 0))
+            c = max(c, mult_ready)
         op.clock = clock = c
         for dest in op.wr:
-            ready[dest] = c + 2
+            ready[dest] = c + (2 if dest in _FF_DESTS else 3)
         for fl in op.flags:
             flag_ready[fl] = c + 3
-        if "ring" in op.act:
-            ring_ready = c + ring_clocks + 1
         for kind in ("mult_x", "mult_p"):
             if kind in op.act:
                 mult_ready = c + mult_clocks[kind] + 2
-    last = max(clock + 1, ring_ready)
+    # No operation reads a register-file word in the clock it is written (its address is
+    # presented in the clock before the operation): the read port's transparency is moot.
+    writes = {op.clock + 1: _ALIAS.get(d, d) for op in ops for d in op.wr if d not in _FF_DESTS}
+    for op in ops:
+        if writes.get(op.clock - 1) in {_ALIAS.get(s, s) for s in op.sources()}:
+            raise RuntimeError(f"SpeedLoop program: clock {op.clock} reads "
+                               f"{writes[op.clock - 1]} as it is written")
+    last = clock + 1
     out_op = next(op for op in ops if "OPAY" in op.wr)
     r_op = next(op for op in ops if "R" in op.wr)
     timing = {"latency": out_op.clock + 3, "interval": last + 2, "ref_latency": r_op.clock + 3,
@@ -434,8 +467,8 @@ class SpeedLoop(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from a valid speed sample that runs the loop to ``o.valid`` (119 with the
-        defaults; 115 with the top's ``kx_format`` UQ(24, 20); 143 with ``delay_width`` 7).
+        Clocks from a valid speed sample that runs the loop to ``o.valid`` (124 with the
+        defaults, also with ``delay_width`` 7; 120 with the top's ``kx_format`` UQ(24, 20)).
         Computed from the program of a run.
     interval : int
         Minimum clocks between runs: :attr:`latency` + 1.
@@ -491,6 +524,10 @@ class SpeedLoop(wiring.Component):
     interval = property(lambda self: self._timing["interval"])
     ref_latency = property(lambda self: self._timing["ref_latency"])
 
+    #: Register file as flip-flops (one signal ``rf_<word>`` per word, same timing) instead of a
+    #: block RAM: set only by the formal proof, whose invariants name the words.
+    _RF_IN_FFS = False
+
     def elaborate(self, platform):
         m = Module()
         sw, w, g = self._speed_width, self._width, self._int_guard
@@ -514,40 +551,77 @@ class SpeedLoop(wiring.Component):
         with m.Elif(self.i.valid):
             m.d.sync += count.eq(Mux(count >= self.rate_div, 0, count + 1))
 
-        # The speed sample is latched when a run is accepted (M/T holds its payload between
-        # strobes, but a sample arriving during a run may change it).
-        spd = Signal(signed(sw))
-        with m.If(accept):
-            m.d.sync += spd.eq(self.i.payload.speed)
+        # Register file: the words of ``_RF_WORDS`` at addresses 0, 1, …, then the history ring
+        # of ``n + 1`` slots (``to_pi(R)`` of this run and the ``n`` before it) at ``h_base``, a
+        # multiple of its size; one write port (from ``acc``, or the speed sample in the
+        # accepting clock) and one synchronous read port (its address is presented one clock
+        # ahead, from the next control word). The program never reads a word in the clock it is
+        # written (``_program`` checks it), so the read port's transparency changes nothing; a
+        # transparent port costs less on the iCE40 (yosys's bypass for a block RAM that has
+        # neither behaviour: the write data registered, no second register of the read data).
+        n_slots = n + 1                 # a power of two
+        slot_w = exact_log2(n_slots)
+        h_base = -(-(len(_RF_WORDS) + 1) // n_slots) * n_slots
+        rf_depth = 1 << ceil_log2(h_base + n_slots)
+        rfw = max(w + g, sw, w + 1)
+        rf_addr = {name: _rf_address(name) for name in _RF_WORDS}
+        rf_rd_addr = Signal(range(rf_depth))
+        rf_rd_data = Signal(signed(rfw))
+        rf_wr_en = Signal()
+        rf_wr_addr = Signal(range(rf_depth))
+        rf_wr_data = Signal(signed(rfw))
+        if self._RF_IN_FFS:
+            words = [Signal(signed(rfw), name="rf_w0")]
+            words += [Signal(signed(rfw), name=f"rf_{name.lower()}") for name in _RF_WORDS]
+            words += [Signal(signed(rfw), name=f"rf_w{k}") for k in range(len(words), h_base)]
+            words += [Signal(signed(rfw), name=f"rf_h{k}") for k in range(n_slots)]
+            words += [Signal(signed(rfw), name=f"rf_w{k}")
+                      for k in range(len(words), rf_depth)]
+            # Not transparent, unlike the RAM's port: the same, since no word a run uses is read
+            # in the clock it is written (the ``Assert`` below).
+            m.d.sync += rf_rd_data.eq(Array(words)[rf_rd_addr])
+            with m.If(rf_wr_en):
+                m.d.sync += Array(words)[rf_wr_addr].eq(rf_wr_data)
+        else:
+            m.submodules.rf = rf = Memory(shape=signed(rfw), depth=rf_depth, init=[])
+            rf_wr = rf.write_port()
+            rf_rd = rf.read_port(transparent_for=(rf_wr,))
+            m.d.comb += [rf_rd.addr.eq(rf_rd_addr), rf_rd_data.eq(rf_rd.data),
+                         rf_wr.en.eq(rf_wr_en), rf_wr.addr.eq(rf_wr_addr),
+                         rf_wr.data.eq(rf_wr_data)]
+
+        # The history ring: ``slot`` holds this run's tap 0 (``TP``), tap k is slot − k; ``age``
+        # counts the runs since ``clear`` (up to n): a tap older than that reads the oldest
+        # (after clear every tap is to_pi(R) of the first run). Both advance at ``shin``.
+        slot = Signal(slot_w)
+        age = Signal(range(n + 1))
+        # After clear the integrator and E[n−1] read as 0 until the next run has ended (every
+        # run writes them after reading them).
+        zst = Signal(init=1)
+        d_int = self.ref_delay[DELAY_FRAC:]
+        d_frac = self.ref_delay[:DELAY_FRAC]
+
+        def tap_addr(k):
+            back = Mux(k > age, age, k)
+            return Cat((slot - back)[:slot_w], C(h_base // n_slots, ceil_log2(rf_depth) - slot_w))
+
+        d_a = Mux(d_int == 0, 0, d_int - 1)
+        rf_addr_of = {"TP": tap_addr(C(0, 1)), "TAPA": tap_addr(d_a), "TAPB": tap_addr(d_int)}
+        rf_addr_of.update(rf_addr)
 
         # Registers.
         R = Signal(signed(sw))
-        regs = {
-            "R": R,
-            "TP": Signal(signed(w), name="tp"),           # to_pi(R[n−1])
-            "CA": Signal(signed(w), name="ca"),           # a; fb; E; O_c
-            "CB": Signal(signed(w + 1), name="cb"),       # b; b − a; ref; O_k
-            "EP": Signal(signed(w), name="e_prev"),       # E[n−1]
-            "LO_S": Signal(signed(w), name="lo_s"),       # PI limits sat((lim − ff)·2**s_out)
-            "HI_S": Signal(signed(w), name="hi_s"),
-            "I": Signal(signed(w + g), name="integ"),     # integrator
-            "PR": Signal(signed(w + g), name="i_c"),      # I_c
-            "FF": Signal(signed(IQ_WIDTH), name="ff"),
-            "OPAY": self.o.payload,
-        }
+        regs = {"R": R, "OPAY": self.o.payload}
         acc = Signal(signed(wa))
         flag_names = sorted({f for op in ops for f in op.flags})
         flags = {f: Signal(name=f"flag_{f.lower()}") for f in flag_names}
-        d_int = self.ref_delay[DELAY_FRAC:]
-        d_frac = self.ref_delay[:DELAY_FRAC]
         snz = Signal()
         m.d.comb += snz.eq(self.speed_slew != 0)
         # The run's decode reads ``speed_slew ≠ 0`` from a register (the input is stable during a
         # run; the 32-bit OR stays out of the control decode). ``clear``'s tracking uses ``snz``.
         snz_r = Signal()
         m.d.sync += snz_r.eq(snz)
-        cond_in = dict(flags, snz=snz_r, d0=(d_int == 0))
-        cond_in.update({f"f{k}": d_frac[k] for k in range(DELAY_FRAC)})
+        cond_in = dict(flags, snz=snz_r, d0=(d_int == 0), frac=d_frac)
 
         # Shift-add multiplier: {hi, lo} = mc · (multiplier), one multiplier bit per clock,
         # then right shifts with the rounding bits kept (half, sticky).
@@ -576,21 +650,20 @@ class SpeedLoop(wiring.Component):
         else:
             prd = prod
         prd_inc = half & (~prod[-1] | sticky)
+        # One adder: ``hi ± mc`` while multiplier bits remain (subtracted for a signed
+        # multiplier's sign bit), ``hi + 0`` (a plain shift) after them.
+        m_add = Signal()
+        m_sub = Signal()
+        m_t = Signal(signed(mcw + 2))
+        m.d.comb += [m_add.eq(lo[0] & (m_shift != 0)),
+                     m_sub.eq(m_signed & (m_shift == 1)),
+                     m_t.eq(hi + Mux(m_add, Mux(m_sub, ~mc, mc), 0) + (m_add & m_sub))]
         with m.If(m_cnt != 0):
-            m.d.sync += m_cnt.eq(m_cnt - 1)
+            m.d.sync += [m_cnt.eq(m_cnt - 1), hi.eq(m_t >> 1), lo.eq(Cat(lo[1:], m_t[0]))]
             with m.If(m_shift != 0):
                 m.d.sync += m_shift.eq(m_shift - 1)
-                addend = Mux(lo[0], mc, 0)
-                t = Mux(m_signed & (m_shift == 1), hi - addend, hi + addend)
-                m.d.sync += [hi.eq(t >> 1), lo.eq(Cat(lo[1:], t[0]))]
             with m.Else():
-                m.d.sync += [hi.eq(hi >> 1), lo.eq(Cat(lo[1:], hi[0])), half.eq(lo[0]),
-                             sticky.eq(sticky | half)]
-
-        # Reference history: ring[k − 1] = to_pi(R) k runs before the last (tap k); tap 0 is TP.
-        ring = [Signal(signed(w), name=f"hist{k}") for k in range(1, n + 1)]
-        fresh = Signal(init=1)          # after clear: every tap is to_pi(R)
-        rc = Signal(range(2 * n + 1))
+                m.d.sync += [half.eq(lo[0]), sticky.eq(sticky | half)]
 
         # Control word of the operation in the next clock (from the ROM below, registered).
         a_names = ["ACC"] + sorted({op_a[1] for op in ops
@@ -599,11 +672,15 @@ class SpeedLoop(wiring.Component):
                                     if isinstance(op_a, tuple)})
         b_names = sorted({s for op in ops for s in op.sources() if s != "PRD"} | {"PRD"})
         a_sel = {k: Signal(name=f"a_{k if isinstance(k, str) else f'rnd{k}'}") for k in a_names}
-        b_sel = {k: Signal(name=f"b_{k.lower()}") for k in b_names}
+        # B selects: one flip-flop per special source; the register-file words share one
+        # (``b_rf``: B is the read port's data) and are told apart by the read address.
+        b_sel = {k: Signal(name=f"b_{k.lower()}") for k in b_names if k not in rf_addr_of}
+        b_rf = Signal()
         c_sub = Signal()
         c_cin = Signal()
         c_en = Signal()
-        ctl = [*a_sel.values(), *b_sel.values(), c_sub, c_cin, c_en]
+        ctl_keys = ([("a", k) for k in a_sel] + [("b", k) for k in b_names]
+                    + [("c", "sub"), ("c", "cin"), ("c", "en")])
 
         # Python-folded logic: a term is 0, 1 or a Value (flag-dependent).
         def t_and(x, y):
@@ -629,11 +706,11 @@ class SpeedLoop(wiring.Component):
             return 1 if c is None else Value.cast(c(cond_in))
 
         def decode(op):
-            """Terms of the control word for ``op`` (in the order of ``ctl``)."""
+            """Terms of the control word for ``op`` (in the order of ``ctl_keys``)."""
             if op is None or not op.alu:
-                return [0] * len(ctl)
+                return [0] * len(ctl_keys)
             sel_v = {("a", k): 0 for k in a_sel}
-            sel_v.update({("b", k): 0 for k in b_sel})
+            sel_v.update({("b", k): 0 for k in b_names})
             for field, sel in (("a", op.a), ("b", op.b)):
                 choices = sel if isinstance(sel, list) else [(None, sel)]
                 taken = 0
@@ -646,7 +723,7 @@ class SpeedLoop(wiring.Component):
                     sel_v[field, key] = t_or(sel_v[field, key], hit)
             sub = cond(op.sub) if callable(op.sub) else int(op.sub)
             cin = sub if op.cin is None else op.cin
-            return ([sel_v["a", k] for k in a_sel] + [sel_v["b", k] for k in b_sel]
+            return ([sel_v["a", k] for k in a_sel] + [sel_v["b", k] for k in b_names]
                     + [sub, cin, 1])
 
         by_clock = {op.clock: op for op in ops}
@@ -654,17 +731,13 @@ class SpeedLoop(wiring.Component):
         # captures of the operation before it, side actions of its own operation.
         wr_pairs = sorted({(d, k if isinstance(k, str) else k[0]) for op in ops
                            for d, k in op.wr.items()})
-        ev_wr = {pk: Signal(name=f"wr_{pk[0].lower()}_{pk[1]}") for pk in wr_pairs}
-        ev_flag = {f: Signal(name=f"cap_{f.lower()}") for f in flag_names}
-        ev_act = {a: Signal(name=f"act_{a}") for a in ("ring", "shin", "mult_x", "mult_p")}
-        events = [*ev_wr.values(), *ev_flag.values(), *ev_act.values()]
-        ev_index = {key: i for i, key in enumerate([("wr", *k) for k in ev_wr] +
-                                                   [("flag", k) for k in ev_flag] +
-                                                   [("act", k) for k in ev_act])}
+        ev_keys = ([("wr", *k) for k in wr_pairs] + [("flag", k) for k in flag_names]
+                   + [("act", a) for a in ("shin", "mult_x", "mult_p")])
+        ev_index = {key: i for i, key in enumerate(ev_keys)}
 
         def decode_events(c):
-            """Terms of the event bits of clock ``c`` (in the order of ``events``)."""
-            v = [0] * len(events)
+            """Terms of the event bits of clock ``c`` (in the order of ``ev_keys``)."""
+            v = [0] * len(ev_keys)
             prev, now = by_clock.get(c - 1), by_clock.get(c)
             for dest, kind in (prev.wr.items() if prev else ()):
                 kind, wc = kind if isinstance(kind, tuple) else (kind, None)
@@ -676,22 +749,75 @@ class SpeedLoop(wiring.Component):
             return v
 
         # The control word and events of clock ``c`` (loaded in the clock before) come from a
-        # ROM word: its constant bits, and a one-hot "conditional" bit for each clock whose word
-        # has flag-dependent bits (few: the selections steered by flags), ANDed with those
-        # terms. The ROM is read three clocks ahead into a register (synchronous read port and
-        # one more register, so a block RAM's slow clock-to-out is off the path; address
-        # ``step + 3``, 2 in the accepting clock), so the decode is a register and a few gates,
-        # not a function of the step counter. The words of clocks 0 and 1 (loaded by the
+        # ROM word. Three fields are codes (decoded in the loading clock): the B source (0: none;
+        # one code per register-file name and special source), the register-file write (0: none;
+        # one code per destination and kind) and the flags captured (one code per set of flags
+        # an operation leaves); the rest are one bit each (A selects, carry, enable, the writes
+        # of ``R`` and the output, side actions). A clock whose word depends on flags or
+        # ``ref_delay`` (the selections they steer) has a one-hot "conditional" bit in the word,
+        # ANDed with those terms. The ROM is read three clocks ahead into a register (synchronous
+        # read port and one more register, so a block RAM's slow clock-to-out is off the path;
+        # address ``step + 3``, 2 in the accepting clock), so the decode is a register and a few
+        # gates, not a function of the step counter. The words of clocks 0 and 1 (loaded by the
         # accepting clock and the next, ``first``) are constants: the ROM's output is not
         # defined then (at power-on, after ``clear`` or the end of a run).
-        fields = ctl + events
-        terms = [decode(by_clock.get(c)) + decode_events(c) for c in range(clocks + 1)]
+        keys = ctl_keys + ev_keys
+        terms = [dict(zip(keys, decode(by_clock.get(c)) + decode_events(c)))
+                 for c in range(clocks + 1)]
+        rf_pairs = [(d, k) for d, k in wr_pairs if d not in _FF_DESTS]
+        cap_sets = sorted({tuple(sorted(op.flags)) for op in ops if op.flags})
+        # B codes: a register-file word's address, then the history names, then the specials
+        # (so that the read address is the code, or a tap's address); write codes: kind and
+        # address (the history slot of ``TP`` for its code).
+        b_code = dict(rf_addr)
+        for k in ("TP", "TAPA", "TAPB", *sorted(b_sel)):
+            b_code[k] = len(b_code) + 1
+        rf_code_max = b_code["TAPB"]
+        ab = ceil_log2(max(rf_depth, rf_code_max + 1))
+        wr_kinds = {"w": 0, "raw": 1, "wg": 2}
+        groups = {                      # field → {key: code}
+            "b": {("b", k): b_code[k] for k in b_names},
+            "wrf": {("wr", d, k): (wr_kinds[k] << ab) | b_code[d] for d, k in rf_pairs},
+        }
+        grouped = {key for codes in groups.values() for key in codes}
+        grouped |= {("flag", f) for f in flag_names}
+        bits = [key for key in keys if key not in grouped]
+
+        def cap_code(tc):
+            if not all(isinstance(tc["flag", f], int) for f in flag_names):
+                raise NotImplementedError("SpeedLoop: a conditional flag capture")
+            got = tuple(f for f in flag_names if tc["flag", f])
+            return cap_sets.index(got) + 1 if got else 0
+
+        def code_terms(field, tc):
+            """``(constant code, [(term, code)])`` of a code field in a clock's terms."""
+            const, alts = 0, []
+            for key, code in groups[field].items():
+                t = tc[key]
+                if isinstance(t, int):
+                    const |= code if t else 0
+                else:
+                    alts.append((t, code))
+            return const, alts
+
+        widths = {"b": ceil_log2(max(b_code.values()) + 1), "wrf": ab + 2,
+                  "cap": ceil_log2(len(cap_sets) + 1)}
+        layout = {}                     # field → (offset, width) in the ROM word
+        pos = len(bits)
+        for field, fw in widths.items():
+            layout[field] = (pos, fw)
+            pos += fw
+        n_f = pos
         cond_clocks = [c for c, tc in enumerate(terms[2:], 2)
-                       if any(isinstance(t, Value) for t in tc)]
-        n_f, n_c = len(fields), len(cond_clocks)
+                       if any(not isinstance(t, int) for t in tc.values())]
+        n_c = len(cond_clocks)
         words = [0, 0]                  # clocks 0, 1: not read; clocks + 1: 0
         for c, tc in enumerate(terms[2:], 2):
-            word = sum(1 << j for j, t in enumerate(tc) if isinstance(t, int) and t)
+            word = sum(1 << j for j, key in enumerate(bits)
+                       if isinstance(tc[key], int) and tc[key])
+            for field in ("b", "wrf"):
+                word |= code_terms(field, tc)[0] << layout[field][0]
+            word |= cap_code(tc) << layout["cap"][0]
             if c in cond_clocks:
                 word |= 1 << (n_f + cond_clocks.index(c))
             words.append(word)
@@ -704,22 +830,87 @@ class SpeedLoop(wiring.Component):
                                        Mux(accept, 2, 1)))
         first = Signal()                # the clock after an accept (step 0)
         m.d.sync += first.eq(accept)
-        next_v = []
-        for j in range(n_f):
+
+        def expr(const, alts):
+            v = const
+            for t, code in alts:
+                v = v | Mux(t, code, 0)
+            return v
+
+        nv = {}                         # key / field → the value for the next clock (loading)
+        for j, key in enumerate(bits):
             v = rom_q[j]
             for k, c in enumerate(cond_clocks):
-                if isinstance(terms[c][j], Value):
-                    v = v | (rom_q[n_f + k] & terms[c][j])
-            next_v.append(Mux(first, terms[1][j], v))
+                if not isinstance(terms[c][key], int):
+                    v = v | (rom_q[n_f + k] & terms[c][key])
+            nv[key] = Mux(accept, terms[0][key], Mux(first, terms[1][key], v))
+        for field in ("b", "wrf", "cap"):
+            off, fw = layout[field]
+            v = rom_q[off:off + fw]
+            for k, c in enumerate(cond_clocks):
+                if field != "cap":
+                    const, alts = code_terms(field, terms[c])
+                    if alts:
+                        v = v | Mux(rom_q[n_f + k], expr(0, alts), 0)
+            if field == "cap":
+                c0, c1 = cap_code(terms[0]), cap_code(terms[1])
+            else:
+                c0, c1 = (expr(*code_terms(field, terms[c])) for c in (0, 1))
+            sig = Signal(fw, name=f"next_{field}")
+            m.d.comb += sig.eq(Mux(accept, c0, Mux(first, c1, v)))
+            nv[field] = sig
+        # Decoded codes.
+        for k in b_sel:
+            nv["b", k] = nv["b"] == b_code[k]
+        for f in flag_names:
+            nv["flag", f] = Cat(*[nv["cap"] == j + 1 for j, s in enumerate(cap_sets)
+                                  if f in s]).any()
+
+        # The registered control: selects, carry, enable; events of FF destinations, flag
+        # captures and side actions; the register file's B select and write port.
+        ev_wr = {(d, k): Signal(name=f"wr_{d.lower()}_{k}") for d, k in wr_pairs
+                 if d in _FF_DESTS}
+        ev_flag = {f: Signal(name=f"cap_{f.lower()}") for f in flag_names}
+        ev_act = {a: Signal(name=f"act_{a}") for a in ("shin", "mult_x", "mult_p")}
+        wr_rf = Signal(name="wr_rf")
+        wr_rf_addr = Signal(range(rf_depth), name="wr_rf_addr")
+        wr_rf_raw = Signal(name="wr_rf_raw")
+        wr_rf_g = Signal(name="wr_rf_g")
+        ctl_load = [(a_sel[k], nv["a", k]) for k in a_sel]
+        ctl_load += [(b_sel[k], nv["b", k]) for k in b_sel]
+        # The integrator and E[n−1] read as 0 while ``zst`` (constant during a run).
+        b_rf_v = ((nv["b"] != 0) & (nv["b"] <= rf_code_max)
+                  & ~(zst & ((nv["b"] == b_code["I"]) | (nv["b"] == b_code["EP"]))))
+        ctl_load += [(b_rf, b_rf_v), (c_sub, nv["c", "sub"]), (c_cin, nv["c", "cin"]),
+                     (c_en, nv["c", "en"])]
+        ev_load = [(ev_wr[k], nv[("wr", *k)]) for k in ev_wr]
+        ev_load += [(ev_flag[f], nv["flag", f]) for f in flag_names]
+        ev_load += [(ev_act[a], nv["act", a]) for a in ev_act]
+        wr_a, wr_k = nv["wrf"][:ab], nv["wrf"][ab:]
+        ev_load += [(wr_rf, wr_a != 0),
+                    (wr_rf_addr, Mux(wr_a == b_code["TP"], rf_addr_of["TP"], wr_a)),
+                    (wr_rf_raw, wr_k == wr_kinds["raw"]), (wr_rf_g, wr_k == wr_kinds["wg"])]
+        rd_v = nv["b"][:ab]
+        for k in ("TP", "TAPA", "TAPB"):
+            rd_v = Mux(nv["b"] == b_code[k], rf_addr_of[k], rd_v)
+        m.d.comb += rf_rd_addr.eq(rd_v)
+        # (Checked at each clock edge in every simulation and proved with ``speed_loop``.)
+        m.d.sync += Assert(~(rf_wr_en & (rf_wr_addr == rf_rd_addr) & ~clear & (accept | running)
+                             & b_rf_v),
+                           "SpeedLoop: a register-file word read in the clock it is written")
+        ctl = [s for s, _ in ctl_load]
+        events = [s for s, _ in ev_load]
 
         with m.If(clear):
             m.d.sync += [running.eq(0), step.eq(0)] + [s.eq(0) for s in ctl + events]
-        with m.Elif(accept):
-            m.d.sync += [running.eq(1), step.eq(0)] + [s.eq(v) for s, v in zip(fields, terms[0])]
-        with m.Elif(running):
-            m.d.sync += [step.eq(step + 1)] + [s.eq(v) for s, v in zip(fields, next_v)]
-            with m.If(step == clocks - 1):
-                m.d.sync += running.eq(0)
+        with m.Elif(accept | running):
+            m.d.sync += [s.eq(v) for s, v in ctl_load + ev_load]
+            with m.If(accept):
+                m.d.sync += [running.eq(1), step.eq(0)]
+            with m.Else():
+                m.d.sync += step.eq(step + 1)
+                with m.If(step == clocks - 1):
+                    m.d.sync += running.eq(0)
         with m.Else():
             m.d.sync += [s.eq(0) for s in events]
 
@@ -734,15 +925,13 @@ class SpeedLoop(wiring.Component):
                 below = acc[:k - 1].any() if k > 1 else 0
                 cin_rnd = cin_rnd | (sel & acc[k - 1] & (~acc[-1] | below))
         sources = {
-            "R": R, "SREF": self.speed_ref, "S": self.speed_slew, "SPD": spd,
-            "IQFF": self.iq_ff, "LIM_LO": self.lim_lo, "LIM_HI": self.lim_hi,
-            "FFS": regs["FF"] << s_out, "CB1": regs["CB"] << 1, "CB2": regs["CB"] << 2,
-            "HIG": regs["HI_S"] << g, "LOG": regs["LO_S"] << g, "PRD": prd,
+            "R": R, "SREF": self.speed_ref, "S": self.speed_slew,
+            "IQFF": self.iq_ff << s_out, "LIM_LO": self.lim_lo << s_out,
+            "LIM_HI": self.lim_hi << s_out, "PRD": prd,
         }
-        sources.update({k: v for k, v in regs.items() if k != "OPAY"})
         narrow_w = sw + 1
         narrow = 0
-        wide = 0
+        wide = Mux(b_rf, rf_rd_data, 0)
         for name, sel in b_sel.items():
             v = Value.cast(sources[name])
             if len(v) + (0 if v.shape().signed else 1) <= narrow_w:
@@ -752,7 +941,7 @@ class SpeedLoop(wiring.Component):
         b_n = Signal(signed(narrow_w))
         b_val = Signal(signed(wa))
         m.d.comb += [b_n.eq(narrow), b_val.eq(b_n | wide)]
-        cin = c_cin | cin_rnd | (Cat(*[b_sel["PRD"]]) & prd_inc)
+        cin = c_cin | cin_rnd | (b_sel["PRD"] & prd_inc)
         res = Signal(signed(wa))
         exact = Signal(signed(wa + 2))
         m.d.comb += [res.eq(a_val + Mux(c_sub, ~b_val, b_val) + cin),
@@ -762,21 +951,28 @@ class SpeedLoop(wiring.Component):
             # The widths above are such that no operation wraps (checked in every simulation).
             m.d.comb += Assert(res == exact, "SpeedLoop: adder result wraps")
 
-        # Writes, flags and side actions of the clock (from ``step``: the operation of the
-        # clock before writes its result).
+        # Writes, flags and side actions of the clock (the operation of the clock before writes
+        # its result).
         def sat(value, width):
             # saturate_bits, its result signed(width) so that a wider register sign-extends it.
             out = Signal(signed(width))
             m.d.comb += out.eq(saturate_bits(value, signed(width)))
             return out
 
-        kinds = {"raw": acc, "w": sat(acc, w), "wshl": sat(acc << s_out, w),
-                 "q16": sat(acc, IQ_WIDTH)}
+        acc_w = sat(acc, w)
+        kinds = {"raw": acc, "q16": sat(acc, IQ_WIDTH)}
+        # Register-file writes: raw (truncated: exact, proved), sat(acc, w), or that times 2**g;
+        # the speed sample in the accepting clock (no run writes then).
+        m.d.comb += [
+            rf_wr_en.eq((wr_rf & ~clear) | accept),
+            rf_wr_addr.eq(Mux(accept, rf_addr["SPD"], wr_rf_addr)),
+            rf_wr_data.eq(Mux(accept, self.i.payload.speed,
+                              Mux(wr_rf_raw, acc, Mux(wr_rf_g, acc_w << g, acc_w)))),
+            Assert(~(accept & wr_rf), "SpeedLoop: a run's write in the accepting clock"),
+        ]
         tests = {"neg": acc[-1], "nneg": ~acc[-1], "nz": acc.any(), "pos": ~acc[-1] & acc.any()}
         hold_i = self.int_hold & snz_r & (flags["DNZ"] | ((d_int != 0) & flags["MVD"]))
         hold_b = (flags["AC"] & flags["DIP"]) | (flags["BC"] & flags["DIN"])
-        rot = Signal()
-        m.d.comb += rot.eq(rc != 0)
         m.d.sync += self.o.valid.eq(0)                  # a strobe (set below)
         with m.If(~clear):
             for (dest, kind), en in ev_wr.items():
@@ -792,39 +988,23 @@ class SpeedLoop(wiring.Component):
             for fl, en in ev_flag.items():
                 with m.If(en):
                     m.d.sync += flags[fl].eq(tests[flag_test[fl]])
-            with m.If(ev_act["ring"]):
-                m.d.sync += [rc.eq(2 * n), regs["CA"].eq(regs["TP"]), regs["CB"].eq(regs["TP"])]
             with m.If(ev_act["shin"]):
-                m.d.sync += [ring[0].eq(regs["TP"]), fresh.eq(0)]
-                m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
+                m.d.sync += [slot.eq(slot + 1), age.eq(Mux(age == n, n, age + 1)), zst.eq(0)]
             for act in ("mult_x", "mult_p"):
                 with m.If(ev_act[act]):
                     if act == "mult_x":
-                        m.d.sync += [mc.eq(acc << lsh[act]), lo.eq(Mux(hold_i, 0, self.kx)),
-                                     m_signed.eq(kxf.signed)]
+                        m.d.sync += [lo.eq(Mux(hold_i, 0, self.kx)), m_signed.eq(kxf.signed)]
                     else:
-                        m.d.sync += [mc.eq(regs["CA"] << lsh[act]), lo.eq(self.kp),
-                                     m_signed.eq(kpf.signed)]
-                    m.d.sync += [hi.eq(0), half.eq(0), sticky.eq(0),
+                        m.d.sync += [lo.eq(self.kp), m_signed.eq(kpf.signed)]
+                    m.d.sync += [mc.eq(acc << lsh[act]), hi.eq(0), half.eq(0), sticky.eq(0),
                                  m_cnt.eq(mw + max(sh[act], 0)), m_shift.eq(mw)]
 
-        # Ring rotation: first pass refills after clear (every tap TP), second reads taps
-        # d − 1 (CA, when d ≥ 2) and d (CB) as they pass ring[n − 1].
-        with m.If(rot):
-            m.d.sync += rc.eq(rc - 1)
-            m.d.sync += [d.eq(s) for d, s in zip(ring[1:], ring)]
-            m.d.sync += ring[0].eq(Mux(fresh & (rc > n), regs["TP"], ring[-1]))
-            with m.If((rc <= n) & (rc == d_int)):
-                m.d.sync += regs["CB"].eq(ring[-1])
-            with m.If((rc <= n) & (rc + 1 == d_int)):
-                m.d.sync += regs["CA"].eq(ring[-1])
-
-        # Clear: run abandoned, state zeroed, R tracks.
+        # Clear: run abandoned, state zeroed (the integrator and E[n−1] through ``zst``, the
+        # history through ``age``), R tracks.
         track = Mux(snz, self.i.payload.speed, self.speed_ref)
         with m.If(clear):
             m.d.sync += [
-                rc.eq(0), m_cnt.eq(0), m_shift.eq(0), fresh.eq(1), R.eq(track),
-                regs["I"].eq(0), regs["EP"].eq(0), regs["FF"].eq(0),
+                m_cnt.eq(0), m_shift.eq(0), age.eq(0), zst.eq(1), R.eq(track),
                 self.o.payload.eq(0), self.sat.eq(0), self.o.valid.eq(0),
             ]
         m.d.comb += self.ref_int.eq(R)

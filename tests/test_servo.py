@@ -18,7 +18,7 @@ SPEED_1667 = round(1667 / 12000 * 2 ** 31)     # 1667 r/min at N_FS = 12 000 r/m
 
 DISABLED, OPEN_LOOP, CURRENT, SPEED = (m.value for m in Mode)
 _LOOP = SpeedLoop()
-LAT, IV, RL = _LOOP.latency, _LOOP.interval, _LOOP.ref_latency    # 119, 120, 13 by default
+LAT, IV, RL = _LOOP.latency, _LOOP.interval, _LOOP.ref_latency    # 124, 125, 13 by default
 
 
 def base_inputs(**kw):
@@ -134,8 +134,8 @@ def test_servo_and_speed_loop_convert_to_verilog():
 def test_speed_loop_latency_cycle_by_cycle():
     dut = SpeedLoop()
     # The program of a run (hdl/servo.py) fixes these; a change to it shows here.
-    assert (dut.latency, dut.interval, dut.ref_latency) == (119, 120, 13)
-    assert SpeedLoop(speed_width=24, width=16, delay_width=7).latency == 143
+    assert (dut.latency, dut.interval, dut.ref_latency) == (124, 125, 13)
+    assert SpeedLoop(speed_width=24, width=16, delay_width=7).latency == 124
     seq = [loop_inputs() for _ in range(dut.latency + 10)]
     seq[3] = loop_inputs(valid=1, speed=-(1 << 20))             # E = 2^12 LSB of Q1.23
     got, _ = speed_loop_clocks(seq)
@@ -559,8 +559,9 @@ def test_servo_random_sequences_vs_model():
 
 def test_servo_random_sequences_vs_model_other_widths():
     # Narrow speed path (Q1.23 speed, 16-bit PI: no rounding shift at the output) and the
-    # longest reference delay (7 taps).
-    result = run_servo(40_000, seed=3, speed_width=24, width=16, delay_width=7)
+    # longest reference delay (7 taps). (Seed 6: the stimulus scales with the interval; seed 3's
+    # sequence for interval 125 has no ramp.)
+    result = run_servo(40_000, seed=6, speed_width=24, width=16, delay_width=7)
     assert result["mismatches"] == 0, result["first_mismatch"]
     assert result["ramp_runs"] > 0 and result["delayed_runs"] > 10
 

@@ -16,7 +16,7 @@ Both are stateful and sequential, so they step one clock at a time: :meth:`~Serv
 takes the inputs of clock ``t`` and returns the outputs seen in clock ``t`` (registered state plus
 the combinational paths from the inputs), then advances the state to clock ``t + 1``. A run
 accepted in clock ``t`` shows its ``ref_int`` in ``t + ref_latency`` (13 by default), its i_q
-reference in ``t + latency`` (119), and the next run can be accepted in ``t + interval`` (120).
+reference in ``t + latency`` (124), and the next run can be accepted in ``t + interval`` (125).
 """
 
 from amaranth.hdl import signed
