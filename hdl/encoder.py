@@ -576,11 +576,12 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: two 16-bit subtractions for ``d``, one for ``d − d_prev``, two magnitude tests (a
-    comparison and the carry out of ``x + tolerance``), a 6-entry constant table and ≈ 135
-    flip-flops, no multiplier or divider. Pipelined in three clocks (the edge and the inputs
-    registered; ``d``; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of
-    clocks apart, the two clocks cost nothing.
+    Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, two
+    magnitude tests (a comparison and the carry out of ``x + tolerance``), a 6-entry constant
+    table and ≈ 135 flip-flops, no multiplier or divider. Pipelined in three clocks (the edge,
+    the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev`` registered; the
+    checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks apart, the two
+    clocks cost nothing.
 
     Members
     -------
@@ -665,41 +666,47 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1, bound1, offset1, tol1 = (Signal(aw, name=f"{n}1")
-                                         for n in ("theta", "bound", "offset", "tol"))
-        need1 = Signal(4)
+        theta1, bo1, tol1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo", "tol"))
+        need1 = Signal(4)               # misses − 1 (0 acts as 1): the count that faults
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
-            theta1.eq(self.theta), bound1.eq(bound), offset1.eq(self.offset),
-            tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 1, self.misses)),
+            theta1.eq(self.theta), bo1.eq(bound + self.offset),
+            tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 0, self.misses - 1)),
         ]
 
-        # Clock 2: d = θ − boundary − offset (mod a turn).
+        # Clock 2: d = θ − (boundary + offset) and dd = d − d_prev (mod a turn), both registered
+        # so that clock 3's compare starts at flip-flops (the whole top's 100 MHz on the ECP5).
+        # d_prev is d_q as clock 3 will hold it when this d reaches it: d2 if the edge in
+        # clock 3 now updates d_q, else d_q (the block alone may see edges in consecutive
+        # clocks). Clock for clock the outputs of the subtraction d2 − d_q it replaces (no
+        # Assert of it here: synthesis would keep the subtractor for it, +49 iCE40 LUT4 and
+        # +32 carries; tests/test_encoder.py checks it against the model in every clock).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
         d2 = Signal(aw)
+        dd2 = Signal(aw)
         tol2 = Signal(aw)
         need2 = Signal(4)
+        dir_q = Signal()                # the previous edge went forward
+        d_q = Signal(aw)                # d at the previous edge
+        d_new = Signal(aw)
+        m.d.comb += d_new.eq(theta1 - bo1)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
             restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
-            d2.eq(theta1 - bound1 - offset1), tol2.eq(tol1),
+            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)), tol2.eq(tol1),
         ]
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
-        dir_q = Signal()                # the previous edge went forward
-        d_q = Signal(aw)                # d at the previous edge
         ref_ok = Signal()               # d_q is comparable with d now
         count = Signal(4)               # consecutive misses, saturating at 15
-        dd = Signal(aw)
-        m.d.comb += dd.eq(d2 - d_q)
         # The two checks never apply together: one magnitude comparison serves both. For x
         # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
         # true for tol ≥ 2**(aw−1)): two carry chains side by side, no negation; the second
         # as x + tol < 2**aw (no carry out), so 2**aw − tol needs no subtractor of its own.
-        x = Mux(aligned2, d2, dd)
+        x = Mux(aligned2, d2, dd2)
         over = (x > tol2) & ~(x + tol2)[aw]
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
@@ -724,7 +731,7 @@ class HallPlausibility(wiring.Component):
         m.d.sync += [
             self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count + 1 >= need2)),
+            self.fault.eq(miss & (count >= need2)),
         ]
         return m
 

@@ -589,13 +589,17 @@ class PWMTimer(wiring.Component):
         0: ``sample`` at ``pos = N``, the centre of the period (centre of the high pulses in
         symmetric mode); 1: at ``pos = sample_point`` (never if ``≥ 2N``).
     sample_point : In(unsigned(count_width))
+        With ``sample_custom``, read one clock ahead: ``sample`` is high when ``pos`` equals
+        the sample position of the clock before, so a change acts from the clock after it
+        (the register file changes it at ``period_start``, ``pos = 0``: the same sample
+        unless the old or the new position is 1).
     pwm : Out(data.StructLayout({"a", "b", "c": 1}))
         Phase levels (from registers through comparators; :class:`Gates` registers them).
     period_start : Out(1)
         High during ``pos = 0``, the first clock with the new duties: the loop tick. Straight
         from a flip-flop (set in the clock before), so its fan-out starts at a register.
     sample : Out(1)
-        One-clock ADC conversion-start strobe.
+        One-clock ADC conversion-start strobe, straight from a flip-flop.
     position : Out(range(2N))
         ``pos``.
 
@@ -668,6 +672,7 @@ class PWMTimer(wiring.Component):
         active = Signal(_duty_layout(cw))
         sym = Signal()                          # active mode
         first = Signal(init=1)                  # pos = 0: the period's first clock
+        sample = Signal()                       # pos = the previous clock's target
 
         m.d.comb += self.duty.ready.eq(1)
         with m.If(self.duty.valid):
@@ -702,6 +707,11 @@ class PWMTimer(wiring.Component):
             # `first` is pos = 0, registered: the period event leaves a flip-flop, not a compare
             # of the counter (it fans out across the die: M/T, the register file, the loops).
             self.period_start.eq(first),
-            self.sample.eq(pos == Mux(self.sample_custom, self.sample_point, n)),
+            self.sample.eq(sample),
         ]
+        # The ADC strobe from a flip-flop too: the compare of the next clock's position with
+        # the sample position of this clock (pos + 1 = target, or target = 0 after the last
+        # clock), so the counter's and the register file's paths end here, not at the ADC.
+        target = Mux(self.sample_custom, self.sample_point, n)
+        m.d.sync += sample.eq(Mux(last, target == 0, pos + 1 == target))
         return m

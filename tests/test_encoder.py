@@ -488,6 +488,28 @@ def test_plausibility_relative_check_before_alignment():
     assert fault == [0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0]
 
 
+def test_plausibility_random_inputs_every_clock_against_model():
+    """Inputs changed in every clock (Hall edges in consecutive clocks, adjacent or not, both
+    directions, alignment and restart toggling, small tolerances and every ``misses``): the
+    gateware follows the golden model clock for clock (the registered ``d − d_prev`` forwards
+    the ``d`` of an edge one clock ahead)."""
+    rng = np.random.default_rng(17)
+    n = 3000
+    sector = np.cumsum(rng.choice([0, 0, 1, -1, 2, 3], size=n)) % 6
+    steps = [{"sector": int(sector[k]),
+              "theta": int(rng.integers(0, TURN)) if rng.random() < 0.3
+              else int(B[sector[k]] + rng.integers(-9000, 9000)) % TURN,
+              "aligned": int(rng.random() < 0.5), "restart": int(rng.random() < 0.05),
+              "valid": int(rng.random() < 0.97), "hold": int(rng.random() < 0.02),
+              "offset": int(rng.choice([0, 0, 123, 65000])),
+              "tolerance": int(rng.choice([0, 4096, 8192, 40000])),
+              "misses": int(rng.integers(0, 16))} for k in range(n)]
+    out = run_plausibility(steps, hold_clocks=1)
+    edge, miss, fault, _ = (np.array(x) for x in zip(*out))
+    assert edge.sum() > 1000 and miss.sum() > 300 and fault.sum() > 50
+    assert (miss & ~edge.astype(bool)).sum() == 0
+
+
 def _plant_gateware(lines=64, **kw):
     """A plant-driven gateware run at a reduced scale: 100 kHz clock, 64-line encoder (one
     count 5.6° electrical), filter length 1: a 500th of the clocks of 50 MHz."""

@@ -506,6 +506,31 @@ def test_pwm_timer_sample_point_and_full_scale():
     assert seen == [10, 20]
 
 
+def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead():
+    """``sample`` in clock t is ``pos == target`` with the target (``sample_point`` or N) of
+    clock t − 1: a change acts from the clock after it. Random changes, often to the position
+    of that very clock or the next, and to 0 (after the period's last clock)."""
+    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10, period 20
+    n, per = dut.half_period, dut.period
+    rng = np.random.default_rng(5)
+    clocks = 400
+    custom = (rng.random(clocks) < 0.8).astype(int)
+    point = np.zeros(clocks, dtype=int)
+    for t in range(clocks):
+        point[t] = (point[t - 1] if t and rng.random() < 0.7 else
+                    int(rng.choice([t % per, (t + 1) % per, 0, 1, per - 1, per, 25])))
+    actions = {t: [(dut.sample_custom, int(custom[t])), (dut.sample_point, int(point[t]))]
+               for t in range(clocks)}
+    rec = record_timer(dut, clocks, actions)
+    pos = rec[:, 5]
+    np.testing.assert_array_equal(pos, np.arange(clocks) % per)
+    target = np.where(custom == 1, point, n)
+    want = np.concatenate([[0], pos[1:] == target[:-1]]).astype(int)
+    np.testing.assert_array_equal(rec[:, 4], want)
+    # The changes hit a sample the combinational compare would have taken in the same clock.
+    assert ((pos == target) != want.astype(bool)).sum() > 10 and want.sum() > 20
+
+
 def test_pwm_timer_100khz_and_33mhz_periods():
     for clk, pwm, n in ((50e6, 100e3, 250), (33.333e6, 100e3, 167), (33.333e6, 10e3, 1667),
                         (50e6, 10e3, 2500)):
