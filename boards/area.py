@@ -27,6 +27,12 @@ from amaranth.hdl import Const, Value
 
 __all__ = ["TARGETS", "ports", "synth_area", "convert_blocks", "synth_areas", "summarise"]
 
+#: Yosys commands run right after ``read_rtlil`` in every synthesis for hardware (area, Fmax,
+#: the board builds): the gateware's ``Assert`` / ``Print`` statements (``$check`` / ``$print``
+#: cells, simulation and proof checks) removed. Synthesis otherwise keeps each check's input
+#: cone as logic and places it (session 9: 11.7 % of the ULX3S top's LUT4, AREA.md §7.24).
+STRIP_CHECKS = "chformal -remove; delete t:$print"
+
 TARGETS = {
     "ice40": "synth_ice40 -dsp -top {top}",
     "xc7": "synth_xilinx -family xc7 -flatten -noiopad -noclkbuf -top {top}",
@@ -105,7 +111,7 @@ def _synth_rtlil(text, target, name, keep_dir=None):
         work = Path(keep_dir) if keep_dir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         (work / f"{name}.il").write_text(text)
-        script = (f"read_rtlil {name}.il; {TARGETS[target].format(top=name)}; "
+        script = (f"read_rtlil {name}.il; {STRIP_CHECKS}; {TARGETS[target].format(top=name)}; "
                   f"tee -q -o {name}.{target}.json stat -json")
         # YoWASP tools see only the working directory: pass relative paths.
         proc = subprocess.run(_yosys_command() + ["-q", "-l", f"{name}.{target}.log", "-p", script],

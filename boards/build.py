@@ -52,6 +52,7 @@ from amaranth.lib.cdc import FFSynchronizer, ResetSynchronizer
 from ..hdl.fixed import check_choice
 from ..hdl.top import CURRENT_LOOPS, Top
 from . import area
+from .area import STRIP_CHECKS
 from .platforms import MOTOR_PORTS, get_board
 
 __all__ = ["PAPER", "CLOCK_RANGE_HZ", "MUL_WIDTH", "PllConfig", "pll_config", "BoardTop",
@@ -421,11 +422,15 @@ def _overrides(board, name):
     # --timing-allow-fail: a design that places and routes but misses its clock still gets a
     # bitstream and its Fmax (reported as timing_met false) instead of a bare failure.
     pnr = f"--report {name}.report.json --timing-allow-fail"
+    # The gateware's Assert / Print cells out before synthesis (STRIP_CHECKS; as the vendor
+    # flows' synthesis_verilog does).
     if board.family == "ice40":
         # -dsp: SB_MAC16 multipliers (without it the multipliers swamp the UP5K's LUTs).
-        return {"synth_opts": "-dsp", "script_after_synth": stat, "nextpnr_opts": pnr}
+        return {"script_after_read": STRIP_CHECKS, "synth_opts": "-dsp",
+                "script_after_synth": stat, "nextpnr_opts": pnr}
     if board.family == "ecp5":
-        return {"script_after_synth": stat, "nextpnr_opts": pnr}
+        return {"script_after_read": STRIP_CHECKS, "script_after_synth": stat,
+                "nextpnr_opts": pnr}
     return {}
 
 
@@ -447,8 +452,8 @@ def synthesis_verilog(rtlil_text, *, name=NAME):
     """
     attrs = ("-remove generator -remove top -remove src -remove amaranth.hierarchy "
              "-remove amaranth.decoding")
-    script = (f"read_rtlil {name}.il; proc -nomux -norom; memory_collect; chformal -remove; "
-              f"delete t:$print; attrmap {attrs}; attrmap -modattr {attrs}; "
+    script = (f"read_rtlil {name}.il; proc -nomux -norom; memory_collect; {STRIP_CHECKS}; "
+              f"attrmap {attrs}; attrmap -modattr {attrs}; "
               f"write_verilog -norename {name}.v")
     with tempfile.TemporaryDirectory(prefix="foc-servo-verilog-") as tmp:
         work = Path(tmp)                        # YoWASP tools see only their working directory

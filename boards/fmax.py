@@ -35,6 +35,8 @@ from amaranth.hdl import Cat, Const, Module, Signal, Value
 from amaranth.lib import wiring
 from amaranth.lib.wiring import In, Out
 
+from .area import STRIP_CHECKS
+
 __all__ = ["Harness", "fmax_catalog", "fmax_block", "fmax_blocks"]
 
 #: Per FPGA family: yosys synthesis command, nextpnr tool, its device options, and the default
@@ -255,7 +257,7 @@ def fmax_block(name, block=None, *, family="ecp5", freq_mhz=None, seed=1, keep_d
                       file=sys.stderr, flush=True)
 
         say(f"yosys {fam['synth']}")
-        code = _run(_tool("yosys") + ["-q", "-p", f"read_rtlil {name}.il; "
+        code = _run(_tool("yosys") + ["-q", "-p", f"read_rtlil {name}.il; {STRIP_CHECKS}; "
                                       f"{fam['synth']} -top {name} -json {name}.json"],
                     work, work / f"{name}.yosys.log")
         if code != 0:

@@ -340,6 +340,31 @@ def test_synthesis_verilog_drops_simulation_checks(tmp_path):
     assert reads(clean)
 
 
+class _Checked(wiring.Component):
+    """One LUT of logic and an invariant on a wide compare of its inputs."""
+    a: wiring.In(16)
+    b: wiring.In(16)
+    o: wiring.Out(1)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.d.comb += [self.o.eq(self.a[0] ^ self.b[0]),
+                     Assert(self.a + self.b != 0x1234, "sum"), Print("a", self.a)]
+        return m
+
+
+def test_hardware_synthesis_drops_the_gateware_checks():
+    """Area and board synthesis remove Assert / Print first (session 9: their input cones were
+    synthesised and placed, 11.7 % of the ULX3S top's LUT4): the adder and compare behind the
+    assertion cost nothing; the bitstream flows run the same commands after read_rtlil."""
+    from foc_servo.boards.area import STRIP_CHECKS, synth_area
+    from foc_servo.boards.build import _overrides
+    r = synth_area(_Checked(), "ice40")
+    assert (r["lut4"], r["carry"]) == (1, 0) and "$check" not in r["cells"]
+    for name in ("icebreaker", "ulx3s"):
+        assert _overrides(get_board(name), NAME)["script_after_read"] == STRIP_CHECKS
+
+
 def _verilog_ports(text):
     """Top-level ports of module ``foc_servo``, expanded to bits: {port name: width}."""
     body = text[text.index(f"module {NAME}("):]
