@@ -358,6 +358,14 @@ class LinkCore(wiring.Component):
         jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
                  Mux(j_dat, rd.data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
+        # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
+        # run in parallel from its read register, the selection after them (SCAN's end test,
+        # the whole top's 100 MHz).
+        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+        dat_zero = Cat(rd.data.word_select(k, 8) == 0 for k in range(4))
+        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
@@ -596,7 +604,7 @@ class LinkCore(wiring.Component):
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
                 next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
-                with m.If(scan_end | (jb == 0)):
+                with m.If(scan_end | jb_zero):
                     m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
                     m.next = "CODE"
                 with m.Else():
