@@ -358,6 +358,14 @@ class LinkCore(wiring.Component):
         jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
                  Mux(j_dat, rd.data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
+        # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
+        # run in parallel from its read register, the selection after them (SCAN's end test,
+        # the whole top's 100 MHz).
+        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+        dat_zero = Cat(rd.data.word_select(k, 8) == 0 for k in range(4))
+        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
@@ -577,8 +585,11 @@ class LinkCore(wiring.Component):
             # `jb` is the byte at j in every clock where it is used. CRC and SCAN read byte
             # j + 1 whatever they decide (no comparison in front of the buffer address, the
             # link's 100 MHz): when CRC ends, SCAN starts at j = 0, a header byte; when SCAN
-            # ends, CODE sends `blk + 1` and reads byte j = p again for DATA. The byte read in
-            # those last clocks is never used.
+            # ends, CODE sends `blk + 1` and reads byte p for DATA. The byte read in those
+            # last clocks is never used. SCAN steps j to j + 1 whatever it decides too, and
+            # CODE sets j back to p: the zero test of `jb` (after the buffer's read register
+            # and the byte selection) drives the state and blk's enable only, not j's
+            # next-state multiplexer (the whole top's 100 MHz; the clocks are the same).
             with m.State("CRC"):                    # CRC over the reply payload
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
@@ -592,16 +603,15 @@ class LinkCore(wiring.Component):
             with m.State("SCAN"):                   # length of the COBS block starting at p
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
-                with m.If(scan_end | (jb == 0)):
+                next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
+                with m.If(scan_end | jb_zero):
                     m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
-                    next_j(p, p_flags, read=j + 1)
                     m.next = "CODE"
                 with m.Else():
                     m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253)), blk.eq(blk + 1)]
-                    next_j(j + 1, parts_j1)
 
-            with m.State("CODE"):
-                next_j(j, flags)
+            with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
+                next_j(p, p_flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
                     with m.If(blk == 0):
