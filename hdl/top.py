@@ -484,6 +484,11 @@ class Top(wiring.Component):
                      dtc.phase.payload.eq(cl.phase.payload)]
         wiring.connect(m, current_loop=cl.udc, protect=prot.udc)
         speed = mt.o.payload.speed
+        # The current loop's copy of the speed, a clock behind M/T's output register (ECP5 Fmax:
+        # the loop rounds and saturates it to 16 bits at its sample latch, across the die from
+        # M/T; the loop latches it at its sample, thousands of clocks after an update).
+        cl_speed = Signal.like(speed)
+        m.d.sync += cl_speed.eq(speed)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -515,7 +520,7 @@ class Top(wiring.Component):
             cl.ol_uq.eq(servo.ol_uq),
             cl.id_ref.eq(servo.id_ref),
             cl.iq_ref.eq(servo.iq_ref),
-            cl.speed.eq(speed),
+            cl.speed.eq(cl_speed),
 
             prot.fault_n.eq(fault_n),
             prot.oc_comp.eq(oc_comp),
