@@ -487,11 +487,8 @@ class Top(wiring.Component):
         # The current loop's copy of the speed, a clock behind M/T's output register (ECP5 Fmax:
         # the loop rounds and saturates it to 16 bits at its sample latch, across the die from
         # M/T; the loop latches it at its sample, thousands of clocks after an update).
-        # LeadAngle and the protection's overspeed verdict take the same copy, with M/T's strobe
-        # a clock later too (`speed_valid_q`).
         cl_speed = Signal.like(speed)
-        speed_valid_q = Signal()
-        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid)]
+        m.d.sync += cl_speed.eq(speed)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -511,11 +508,11 @@ class Top(wiring.Component):
 
             cl.theta.eq(servo.theta),
             # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
-            # commits at period_start, before mt.o.valid): ready period_start + mt.latency + 1 +
+            # commits at period_start, before mt.o.valid): ready period_start + mt.latency +
             # LeadAngle.latency, before the ADC sample unless pwm_sample_point is that early.
-            lead.speed.eq(cl_speed),
+            lead.speed.eq(speed),
             lead.k.eq(regs.theta_lead),
-            lead.start.eq(speed_valid_q),
+            lead.start.eq(mt.o.valid),
             cl.theta_lead.eq(lead.theta),
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
@@ -527,8 +524,8 @@ class Top(wiring.Component):
 
             prot.fault_n.eq(fault_n),
             prot.oc_comp.eq(oc_comp),
-            prot.speed.valid.eq(speed_valid_q),
-            prot.speed.payload.eq(cl_speed),
+            prot.speed.valid.eq(mt.o.valid),
+            prot.speed.payload.eq(speed),
             prot.encoder_illegal.eq(enc.illegal),
             prot.hall_invalid.eq(enc.hall_fault),
             prot.encoder_hall.eq(enc.plausibility),
