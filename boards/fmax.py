@@ -184,7 +184,7 @@ def _critical_path(report):
         "to": signals[-1] if cells else None,
         "from_cell": cells[0] if cells else None,
         "to_cell": cells[-1] if cells else None,
-        "delay_ns": round(sum(s.get("delay", 0.0) for s in steps), 3),
+        "delay_ns": round(_delay(worst), 3),
         "logic_ns": round(sum(s.get("delay", 0.0) for s in logic), 3),
         "logic_levels": len(logic),
         "through": [c for i, c in enumerate(signals) if i == 0 or c != signals[i - 1]],

@@ -24,7 +24,7 @@ from ..models.regs import RegisterFileModel
 __all__ = ["run", "window_word", "Bench"]
 
 #: Clocks the random master holds ``stb`` without an ``ack`` before it gives the access up
-#: (counted in ``stuck``; a copy and the reset walk hold an access off for ≈ 50 clocks each).
+#: (counted in ``stuck``; a copy holds an access off for ≈ 50 clocks, the reset walk for 63).
 HOLD_LIMIT = 1000
 
 
