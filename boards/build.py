@@ -51,7 +51,7 @@ from amaranth.lib.cdc import FFSynchronizer, ResetSynchronizer
 
 from ..hdl.fixed import check_choice
 from ..hdl.top import CURRENT_LOOPS, Top
-from . import area
+from . import area, ice40_cells
 from .area import STRIP_CHECKS
 from .platforms import MOTOR_PORTS, get_board
 
@@ -628,6 +628,9 @@ def _run_bitstream(board, prep, stages):
         if tool == "yosys" and (root / f"{NAME}.stat.json").exists():
             cells = json.loads((root / f"{NAME}.stat.json").read_text())["design"]
             result.update(_figures(board.family, cells["num_cells_by_type"]))
+            netlist = root / f"{NAME}.json"
+            if board.family == "ice40" and netlist.exists():
+                result["logic_cells"] = ice40_cells.logic_cells(json.loads(netlist.read_text()))
         if code != 0:
             errors = _error_lines(root / f"{NAME}.tim", root / f"{NAME}.rpt", log)
             result["error"] = f"{tool} failed (exit {code}): " + (
@@ -792,6 +795,11 @@ def report_lines(result):
     if busy:
         lines.append("  place-and-route: " + ", ".join(
             f"{k} {v['used']}/{v['available']}" for k, v in sorted(busy.items())))
+    lc = result["utilisation"].get("logic_cells")
+    if lc:
+        lines.append(f"  logic cells, estimated from the netlist by nextpnr's packing rules: "
+                     f"{lc['total']['cells']:,}".replace(",", " "))
+        lines += ice40_cells.report_lines(lc, limit=8)
     fits = {True: "yes", False: "NO", None: "unknown"}[result["fits"]]
     lines.append(f"  fits      {fits}" + (f" — {result['error']}" if result["error"] else ""))
     lines.append(f"  wall time {result['wall_s']:.1f} s ("

@@ -487,6 +487,10 @@ def test_icebreaker_bitstream_build(tmp_path):
         assert lc["available"] == 5280
         # every LUT4 needs a logic cell; an LC holds at most one LUT4 and one FF
         assert r["lut"] <= lc["used"] <= r["lut"] + r["ff"]
+        # the netlist estimate by nextpnr's packing rules (boards/ice40_cells.py) is close
+        est = r["utilisation"]["logic_cells"]
+        assert abs(est["total"]["cells"] - lc["used"]) <= 0.02 * lc["used"]
+        assert sum(g["cells"] for g in est["by_source"].values()) == est["total"]["cells"]
 
 
 @pytest.mark.slow
