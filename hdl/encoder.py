@@ -7,8 +7,8 @@ Hall sector decoder, the exact electrical angle and an encoder/Hall plausibility
 The electrical position ``e`` counts in 1/cpr of an electrical turn (``cpr = 4·lines``): a
 mechanical count moves it by ``pole_pairs`` modulo ``cpr``. The angle is kept exact, never
 accumulated from a rounded increment: with the constants ``pole_pairs·2**16 = Qp·cpr + Rp``
-(computed with the foundation :class:`~.divider.Divider` whenever ``lines`` or ``pole_pairs``
-change) the decoder holds ``(θm, rm)`` with ``em·2**16 = θm·cpr + rm (mod 2**16·cpr)``,
+(computed by the decoder's own restoring division, :func:`divide_angle`, whenever ``lines`` or
+``pole_pairs`` change) the decoder holds ``(θm, rm)`` with ``em·2**16 = θm·cpr + rm (mod 2**16·cpr)``,
 ``0 ≤ rm < cpr``, and steps them Bresenham-style::
 
     up:    rm += Rp; c = rm ≥ cpr; rm −= c·cpr; θm += Qp + c   (mod 2**16)
@@ -24,13 +24,12 @@ from amaranth.lib import enum, wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
-from .divider import Divider
 from .fixed import check_param, BinaryAngle
 
 __all__ = [
     "GlitchFilter", "QuadratureDecoder", "HallSensor", "HallPlausibility", "EncoderFrontEnd",
     "HALL_CODES", "hall_centres", "hall_boundaries", "quadrature_phase", "angle_constants",
-    "ANGLE", "DIVIDER_WAIT", "LINES_WIDTH", "POLE_PAIRS_WIDTH", "CPR_WIDTH",
+    "divide_angle", "ANGLE", "DIVISION_STEPS", "LINES_WIDTH", "POLE_PAIRS_WIDTH", "CPR_WIDTH",
 ]
 
 #: The electrical angle format of the whole design.
@@ -68,43 +67,42 @@ def quadrature_phase(a, b):
 
 
 def angle_constants(lines, pole_pairs, z_offset):
-    """``(Qp, Rp, Qz, Rz, valid)`` for a configuration, as the decoder's divider computes them.
+    """``(Qp, Rp, Qz, Rz, valid)`` for a configuration, as the decoder's divisions compute them.
 
-    ``Qp, Rp = divmod(pole_pairs·2**16, cpr)``, ``Qz, Rz = divmod(z_offset·2**16, cpr)``, with the
-    quotients kept modulo ``2**16`` and the remainders modulo ``2**CPR_WIDTH`` (the register
-    widths); a zero ``cpr`` gives the divider's division-by-zero result (all-ones quotient, zero
-    remainder). ``valid`` is the condition under which the decoder counts and may align:
-    ``lines ≥ 1``, ``1 ≤ pole_pairs < cpr`` and ``z_offset < cpr``.
+    ``Qp, Rp = divmod(pole_pairs·2**16, cpr)``, ``Qz, Rz = divmod(z_offset·2**16, cpr)`` in a
+    valid configuration; in an invalid one whatever :func:`divide_angle` leaves. ``valid`` is
+    the condition under which the decoder counts and may align: ``lines ≥ 1``,
+    ``1 ≤ pole_pairs < cpr`` and ``z_offset < cpr``.
     """
     cpr = 4 * lines
-    q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
-
-    def div(n):
-        if cpr == 0:
-            return q_mask, 0
-        q, r = divmod(n << ANGLE.width, cpr)
-        return q & q_mask, r & r_mask
-
-    qp, rp = div(pole_pairs)
-    qz, rz = div(z_offset)
+    qp, rp = divide_angle(pole_pairs, cpr)
+    qz, rz = divide_angle(z_offset, cpr)
     valid = lines >= 1 and 1 <= pole_pairs < cpr and z_offset < cpr
     return qp, rp, qz, rz, bool(valid)
 
 
-def _divider():
-    """The decoder's divider: ``pole_pairs·2**16`` or ``z_offset·2**16`` by ``cpr``."""
-    return Divider(width=CPR_WIDTH + ANGLE.width, divisor_width=CPR_WIDTH, signed=False)
+#: Quotient bits of the decoder's configuration divisions, one per clock: the angle's width.
+DIVISION_STEPS = ANGLE.width
 
 
-def _divider_latency():
-    div = _divider()
-    div._MustUse__silence = True        # only asked for its latency, never elaborated
-    return div.latency
+def divide_angle(n, cpr):
+    """``(q, r)`` as the decoder's restoring division of ``n·2**16`` by ``cpr`` leaves them.
 
-
-#: Clocks from the start of each of the decoder's divisions to taking its result (the divider's
-#: latency + 1: the result is held until taken, so a divider up to 1 clock slower still works).
-DIVIDER_WAIT = _divider_latency() + 1
+    The division runs in place on the decoder's own 16 + 18-bit working registers: the partial
+    remainder starts as ``n`` (the dividend's low 16 bits are zeros) and each of the 16 steps
+    doubles it and subtracts ``cpr`` if that fits, shifting the quotient bit in. For
+    ``n < cpr`` (every valid configuration) this is ``divmod(n·2**16, cpr)``; otherwise (an
+    invalid configuration, ``config_error``) the remainder leaves its 18 bits and ``(q, r)`` is
+    whatever the 16 steps leave (for ``cpr = 0``: ``q`` all ones), reproduced here bit for bit.
+    """
+    q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
+    q, r = 0, n & r_mask
+    for _ in range(DIVISION_STEPS):
+        trial = r << 1
+        fits = trial >= cpr
+        r = (trial - cpr if fits else trial) & r_mask
+        q = ((q << 1) | fits) & q_mask
+    return q, r
 
 
 class GlitchFilter(wiring.Component):
@@ -189,12 +187,11 @@ def _step(up, x, step, comp, ge_comp, lt_step):
     return _add(x, operand ^ Mux(neg, mask, 0), neg), neg
 
 
-class _Config(enum.Enum, shape=3):
+class _Config(enum.Enum, shape=2):
     IDLE = 0
-    START_P = 1
-    WAIT_P = 2
-    START_Z = 3
-    WAIT_Z = 4
+    DIV_P = 1       # pole_pairs·2**16 / cpr: load, then DIVISION_STEPS steps
+    DIV_Z = 2       # (Qp, Rp) taken; z_offset·2**16 / cpr: load, then DIVISION_STEPS steps
+    COMMIT = 3
 
 
 def _check_z_gate(owner, z_gate):
@@ -222,8 +219,10 @@ class QuadratureDecoder(wiring.Component):
     **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs. A change is
     taken in by a sequence of two divisions (``busy`` high for ``config_latency − 1`` clocks)
     and then committed at once. A commit that changes ``lines`` or ``pole_pairs``, or makes
-    the configuration invalid, clears ``aligned``, ``count`` and the electrical position; a
-    commit that only changes ``z_offset`` moves ``e`` and ``theta`` to the new offset at once. The
+    the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
+    from the clock after such a change is taken in until the commit nothing counts: the
+    divisions replace the step constants in place); a commit that only changes ``z_offset``
+    moves ``e`` and ``theta`` to the new offset at once (counting goes on meanwhile). The
     configuration is valid when ``lines ≥ 1``, ``1 ≤ pole_pairs < 4·lines`` and ``z_offset <
     4·lines`` (``config_error`` low); while invalid, nothing counts and nothing aligns.
 
@@ -283,9 +282,8 @@ class QuadratureDecoder(wiring.Component):
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
         Clocks from a change of the configuration inputs (decoder idle) to the new configuration
-        being visible on the outputs: ``2·divider_wait + 5`` (79).
-    divider_wait : int
-        Clocks from the start of each division to taking its result (37).
+        being visible on the outputs: ``2·(DIVISION_STEPS + 1) + 2`` (36): the clock that
+        takes the change in, two divisions of a load and 16 steps each, the commit.
     """
 
     latency = 1
@@ -308,17 +306,11 @@ class QuadratureDecoder(wiring.Component):
     z_gate = property(lambda self: self._z_gate)
 
     @property
-    def divider_wait(self):
-        """Clocks from the start of a division to taking its result (divider latency + 2)."""
-        return DIVIDER_WAIT
-
-    @property
     def config_latency(self):
-        return 2 * self.divider_wait + 5
+        return 2 * (DIVISION_STEPS + 1) + 2
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.divider = div = _divider()
         aw = ANGLE.width
 
         # --- configuration: committed values and their angle constants ----------------------
@@ -343,69 +335,64 @@ class QuadratureDecoder(wiring.Component):
         cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
         cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
         cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)
-        # Pending configuration and its first quotient while the divisions run. When idle the
-        # pending values equal the committed ones (a commit copies them; they start equal), so
-        # the inputs are compared with them alone; whether ``lines`` or ``pole_pairs`` change is
-        # noted when the change is taken in (``lp_changed``) for the commit.
+        # Pending configuration while the divisions run. When idle the pending values equal the
+        # committed ones (a commit copies them; they start equal), so the inputs are compared
+        # with them alone; whether ``lines`` or ``pole_pairs`` change is noted when the change
+        # is taken in (``lp_changed``): then nothing counts until the commit, which clears the
+        # position (the step constants Qp, Rp are replaced before it).
         lines_p = Signal(LINES_WIDTH, init=lines0)
         pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_p = Signal(CPR_WIDTH, init=z0)
         lp_changed = Signal()
-        qp_p = Signal(aw)
-        rp_p = Signal(CPR_WIDTH)
         state = Signal(_Config)
         cpr_p = Cat(Const(0, 2), lines_p)
 
-        # The divider's result is taken a fixed `wait` clocks after each division starts (its
-        # output is held until taken), so the commit time does not depend on the divider's exact
-        # timing as long as it is at most `wait + 1` clocks.
-        wait = self.divider_wait
-        timer = Signal(range(wait + 1))
+        # The two divisions, n·2**16 / cpr (n = pole_pairs, then z_offset), restoring, one
+        # quotient bit per clock in place on the working registers (wq, wr): wr starts as n,
+        # each step doubles it and subtracts cpr where that fits (see divide_angle). In a valid
+        # configuration wr < cpr throughout. (Qp, Rp) go straight to qp, rp when the second
+        # division starts: unchanged values unless lines or pole_pairs changed, and then
+        # nothing counts.
+        timer = Signal(range(DIVISION_STEPS + 1))
+        wq = Signal(aw)
+        wr = Signal(CPR_WIDTH)
+        trial = Cat(Const(0, 1), wr)                    # 2·wr, CPR_WIDTH + 1 bits
+        diff = Signal(CPR_WIDTH + 2)
+        fits = ~diff[-1]
         m.d.comb += [
+            diff.eq(trial - cpr_p),
             self.busy.eq(state != _Config.IDLE),
             self.config_error.eq(~valid),
-            div.i.payload.divisor.eq(cpr_p),
-            div.i.payload.dividend.eq(Mux(state == _Config.START_P, pp_p, z_p) << aw),
-            div.i.valid.eq((state == _Config.START_P) | (state == _Config.START_Z)),
         ]
         commit = Signal()
-        take = Signal()
-        m.d.comb += [
-            take.eq(((state == _Config.WAIT_P) | (state == _Config.WAIT_Z)) &
-                    (timer == wait) & div.o.valid),
-            div.o.ready.eq(take),
-        ]
-        quotient = div.o.payload.quotient[:aw]
-        remainder = div.o.payload.remainder
         with m.Switch(state):
             with m.Case(_Config.IDLE):
                 lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
                 with m.If(lp_change | (self.z_offset != z_p)):
                     m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
                                  z_p.eq(self.z_offset), lp_changed.eq(lp_change),
-                                 state.eq(_Config.START_P)]
-            with m.Case(_Config.START_P, _Config.START_Z):
-                with m.If(div.i.ready):
+                                 timer.eq(0), state.eq(_Config.DIV_P)]
+            with m.Case(_Config.DIV_P, _Config.DIV_Z):
+                m.d.sync += timer.eq(timer + 1)
+                with m.If(timer == 0):
+                    m.d.sync += wr.eq(Mux(state == _Config.DIV_P, pp_p, z_p))
+                with m.Else():
+                    m.d.sync += [wr.eq(Mux(fits, diff, trial)), wq.eq(Cat(fits, wq[:-1]))]
+                with m.If((state == _Config.DIV_Z) & (timer == 0)):
+                    m.d.sync += [qp.eq(wq), rp.eq(wr)]
+                with m.If(timer == DIVISION_STEPS):
                     m.d.sync += [timer.eq(0), state.eq(state.as_value() + 1)]
-            with m.Case(_Config.WAIT_P, _Config.WAIT_Z):
-                with m.If(timer != wait):
-                    m.d.sync += timer.eq(timer + 1)
-                with m.If(take):
-                    with m.If(state == _Config.WAIT_P):
-                        m.d.sync += [qp_p.eq(quotient), rp_p.eq(remainder),
-                                     state.eq(_Config.START_Z)]
-                    with m.Else():
-                        m.d.comb += commit.eq(1)
-                        m.d.sync += state.eq(_Config.IDLE)
+            with m.Case(_Config.COMMIT):
+                m.d.comb += commit.eq(1)
+                m.d.sync += state.eq(_Config.IDLE)
         new_valid = ((lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p))
         restart = Signal()
         m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                pp_q.eq(pp_p), z_q.eq(z_p),
-                qp.eq(qp_p), rp.eq(rp_p), qz.eq(quotient), rz.eq(remainder),
-                valid.eq(new_valid), cpr_rz.eq(cpr_p - remainder), cpr_z.eq(cpr_p - z_p),
-                cpr_rp.eq(cpr_p - rp_p), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
+                pp_q.eq(pp_p), z_q.eq(z_p), qz.eq(wq), rz.eq(wr),
+                valid.eq(new_valid), cpr_rz.eq(cpr_p - wr), cpr_z.eq(cpr_p - z_p),
+                cpr_rp.eq(cpr_p - rp), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
             ]
 
         # --- quadrature decoding ------------------------------------------------------------
@@ -452,7 +439,7 @@ class QuadratureDecoder(wiring.Component):
         rm_next, cin = _step(fwd_c, rm, rp, cpr_rp[:CPR_WIDTH], rm >= cpr_rp, rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
-        with m.If(valid & (fwd | bwd)):
+        with m.If(valid & ~(self.busy & lp_changed) & (fwd | bwd)):
             m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
                          thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
