@@ -563,12 +563,13 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, two
-    magnitude tests (a comparison and the carry out of ``x + tolerance``), a 6-entry constant
-    table and ≈ 135 flip-flops, no multiplier or divider. Pipelined in three clocks (the edge,
-    the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev`` registered; the
-    checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks apart, the two
-    clocks cost nothing.
+    Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, one
+    magnitude test (the carry out of ``|x|`` in one's complement against ``tolerance``), a
+    6-entry constant table and ≈ 100 flip-flops, no multiplier or divider. Pipelined in three
+    clocks (the edge, the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev``
+    registered; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks
+    apart, the two clocks cost nothing. ``tolerance`` and ``misses`` (configuration) are not
+    pipelined: the checks take them in their own clock.
 
     Members
     -------
@@ -605,7 +606,9 @@ class HallPlausibility(wiring.Component):
     ----------
     latency : int
         Clocks from ``sector``/``theta`` to the outputs (3). The outputs are those of the
-        unpipelined check (all inputs taken in the same clock) delayed by two clocks.
+        unpipelined check delayed by two clocks, with ``tolerance`` and ``misses`` taken two
+        clocks after the other inputs (in the clock of the check: their change applies two
+        clocks sooner than a pipelined copy's would).
     """
 
     latency = 3
@@ -653,13 +656,11 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1, bo1, tol1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo", "tol"))
-        need1 = Signal(4)               # misses − 1 (0 acts as 1): the count that faults
+        theta1, bo1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo"))
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
             theta1.eq(self.theta), bo1.eq(bound + self.offset),
-            tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 0, self.misses - 1)),
         ]
 
         # Clock 2: d = θ − (boundary + offset) and dd = d − d_prev (mod a turn), both registered
@@ -674,27 +675,30 @@ class HallPlausibility(wiring.Component):
                                            "jump"))
         d2 = Signal(aw)
         dd2 = Signal(aw)
-        tol2 = Signal(aw)
-        need2 = Signal(4)
         dir_q = Signal()                # the previous edge went forward
         d_q = Signal(aw)                # d at the previous edge
         d_new = Signal(aw)
         m.d.comb += d_new.eq(theta1 - bo1)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
-            restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
-            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)), tol2.eq(tol1),
+            restart2.eq(restart1), jump2.eq(jump1),
+            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)),
         ]
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
         ref_ok = Signal()               # d_q is comparable with d now
         count = Signal(4)               # consecutive misses, saturating at 15
         # The two checks never apply together: one magnitude comparison serves both. For x
-        # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
-        # true for tol ≥ 2**(aw−1)): two carry chains side by side, no negation; the second
-        # as x + tol < 2**aw (no carry out), so 2**aw − tol needs no subtractor of its own.
+        # read as signed with sign s, |x| > tol ⇔ y > tol (s = 0) or y ≥ tol (s = 1) with
+        # y = x ^ (s repeated): |x| = y + s. That is the carry out of y + ~tol + s: one carry
+        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s).
+        # ``tolerance`` and ``misses`` are taken here, in this clock (not pipelined).
         x = Mux(aligned2, d2, dd2)
-        over = (x > tol2) & ~(x + tol2)[aw]
+        sign = x[aw - 1]
+        y = x ^ sign.replicate(aw)
+        over = Signal()
+        m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
+        need = Mux(self.misses == 0, 0, self.misses - 1)    # misses − 1 (0 acts as 1)
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
@@ -718,7 +722,7 @@ class HallPlausibility(wiring.Component):
         m.d.sync += [
             self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count >= need2)),
+            self.fault.eq(miss & (count >= need)),
         ]
         return m
 

@@ -100,8 +100,9 @@ class HallSensorModel:
 
 class HallPlausibilityModel:
     """Model of :class:`~foc_servo.hdl.encoder.HallPlausibility`: the check as if it took all
-    its inputs in one clock, its outputs delayed by the gateware's pipeline (``latency − 1``
-    clocks)."""
+    its inputs in one clock, run on the inputs delayed by the gateware's pipeline (``latency − 1``
+    clocks) except ``tolerance`` and ``misses``, which the gateware's check takes in its own
+    clock."""
 
     #: Clocks from the inputs to the outputs (``HallPlausibility.latency``).
     LATENCY = 3
@@ -111,11 +112,17 @@ class HallPlausibilityModel:
         self.sector_q = self.have_q = self.aligned_q = self.dir_q = self.d_q = 0
         self.ref_ok = self.count = 0
         self.edge = self.miss = self.fault = self.error = 0
-        self._pipe = [(0, 0, 0, 0)] * (self.LATENCY - 1)
-        self._error = 0
+        # The pipeline's reset state: inputs that make no edge and no jump.
+        self._pipe = [dict(theta=0, aligned=0, restart=0, sector=0, valid=0, hold=0,
+                           offset=0)] * (self.LATENCY - 1)
 
     def tick(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance=8192,
              misses=1):
+        self._pipe.append(dict(theta=theta, aligned=aligned, restart=restart, sector=sector,
+                               valid=valid, hold=hold, offset=offset))
+        self._check(**self._pipe.pop(0), tolerance=tolerance, misses=misses)
+
+    def _check(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance, misses):
         turn, half = _TURN, _TURN >> 1
 
         def mag(x):
@@ -137,12 +144,10 @@ class HallPlausibilityModel:
                   and not rel_miss)
 
         need = 1 if misses == 0 else misses
-        error = self._error
         if edge and adjacent:
-            error = d - turn if d >= half else d
-        self._error = error
-        self._pipe.append((int(edge), int(miss), int(miss and self.count + 1 >= need), error))
-        self.edge, self.miss, self.fault, self.error = self._pipe.pop(0)
+            self.error = d - turn if d >= half else d
+        self.edge, self.miss = int(edge), int(miss)
+        self.fault = int(miss and self.count + 1 >= need)
         if edge:
             self.dir_q, self.ref_ok = int(fwd), int(adjacent and not restart)
             if adjacent:
