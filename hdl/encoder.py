@@ -20,7 +20,7 @@ Z offset ``z = Qz·cpr + Rz`` is added at the output: ``θ = θm + Qz + (rm + Rz
 """
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed
-from amaranth.lib import enum, wiring
+from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
@@ -176,22 +176,15 @@ def _add(a, b, cin):
     return (Cat(cin, a) + Cat(cin, b))[1:len(a) + 1]
 
 
-def _step(up, x, step, comp, ge_comp, lt_step):
-    """One modular step of ``x`` (``0 ≤ x < cpr``) by ``±step``, with ``comp = cpr − step``:
-    up ``x ≥ comp ? x − comp : x + step``, down ``x < step ? x + comp : x − step``, on one adder.
+def _step(up, x, step, ncomp, ge_comp, lt_step):
+    """One modular step of ``x`` (``0 ≤ x < cpr``) by ``±step``, with ``ncomp = step − cpr``
+    (negative, modulo ``2**len(x)``): up ``x ≥ cpr − step ? x + ncomp : x + step``, down
+    ``x < step ? x − ncomp : x − step``, on one adder (add going up, subtract going down).
     Returns the new value and the carry-in taken (up: the wrap; down: no wrap)."""
     wrap = Mux(up, ge_comp, lt_step)
-    neg = up == wrap                    # up and wrapping, or down and not wrapping: subtract
-    operand = Mux(wrap, comp, step)
+    operand = Mux(wrap, ncomp, step)
     mask = (1 << len(x)) - 1
-    return _add(x, operand ^ Mux(neg, mask, 0), neg), neg
-
-
-class _Config(enum.Enum, shape=2):
-    IDLE = 0
-    DIV_P = 1       # pole_pairs·2**16 / cpr: load, then DIVISION_STEPS steps
-    DIV_Z = 2       # (Qp, Rp) taken; z_offset·2**16 / cpr: load, then DIVISION_STEPS steps
-    COMMIT = 3
+    return _add(x, operand ^ Mux(up, 0, mask), ~up), up == wrap
 
 
 def _check_z_gate(owner, z_gate):
@@ -282,8 +275,9 @@ class QuadratureDecoder(wiring.Component):
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
         Clocks from a change of the configuration inputs (decoder idle) to the new configuration
-        being visible on the outputs: ``2·(DIVISION_STEPS + 1) + 2`` (36): the clock that
-        takes the change in, two divisions of a load and 16 steps each, the commit.
+        being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
+        change in, two divisions of 16 steps, five clocks of per-configuration constants on
+        the divisions' subtractor (the last one the commit).
     """
 
     latency = 1
@@ -307,7 +301,7 @@ class QuadratureDecoder(wiring.Component):
 
     @property
     def config_latency(self):
-        return 2 * (DIVISION_STEPS + 1) + 2
+        return 2 * DIVISION_STEPS + 6
 
     def elaborate(self, platform):
         m = Module()
@@ -318,81 +312,104 @@ class QuadratureDecoder(wiring.Component):
         pp0 = self.pole_pairs.init
         z0 = self.z_offset.init
         qp0, rp0, qz0, rz0, valid0 = angle_constants(lines0, pp0, z0)
+        cpr0 = 4 * lines0
         pp_q = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_q = Signal(CPR_WIDTH, init=z0)
         qp = Signal(aw, init=qp0)
         rp = Signal(CPR_WIDTH, init=rp0)
         qz = Signal(aw, init=qz0)
-        rz = Signal(CPR_WIDTH, init=rz0)
         valid = Signal(init=valid0)
-        # cpr − Rz, cpr − z, cpr − Rp, cpr − pole_pairs, cpr − 1: the wrap tests of the
-        # position steps and of the output sums as one comparison each, on registers. The
-        # remainders Rz, Rp are below cpr (0 for cpr = 0), but z and pole_pairs may exceed cpr
-        # in an invalid configuration: cpr − z and cpr − pole_pairs are signed, so that
-        # em ≥ cpr − z stays em + z ≥ cpr there too (an unsigned difference would wrap).
-        cpr_rz = Signal(CPR_WIDTH + 1, init=4 * lines0 - rz0)
-        cpr_z = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - z0)
-        cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
-        cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
-        cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)
+        # The wrap tests of the position steps and of the output sums as one carry chain each,
+        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr). Rp − cpr and
+        # pole_pairs − cpr are used with counting only (a valid configuration: −cpr … −1,
+        # modulo 2**18); Rz − cpr is signed and exact in every configuration (Rz < 2**18 may
+        # exceed cpr in an invalid one). cpr − z for e, signed (z may exceed cpr); cpr − 1 for
+        # the count's wrap.
+        n_rp = Signal(CPR_WIDTH, init=(rp0 - cpr0) % (1 << CPR_WIDTH))
+        n_pp = Signal(CPR_WIDTH, init=(pp0 - cpr0) % (1 << CPR_WIDTH))
+        n_rz = Signal(signed(CPR_WIDTH + 1), init=rz0 - cpr0)
+        cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
+        cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
         # Pending configuration while the divisions run. When idle the pending values equal the
         # committed ones (a commit copies them; they start equal), so the inputs are compared
         # with them alone; whether ``lines`` or ``pole_pairs`` change is noted when the change
         # is taken in (``lp_changed``): then nothing counts until the commit, which clears the
-        # position (the step constants Qp, Rp are replaced before it).
+        # position (the step constants are replaced before it). For a change of ``z_offset``
+        # alone the step constants are rewritten with the values they hold.
         lines_p = Signal(LINES_WIDTH, init=lines0)
         pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_p = Signal(CPR_WIDTH, init=z0)
         lp_changed = Signal()
-        state = Signal(_Config)
+        pp_ok = Signal()                # pole_pairs < cpr (pending)
+        z_ok = Signal()                 # z_offset < cpr (pending)
         cpr_p = Cat(Const(0, 2), lines_p)
 
-        # The two divisions, n·2**16 / cpr (n = pole_pairs, then z_offset), restoring, one
-        # quotient bit per clock in place on the working registers (wq, wr): wr starts as n,
-        # each step doubles it and subtracts cpr where that fits (see divide_angle). In a valid
-        # configuration wr < cpr throughout. (Qp, Rp) go straight to qp, rp when the second
-        # division starts: unchanged values unless lines or pole_pairs changed, and then
-        # nothing counts.
-        timer = Signal(range(DIVISION_STEPS + 1))
+        # One subtractor, ``t − cpr``, serves the two divisions n·2**16 / cpr (n = pole_pairs,
+        # then z_offset: restoring, one quotient bit per clock, in place on the working
+        # registers wq, wr: wr starts as n, each step doubles it and subtracts cpr where that
+        # fits, see divide_angle) and, one per clock in between, the constants above. The
+        # sequence, by ``timer`` (0: idle; the change is taken in as it goes to 1):
+        #   1       t = 0:             cpr − 1 = ~(0 − cpr)
+        #   2       t = pole_pairs:    pole_pairs − cpr, pole_pairs < cpr; wr = pole_pairs
+        #   3 … 18  t = 2·wr:          the 16 steps of pole_pairs·2**16 / cpr
+        #   19      t = wr:            Rp − cpr; Qp, Rp taken
+        #   20      t = z_offset:      z_offset < cpr; wr = z_offset
+        #   21 … 36 t = 2·wr:          the 16 steps of z_offset·2**16 / cpr
+        #   37      t = wr:            Rz − cpr; Qz taken; commit
+        steps = DIVISION_STEPS
+        t_p, t_qp, t_z, t_commit = 2, steps + 3, steps + 4, 2 * steps + 5
+        timer = Signal(range(t_commit + 1))
         wq = Signal(aw)
         wr = Signal(CPR_WIDTH)
-        trial = Cat(Const(0, 1), wr)                    # 2·wr, CPR_WIDTH + 1 bits
-        diff = Signal(CPR_WIDTH + 2)
+        dividing = Signal()             # timer in 3 … 18 or 21 … 36: a division step
+        sub_t = Signal(CPR_WIDTH + 1)
+        diff = Signal(signed(CPR_WIDTH + 2))
         fits = ~diff[-1]
+        with m.Switch(timer):
+            with m.Case(1):
+                m.d.comb += sub_t.eq(0)
+            with m.Case(t_p):
+                m.d.comb += sub_t.eq(pp_p)
+            with m.Case(t_z):
+                m.d.comb += sub_t.eq(z_p)
+            with m.Case(t_qp, t_commit):
+                m.d.comb += sub_t.eq(wr)
+            with m.Default():
+                m.d.comb += [sub_t.eq(Cat(Const(0, 1), wr)), dividing.eq(self.busy)]
         m.d.comb += [
-            diff.eq(trial - cpr_p),
-            self.busy.eq(state != _Config.IDLE),
+            diff.eq(sub_t - cpr_p),
+            self.busy.eq(timer != 0),
             self.config_error.eq(~valid),
         ]
         commit = Signal()
-        with m.Switch(state):
-            with m.Case(_Config.IDLE):
-                lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
-                with m.If(lp_change | (self.z_offset != z_p)):
-                    m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                                 z_p.eq(self.z_offset), lp_changed.eq(lp_change),
-                                 timer.eq(0), state.eq(_Config.DIV_P)]
-            with m.Case(_Config.DIV_P, _Config.DIV_Z):
-                m.d.sync += timer.eq(timer + 1)
-                with m.If(timer == 0):
-                    m.d.sync += wr.eq(Mux(state == _Config.DIV_P, pp_p, z_p))
-                with m.Else():
-                    m.d.sync += [wr.eq(Mux(fits, diff, trial)), wq.eq(Cat(fits, wq[:-1]))]
-                with m.If((state == _Config.DIV_Z) & (timer == 0)):
-                    m.d.sync += [qp.eq(wq), rp.eq(wr)]
-                with m.If(timer == DIVISION_STEPS):
-                    m.d.sync += [timer.eq(0), state.eq(state.as_value() + 1)]
-            with m.Case(_Config.COMMIT):
-                m.d.comb += commit.eq(1)
-                m.d.sync += state.eq(_Config.IDLE)
-        new_valid = ((lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p))
+        with m.If(~self.busy):
+            lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
+            with m.If(lp_change | (self.z_offset != z_p)):
+                m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
+                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1)]
+        with m.Elif(timer == t_commit):
+            m.d.comb += commit.eq(1)
+            m.d.sync += timer.eq(0)
+        with m.Else():
+            m.d.sync += timer.eq(timer + 1)
+        with m.If(dividing):
+            m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
+        with m.Switch(timer):
+            with m.Case(1):
+                m.d.sync += cpr_m1.eq(~diff[:CPR_WIDTH])
+            with m.Case(t_p):
+                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0), wr.eq(pp_p)]
+            with m.Case(t_qp):
+                m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr)]
+            with m.Case(t_z):
+                m.d.sync += [z_ok.eq(diff < 0), wr.eq(z_p)]
+        new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
         restart = Signal()
         m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                pp_q.eq(pp_p), z_q.eq(z_p), qz.eq(wq), rz.eq(wr),
-                valid.eq(new_valid), cpr_rz.eq(cpr_p - wr), cpr_z.eq(cpr_p - z_p),
-                cpr_rp.eq(cpr_p - rp), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
+                pp_q.eq(pp_p), z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
+                cpr_z.eq(cpr_p - z_p),
             ]
 
         # --- quadrature decoding ------------------------------------------------------------
@@ -424,19 +441,18 @@ class QuadratureDecoder(wiring.Component):
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
         rm = Signal(CPR_WIDTH)          # em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
-        # Each wrap test compares a register with a per-configuration constant, side by side
-        # with the candidate sums (em + p ≥ cpr ⇔ em ≥ cpr − p; rm − Rp < 0 ⇔ rm < Rp). One adder
-        # per counter serves both directions: the wrap test picks the operand (the step or
-        # cpr − step) and whether it is subtracted (see _step). Counting only happens with a
-        # valid configuration, where cpr − pole_pairs and cpr − Rp lie in 1 … cpr − 1.
+        # Each wrap test is the carry out of a register plus a per-configuration constant (or
+        # a comparison of two registers), side by side with the step's own adder (em + p ≥ cpr
+        # ⇔ carry out of em + (p − cpr); rm − Rp < 0 ⇔ rm < Rp). One adder per counter serves
+        # both directions: the wrap test picks the operand (the step or step − cpr), the
+        # direction whether it is subtracted (see _step).
         fwd_c = Signal()
         m.d.comb += fwd_c.eq(fwd)
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        em_next, _ = _step(fwd_c, em, pp_q, cpr_pp[:CPR_WIDTH], em >= cpr_pp[:CPR_WIDTH],
-                           em < pp_q)
-        rm_next, cin = _step(fwd_c, rm, rp, cpr_rp[:CPR_WIDTH], rm >= cpr_rp, rm < rp)
+        em_next, _ = _step(fwd_c, em, pp_q, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_q)
+        rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
         with m.If(valid & ~(self.busy & lp_changed) & (fwd | bwd)):
@@ -452,11 +468,11 @@ class QuadratureDecoder(wiring.Component):
 
         # --- outputs: the Z offset added to the electrical position -------------------------
         # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
-        # the registers alone (em ≥ cpr − z, rm ≥ cpr − Rz): one carry chain before the sums,
-        # not two.
+        # the registers alone (em ≥ cpr − z; rm + (Rz − cpr) ≥ 0): one carry chain before the
+        # sums, not two.
         m.d.comb += [
             self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
-            self.theta.eq(thm + qz + (rm >= cpr_rz)),
+            self.theta.eq(thm + qz + ~(rm + n_rz)[-1]),
         ]
         return m
 

@@ -306,6 +306,42 @@ def test_angle_constants_match_divmod():
     assert angle_constants(0, 1, 0)[:2] == (0xFFFF, 1 << 16)
 
 
+def test_decoder_invalid_configurations_theta_vs_model():
+    """Invalid configurations (z_offset or pole_pairs ≥ cpr, lines 0) leave whatever the 16
+    division steps give, remainders ≥ cpr included: the decoder's theta, e, count, busy and
+    config_error follow the model clock for clock through a sequence of them (and valid ones
+    in between), with counting pins."""
+    dut = QuadratureDecoder()
+    configs = [(1, 1, 5), (1, 3, 0), (0, 1, 0), (3, 12, 7), (997, 7, 3000), (2, 1, 200000),
+               (5000, 4, 19999), (1, 1, 3), (65535, 255, 262139), (7, 40, 1)]
+    dec = model.QuadratureDecoderModel()
+    names = ("theta", "e", "count", "busy", "config_error", "aligned")
+    mism = []
+
+    async def testbench(ctx):
+        pos = 0
+        for lines, pp, z in configs:
+            ctx.set(dut.lines, lines)
+            ctx.set(dut.pole_pairs, pp)
+            ctx.set(dut.z_offset, z)
+            for k in range(dut.config_latency + 40):
+                pos += 1 if k % 3 else -1
+                a, b = AB[pos % 4]
+                zz = int(k == dut.config_latency + 10)
+                ctx.set(dut.a, a)
+                ctx.set(dut.b, b)
+                ctx.set(dut.z, zz)
+                await ctx.tick()
+                dec.tick(a, b, zz, lines=lines, pole_pairs=pp, z_offset=z)
+                got = tuple(ctx.get(getattr(dut, n)) for n in names)
+                want = tuple(int(getattr(dec, n)) for n in names)
+                if got != want:
+                    mism.append(((lines, pp, z), k, got, want))
+
+    simulate(dut, [testbench], name="test_encoder_invalid_theta")
+    assert not mism, mism[:3]
+
+
 def test_divide_angle_is_divmod_for_every_valid_dividend():
     """The decoder's 16-step restoring division equals divmod(n·2**16, cpr) whenever n < cpr,
     over the whole range of cpr (random cases plus the extremes)."""

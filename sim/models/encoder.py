@@ -166,10 +166,10 @@ class QuadratureDecoderModel:
     division timing included."""
 
     IDLE = 0
-    #: Clocks after the take-in at which the step constants are replaced (the second division
-    #: starts) and at which the commit happens.
-    TAKE_P = DIVISION_STEPS + 2
-    COMMIT = 2 * (DIVISION_STEPS + 1) + 1
+    #: Clocks after the take-in at which the step constants are replaced (the first division
+    #: done) and at which the commit happens (the gateware's ``timer``).
+    TAKE_P = DIVISION_STEPS + 3
+    COMMIT = 2 * DIVISION_STEPS + 5
 
     def __init__(self, *, z_gate=None, lines=5000, pole_pairs=4, z_offset=0):
         self.z_gate = z_gate
