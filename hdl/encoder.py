@@ -109,8 +109,9 @@ class GlitchFilter(wiring.Component):
     """Per-bit glitch filter with a run-time length.
 
     Each bit of ``o`` follows the same bit of ``i`` once ``i`` has differed from ``o`` on
-    ``length`` consecutive clocks: it has a counter that counts the clocks with ``i ≠ o`` and is
-    cleared whenever ``i = o``; when the count reaches ``length`` the output takes the input.
+    ``length`` consecutive clocks: it has a down-counter that is loaded with ``length`` whenever
+    ``i = o`` (and when ``o`` flips) and counts the clocks with ``i ≠ o`` down; in the clock it
+    is at 1 or 0 with ``i ≠ o`` the output takes the input (an equality test, no comparator).
     ``length`` 0 and 1 both make ``o`` a one-clock register of ``i``.
 
     So a pulse (on the clocked input) shorter than ``length`` clocks never reaches ``o``, a pulse
@@ -118,8 +119,9 @@ class GlitchFilter(wiring.Component):
     1)``). An asynchronous pulse of ``d`` clock periods is sampled on ``floor(d)`` or
     ``ceil(d)`` clocks, so after the synchroniser pulses shorter than ``length − 1`` are always
     rejected and pulses of ``length + 1`` or more are always passed; to reject glitches of up to
-    ``n`` clocks, set ``length = n + 1``. A change of ``length`` applies from the next clock on,
-    to counts in progress too.
+    ``n`` clocks, set ``length = n + 1``. A change of ``length`` applies to the counts that begin
+    after it: a count runs with the ``length`` of the clock before its first clock with
+    ``i ≠ o`` (the counters start at 0 after reset: a first difference then passes at once).
 
     Parameters
     ----------
@@ -161,13 +163,13 @@ class GlitchFilter(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         for k in range(self._width):
-            cnt = Signal(range(self._max_length + 1), name=f"cnt{k}")
+            rem = Signal(range(self._max_length + 1), name=f"rem{k}")
             with m.If(self.i[k] == self.o[k]):
-                m.d.sync += cnt.eq(0)
-            with m.Elif(cnt + 1 >= self.length):
-                m.d.sync += [self.o[k].eq(self.i[k]), cnt.eq(0)]
+                m.d.sync += rem.eq(self.length)
+            with m.Elif(rem[1:] == 0):              # rem ≤ 1
+                m.d.sync += [self.o[k].eq(self.i[k]), rem.eq(self.length)]
             with m.Else():
-                m.d.sync += cnt.eq(cnt + 1)
+                m.d.sync += rem.eq(rem - 1)
         return m
 
 

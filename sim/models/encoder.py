@@ -63,19 +63,19 @@ class GlitchFilterModel:
     def __init__(self, width=1):
         self.width = width
         self.o = 0
-        self.cnt = [0] * width
+        self.rem = [0] * width
 
     def tick(self, i, length):
         o = self.o
         for k in range(self.width):
             ik, ok = (i >> k) & 1, (o >> k) & 1
             if ik == ok:
-                self.cnt[k] = 0
-            elif self.cnt[k] + 1 >= length:
+                self.rem[k] = length
+            elif self.rem[k] <= 1:
                 self.o ^= 1 << k
-                self.cnt[k] = 0
+                self.rem[k] = length
             else:
-                self.cnt[k] += 1
+                self.rem[k] -= 1
         return self.o
 
 
