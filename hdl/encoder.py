@@ -527,14 +527,19 @@ class HallSensor(wiring.Component):
         m = Module()
         centres = hall_centres(ANGLE.width)
         m.d.sync += self.fault.eq(~self.hold & ((self.h == 0) | (self.h == 7)))
+        # The centre picked by the code, then one adder (not one per code and a mux).
+        centre = Signal(ANGLE.width)
+        sector = Signal(range(6))
         with m.Switch(self.h):
             for k, code in enumerate(HALL_CODES):
                 with m.Case(code):
-                    m.d.sync += [
-                        self.sector.eq(k),
-                        self.theta.eq(centres[k] + self.offset),
-                        self.valid.eq(1),
-                    ]
+                    m.d.comb += [centre.eq(centres[k]), sector.eq(k)]
+        with m.If((self.h != 0) & (self.h != 7)):
+            m.d.sync += [
+                self.sector.eq(sector),
+                self.theta.eq(centre + self.offset),
+                self.valid.eq(1),
+            ]
         return m
 
 
