@@ -851,10 +851,12 @@ class EncoderFrontEnd(wiring.Component):
                                            stages=self.sync_stages)
         m.d.comb += [flt.i.eq(pins), flt.length.eq(self.length)]
 
-        settle = Signal(range(self._max_length + 5))
+        # Clocks since reset minus 3: ready once it reaches length (one comparison, no
+        # length + 4 adder).
+        settle = Signal(range(-3, self._max_length + 1), init=-3)
         with m.If(~self.ready):
             m.d.sync += settle.eq(settle + 1)
-            with m.If(settle + 1 >= self.length + 4):
+            with m.If(settle >= self.length):
                 m.d.sync += self.ready.eq(1)
 
         m.d.comb += [
