@@ -315,7 +315,6 @@ class QuadratureDecoder(wiring.Component):
         z0 = self.z_offset.init
         qp0, rp0, qz0, rz0, valid0 = angle_constants(lines0, pp0, z0)
         cpr0 = 4 * lines0
-        pp_q = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_q = Signal(CPR_WIDTH, init=z0)
         qp = Signal(aw, init=qp0)
         rp = Signal(CPR_WIDTH, init=rp0)
@@ -350,14 +349,15 @@ class QuadratureDecoder(wiring.Component):
         # then z_offset: restoring, one quotient bit per clock, in place on the working
         # registers wq, wr: wr starts as n, each step doubles it and subtracts cpr where that
         # fits, see divide_angle) and, one per clock in between, the constants above. The
-        # sequence, by ``timer`` (0: idle; the change is taken in as it goes to 1):
-        #   1       t = 0:             cpr − 1 = ~(0 − cpr)
-        #   2       t = pole_pairs:    pole_pairs − cpr, pole_pairs < cpr; wr = pole_pairs
+        # sequence, by ``timer`` (0: idle; the change is taken in as it goes to 1, wr = 0). The
+        # operand ``t`` is always wr (its value in the first column), or 2·wr in a step:
+        #   1       t = 0:             cpr − 1 = ~(0 − cpr); wr = pole_pairs
+        #   2       t = pole_pairs:    pole_pairs − cpr, pole_pairs < cpr
         #   3 … 18  t = 2·wr:          the 16 steps of pole_pairs·2**16 / cpr
-        #   19      t = wr:            Rp − cpr; Qp, Rp taken
-        #   20      t = z_offset:      z_offset < cpr; wr = z_offset
+        #   19      t = Rp:            Rp − cpr; Qp, Rp taken; wr = z_offset
+        #   20      t = z_offset:      z_offset < cpr
         #   21 … 36 t = 2·wr:          the 16 steps of z_offset·2**16 / cpr
-        #   37      t = wr:            Rz − cpr; Qz taken; commit
+        #   37      t = Rz:            Rz − cpr; Qz taken; commit
         steps = DIVISION_STEPS
         t_p, t_qp, t_z, t_commit = 2, steps + 3, steps + 4, 2 * steps + 5
         timer = Signal(range(t_commit + 1))
@@ -368,17 +368,12 @@ class QuadratureDecoder(wiring.Component):
         diff = Signal(signed(CPR_WIDTH + 2))
         fits = ~diff[-1]
         with m.Switch(timer):
-            with m.Case(1):
-                m.d.comb += sub_t.eq(0)
-            with m.Case(t_p):
-                m.d.comb += sub_t.eq(pp_p)
-            with m.Case(t_z):
-                m.d.comb += sub_t.eq(z_p)
-            with m.Case(t_qp, t_commit):
-                m.d.comb += sub_t.eq(wr)
+            with m.Case(0, 1, t_p, t_qp, t_z, t_commit):
+                pass
             with m.Default():
-                m.d.comb += [sub_t.eq(Cat(Const(0, 1), wr)), dividing.eq(self.busy)]
+                m.d.comb += dividing.eq(1)
         m.d.comb += [
+            sub_t.eq(Mux(dividing, Cat(Const(0, 1), wr), wr)),
             diff.eq(sub_t - cpr_p),
             self.busy.eq(timer != 0),
             self.config_error.eq(~valid),
@@ -388,7 +383,8 @@ class QuadratureDecoder(wiring.Component):
             lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
             with m.If(lp_change | (self.z_offset != z_p)):
                 m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1)]
+                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1),
+                             wr.eq(0)]
         with m.Elif(timer == t_commit):
             m.d.comb += commit.eq(1)
             m.d.sync += timer.eq(0)
@@ -398,19 +394,19 @@ class QuadratureDecoder(wiring.Component):
             m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
         with m.Switch(timer):
             with m.Case(1):
-                m.d.sync += cpr_m1.eq(~diff[:CPR_WIDTH])
+                m.d.sync += [cpr_m1.eq(~diff[:CPR_WIDTH]), wr.eq(pp_p)]
             with m.Case(t_p):
-                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0), wr.eq(pp_p)]
+                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0)]
             with m.Case(t_qp):
-                m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr)]
+                m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr), wr.eq(z_p)]
             with m.Case(t_z):
-                m.d.sync += [z_ok.eq(diff < 0), wr.eq(z_p)]
+                m.d.sync += z_ok.eq(diff < 0)
         new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
         restart = Signal()
         m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                pp_q.eq(pp_p), z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
+                z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
                 cpr_z.eq(cpr_p - z_p),
             ]
 
@@ -453,7 +449,8 @@ class QuadratureDecoder(wiring.Component):
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        em_next, _ = _step(fwd_c, em, pp_q, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_q)
+        # (pole_pairs from the pending register: the committed value whenever anything counts.)
+        em_next, _ = _step(fwd_c, em, pp_p, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_p)
         rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
