@@ -321,14 +321,14 @@ class QuadratureDecoder(wiring.Component):
         qz = Signal(aw, init=qz0)
         valid = Signal(init=valid0)
         # The wrap tests of the position steps and of the output sums as one carry chain each,
-        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr). Rp − cpr and
-        # pole_pairs − cpr are used with counting only (a valid configuration: −cpr … −1,
-        # modulo 2**18); Rz − cpr is signed and exact in every configuration (Rz < 2**18 may
-        # exceed cpr in an invalid one). cpr − z for e, signed (z may exceed cpr); cpr − 1 for
-        # the count's wrap.
+        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (c − cpr is
+        # −cpr … −1 modulo 2**18 in a valid configuration). In an invalid one (Rz < 2**18 may
+        # then exceed cpr) the angle's carry is still that of rm + ((Rz − cpr) mod 2**18), as
+        # the model has it. cpr − z for e, signed (z may exceed cpr); cpr − 1 for the count's
+        # wrap.
         n_rp = Signal(CPR_WIDTH, init=(rp0 - cpr0) % (1 << CPR_WIDTH))
         n_pp = Signal(CPR_WIDTH, init=(pp0 - cpr0) % (1 << CPR_WIDTH))
-        n_rz = Signal(signed(CPR_WIDTH + 1), init=rz0 - cpr0)
+        n_rz = Signal(CPR_WIDTH, init=(rz0 - cpr0) % (1 << CPR_WIDTH))
         cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
         cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
         # Pending configuration while the divisions run. When idle the pending values equal the
@@ -467,11 +467,11 @@ class QuadratureDecoder(wiring.Component):
 
         # --- outputs: the Z offset added to the electrical position -------------------------
         # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
-        # the registers alone (em ≥ cpr − z; rm + (Rz − cpr) ≥ 0): one carry chain before the
-        # sums, not two.
+        # the registers alone (em ≥ cpr − z; the carry out of rm + (Rz − cpr)): one carry chain
+        # before the sums, not two.
         m.d.comb += [
             self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
-            self.theta.eq(thm + qz + ~(rm + n_rz)[-1]),
+            self.theta.eq(thm + qz + (rm + n_rz)[CPR_WIDTH]),
         ]
         return m
 

@@ -199,7 +199,11 @@ class QuadratureDecoderModel:
 
     @property
     def theta(self):
-        return (self.thm + self.qz + (self.rm + self.rz >= self.cpr)) % _TURN
+        # rm + Rz ≥ cpr, as the carry out of rm + ((Rz − cpr) mod 2**18): the same in a valid
+        # configuration (Rz < cpr); in an invalid one Rz may exceed cpr.
+        mask = (1 << CPR_WIDTH) - 1
+        carry = (self.rm + ((self.rz - self.cpr) & mask)) >> CPR_WIDTH
+        return (self.thm + self.qz + carry) % _TURN
 
     def tick(self, a, b, z, *, hold=0, lines=5000, pole_pairs=4, z_offset=0, realign=0):
         cpr_mask = (1 << CPR_WIDTH) - 1
