@@ -215,8 +215,8 @@ class QuadratureDecoder(wiring.Component):
     taken in by a sequence of two divisions (``busy`` high for ``config_latency − 1`` clocks)
     and then committed at once. A commit that changes ``lines`` or ``pole_pairs``, or makes
     the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
-    from the clock after such a change is taken in until the commit nothing counts: the
-    divisions replace the step constants in place); a commit that only changes ``z_offset``
+    from the clock after such a change is taken in until the commit nothing counts: the step
+    constants are replaced before the commit); a commit that only changes ``z_offset``
     moves ``e`` and ``theta`` to the new offset at once (counting goes on meanwhile). The
     configuration is valid when ``lines ≥ 1``, ``1 ≤ pole_pairs < 4·lines`` and ``z_offset <
     4·lines`` (``config_error`` low); while invalid, nothing counts and nothing aligns.
@@ -363,15 +363,17 @@ class QuadratureDecoder(wiring.Component):
         timer = Signal(range(t_commit + 1))
         wq = Signal(aw)
         wr = Signal(CPR_WIDTH)
-        dividing = Signal()             # timer in 3 … 18 or 21 … 36: a division step
+        # timer in 3 … 18 or 21 … 36: a division step (a register, so that the operand's
+        # select does not decode the timer in front of the subtractor)
+        dividing = Signal()
         sub_t = Signal(CPR_WIDTH + 1)
         diff = Signal(signed(CPR_WIDTH + 2))
         fits = ~diff[-1]
         with m.Switch(timer):
-            with m.Case(0, 1, t_p, t_qp, t_z, t_commit):
-                pass
-            with m.Default():
-                m.d.comb += dividing.eq(1)
+            with m.Case(t_p, t_z):
+                m.d.sync += dividing.eq(1)
+            with m.Case(t_qp - 1, t_commit - 1):
+                m.d.sync += dividing.eq(0)
         m.d.comb += [
             sub_t.eq(Mux(dividing, Cat(Const(0, 1), wr), wr)),
             diff.eq(sub_t - cpr_p),
