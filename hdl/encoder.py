@@ -7,8 +7,8 @@ Hall sector decoder, the exact electrical angle and an encoder/Hall plausibility
 The electrical position ``e`` counts in 1/cpr of an electrical turn (``cpr = 4·lines``): a
 mechanical count moves it by ``pole_pairs`` modulo ``cpr``. The angle is kept exact, never
 accumulated from a rounded increment: with the constants ``pole_pairs·2**16 = Qp·cpr + Rp``
-(computed with the foundation :class:`~.divider.Divider` whenever ``lines`` or ``pole_pairs``
-change) the decoder holds ``(θm, rm)`` with ``em·2**16 = θm·cpr + rm (mod 2**16·cpr)``,
+(computed by the decoder's own restoring division, :func:`divide_angle`, whenever ``lines`` or
+``pole_pairs`` change) the decoder holds ``(θm, rm)`` with ``em·2**16 = θm·cpr + rm (mod 2**16·cpr)``,
 ``0 ≤ rm < cpr``, and steps them Bresenham-style::
 
     up:    rm += Rp; c = rm ≥ cpr; rm −= c·cpr; θm += Qp + c   (mod 2**16)
@@ -20,17 +20,16 @@ Z offset ``z = Qz·cpr + Rz`` is added at the output: ``θ = θm + Qz + (rm + Rz
 """
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed
-from amaranth.lib import enum, wiring
+from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
-from .divider import Divider
 from .fixed import check_param, BinaryAngle
 
 __all__ = [
     "GlitchFilter", "QuadratureDecoder", "HallSensor", "HallPlausibility", "EncoderFrontEnd",
     "HALL_CODES", "hall_centres", "hall_boundaries", "quadrature_phase", "angle_constants",
-    "ANGLE", "DIVIDER_WAIT", "LINES_WIDTH", "POLE_PAIRS_WIDTH", "CPR_WIDTH",
+    "divide_angle", "ANGLE", "DIVISION_STEPS", "LINES_WIDTH", "POLE_PAIRS_WIDTH", "CPR_WIDTH",
 ]
 
 #: The electrical angle format of the whole design.
@@ -68,51 +67,51 @@ def quadrature_phase(a, b):
 
 
 def angle_constants(lines, pole_pairs, z_offset):
-    """``(Qp, Rp, Qz, Rz, valid)`` for a configuration, as the decoder's divider computes them.
+    """``(Qp, Rp, Qz, Rz, valid)`` for a configuration, as the decoder's divisions compute them.
 
-    ``Qp, Rp = divmod(pole_pairs·2**16, cpr)``, ``Qz, Rz = divmod(z_offset·2**16, cpr)``, with the
-    quotients kept modulo ``2**16`` and the remainders modulo ``2**CPR_WIDTH`` (the register
-    widths); a zero ``cpr`` gives the divider's division-by-zero result (all-ones quotient, zero
-    remainder). ``valid`` is the condition under which the decoder counts and may align:
-    ``lines ≥ 1``, ``1 ≤ pole_pairs < cpr`` and ``z_offset < cpr``.
+    ``Qp, Rp = divmod(pole_pairs·2**16, cpr)``, ``Qz, Rz = divmod(z_offset·2**16, cpr)`` in a
+    valid configuration; in an invalid one whatever :func:`divide_angle` leaves. ``valid`` is
+    the condition under which the decoder counts and may align: ``lines ≥ 1``,
+    ``1 ≤ pole_pairs < cpr`` and ``z_offset < cpr``.
     """
     cpr = 4 * lines
-    q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
-
-    def div(n):
-        if cpr == 0:
-            return q_mask, 0
-        q, r = divmod(n << ANGLE.width, cpr)
-        return q & q_mask, r & r_mask
-
-    qp, rp = div(pole_pairs)
-    qz, rz = div(z_offset)
+    qp, rp = divide_angle(pole_pairs, cpr)
+    qz, rz = divide_angle(z_offset, cpr)
     valid = lines >= 1 and 1 <= pole_pairs < cpr and z_offset < cpr
     return qp, rp, qz, rz, bool(valid)
 
 
-def _divider():
-    """The decoder's divider: ``pole_pairs·2**16`` or ``z_offset·2**16`` by ``cpr``."""
-    return Divider(width=CPR_WIDTH + ANGLE.width, divisor_width=CPR_WIDTH, signed=False)
+#: Quotient bits of the decoder's configuration divisions, one per clock: the angle's width.
+DIVISION_STEPS = ANGLE.width
 
 
-def _divider_latency():
-    div = _divider()
-    div._MustUse__silence = True        # only asked for its latency, never elaborated
-    return div.latency
+def divide_angle(n, cpr):
+    """``(q, r)`` as the decoder's restoring division of ``n·2**16`` by ``cpr`` leaves them.
 
-
-#: Clocks from the start of each of the decoder's divisions to taking its result (the divider's
-#: latency + 1: the result is held until taken, so a divider up to 1 clock slower still works).
-DIVIDER_WAIT = _divider_latency() + 1
+    The division runs in place on the decoder's own 16 + 18-bit working registers: the partial
+    remainder starts as ``n`` (the dividend's low 16 bits are zeros) and each of the 16 steps
+    doubles it and subtracts ``cpr`` if that fits, shifting the quotient bit in. For
+    ``n < cpr`` (every valid configuration) this is ``divmod(n·2**16, cpr)``; otherwise (an
+    invalid configuration, ``config_error``) the remainder leaves its 18 bits and ``(q, r)`` is
+    whatever the 16 steps leave (for ``cpr = 0``: ``q`` all ones), reproduced here bit for bit.
+    """
+    q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
+    q, r = 0, n & r_mask
+    for _ in range(DIVISION_STEPS):
+        trial = r << 1
+        fits = trial >= cpr
+        r = (trial - cpr if fits else trial) & r_mask
+        q = ((q << 1) | fits) & q_mask
+    return q, r
 
 
 class GlitchFilter(wiring.Component):
     """Per-bit glitch filter with a run-time length.
 
     Each bit of ``o`` follows the same bit of ``i`` once ``i`` has differed from ``o`` on
-    ``length`` consecutive clocks: it has a counter that counts the clocks with ``i ≠ o`` and is
-    cleared whenever ``i = o``; when the count reaches ``length`` the output takes the input.
+    ``length`` consecutive clocks: it has a down-counter that is loaded with ``length`` whenever
+    ``i = o`` (and when ``o`` flips) and counts the clocks with ``i ≠ o`` down; in the clock it
+    is at 1 or 0 with ``i ≠ o`` the output takes the input (an equality test, no comparator).
     ``length`` 0 and 1 both make ``o`` a one-clock register of ``i``.
 
     So a pulse (on the clocked input) shorter than ``length`` clocks never reaches ``o``, a pulse
@@ -120,8 +119,9 @@ class GlitchFilter(wiring.Component):
     1)``). An asynchronous pulse of ``d`` clock periods is sampled on ``floor(d)`` or
     ``ceil(d)`` clocks, so after the synchroniser pulses shorter than ``length − 1`` are always
     rejected and pulses of ``length + 1`` or more are always passed; to reject glitches of up to
-    ``n`` clocks, set ``length = n + 1``. A change of ``length`` applies from the next clock on,
-    to counts in progress too.
+    ``n`` clocks, set ``length = n + 1``. A change of ``length`` applies to the counts that begin
+    after it: a count runs with the ``length`` of the clock before its first clock with
+    ``i ≠ o`` (the counters start at 0 after reset: a first difference then passes at once).
 
     Parameters
     ----------
@@ -163,13 +163,13 @@ class GlitchFilter(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         for k in range(self._width):
-            cnt = Signal(range(self._max_length + 1), name=f"cnt{k}")
+            rem = Signal(range(self._max_length + 1), name=f"rem{k}")
             with m.If(self.i[k] == self.o[k]):
-                m.d.sync += cnt.eq(0)
-            with m.Elif(cnt + 1 >= self.length):
-                m.d.sync += [self.o[k].eq(self.i[k]), cnt.eq(0)]
+                m.d.sync += rem.eq(self.length)
+            with m.Elif(rem[1:] == 0):              # rem ≤ 1
+                m.d.sync += [self.o[k].eq(self.i[k]), rem.eq(self.length)]
             with m.Else():
-                m.d.sync += cnt.eq(cnt + 1)
+                m.d.sync += rem.eq(rem - 1)
         return m
 
 
@@ -178,23 +178,15 @@ def _add(a, b, cin):
     return (Cat(cin, a) + Cat(cin, b))[1:len(a) + 1]
 
 
-def _step(up, x, step, comp, ge_comp, lt_step):
-    """One modular step of ``x`` (``0 ≤ x < cpr``) by ``±step``, with ``comp = cpr − step``:
-    up ``x ≥ comp ? x − comp : x + step``, down ``x < step ? x + comp : x − step``, on one adder.
+def _step(up, x, step, ncomp, ge_comp, lt_step):
+    """One modular step of ``x`` (``0 ≤ x < cpr``) by ``±step``, with ``ncomp = step − cpr``
+    (negative, modulo ``2**len(x)``): up ``x ≥ cpr − step ? x + ncomp : x + step``, down
+    ``x < step ? x − ncomp : x − step``, on one adder (add going up, subtract going down).
     Returns the new value and the carry-in taken (up: the wrap; down: no wrap)."""
     wrap = Mux(up, ge_comp, lt_step)
-    neg = up == wrap                    # up and wrapping, or down and not wrapping: subtract
-    operand = Mux(wrap, comp, step)
+    operand = Mux(wrap, ncomp, step)
     mask = (1 << len(x)) - 1
-    return _add(x, operand ^ Mux(neg, mask, 0), neg), neg
-
-
-class _Config(enum.Enum, shape=3):
-    IDLE = 0
-    START_P = 1
-    WAIT_P = 2
-    START_Z = 3
-    WAIT_Z = 4
+    return _add(x, operand ^ Mux(up, 0, mask), ~up), up == wrap
 
 
 def _check_z_gate(owner, z_gate):
@@ -222,8 +214,10 @@ class QuadratureDecoder(wiring.Component):
     **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs. A change is
     taken in by a sequence of two divisions (``busy`` high for ``config_latency − 1`` clocks)
     and then committed at once. A commit that changes ``lines`` or ``pole_pairs``, or makes
-    the configuration invalid, clears ``aligned``, ``count`` and the electrical position; a
-    commit that only changes ``z_offset`` moves ``e`` and ``theta`` to the new offset at once. The
+    the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
+    from the clock after such a change is taken in until the commit nothing counts: the step
+    constants are replaced before the commit); a commit that only changes ``z_offset``
+    moves ``e`` and ``theta`` to the new offset at once (counting goes on meanwhile). The
     configuration is valid when ``lines ≥ 1``, ``1 ≤ pole_pairs < 4·lines`` and ``z_offset <
     4·lines`` (``config_error`` low); while invalid, nothing counts and nothing aligns.
 
@@ -283,9 +277,9 @@ class QuadratureDecoder(wiring.Component):
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
         Clocks from a change of the configuration inputs (decoder idle) to the new configuration
-        being visible on the outputs: ``2·divider_wait + 5`` (79).
-    divider_wait : int
-        Clocks from the start of each division to taking its result (37).
+        being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
+        change in, two divisions of 16 steps, five clocks of per-configuration constants on
+        the divisions' subtractor (the last one the commit).
     """
 
     latency = 1
@@ -308,17 +302,11 @@ class QuadratureDecoder(wiring.Component):
     z_gate = property(lambda self: self._z_gate)
 
     @property
-    def divider_wait(self):
-        """Clocks from the start of a division to taking its result (divider latency + 2)."""
-        return DIVIDER_WAIT
-
-    @property
     def config_latency(self):
-        return 2 * self.divider_wait + 5
+        return 2 * DIVISION_STEPS + 6
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.divider = div = _divider()
         aw = ANGLE.width
 
         # --- configuration: committed values and their angle constants ----------------------
@@ -326,86 +314,102 @@ class QuadratureDecoder(wiring.Component):
         pp0 = self.pole_pairs.init
         z0 = self.z_offset.init
         qp0, rp0, qz0, rz0, valid0 = angle_constants(lines0, pp0, z0)
-        pp_q = Signal(POLE_PAIRS_WIDTH, init=pp0)
+        cpr0 = 4 * lines0
         z_q = Signal(CPR_WIDTH, init=z0)
         qp = Signal(aw, init=qp0)
         rp = Signal(CPR_WIDTH, init=rp0)
         qz = Signal(aw, init=qz0)
-        rz = Signal(CPR_WIDTH, init=rz0)
         valid = Signal(init=valid0)
-        # cpr − Rz, cpr − z, cpr − Rp, cpr − pole_pairs, cpr − 1: the wrap tests of the
-        # position steps and of the output sums as one comparison each, on registers. The
-        # remainders Rz, Rp are below cpr (0 for cpr = 0), but z and pole_pairs may exceed cpr
-        # in an invalid configuration: cpr − z and cpr − pole_pairs are signed, so that
-        # em ≥ cpr − z stays em + z ≥ cpr there too (an unsigned difference would wrap).
-        cpr_rz = Signal(CPR_WIDTH + 1, init=4 * lines0 - rz0)
-        cpr_z = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - z0)
-        cpr_rp = Signal(CPR_WIDTH + 1, init=4 * lines0 - rp0)
-        cpr_pp = Signal(signed(CPR_WIDTH + 2), init=4 * lines0 - pp0)
-        cpr_m1 = Signal(CPR_WIDTH, init=4 * lines0 - 1)
-        # Pending configuration and its first quotient while the divisions run. When idle the
-        # pending values equal the committed ones (a commit copies them; they start equal), so
-        # the inputs are compared with them alone; whether ``lines`` or ``pole_pairs`` change is
-        # noted when the change is taken in (``lp_changed``) for the commit.
+        # The wrap tests of the position steps and of the output sums as one carry chain each,
+        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (c − cpr is
+        # −cpr … −1 modulo 2**18 in a valid configuration). In an invalid one (Rz < 2**18 may
+        # then exceed cpr) the angle's carry is still that of rm + ((Rz − cpr) mod 2**18), as
+        # the model has it. cpr − z for e, signed (z may exceed cpr); cpr − 1 for the count's
+        # wrap.
+        n_rp = Signal(CPR_WIDTH, init=(rp0 - cpr0) % (1 << CPR_WIDTH))
+        n_pp = Signal(CPR_WIDTH, init=(pp0 - cpr0) % (1 << CPR_WIDTH))
+        n_rz = Signal(CPR_WIDTH, init=(rz0 - cpr0) % (1 << CPR_WIDTH))
+        cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
+        cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
+        # Pending configuration while the divisions run. When idle the pending values equal the
+        # committed ones (a commit copies them; they start equal), so the inputs are compared
+        # with them alone; whether ``lines`` or ``pole_pairs`` change is noted when the change
+        # is taken in (``lp_changed``): then nothing counts until the commit, which clears the
+        # position (the step constants are replaced before it). For a change of ``z_offset``
+        # alone the step constants are rewritten with the values they hold.
         lines_p = Signal(LINES_WIDTH, init=lines0)
         pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
         z_p = Signal(CPR_WIDTH, init=z0)
         lp_changed = Signal()
-        qp_p = Signal(aw)
-        rp_p = Signal(CPR_WIDTH)
-        state = Signal(_Config)
+        pp_ok = Signal()                # pole_pairs < cpr (pending)
+        z_ok = Signal()                 # z_offset < cpr (pending)
         cpr_p = Cat(Const(0, 2), lines_p)
 
-        # The divider's result is taken a fixed `wait` clocks after each division starts (its
-        # output is held until taken), so the commit time does not depend on the divider's exact
-        # timing as long as it is at most `wait + 1` clocks.
-        wait = self.divider_wait
-        timer = Signal(range(wait + 1))
+        # One subtractor, ``t − cpr``, serves the two divisions n·2**16 / cpr (n = pole_pairs,
+        # then z_offset: restoring, one quotient bit per clock, in place on the working
+        # registers wq, wr: wr starts as n, each step doubles it and subtracts cpr where that
+        # fits, see divide_angle) and, one per clock in between, the constants above. The
+        # sequence, by ``timer`` (0: idle; the change is taken in as it goes to 1, wr = 0). The
+        # operand ``t`` is always wr (its value in the first column), or 2·wr in a step:
+        #   1       t = 0:             cpr − 1 = ~(0 − cpr); wr = pole_pairs
+        #   2       t = pole_pairs:    pole_pairs − cpr, pole_pairs < cpr
+        #   3 … 18  t = 2·wr:          the 16 steps of pole_pairs·2**16 / cpr
+        #   19      t = Rp:            Rp − cpr; Qp, Rp taken; wr = z_offset
+        #   20      t = z_offset:      z_offset < cpr
+        #   21 … 36 t = 2·wr:          the 16 steps of z_offset·2**16 / cpr
+        #   37      t = Rz:            Rz − cpr; Qz taken; commit
+        steps = DIVISION_STEPS
+        t_p, t_qp, t_z, t_commit = 2, steps + 3, steps + 4, 2 * steps + 5
+        timer = Signal(range(t_commit + 1))
+        wq = Signal(aw)
+        wr = Signal(CPR_WIDTH)
+        # timer in 3 … 18 or 21 … 36: a division step (a register, so that the operand's
+        # select does not decode the timer in front of the subtractor)
+        dividing = Signal()
+        sub_t = Signal(CPR_WIDTH + 1)
+        diff = Signal(signed(CPR_WIDTH + 2))
+        fits = ~diff[-1]
+        with m.Switch(timer):
+            with m.Case(t_p, t_z):
+                m.d.sync += dividing.eq(1)
+            with m.Case(t_qp - 1, t_commit - 1):
+                m.d.sync += dividing.eq(0)
         m.d.comb += [
-            self.busy.eq(state != _Config.IDLE),
+            sub_t.eq(Mux(dividing, Cat(Const(0, 1), wr), wr)),
+            diff.eq(sub_t - cpr_p),
+            self.busy.eq(timer != 0),
             self.config_error.eq(~valid),
-            div.i.payload.divisor.eq(cpr_p),
-            div.i.payload.dividend.eq(Mux(state == _Config.START_P, pp_p, z_p) << aw),
-            div.i.valid.eq((state == _Config.START_P) | (state == _Config.START_Z)),
         ]
         commit = Signal()
-        take = Signal()
-        m.d.comb += [
-            take.eq(((state == _Config.WAIT_P) | (state == _Config.WAIT_Z)) &
-                    (timer == wait) & div.o.valid),
-            div.o.ready.eq(take),
-        ]
-        quotient = div.o.payload.quotient[:aw]
-        remainder = div.o.payload.remainder
-        with m.Switch(state):
-            with m.Case(_Config.IDLE):
-                lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
-                with m.If(lp_change | (self.z_offset != z_p)):
-                    m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                                 z_p.eq(self.z_offset), lp_changed.eq(lp_change),
-                                 state.eq(_Config.START_P)]
-            with m.Case(_Config.START_P, _Config.START_Z):
-                with m.If(div.i.ready):
-                    m.d.sync += [timer.eq(0), state.eq(state.as_value() + 1)]
-            with m.Case(_Config.WAIT_P, _Config.WAIT_Z):
-                with m.If(timer != wait):
-                    m.d.sync += timer.eq(timer + 1)
-                with m.If(take):
-                    with m.If(state == _Config.WAIT_P):
-                        m.d.sync += [qp_p.eq(quotient), rp_p.eq(remainder),
-                                     state.eq(_Config.START_Z)]
-                    with m.Else():
-                        m.d.comb += commit.eq(1)
-                        m.d.sync += state.eq(_Config.IDLE)
-        new_valid = ((lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p))
+        with m.If(~self.busy):
+            lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
+            with m.If(lp_change | (self.z_offset != z_p)):
+                m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
+                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1),
+                             wr.eq(0)]
+        with m.Elif(timer == t_commit):
+            m.d.comb += commit.eq(1)
+            m.d.sync += timer.eq(0)
+        with m.Else():
+            m.d.sync += timer.eq(timer + 1)
+        with m.If(dividing):
+            m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
+        with m.Switch(timer):
+            with m.Case(1):
+                m.d.sync += [cpr_m1.eq(~diff[:CPR_WIDTH]), wr.eq(pp_p)]
+            with m.Case(t_p):
+                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0)]
+            with m.Case(t_qp):
+                m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr), wr.eq(z_p)]
+            with m.Case(t_z):
+                m.d.sync += z_ok.eq(diff < 0)
+        new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
         restart = Signal()
         m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                pp_q.eq(pp_p), z_q.eq(z_p),
-                qp.eq(qp_p), rp.eq(rp_p), qz.eq(quotient), rz.eq(remainder),
-                valid.eq(new_valid), cpr_rz.eq(cpr_p - remainder), cpr_z.eq(cpr_p - z_p),
-                cpr_rp.eq(cpr_p - rp_p), cpr_pp.eq(cpr_p - pp_p), cpr_m1.eq(cpr_p - 1),
+                z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
+                cpr_z.eq(cpr_p - z_p),
             ]
 
         # --- quadrature decoding ------------------------------------------------------------
@@ -437,22 +441,22 @@ class QuadratureDecoder(wiring.Component):
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
         rm = Signal(CPR_WIDTH)          # em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
-        # Each wrap test compares a register with a per-configuration constant, side by side
-        # with the candidate sums (em + p ≥ cpr ⇔ em ≥ cpr − p; rm − Rp < 0 ⇔ rm < Rp). One adder
-        # per counter serves both directions: the wrap test picks the operand (the step or
-        # cpr − step) and whether it is subtracted (see _step). Counting only happens with a
-        # valid configuration, where cpr − pole_pairs and cpr − Rp lie in 1 … cpr − 1.
+        # Each wrap test is the carry out of a register plus a per-configuration constant (or
+        # a comparison of two registers), side by side with the step's own adder (em + p ≥ cpr
+        # ⇔ carry out of em + (p − cpr); rm − Rp < 0 ⇔ rm < Rp). One adder per counter serves
+        # both directions: the wrap test picks the operand (the step or step − cpr), the
+        # direction whether it is subtracted (see _step).
         fwd_c = Signal()
         m.d.comb += fwd_c.eq(fwd)
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        em_next, _ = _step(fwd_c, em, pp_q, cpr_pp[:CPR_WIDTH], em >= cpr_pp[:CPR_WIDTH],
-                           em < pp_q)
-        rm_next, cin = _step(fwd_c, rm, rp, cpr_rp[:CPR_WIDTH], rm >= cpr_rp, rm < rp)
+        # (pole_pairs from the pending register: the committed value whenever anything counts.)
+        em_next, _ = _step(fwd_c, em, pp_p, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_p)
+        rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
-        with m.If(valid & (fwd | bwd)):
+        with m.If(valid & ~(self.busy & lp_changed) & (fwd | bwd)):
             m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
                          thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
@@ -465,11 +469,11 @@ class QuadratureDecoder(wiring.Component):
 
         # --- outputs: the Z offset added to the electrical position -------------------------
         # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
-        # the registers alone (em ≥ cpr − z, rm ≥ cpr − Rz): one carry chain before the sums,
-        # not two.
+        # the registers alone (em ≥ cpr − z; the carry out of rm + (Rz − cpr)): one carry chain
+        # before the sums, not two.
         m.d.comb += [
             self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
-            self.theta.eq(thm + qz + (rm >= cpr_rz)),
+            self.theta.eq(thm + qz + (rm + n_rz)[CPR_WIDTH]),
         ]
         return m
 
@@ -522,14 +526,19 @@ class HallSensor(wiring.Component):
         m = Module()
         centres = hall_centres(ANGLE.width)
         m.d.sync += self.fault.eq(~self.hold & ((self.h == 0) | (self.h == 7)))
+        # The centre picked by the code, then one adder (not one per code and a mux).
+        centre = Signal(ANGLE.width)
+        sector = Signal(range(6))
         with m.Switch(self.h):
             for k, code in enumerate(HALL_CODES):
                 with m.Case(code):
-                    m.d.sync += [
-                        self.sector.eq(k),
-                        self.theta.eq(centres[k] + self.offset),
-                        self.valid.eq(1),
-                    ]
+                    m.d.comb += [centre.eq(centres[k]), sector.eq(k)]
+        with m.If((self.h != 0) & (self.h != 7)):
+            m.d.sync += [
+                self.sector.eq(sector),
+                self.theta.eq(centre + self.offset),
+                self.valid.eq(1),
+            ]
         return m
 
 
@@ -576,12 +585,13 @@ class HallPlausibility(wiring.Component):
     scenario, 1000 r/min) the frozen angle drives the phase currents past the over-current limit
     about 4 ms after the break: N = 1 trips on ``encoder_hall`` first (2.7 ms), N = 2 does not.
 
-    Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, two
-    magnitude tests (a comparison and the carry out of ``x + tolerance``), a 6-entry constant
-    table and ≈ 135 flip-flops, no multiplier or divider. Pipelined in three clocks (the edge,
-    the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev`` registered; the
-    checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks apart, the two
-    clocks cost nothing.
+    Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, one
+    magnitude test (the carry out of ``|x|`` in one's complement against ``tolerance``), a
+    6-entry constant table and ≈ 100 flip-flops, no multiplier or divider. Pipelined in three
+    clocks (the edge, the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev``
+    registered; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks
+    apart, the two clocks cost nothing. ``tolerance`` and ``misses`` (configuration) are not
+    pipelined: the checks take them in their own clock.
 
     Members
     -------
@@ -618,7 +628,9 @@ class HallPlausibility(wiring.Component):
     ----------
     latency : int
         Clocks from ``sector``/``theta`` to the outputs (3). The outputs are those of the
-        unpipelined check (all inputs taken in the same clock) delayed by two clocks.
+        unpipelined check delayed by two clocks, with ``tolerance`` and ``misses`` taken two
+        clocks after the other inputs (in the clock of the check: their change applies two
+        clocks sooner than a pipelined copy's would).
     """
 
     latency = 3
@@ -666,13 +678,11 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1, bo1, tol1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo", "tol"))
-        need1 = Signal(4)               # misses − 1 (0 acts as 1): the count that faults
+        theta1, bo1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo"))
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
             theta1.eq(self.theta), bo1.eq(bound + self.offset),
-            tol1.eq(self.tolerance), need1.eq(Mux(self.misses == 0, 0, self.misses - 1)),
         ]
 
         # Clock 2: d = θ − (boundary + offset) and dd = d − d_prev (mod a turn), both registered
@@ -687,27 +697,30 @@ class HallPlausibility(wiring.Component):
                                            "jump"))
         d2 = Signal(aw)
         dd2 = Signal(aw)
-        tol2 = Signal(aw)
-        need2 = Signal(4)
         dir_q = Signal()                # the previous edge went forward
         d_q = Signal(aw)                # d at the previous edge
         d_new = Signal(aw)
         m.d.comb += d_new.eq(theta1 - bo1)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
-            restart2.eq(restart1), jump2.eq(jump1), need2.eq(need1),
-            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)), tol2.eq(tol1),
+            restart2.eq(restart1), jump2.eq(jump1),
+            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)),
         ]
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
         ref_ok = Signal()               # d_q is comparable with d now
         count = Signal(4)               # consecutive misses, saturating at 15
         # The two checks never apply together: one magnitude comparison serves both. For x
-        # read as signed, |x| > tol ⇔ tol < x < 2**aw − tol with x read as unsigned (never
-        # true for tol ≥ 2**(aw−1)): two carry chains side by side, no negation; the second
-        # as x + tol < 2**aw (no carry out), so 2**aw − tol needs no subtractor of its own.
+        # read as signed with sign s, |x| > tol ⇔ y > tol (s = 0) or y ≥ tol (s = 1) with
+        # y = x ^ (s repeated): |x| = y + s. That is the carry out of y + ~tol + s: one carry
+        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s).
+        # ``tolerance`` and ``misses`` are taken here, in this clock (not pipelined).
         x = Mux(aligned2, d2, dd2)
-        over = (x > tol2) & ~(x + tol2)[aw]
+        sign = x[aw - 1]
+        y = x ^ sign.replicate(aw)
+        over = Signal()
+        m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
+        need = Mux(self.misses == 0, 0, self.misses - 1)    # misses − 1 (0 acts as 1)
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
@@ -731,7 +744,7 @@ class HallPlausibility(wiring.Component):
         m.d.sync += [
             self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count >= need2)),
+            self.fault.eq(miss & (count >= need)),
         ]
         return m
 
@@ -837,10 +850,12 @@ class EncoderFrontEnd(wiring.Component):
                                            stages=self.sync_stages)
         m.d.comb += [flt.i.eq(pins), flt.length.eq(self.length)]
 
-        settle = Signal(range(self._max_length + 5))
+        # Clocks since reset minus 3: ready once it reaches length (one comparison, no
+        # length + 4 adder).
+        settle = Signal(range(-3, self._max_length + 1), init=-3)
         with m.If(~self.ready):
             m.d.sync += settle.eq(settle + 1)
-            with m.If(settle + 1 >= self.length + 4):
+            with m.If(settle >= self.length):
                 m.d.sync += self.ready.eq(1)
 
         m.d.comb += [

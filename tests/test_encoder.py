@@ -9,7 +9,7 @@ from amaranth.hdl import Cat
 import foc_servo.hdl.encoder as hdl_encoder
 import foc_servo.sim.verify.encoder as verify_encoder
 from foc_servo.hdl.encoder import (HALL_CODES, EncoderFrontEnd, GlitchFilter, HallPlausibility,
-                                   HallSensor, QuadratureDecoder, angle_constants,
+                                   HallSensor, QuadratureDecoder, angle_constants, divide_angle,
                                    hall_boundaries, hall_centres)
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models import encoder as model
@@ -302,7 +302,56 @@ def test_angle_constants_match_divmod():
     qp, rp, qz, rz, ok = angle_constants(997, 7, 3000)
     assert divmod(7 << 16, 3988) == (qp, rp) and divmod(3000 << 16, 3988) == (qz, rz) and ok
     assert angle_constants(3, 12, 0)[4] is False        # pole_pairs ≥ cpr
-    assert angle_constants(0, 1, 0)[:2] == (0xFFFF, 0)   # the divider's division by zero
+    # cpr = 0: every step "fits", the remainder is n·2**16 mod 2**18 (invalid: config_error).
+    assert angle_constants(0, 1, 0)[:2] == (0xFFFF, 1 << 16)
+
+
+def test_decoder_invalid_configurations_theta_vs_model():
+    """Invalid configurations (z_offset or pole_pairs ≥ cpr, lines 0) leave whatever the 16
+    division steps give, remainders ≥ cpr included: the decoder's theta, e, count, busy and
+    config_error follow the model clock for clock through a sequence of them (and valid ones
+    in between), with counting pins."""
+    dut = QuadratureDecoder()
+    configs = [(1, 1, 5), (1, 3, 0), (0, 1, 0), (3, 12, 7), (997, 7, 3000), (2, 1, 200000),
+               (5000, 4, 19999), (1, 1, 3), (65535, 255, 262139), (7, 40, 1)]
+    dec = model.QuadratureDecoderModel()
+    names = ("theta", "e", "count", "busy", "config_error", "aligned")
+    mism = []
+
+    async def testbench(ctx):
+        pos = 0
+        for lines, pp, z in configs:
+            ctx.set(dut.lines, lines)
+            ctx.set(dut.pole_pairs, pp)
+            ctx.set(dut.z_offset, z)
+            for k in range(dut.config_latency + 40):
+                pos += 1 if k % 3 else -1
+                a, b = AB[pos % 4]
+                zz = int(k == dut.config_latency + 10)
+                ctx.set(dut.a, a)
+                ctx.set(dut.b, b)
+                ctx.set(dut.z, zz)
+                await ctx.tick()
+                dec.tick(a, b, zz, lines=lines, pole_pairs=pp, z_offset=z)
+                got = tuple(ctx.get(getattr(dut, n)) for n in names)
+                want = tuple(int(getattr(dec, n)) for n in names)
+                if got != want:
+                    mism.append(((lines, pp, z), k, got, want))
+
+    simulate(dut, [testbench], name="test_encoder_invalid_theta")
+    assert not mism, mism[:3]
+
+
+def test_divide_angle_is_divmod_for_every_valid_dividend():
+    """The decoder's 16-step restoring division equals divmod(n·2**16, cpr) whenever n < cpr,
+    over the whole range of cpr (random cases plus the extremes)."""
+    rng = np.random.default_rng(5)
+    cases = [(0, 4), (3, 4), (1, 4 * 65535), (4 * 65535 - 1, 4 * 65535), (255, 256)]
+    for _ in range(20000):
+        cpr = 4 * int(rng.integers(1, 1 << 16))
+        cases.append((int(rng.integers(0, cpr)), cpr))
+    for n, cpr in cases:
+        assert divide_angle(n, cpr) == divmod(n << 16, cpr), (n, cpr)
 
 
 # --- Hall -----------------------------------------------------------------------------------

@@ -15,8 +15,8 @@ skipping the clocks in which nothing can change, and returns the outputs where t
 
 import numpy as np
 
-from ...hdl.encoder import (ANGLE, CPR_WIDTH, DIVIDER_WAIT, HALL_CODES, angle_constants,
-                            hall_boundaries, hall_centres, quadrature_phase)
+from ...hdl.encoder import (ANGLE, CPR_WIDTH, DIVISION_STEPS, HALL_CODES, angle_constants,
+                            divide_angle, hall_boundaries, hall_centres, quadrature_phase)
 
 __all__ = [
     "theta_exact", "hall_sector", "hall_code", "GlitchFilterModel", "QuadratureDecoderModel",
@@ -63,19 +63,19 @@ class GlitchFilterModel:
     def __init__(self, width=1):
         self.width = width
         self.o = 0
-        self.cnt = [0] * width
+        self.rem = [0] * width
 
     def tick(self, i, length):
         o = self.o
         for k in range(self.width):
             ik, ok = (i >> k) & 1, (o >> k) & 1
             if ik == ok:
-                self.cnt[k] = 0
-            elif self.cnt[k] + 1 >= length:
+                self.rem[k] = length
+            elif self.rem[k] <= 1:
                 self.o ^= 1 << k
-                self.cnt[k] = 0
+                self.rem[k] = length
             else:
-                self.cnt[k] += 1
+                self.rem[k] -= 1
         return self.o
 
 
@@ -100,8 +100,9 @@ class HallSensorModel:
 
 class HallPlausibilityModel:
     """Model of :class:`~foc_servo.hdl.encoder.HallPlausibility`: the check as if it took all
-    its inputs in one clock, its outputs delayed by the gateware's pipeline (``latency − 1``
-    clocks)."""
+    its inputs in one clock, run on the inputs delayed by the gateware's pipeline (``latency − 1``
+    clocks) except ``tolerance`` and ``misses``, which the gateware's check takes in its own
+    clock."""
 
     #: Clocks from the inputs to the outputs (``HallPlausibility.latency``).
     LATENCY = 3
@@ -111,11 +112,17 @@ class HallPlausibilityModel:
         self.sector_q = self.have_q = self.aligned_q = self.dir_q = self.d_q = 0
         self.ref_ok = self.count = 0
         self.edge = self.miss = self.fault = self.error = 0
-        self._pipe = [(0, 0, 0, 0)] * (self.LATENCY - 1)
-        self._error = 0
+        # The pipeline's reset state: inputs that make no edge and no jump.
+        self._pipe = [dict(theta=0, aligned=0, restart=0, sector=0, valid=0, hold=0,
+                           offset=0)] * (self.LATENCY - 1)
 
     def tick(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance=8192,
              misses=1):
+        self._pipe.append(dict(theta=theta, aligned=aligned, restart=restart, sector=sector,
+                               valid=valid, hold=hold, offset=offset))
+        self._check(**self._pipe.pop(0), tolerance=tolerance, misses=misses)
+
+    def _check(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance, misses):
         turn, half = _TURN, _TURN >> 1
 
         def mag(x):
@@ -137,12 +144,10 @@ class HallPlausibilityModel:
                   and not rel_miss)
 
         need = 1 if misses == 0 else misses
-        error = self._error
         if edge and adjacent:
-            error = d - turn if d >= half else d
-        self._error = error
-        self._pipe.append((int(edge), int(miss), int(miss and self.count + 1 >= need), error))
-        self.edge, self.miss, self.fault, self.error = self._pipe.pop(0)
+            self.error = d - turn if d >= half else d
+        self.edge, self.miss = int(edge), int(miss)
+        self.fault = int(miss and self.count + 1 >= need)
         if edge:
             self.dir_q, self.ref_ok = int(fwd), int(adjacent and not restart)
             if adjacent:
@@ -158,9 +163,13 @@ class HallPlausibilityModel:
 
 class QuadratureDecoderModel:
     """Model of :class:`~foc_servo.hdl.encoder.QuadratureDecoder`, configuration sequencer and
-    divider timing included."""
+    division timing included."""
 
-    IDLE, START_P, WAIT_P, START_Z, WAIT_Z = range(5)
+    IDLE = 0
+    #: Clocks after the take-in at which the step constants are replaced (the first division
+    #: done) and at which the commit happens (the gateware's ``timer``).
+    TAKE_P = DIVISION_STEPS + 3
+    COMMIT = 2 * DIVISION_STEPS + 5
 
     def __init__(self, *, z_gate=None, lines=5000, pole_pairs=4, z_offset=0):
         self.z_gate = z_gate
@@ -168,18 +177,16 @@ class QuadratureDecoderModel:
         self.qp, self.rp, self.qz, self.rz, self.valid = angle_constants(lines, pole_pairs,
                                                                          z_offset)
         self.cpr = 4 * lines
-        self.lines_p = self.pp_p = self.z_p = self.qp_p = self.rp_p = 0
-        self.state = self.IDLE
-        self.clock = 0
-        self.div_done = None            # clock at which the decoder takes the divider's result
-        self.div_result = (0, 0)
+        self.lines_p = self.pp_p = self.z_p = 0
+        self.lp_changed = False
+        self.phase = self.IDLE          # clocks since the change was taken in (0: idle)
         self.a_prev = self.b_prev = self.zc_prev = 0
         self.count = self.em = self.thm = self.rm = 0
         self.step = self.up = self.a_rise = self.illegal = self.index = self.aligned = 0
 
     @property
     def busy(self):
-        return int(self.state != self.IDLE)
+        return int(self.phase != self.IDLE)
 
     @property
     def config_error(self):
@@ -192,43 +199,28 @@ class QuadratureDecoderModel:
 
     @property
     def theta(self):
-        return (self.thm + self.qz + (self.rm + self.rz >= self.cpr)) % _TURN
-
-    def _divide(self, numerator):
-        """Start a division of ``numerator·2**16`` by the pending cpr (as the gateware does)."""
-        cpr_p = 4 * self.lines_p
-        q_mask, r_mask = (1 << ANGLE.width) - 1, (1 << CPR_WIDTH) - 1
-        if cpr_p == 0:
-            self.div_result = (q_mask, 0)
-        else:
-            q, r = divmod(numerator << ANGLE.width, cpr_p)
-            self.div_result = (q & q_mask, r & r_mask)
-        self.div_done = self.clock + 1 + DIVIDER_WAIT
+        # rm + Rz ≥ cpr, as the carry out of rm + ((Rz − cpr) mod 2**18): the same in a valid
+        # configuration (Rz < cpr); in an invalid one Rz may exceed cpr.
+        mask = (1 << CPR_WIDTH) - 1
+        carry = (self.rm + ((self.rz - self.cpr) & mask)) >> CPR_WIDTH
+        return (self.thm + self.qz + carry) % _TURN
 
     def tick(self, a, b, z, *, hold=0, lines=5000, pole_pairs=4, z_offset=0, realign=0):
         cpr_mask = (1 << CPR_WIDTH) - 1
         # Configuration sequencer.
-        commit = False
-        div_valid = self.div_done == self.clock
-        next_state = self.state
-        if self.state == self.IDLE:
+        commit = take_p = False
+        if self.phase == self.IDLE:
             if (lines, pole_pairs, z_offset) != (self.lines_q, self.pp_q, self.z_q):
+                self.lp_changed = (lines, pole_pairs) != (self.lines_q, self.pp_q)
                 self.lines_p, self.pp_p, self.z_p = lines, pole_pairs, z_offset
-                next_state = self.START_P
-        elif self.state == self.START_P:
-            self._divide(self.pp_p)
-            next_state = self.WAIT_P
-        elif self.state == self.WAIT_P:
-            if div_valid:
-                self.qp_p, self.rp_p = self.div_result
-                next_state = self.START_Z
-        elif self.state == self.START_Z:
-            self._divide(self.z_p)
-            next_state = self.WAIT_Z
-        elif self.state == self.WAIT_Z:
-            if div_valid:
-                commit = True
-                next_state = self.IDLE
+                next_phase = 1
+            else:
+                next_phase = self.IDLE
+        else:
+            take_p = self.phase == self.TAKE_P
+            commit = self.phase == self.COMMIT
+            next_phase = self.IDLE if commit else self.phase + 1
+        counting = self.valid and not (self.busy and self.lp_changed)
 
         # Quadrature decoding (from the registers before this edge).
         delta = (quadrature_phase(a, b) - quadrature_phase(self.a_prev, self.b_prev)) % 4
@@ -241,7 +233,7 @@ class QuadratureDecoderModel:
 
         count, em, thm, rm, aligned = self.count, self.em, self.thm, self.rm, self.aligned
         cpr = self.cpr
-        if self.valid and fwd:
+        if counting and fwd:
             count = 0 if self.count == cpr - 1 else (self.count + 1) & cpr_mask
             e_up = self.em + self.pp_q
             em = (e_up - cpr if e_up >= cpr else e_up) & cpr_mask
@@ -249,7 +241,7 @@ class QuadratureDecoderModel:
             carry = int(r_up >= cpr)
             rm = (r_up - cpr if carry else r_up) & cpr_mask
             thm = (self.thm + self.qp + carry) % _TURN
-        elif self.valid and bwd:
+        elif counting and bwd:
             count = (cpr - 1 if self.count == 0 else self.count - 1) & cpr_mask
             e_dn = self.em - self.pp_q
             em = (e_dn + cpr if e_dn < 0 else e_dn) & cpr_mask
@@ -261,16 +253,17 @@ class QuadratureDecoderModel:
             aligned, count, em, thm, rm = 1, 0, 0, 0, 0
         elif realign:
             aligned = 0
+        cpr_p = 4 * self.lines_p
+        if take_p:
+            self.qp, self.rp = divide_angle(self.pp_p, cpr_p)
         if commit:
-            cpr_p = 4 * self.lines_p
             new_valid = (self.lines_p != 0 and self.pp_p != 0 and self.pp_p < cpr_p
                          and self.z_p < cpr_p)
             if (self.lines_p != self.lines_q or self.pp_p != self.pp_q or not new_valid):
                 aligned, count, em, thm, rm = 0, 0, 0, 0, 0
             self.lines_q, self.pp_q, self.z_q, self.cpr = (self.lines_p, self.pp_p, self.z_p,
                                                            cpr_p & cpr_mask)
-            self.qp, self.rp = self.qp_p, self.rp_p
-            self.qz, self.rz = self.div_result
+            self.qz, self.rz = divide_angle(self.z_p, cpr_p)
             self.valid = bool(new_valid)
 
         self.count, self.em, self.thm, self.rm, self.aligned = count, em, thm, rm, aligned
@@ -278,8 +271,7 @@ class QuadratureDecoderModel:
         if step:
             self.up = int(fwd)
         self.a_prev, self.b_prev, self.zc_prev = a, b, zc
-        self.state = next_state
-        self.clock += 1
+        self.phase = next_phase
 
 
 class EncoderFrontEndModel:
@@ -432,8 +424,7 @@ def front_end_changes(clocks, words, until, *, max_length=255, z_gate=None, **co
         still = 0
         while t < end:
             if still >= settle and model.ready and not model.decoder.busy:
-                model.decoder.clock += end - t      # nothing changes until the next pin change
-                t = end
+                t = end                 # nothing changes until the next pin change
                 break
             model.tick(word, **cfg)
             t += 1
