@@ -220,14 +220,24 @@ class Assembler:
             raise ValueError("Assembler: too many specials, conditions or outputs")
         self._instrs = []
         self._regs = {}
+        self._reg_init = {}
         self._consts = {}
         self._labels = {}
         self._fixups = []
 
     # --- operands ------------------------------------------------------------------------------
-    def reg(self, name):
+    def reg(self, name, *, init=None):
+        """The register ``name`` (allocated on first use); ``init``: its value at power-up (the
+        register file's initial contents; 0 otherwise). A register file in block RAM is not
+        reset: the value holds after a reset only until the program writes the register."""
         if name not in self._regs:
             self._regs[name] = len(self._regs)
+        if init is not None:
+            init = int(init)
+            if not -(1 << (WORD - 1)) <= init < (1 << (WORD - 1)):
+                raise ValueError(f"Assembler: initial value {init} of r.{name} does not fit "
+                                 f"{WORD} bits")
+            self._reg_init[name] = init
         return self._regs[name]
 
     def const(self, value):
@@ -595,6 +605,8 @@ class Assembler:
             if not -(1 << (WORD - 1)) <= v < (1 << (WORD - 1)):
                 raise ValueError(f"Assembler: constant {v} does not fit {WORD} bits")
             rf_init[addr] = v
+        for name, v in self._reg_init.items():
+            rf_init[regs[name]] = v
 
         def resolve(ref):
             kind, x = ref
