@@ -216,10 +216,9 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     _lead_lim(A, gain_limit_raw)
     _rotate(A, "r.a", "r.beta", "r.id", "r.iq", "i_d", "i_q", w)
     A.alu(Op.ADD, None, "s.theta", "r.lead", out="ang")               # θ + θ_lead
-    # Copies for the gain's division after the duties (which reads the register file only).
-    A.alu(Op.ADD, "r.r", "s.urat", 0)                                 # R
-    A.alu(Op.MAX, "r.u", "s.udc", 0)                                  # U = max(U_dc, 0)
-    A.alu(Op.ADD, "r.uh", "r.u", 0, sh=1)                             # floor(U/2)
+    # For the gain's division after the duties (which reads the register file only).
+    A.alu(Op.MAX, "r.u8", "s.udc", 0, asl=True)                       # 2**8·U, U = max(U_dc, 0)
+    A.alu(Op.ADD, "r.uh", "r.u8", 0, sh=9)                            # floor(U/2)
     # --- Run or clear ------------------------------------------------------------------------------
     A.br("!RUN", "off")
     _pi_head(A, "d", "r.id")                                          # delay slots
@@ -249,6 +248,7 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.label("inv")
     A.alu(Op.ADD, None, "r.lt", 0, setf=True)
     A.alu(Op.SEL, None, 0, 1, cond="!N", out="lim")                   # dc_limited
+    A.alu(Op.SEL, "r.rr", "s.urat", 0, cond="!N")                     # R, or 0 if limited
     _rotate(A, "r.ud", "r.uq", "r.ua", "r.ub", "u_alpha", "u_beta", w)
     A.mul("r.ua", "r.dcg")                    # (u_β's post fuses into it)
     A.post("r.ca", 16, sat=SAT_W1)
@@ -288,25 +288,22 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
         A.emit(Op.ADD, a="s.P", b=0, sh=sv_frac + 1, rnd=True, out=f"d{ph}")
     # --- DC-bus gain for the next sample (after the duties: o.valid is the write of dc) ------
     # gain = min(floor(M / U), L) (DCBusCompensation's), M = R'·2**16 + floor(U/2), R' = R (0
-    # when limited: the divisions then stay small). Not limited: gain ≤ L < 2**18, so M / U is
-    # two divisions of the 16-bit DIV: Q_hi = floor(R'/U) < 4 (2 steps on R'·2**14, remainder
-    # R_hi in P's upper bits), then Q_lo = floor((R_hi·2**16 + floor(U/2)) / U) (16 steps).
+    # when limited: the division then stays small). Not limited: gain ≤ L < 2**18, 18 quotient
+    # bits from the 16-bit DIV: N = 2**6·M divided by B = 2**8·U in 18 steps. The first 16
+    # give floor(N / B) = floor(M / (4U)) < 2**16 in P's low bits; in the last two the
+    # quotient's top bits move into the remainder's field, whose value and B are multiples of
+    # 2**6 (N's low bits are zero): the compares are unchanged (the quotient adds < 4) and
+    # P = 2**22·k + floor(M / U) at the end, so the gain is P − 2**22·(P >> 22).
     A.label("gain")
+    A.mul("r.rr", 1 << 22)
+    A.mac("r.uh", 1 << 6)                                             # N = 2**6·M
+    for _ in range(count_width + 2):
+        A.emit(Op.DIV, b="r.u8")
+    A.post("r.hi", 22, rnd=False)
+    A.mac("r.hi", -(1 << 22))
+    A.post("r.q", 0)                                                  # floor(M / U)
     A.alu(Op.ADD, None, "r.lt", 0, setf=True)
-    A.alu(Op.SEL, "r.rr", "r.r", 0, cond="!N")                        # R, or 0 if limited
-    A.mul("r.rr", 1 << 14)
-    for _ in range(2):
-        A.emit(Op.DIV, b="r.u")
-    A.alu(Op.ADD, "r.qh", "s.PQ", 0)                                  # Q_hi
-    A.alu(Op.SUB, "r.x", "r.uh", "r.qh")
-    A.mac(1, "r.x")                                                   # R_hi·2**16 + floor(U/2)
-    for _ in range(count_width):
-        A.emit(Op.DIV, b="r.u")
-    A.alu(Op.ADD, "r.ql", "s.PQ", 0)                                  # Q_lo
-    A.mul("r.qh", 1 << 16)
-    A.mac(1, "r.ql")
-    A.post("r.q", 0)
-    A.alu(Op.SEL, "r.dcg", gain_limit_raw, "r.q", cond="N")           # N (of lt): not limited
+    A.alu(Op.SEL, "r.dcg", gain_limit_raw, "r.q", cond="N")           # N: not limited
     A.end()
     # Over-modulation: the largest phase has n = 2D (duty = scale), the smallest n = 0 (duty 0),
     # the middle one n = Σn − 2D: one division.

@@ -133,7 +133,7 @@ def test_program_dc_bus_gain_off_by_one_is_caught():
     regs = prog.regs
     words = list(prog.words)
     k = next(i for i, ins in enumerate(prog.instrs)
-             if ins.wen and ins.dst == regs["uh"] and ins.sh == 1)
+             if ins.wen and ins.dst == regs["uh"] and ins.sh == 9)
     words[k] = dataclasses.replace(prog.instrs[k], rnd=1).encode()
     broken = dataclasses.replace(prog, words=words)
     rng = np.random.default_rng(17)
