@@ -22,7 +22,8 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
          Y from X = P (the old P: the previous product, post-processed) → RF[dst] / out
-    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits)
+    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits),
+         sh + 1 times (one step per clock: the word is held in R, the fetch stalls)
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
 
@@ -314,6 +315,14 @@ class Assembler:
         """``dst = sat(round_shift(P, sh))`` (``rnd``) or ``sat(P >> sh)``."""
         return self.emit(Op.ADD, dst=dst, a="s.P", b="k.0", sh=sh, rnd=rnd, sat=sat, out=out)
 
+    def div(self, b, steps=1):
+        """``steps`` restoring DIV steps (1 … 32) with divisor ``b``, in one word (its ``sh``
+        field holds ``steps − 1``: the engine repeats it, one step per clock). Not in a branch
+        delay slot."""
+        if not isinstance(steps, int) or not 1 <= steps <= 32:
+            raise ValueError(f"Assembler: DIV steps must be from 1 to 32, not {steps!r}")
+        return self.emit(Op.DIV, b=b, sh=steps - 1)
+
     def br(self, cond, label):
         return self.emit(Op.BR, cond=cond, tgt=label)
 
@@ -513,6 +522,8 @@ class Assembler:
                     inv=0, neg=0, acc=0, asl=0, out=0), ("k", 0), ("k", 0), None, None)
         self.const(0)
         for i, entry in enumerate(instrs):
+            if i in slots and entry[0]["op"] == Op.DIV and entry[0]["sh"]:
+                raise ValueError(f"Assembler: a repeated DIV in a branch delay slot at {i}")
             n = self._needs(out, entry)
             if entry[0]["op"] == Op.BR and i + 2 < len(instrs):
                 # Where a delay slot would need NOPs, they go in front of the branch.
@@ -768,6 +779,13 @@ class Engine(wiring.Component):
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
         m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
                      x_valid.eq(r_valid)]
+        # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
+        # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
+        rep_k = Signal(5)
+        hold = Signal()
+        m.d.comb += [hold.eq(self.running & r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+                     rom_r.en.eq(~hold)]
+        m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
@@ -1031,8 +1049,9 @@ class Engine(wiring.Component):
         x2_pc = Signal(PC_WIDTH)
         x3_pc = Signal(PC_WIDTH)
         x4_pc = Signal(PC_WIDTH)
-        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc),
-                     x4_pc.eq(x3_pc)]
+        with m.If(~hold):
+            m.d.sync += r_pc.eq(pc)
+        m.d.sync += [x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc), x4_pc.eq(x3_pc)]
         m.d.comb += self.trace_pc.eq(x4_pc)
 
         # Outputs (written in X4, like the register file).
@@ -1079,6 +1098,6 @@ class Engine(wiring.Component):
         with m.Elif(self.running):
             with m.If(execute & (ir.op == Op.BR) & c):
                 m.d.sync += pc.eq(ir.tgt)
-            with m.Else():
+            with m.Elif(~hold):
                 m.d.sync += pc.eq(pc + 1)
         return m

@@ -297,8 +297,7 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.label("gain")
     A.mul("r.rr", 1 << 22)
     A.mac("r.uh", 1 << 6)                                             # N = 2**6·M
-    for _ in range(count_width + 2):
-        A.emit(Op.DIV, b="r.u8")
+    A.div("r.u8", count_width + 2)
     A.post("r.hi", 22, rnd=False)
     A.mac("r.hi", -(1 << 22))
     A.post("r.q", 0)                                                  # floor(M / U)
@@ -312,8 +311,7 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.mac(1, "r.d")                   # (in this order: 2D and na + nb from the delay slots)
     A.mac("s.scale", "r.d2", neg=True)
     A.mac("s.scale", "r.t")
-    for _ in range(count_width):
-        A.emit(Op.DIV, b="r.d2")
+    A.div("r.d2", count_width)
     A.alu(Op.ADD, "r.qm", "s.PQ", 0)
     for ph in "abc":
         A.alu(Op.SUB, None, f"r.n{ph}", "r.d2", setf=True)
@@ -365,10 +363,17 @@ def _paths(program):
     return paths
 
 
+def _clocks(ins):
+    """Clocks (issues) of one instruction word: a repeated DIV ``sh + 1``, else 1."""
+    return ins.sh + 1 if ins.op == Op.DIV else 1
+
+
 def path_lengths(program):
     """Executed instructions of every path through ``program`` (it has no loops), to its END:
-    a sorted list of distinct counts (each branch taken or not; delay slots counted)."""
-    return sorted({len(p) for p in _paths(program)})
+    a sorted list of distinct counts (each branch taken or not; delay slots counted; a
+    repeated DIV counted as often as it is issued)."""
+    instrs = program.instrs
+    return sorted({sum(_clocks(instrs[pc]) for pc in p) for p in _paths(program)})
 
 
 def duty_lengths(program):
@@ -381,7 +386,7 @@ def duty_lengths(program):
         writes = [k for k, pc in enumerate(path) if instrs[pc].out == dc]
         if not writes:
             raise ValueError("engine program: a path without a write of the duty dc")
-        counts.add(writes[-1] + 1)
+        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1] + 1]))
     return sorted(counts)
 
 
@@ -404,11 +409,13 @@ def phase_latency(program):
     + k`` clocks after the sample, written back ``WRITE_DELAY`` later, ``phase.valid``
     registered."""
     outs = ("",) + tuple(OUTS)
-    for k, ins in enumerate(program.instrs):
+    k = 0
+    for ins in program.instrs:
         if ins.op == Op.BR or ins.op == Op.END:
             break
         if ins.out and outs[ins.out] == "pc":
             return START_CLOCKS + k + WRITE_DELAY + 1
+        k += _clocks(ins)
     raise ValueError("engine program: no write of phase c before the first branch")
 
 

@@ -237,11 +237,37 @@ def test_div_step_is_floor_division():
             for _ in range(16):
                 A.emit(Op.DIV, b=f"k.{d}")
             A.alu(Op.ADD, None, "s.PQ", 0, out="r")
-        _, em = _small(build)
-        em.p = num                                      # P is architectural state
-        em.run({"x": 0, "y": 0}, {})
-        assert em.outs["r"] == num // d
-        assert em.p >> 16 == num % d
+
+        def build_rep(A):                               # the same 16 steps in one word
+            A.div(f"k.{d}", 16)
+            A.alu(Op.ADD, None, "s.PQ", 0, out="r")
+        for b in (build, build_rep):
+            prog, em = _small(b)
+            em.p = num                                  # P is architectural state
+            trace = em.run({"x": 0, "y": 0}, {})
+            assert em.outs["r"] == num // d
+            assert em.p >> 16 == num % d
+            assert len(trace) == 16 + 1 + 1 + 1         # 16 steps, a NOP (HAZARD_P), ADD, END
+        assert len(prog.words) == 4 and prog.instrs[0].sh == 15
+
+
+def test_repeated_div_errors_and_program_size():
+    """``Assembler.div``: 1 … 32 steps, not in a delay slot; the current-loop program fits the
+    256-word ROM (4 block RAMs on the iCE40) with its DIVs repeated."""
+    A = Assembler(specials=("x",), conds=(), outs=("ang",))
+    with pytest.raises(ValueError, match=r"^Assembler: DIV steps must be from 1 to 32, not 33$"):
+        A.div("r.d", 33)
+    A.br("!F", "l")
+    A.div("r.d", 2)
+    A.nop()
+    A.label("l")
+    A.end()
+    with pytest.raises(ValueError, match=r"^Assembler: a repeated DIV in a branch delay slot "
+                                         r"at 1$"):
+        A.assemble()
+    prog = current_loop_program()
+    assert len(prog.words) <= 256
+    assert sorted(i.sh + 1 for i in prog.instrs if i.op == Op.DIV) == [16, 18]
 
 
 def test_rounding_saturation_and_overflow_check():

@@ -1,6 +1,6 @@
 # Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
 """Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
-clock (one instruction per clock, two branch delay slots) with the gateware's timing where a
+clock (one instruction per clock, two branch delay slots; a DIV word ``sh + 1`` times) with the gateware's timing where a
 program can see it: register and output writes land ``WRITE_DELAY`` (3) instructions late (the
 X4 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
 words two (the special operands are registered in the R stage); flags are sequential; P is
@@ -116,6 +116,7 @@ class EngineModel:
         queue = collections.deque([0, 1, 2])
         fetch = 3
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
+        rep = 0                           # repeats of the DIV in R so far
         p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
@@ -208,6 +209,11 @@ class EngineModel:
                 while pending:
                     self._write(pending.popleft())
                 break
+            if op == Op.DIV and rep < ins.sh:         # a repeated DIV: issued again
+                rep += 1
+                queue.appendleft(pc)
+                continue
+            rep = 0
             if taken:
                 fetch = ins.tgt
             queue.append(fetch)
