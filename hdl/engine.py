@@ -22,7 +22,8 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
          Y from X = P (the old P: the previous product, post-processed) → RF[dst] / out
-    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits),
+    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits;
+         A is the constant 1: B reaches X3 as the product 1·B),
          sh + 1 times (one step per clock: the word is held in R, the fetch stalls)
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
@@ -275,6 +276,12 @@ class Assembler:
 
     def emit(self, op, *, dst=None, a="k.0", b="k.0", sh=0, rnd=False, sat=SAT_NONE,
              setf=False, cond=None, neg=False, acc=False, asl=False, out=None, tgt=None):
+        if op == Op.DIV:
+            # The divisor reaches X3 as the product 1·B (no register of its own).
+            if a not in ("k.0", "k.1", 1):
+                raise ValueError(f"Assembler: DIV takes no operand A (it is the constant 1), "
+                                 f"not {a!r}")
+            a = 1
         asp, a_ref = self._operand(a, "a")
         bsp, b_ref = self._operand(b, "b")
         c, inv = self._cond(cond)
@@ -1001,18 +1008,22 @@ class Engine(wiring.Component):
         # Operands registered at the end of X1; the product registered at the end of X2 (the
         # multiplier and its partial-product adders alone in X2); P updated in X3 (± product,
         # DIV step), read in X2 by the posts (``HAZARD_P``) and in X3 by MAC and DIV.
+        # The operands are X1's A and B as registered for X2 (``a2``, ``b2``): no registers of
+        # their own (they were a copy of the same bits: 47 flip-flops without a LUT in front on
+        # the iCE40).
         ma = Signal(signed(MUL_A))
         mb = Signal(signed(MUL_B))
         m_neg = Signal()
-        m.d.sync += [ma.eq(a[:MUL_A]), mb.eq(b[:MUL_B]), m_neg.eq(ir.neg ^ c)]
+        m.d.comb += [ma.eq(a2[:MUL_A]), mb.eq(b2[:MUL_B])]
+        m.d.sync += m_neg.eq(ir.neg ^ c)
         prod = Signal(signed(MUL_A + MUL_B), reset_less=True)
-        mb3 = Signal(signed(MUL_B), reset_less=True)
         m_neg3 = Signal(reset_less=True)
-        m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
+        m.d.sync += [prod.eq(ma * mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(P_WORD + 1))
         m.d.comb += t2.eq(p << 1)
         div_diff = Signal(signed(P_WORD + 1))
-        m.d.comb += div_diff.eq((t2 >> q) - mb3)
+        # DIV's divisor: the product of its A, the constant 1 (the assembler's), and B.
+        m.d.comb += div_diff.eq((t2 >> q) - prod[:MUL_B].as_signed())
         div_ge = ~div_diff[-1]
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \

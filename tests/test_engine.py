@@ -257,6 +257,9 @@ def test_repeated_div_errors_and_program_size():
     A = Assembler(specials=("x",), conds=(), outs=("ang",))
     with pytest.raises(ValueError, match=r"^Assembler: DIV steps must be from 1 to 32, not 33$"):
         A.div("r.d", 33)
+    with pytest.raises(ValueError, match=r"^Assembler: DIV takes no operand A \(it is the "
+                                         r"constant 1\), not 'r.x'$"):
+        A.emit(Op.DIV, a="r.x", b="r.d")
     A.br("!F", "l")
     A.div("r.d", 2)
     A.nop()
