@@ -226,11 +226,11 @@ def _signed(v, bits):
     return v - (1 << bits) if v >> (bits - 1) else v
 
 
-#: Per-sample inputs of :class:`EngineLoopModel` (and of the gateware
-#: :class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`): ``CurrentLoopModel``'s, with the
-#: inverse Park's advance ``theta_lead`` replaced by the ``lead_k`` register (θ_lead is computed
-#: from the sample's speed, :func:`lead_angle`).
 def engine_fields():
+    """Per-sample inputs of :class:`EngineLoopModel` (and of the gateware
+    :class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`): ``CurrentLoopModel``'s, with the
+    inverse Park's advance ``theta_lead`` replaced by the ``lead_k`` register (θ_lead is
+    computed from the sample's speed, :func:`lead_angle`)."""
     from .foc import SAMPLE_FIELDS
     return tuple("lead_k" if f == "theta_lead" else f for f in SAMPLE_FIELDS)
 
