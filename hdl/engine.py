@@ -22,7 +22,9 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
            ALU operation whose A is not P)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
          Y from X = P (the old P: the previous product, post-processed) → RF[dst] / out
-    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits)
+    DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits;
+         A is the constant 1: B reaches X3 as the product 1·B),
+         sh + 1 times (one step per clock: the word is held in R, the fetch stalls)
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
 
@@ -220,14 +222,24 @@ class Assembler:
             raise ValueError("Assembler: too many specials, conditions or outputs")
         self._instrs = []
         self._regs = {}
+        self._reg_init = {}
         self._consts = {}
         self._labels = {}
         self._fixups = []
 
     # --- operands ------------------------------------------------------------------------------
-    def reg(self, name):
+    def reg(self, name, *, init=None):
+        """The register ``name`` (allocated on first use); ``init``: its value at power-up (the
+        register file's initial contents; 0 otherwise). A register file in block RAM is not
+        reset: the value holds after a reset only until the program writes the register."""
         if name not in self._regs:
             self._regs[name] = len(self._regs)
+        if init is not None:
+            init = int(init)
+            if not -(1 << (WORD - 1)) <= init < (1 << (WORD - 1)):
+                raise ValueError(f"Assembler: initial value {init} of r.{name} does not fit "
+                                 f"{WORD} bits")
+            self._reg_init[name] = init
         return self._regs[name]
 
     def const(self, value):
@@ -264,6 +276,12 @@ class Assembler:
 
     def emit(self, op, *, dst=None, a="k.0", b="k.0", sh=0, rnd=False, sat=SAT_NONE,
              setf=False, cond=None, neg=False, acc=False, asl=False, out=None, tgt=None):
+        if op == Op.DIV:
+            # The divisor reaches X3 as the product 1·B (no register of its own).
+            if a not in ("k.0", "k.1", 1):
+                raise ValueError(f"Assembler: DIV takes no operand A (it is the constant 1), "
+                                 f"not {a!r}")
+            a = 1
         asp, a_ref = self._operand(a, "a")
         bsp, b_ref = self._operand(b, "b")
         c, inv = self._cond(cond)
@@ -303,6 +321,14 @@ class Assembler:
     def post(self, dst, sh=0, *, rnd=True, sat=SAT_NONE, out=None):
         """``dst = sat(round_shift(P, sh))`` (``rnd``) or ``sat(P >> sh)``."""
         return self.emit(Op.ADD, dst=dst, a="s.P", b="k.0", sh=sh, rnd=rnd, sat=sat, out=out)
+
+    def div(self, b, steps=1):
+        """``steps`` restoring DIV steps (1 … 32) with divisor ``b``, in one word (its ``sh``
+        field holds ``steps − 1``: the engine repeats it, one step per clock). Not in a branch
+        delay slot."""
+        if not isinstance(steps, int) or not 1 <= steps <= 32:
+            raise ValueError(f"Assembler: DIV steps must be from 1 to 32, not {steps!r}")
+        return self.emit(Op.DIV, b=b, sh=steps - 1)
 
     def br(self, cond, label):
         return self.emit(Op.BR, cond=cond, tgt=label)
@@ -503,6 +529,8 @@ class Assembler:
                     inv=0, neg=0, acc=0, asl=0, out=0), ("k", 0), ("k", 0), None, None)
         self.const(0)
         for i, entry in enumerate(instrs):
+            if i in slots and entry[0]["op"] == Op.DIV and entry[0]["sh"]:
+                raise ValueError(f"Assembler: a repeated DIV in a branch delay slot at {i}")
             n = self._needs(out, entry)
             if entry[0]["op"] == Op.BR and i + 2 < len(instrs):
                 # Where a delay slot would need NOPs, they go in front of the branch.
@@ -595,6 +623,8 @@ class Assembler:
             if not -(1 << (WORD - 1)) <= v < (1 << (WORD - 1)):
                 raise ValueError(f"Assembler: constant {v} does not fit {WORD} bits")
             rf_init[addr] = v
+        for name, v in self._reg_init.items():
+            rf_init[regs[name]] = v
 
         def resolve(ref):
             kind, x = ref
@@ -756,6 +786,13 @@ class Engine(wiring.Component):
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
         m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
                      x_valid.eq(r_valid)]
+        # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
+        # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
+        rep_k = Signal(5)
+        hold = Signal()
+        m.d.comb += [hold.eq(self.running & r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+                     rom_r.en.eq(~hold)]
+        m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
@@ -971,18 +1008,22 @@ class Engine(wiring.Component):
         # Operands registered at the end of X1; the product registered at the end of X2 (the
         # multiplier and its partial-product adders alone in X2); P updated in X3 (± product,
         # DIV step), read in X2 by the posts (``HAZARD_P``) and in X3 by MAC and DIV.
+        # The operands are X1's A and B as registered for X2 (``a2``, ``b2``): no registers of
+        # their own (they were a copy of the same bits: 47 flip-flops without a LUT in front on
+        # the iCE40).
         ma = Signal(signed(MUL_A))
         mb = Signal(signed(MUL_B))
         m_neg = Signal()
-        m.d.sync += [ma.eq(a[:MUL_A]), mb.eq(b[:MUL_B]), m_neg.eq(ir.neg ^ c)]
+        m.d.comb += [ma.eq(a2[:MUL_A]), mb.eq(b2[:MUL_B])]
+        m.d.sync += m_neg.eq(ir.neg ^ c)
         prod = Signal(signed(MUL_A + MUL_B), reset_less=True)
-        mb3 = Signal(signed(MUL_B), reset_less=True)
         m_neg3 = Signal(reset_less=True)
-        m.d.sync += [prod.eq(ma * mb), mb3.eq(mb), m_neg3.eq(m_neg)]
+        m.d.sync += [prod.eq(ma * mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(P_WORD + 1))
         m.d.comb += t2.eq(p << 1)
         div_diff = Signal(signed(P_WORD + 1))
-        m.d.comb += div_diff.eq((t2 >> q) - mb3)
+        # DIV's divisor: the product of its A, the constant 1 (the assembler's), and B.
+        m.d.comb += div_diff.eq((t2 >> q) - prod[:MUL_B].as_signed())
         div_ge = ~div_diff[-1]
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
@@ -1019,8 +1060,9 @@ class Engine(wiring.Component):
         x2_pc = Signal(PC_WIDTH)
         x3_pc = Signal(PC_WIDTH)
         x4_pc = Signal(PC_WIDTH)
-        m.d.sync += [r_pc.eq(pc), x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc),
-                     x4_pc.eq(x3_pc)]
+        with m.If(~hold):
+            m.d.sync += r_pc.eq(pc)
+        m.d.sync += [x_pc.eq(r_pc), x2_pc.eq(x_pc), x3_pc.eq(x2_pc), x4_pc.eq(x3_pc)]
         m.d.comb += self.trace_pc.eq(x4_pc)
 
         # Outputs (written in X4, like the register file).
@@ -1067,6 +1109,6 @@ class Engine(wiring.Component):
         with m.Elif(self.running):
             with m.If(execute & (ir.op == Op.BR) & c):
                 m.d.sync += pc.eq(ir.tgt)
-            with m.Else():
+            with m.Elif(~hold):
                 m.d.sync += pc.eq(pc + 1)
         return m

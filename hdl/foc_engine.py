@@ -1,20 +1,26 @@
 # Ref: paper eq. (1), (4)–(9), Fig. 7; SPEC.md §2, §2.5; AREA.md §4 stage 2; docs/ENGINE.md
 """The current loop as a program of the loop engine (:mod:`.engine`): a drop-in alternative to
-:class:`~.foc.CurrentLoop` with the same ports and bit-identical results
-(:class:`~foc_servo.sim.models.foc.CurrentLoopModel`), one multiplier instead of ≈ 20, and a longer
+:class:`~.foc.CurrentLoop` with its ports (but the ``theta_lead`` register, ``lead_k``, in place
+of θ_lead) and bit-identical results (:class:`~foc_servo.sim.models.foc.CurrentLoopModel`, with
+θ_lead as :class:`~.top.LeadAngle` makes it), one multiplier instead of ≈ 20, and a longer
 latency (:attr:`EngineCurrentLoop.latency`; docs/ENGINE.md).
 
 The program (:func:`current_loop_program`) follows ``hdl/foc.py`` step by step; the rotator's
 integer sine and cosine are computed from the same table and ``kd`` ROM as
 :class:`~.rotator.Rotator` (``RotatorParams``), the interpolation rewritten as one
 multiply-accumulate per term with floor shifts (the same integers as the model's
-``trig``). The DC-bus gain ``U_rated / U_dc`` keeps the DC-bus block's own divider
-(:class:`~.svpwm.DCBusCompensation`, its multiplier unused: the engine applies the gain);
-the gain in force is latched with each sample, so each sample is compensated with the previous
-sample's bus voltage, as in :class:`~.foc.CurrentLoop`.
+``trig``). The inverse Park's advance θ_lead = ``round_shift(n·k, 15)`` (``n`` the sample's
+speed as the feed-forward's, ``k`` = ``lead_k``) is one product (as :class:`~.top.LeadAngle`'s
+shift-and-add). The DC-bus gain ``min(round(U_rated·2**16 / U_dc), L)`` (as
+:class:`~.svpwm.DCBusCompensation`'s divider) is computed by the program from the sample's
+``U_dc`` after its duties (18 ``DIV`` steps; the limit test, ``dc_limited``, before them) into
+a register that the next sample's inverse Park uses: each sample is compensated with the
+previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up).
 """
 
-from amaranth.hdl import Module, Mux, Signal, signed, unsigned
+import math
+
+from amaranth.hdl import Module, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
@@ -23,26 +29,28 @@ from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
 from .fixed import Q, UQ, round_shift
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
-from .svpwm import DCBusCompensation
 
-__all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "phase_latency",
-           "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "ENGINE_WIDTH", "PIPELINE_CLOCKS"]
+__all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
+           "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "ENGINE_WIDTH",
+           "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
+#: Fraction bits of the DC-bus gain (UQ2.16, as :class:`~.svpwm.DCBusCompensation`'s).
+DCBUS_GAIN_FRAC = 16
 
 #: User special operands: latched sample values and configuration ports.
-SPECIALS = ("ia", "ib", "theta", "lead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
+SPECIALS = ("ia", "ib", "theta", "klead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
             "gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q",
-            "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "dcg")
+            "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "udc", "urat")
 #: Specials that may be operand B.
-BSPECIALS = ("off_a", "off_b", "lead", "nspd", "dcg", "scale")
+BSPECIALS = ("off_a", "off_b", "nspd", "scale")
 #: User conditions.
 CONDS = ("RUN", "OL", "FF")
 #: Output registers and their widths (``ang`` is the engine's angle register).
 OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q": 16,
         "u_d": 16, "u_q": 16, "u_alpha": 16, "u_beta": 16, "sat_d": 1, "sat_q": 1, "om": 1,
-        "da": 16, "db": 16, "dc": 16}
+        "da": 16, "db": 16, "dc": 16, "lim": 1}
 
 
 def _trig(asm, rot, pending=None, filler=None):
@@ -149,8 +157,24 @@ def _pis(asm, *, kx_shift, filler=None):
     A.alu(Op.ADD, "r.uq", "r.o_q", "r.ffq", sat=SAT_W, out="u_q")
 
 
+def _lead_lim(A, gain_limit_raw):
+    """The products of θ_lead (``r.lead``) and of the DC-bus gain's limit test (``r.lt``)."""
+    # θ_lead = round_shift(n·k, 15) mod 2**16 (hdl/top.py LeadAngle: n the sample's speed, Q1.15
+    # of N_FS, as the feed-forward's; k the theta_lead register, UQ0.16 turns at N_FS).
+    A.mul("s.klead", "b.nspd")
+    A.post("r.lead", 15)
+    # DC-bus gain limit test (the gain itself is computed after the duties, below):
+    # gain = round(R·2**16 / U) half up = floor(M / U), M = R·2**16 + floor(U/2) (R = U_rated,
+    # U = max(U_dc, 0)); limited (U = 0 or gain > L) iff M ≥ (L + 1)·U iff
+    # R·2**17 − (2L + 1)·U_dc ≥ 0 (with U_dc < 0 too).
+    A.mul("s.urat", 1 << 17)
+    A.mac("s.udc", 2 * gain_limit_raw + 1, neg=True)
+    A.post("r.lt", 31, rnd=False)                         # < 0: not limited (|P| < 2**35)
+
+
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
-                         count_width=16, rotator=None, fuse=True, schedule=True):
+                         count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
+                         schedule=True):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
     straight-line code (:meth:`Assembler.assemble`).
@@ -164,6 +188,7 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     w = width
     A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
     A.guard = int_guard
+    A.reg("dcg", init=1 << DCBUS_GAIN_FRAC)             # the DC-bus gain, UQ2.16: 1.0 at power-up
     # Clarke constants (sim/models/clarke.py) and SVPWM constants (svpwm.py, width w + 1).
     import math
     c_frac = w + 2
@@ -186,8 +211,14 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     # --- Park ----------------------------------------------------------------------------------
     _trig(A, rot, pending=lambda: A.post("r.beta", c_frac, sat=SAT_W, out="i_beta"),
           filler=lambda: A.alu(Op.SUB, "r.c", "r.mina", "r.b", sat=SAT_W, out="pc"))
+    # (Written here, between the trig's products and the rotation's, so that the scheduler puts
+    # their products where the multiplier waits for the trig's results: no clock added.)
+    _lead_lim(A, gain_limit_raw)
     _rotate(A, "r.a", "r.beta", "r.id", "r.iq", "i_d", "i_q", w)
-    A.alu(Op.ADD, None, "s.theta", "b.lead", out="ang")               # θ + θ_lead
+    A.alu(Op.ADD, None, "s.theta", "r.lead", out="ang")               # θ + θ_lead
+    # For the gain's division after the duties (which reads the register file only).
+    A.alu(Op.MAX, "r.u8", "s.udc", 0, asl=True)                       # 2**8·U, U = max(U_dc, 0)
+    A.alu(Op.ADD, "r.uh", "r.u8", 0, sh=9)                            # floor(U/2)
     # --- Run or clear ------------------------------------------------------------------------------
     A.br("!RUN", "off")
     _pi_head(A, "d", "r.id")                                          # delay slots
@@ -215,10 +246,13 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     _trig(A, rot)
     # --- Inverse Park, DC-bus compensation -----------------------------------------------------------
     A.label("inv")
+    A.alu(Op.ADD, None, "r.lt", 0, setf=True)
+    A.alu(Op.SEL, None, 0, 1, cond="!N", out="lim")                   # dc_limited
+    A.alu(Op.SEL, "r.rr", "s.urat", 0, cond="!N")                     # R, or 0 if limited
     _rotate(A, "r.ud", "r.uq", "r.ua", "r.ub", "u_alpha", "u_beta", w)
-    A.mul("r.ua", "b.dcg")                    # (u_β's post fuses into it)
+    A.mul("r.ua", "r.dcg")                    # (u_β's post fuses into it)
     A.post("r.ca", 16, sat=SAT_W1)
-    A.mul("r.ub", "b.dcg")
+    A.mul("r.ub", "r.dcg")
     A.post("r.cb", 16, sat=SAT_W1)
     # --- SVPWM (width w + 1, frac w − 1: hdl/svpwm.py, min–max injection) --------------------------
     if int_guard != 8:
@@ -252,6 +286,23 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
         if ph != "a":
             A.mul("s.scale", f"r.n{ph}")
         A.emit(Op.ADD, a="s.P", b=0, sh=sv_frac + 1, rnd=True, out=f"d{ph}")
+    # --- DC-bus gain for the next sample (after the duties: o.valid is the write of dc) ------
+    # gain = min(floor(M / U), L) (DCBusCompensation's), M = R'·2**16 + floor(U/2), R' = R (0
+    # when limited: the division then stays small). Not limited: gain ≤ L < 2**18, 18 quotient
+    # bits from the 16-bit DIV: N = 2**6·M divided by B = 2**8·U in 18 steps. The first 16
+    # give floor(N / B) = floor(M / (4U)) < 2**16 in P's low bits; in the last two the
+    # quotient's top bits move into the remainder's field, whose value and B are multiples of
+    # 2**6 (N's low bits are zero): the compares are unchanged (the quotient adds < 4) and
+    # P = 2**22·k + floor(M / U) at the end, so the gain is P − 2**22·(P >> 22).
+    A.label("gain")
+    A.mul("r.rr", 1 << 22)
+    A.mac("r.uh", 1 << 6)                                             # N = 2**6·M
+    A.div("r.u8", count_width + 2)
+    A.post("r.hi", 22, rnd=False)
+    A.mac("r.hi", -(1 << 22))
+    A.post("r.q", 0)                                                  # floor(M / U)
+    A.alu(Op.ADD, None, "r.lt", 0, setf=True)
+    A.alu(Op.SEL, "r.dcg", gain_limit_raw, "r.q", cond="N")           # N: not limited
     A.end()
     # Over-modulation: the largest phase has n = 2D (duty = scale), the smallest n = 0 (duty 0),
     # the middle one n = Σn − 2D: one division.
@@ -260,15 +311,16 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.mac(1, "r.d")                   # (in this order: 2D and na + nb from the delay slots)
     A.mac("s.scale", "r.d2", neg=True)
     A.mac("s.scale", "r.t")
-    for _ in range(count_width):
-        A.emit(Op.DIV, b="r.d2")
+    A.div("r.d2", count_width)
     A.alu(Op.ADD, "r.qm", "s.PQ", 0)
     for ph in "abc":
         A.alu(Op.SUB, None, f"r.n{ph}", "r.d2", setf=True)
         A.alu(Op.SEL, "r.t", "r.qm", "b.scale", cond="Z")
         A.alu(Op.ADD, None, f"r.n{ph}", 0, setf=True)
+        if ph == "c":
+            A.br("!F", "gain")                                        # the last duty in its slot
         A.alu(Op.SEL, None, "r.t", 0, cond="Z", out=f"d{ph}")
-    A.end()
+    A.nop()
     # --- PIs cleared (enable low or open loop) ---------------------------------------------------
     A.label("off")
     for ax in "dq":
@@ -283,30 +335,58 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     return A.assemble(fuse=fuse, schedule=schedule)
 
 
-def path_lengths(program):
-    """Executed instructions of every path through ``program`` (it has no loops): a sorted list
-    of distinct counts (each branch taken or not; delay slots counted)."""
+def _paths(program):
+    """Every path through ``program`` (it has no loops; each branch taken or not, delay slots
+    counted): the executed addresses, in order, one list per path."""
     instrs = program.instrs
-    counts = set()
+    paths = []
 
-    def walk(queue, count):
+    def walk(queue, trail):
         queue = list(queue)
+        trail = list(trail)
         while True:
             pc = queue.pop(0)
             ins = instrs[pc]
-            count += 1
+            trail.append(pc)
             if ins.op == Op.END:
-                counts.add(count)
+                paths.append(trail)
                 return
             nxt = queue[-1] + 1
             if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
                 always = ins.cond == 0 and ins.inv
-                walk(queue + [ins.tgt], count)
+                walk(queue + [ins.tgt], trail)
                 if always:
                     return
             queue.append(nxt)
 
-    walk([0, 1, 2], 0)
+    walk([0, 1, 2], [])
+    return paths
+
+
+def _clocks(ins):
+    """Clocks (issues) of one instruction word: a repeated DIV ``sh + 1``, else 1."""
+    return ins.sh + 1 if ins.op == Op.DIV else 1
+
+
+def path_lengths(program):
+    """Executed instructions of every path through ``program`` (it has no loops), to its END:
+    a sorted list of distinct counts (each branch taken or not; delay slots counted; a
+    repeated DIV counted as often as it is issued)."""
+    instrs = program.instrs
+    return sorted({sum(_clocks(instrs[pc]) for pc in p) for p in _paths(program)})
+
+
+def duty_lengths(program):
+    """Executed instructions of every path through ``program`` up to and including its write of
+    the last duty (output ``dc``; ``o.valid`` follows it): a sorted list of distinct counts."""
+    dc = program.outs.index("dc")
+    instrs = program.instrs
+    counts = set()
+    for path in _paths(program):
+        writes = [k for k, pc in enumerate(path) if instrs[pc].out == dc]
+        if not writes:
+            raise ValueError("engine program: a path without a write of the duty dc")
+        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1] + 1]))
     return sorted(counts)
 
 
@@ -316,6 +396,10 @@ START_CLOCKS = 3
 #: then END's X1 clock is the last instruction's; the write back of the instruction before
 #: END (X4) lands ``WRITE_DELAY − 1`` clocks after it, ``o.valid`` is registered.
 PIPELINE_CLOCKS = START_CLOCKS + WRITE_DELAY - 1
+#: Clocks from the accepted sample to ``o.valid`` beyond the executed instructions up to and
+#: including the write of the last duty (:func:`duty_lengths`): the start, that instruction's
+#: X1 clock, its write back (X4) ``WRITE_DELAY`` later, ``o.valid`` registered.
+DUTY_CLOCKS = START_CLOCKS + WRITE_DELAY
 
 
 def phase_latency(program):
@@ -325,25 +409,44 @@ def phase_latency(program):
     + k`` clocks after the sample, written back ``WRITE_DELAY`` later, ``phase.valid``
     registered."""
     outs = ("",) + tuple(OUTS)
-    for k, ins in enumerate(program.instrs):
+    k = 0
+    for ins in program.instrs:
         if ins.op == Op.BR or ins.op == Op.END:
             break
         if ins.out and outs[ins.out] == "pc":
             return START_CLOCKS + k + WRITE_DELAY + 1
+        k += _clocks(ins)
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
 class EngineCurrentLoop(wiring.Component):
     """The current loop of :class:`~.foc.CurrentLoop` as a program of the loop engine.
 
-    Same parameters, same signature (ports, streams, status outputs) and bit-identical results
-    (:class:`~foc_servo.sim.models.foc.CurrentLoopModel`); only the timing differs: the whole
-    computation runs on one multiplier and one ALU in sequence (:attr:`latency`). The program is
-    written for the default formats; other values raise :exc:`ValueError`.
+    Same parameters, the same signature (ports, streams, status outputs) but for ``lead_k`` in
+    place of ``theta_lead``, and bit-identical results
+    (:class:`~foc_servo.sim.models.foc.CurrentLoopModel` with ``theta_lead`` =
+    :func:`~foc_servo.sim.models.engine.lead_angle` of the sample's ``speed`` and ``lead_k``);
+    only the timing differs: the whole computation runs on one multiplier and one ALU in
+    sequence (:attr:`latency`). The program is written for the default formats; other values
+    raise :exc:`ValueError`.
 
-    Status outputs update when the program writes them; ``done`` (and ``o.valid``) mark the
-    sample's end as in :class:`~.foc.CurrentLoop`. ``dc_limited`` is the DC-bus block's flag as
-    there. ``phase.valid`` strobes the clock after the program wrote phase c.
+    Status outputs update when the program writes them; ``o.valid`` follows the program's
+    write of the last duty, ``done`` marks the transfer as in :class:`~.foc.CurrentLoop`.
+    ``dc_limited`` (the DC-bus gain limit hit by this sample's ``U_dc``, as the DC-bus block's
+    flag) is written before the duties. After the duties the program computes the next
+    sample's DC-bus gain (from the register file only) before it ends: a sample accepted in
+    that time (back to back, less than :attr:`interval` clocks after the previous one) is
+    latched and its program starts when the running one ends (its latency then grows by the
+    rest of it). ``phase.valid`` strobes the clock after the program wrote phase c. The DC-bus
+    gain lives in the engine's register file (block RAM), which a reset does not clear: it is
+    1.0 at power-up and after a reset the last gain computed until the next sample's.
+
+    Members
+    -------
+    lead_k : In(unsigned(16))
+        The ``theta_lead`` register: the inverse Park's advance at full-scale speed, UQ0.16
+        turns; read while the program runs (like the gains), θ_lead = ``round_shift(n·k, 15)``
+        mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
 
     Attributes
     ----------
@@ -351,7 +454,12 @@ class EngineCurrentLoop(wiring.Component):
         Clocks from the accepted sample to ``o.valid``, worst case (over-modulation with
         feed-forward).
     latencies : list of int
-        Every possible latency (per program path).
+        Every possible latency (per program path), :func:`duty_lengths` + :data:`DUTY_CLOCKS`.
+    interval : int
+        Clocks from an accepted sample until the program has ended (the DC-bus gain computed)
+        on its longest path: a sample accepted later starts at once.
+    gain_limit_raw : int
+        ``gain_limit`` in UQ2.16 (``L``).
     phase_latency : int
         Clocks from the accepted sample to the ``phase`` transfer (the program's write of
         phase c, :func:`phase_latency`).
@@ -373,18 +481,25 @@ class EngineCurrentLoop(wiring.Component):
         if rotator not in ("table", "cordic"):
             raise ValueError(f"EngineCurrentLoop rotator must be one of table, cordic (both mean "
                              f"the engine's sine table), not {rotator!r}")
+        if (not isinstance(gain_limit, (int, float)) or isinstance(gain_limit, bool)
+                or not math.isfinite(gain_limit)):
+            raise TypeError(f"EngineCurrentLoop gain_limit must be a number, not {gain_limit!r}")
+        limit_raw = round(gain_limit * (1 << DCBUS_GAIN_FRAC))
+        if not (1 << DCBUS_GAIN_FRAC) <= limit_raw < (4 << DCBUS_GAIN_FRAC):
+            raise ValueError(f"EngineCurrentLoop gain_limit must be at least 1.0 and below 4.0, "
+                             f"not {gain_limit!r}")
+        self._gain_limit_raw = limit_raw
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
-        self._program = current_loop_program(rotator=self._rot)
-        self._dcbus = DCBusCompensation(width=width, out_width=width + 1, adc_width=adc_width,
-                                        gain_limit=gain_limit)
-        self._latencies = [n + PIPELINE_CLOCKS for n in path_lengths(self._program)]
+        self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw)
+        self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
+        self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
-            "theta": In(unsigned(aw)), "theta_lead": In(unsigned(aw)),
+            "theta": In(unsigned(aw)), "lead_k": In(unsigned(16)),
             "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
             "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
@@ -414,6 +529,8 @@ class EngineCurrentLoop(wiring.Component):
     count_width = property(lambda self: 16)
     latency = property(lambda self: max(self._latencies))
     latencies = property(lambda self: list(self._latencies))
+    interval = property(lambda self: self._interval)
+    gain_limit_raw = property(lambda self: self._gain_limit_raw)
     phase_latency = property(lambda self: self._phase_latency)
 
     def elaborate(self, platform):
@@ -421,42 +538,48 @@ class EngineCurrentLoop(wiring.Component):
         w = ENGINE_WIDTH
         sw = signed(w)
         shapes = {
-            "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "lead": unsigned(16),
+            "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "klead": unsigned(16),
             "id_ref": sw, "iq_ref": sw, "ol_ud": sw, "ol_uq": sw, "nspd": sw,
             "gain_a": self.gain_a.shape(), "gain_b": self.gain_b.shape(),
             "off_a": self.offset_a.shape(), "off_b": self.offset_b.shape(),
             "kp_d": self.kp_d.shape(), "kx_d": self.kx_d.shape(), "lo_d": sw, "hi_d": sw,
             "kp_q": self.kp_q.shape(), "kx_q": self.kx_q.shape(), "lo_q": sw, "hi_q": sw,
             "ff_l": self.ff_l.shape(), "ff_psi": self.ff_psi.shape(),
-            "scale": self.scale.shape(), "dcg": unsigned(18),
+            "scale": self.scale.shape(), "udc": signed(16), "urat": self.u_rated.shape(),
         }
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
                                            out_widths=OUTS, width=w, guard=8,
                                            div_bits=16, rotator=self._rot)
-        m.submodules.dcbus = dcbus = self._dcbus
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
+        # The duties are valid from the program's write of the last one (``dc``); the program
+        # then computes the next sample's DC-bus gain (from the register file only) before its
+        # END. A sample accepted before that END (back to back, ``interval``) is latched and
+        # starts the program when it ends (``pending``).
         accept, done = sample_handshake(m, self)
         with m.If(done):
             m.d.sync += self.overmod.eq(eng.o_om)
-        with m.If(eng.end):
+        with m.If(eng.o_dc_we):
             m.d.sync += self.o.valid.eq(1)
         with m.Elif(done):
             m.d.sync += self.o.valid.eq(0)
+        pending = Signal()
+        with m.If(accept & eng.running):
+            m.d.sync += pending.eq(1)
+        with m.Elif(~eng.running):
+            m.d.sync += pending.eq(0)
 
         # --- Per-sample inputs, latched with the sample ------------------------------------------
         lat = {name: Signal(shapes[name], name=f"l_{name}")
-               for name in ("ia", "ib", "theta", "lead", "id_ref", "iq_ref", "ol_ud", "ol_uq",
-                            "nspd", "dcg")}
+               for name in ("ia", "ib", "theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
         run, ol, ff = Signal(), Signal(), Signal()
         with m.If(accept):
             m.d.sync += [
                 lat["ia"].eq(self.i.payload.ia), lat["ib"].eq(self.i.payload.ib),
-                lat["theta"].eq(self.theta), lat["lead"].eq(self.theta_lead),
+                lat["theta"].eq(self.theta),
                 lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
                 lat["ol_ud"].eq(self.ol_ud), lat["ol_uq"].eq(self.ol_uq),
                 lat["nspd"].eq(saturate_bits(round_shift(self.speed, SPEED_WIDTH - w), sw)),
-                lat["dcg"].eq(dcbus.gain),
                 run.eq(self.enable & ~self.ol_enable), ol.eq(self.ol_enable),
                 ff.eq(self.ff_enable & self.enable & ~self.ol_enable),
                 self.udc.payload.eq(self.i.payload.udc),
@@ -466,21 +589,12 @@ class EngineCurrentLoop(wiring.Component):
                   "off_b": self.offset_b, "kp_d": self.kp_d, "kx_d": self.kx_d,
                   "lo_d": self.lim_lo_d, "hi_d": self.lim_hi_d, "kp_q": self.kp_q,
                   "kx_q": self.kx_q, "lo_q": self.lim_lo_q, "hi_q": self.lim_hi_q,
-                  "ff_l": self.ff_l, "ff_psi": self.ff_psi, "scale": self.scale}
+                  "ff_l": self.ff_l, "ff_psi": self.ff_psi, "scale": self.scale,
+                  "klead": self.lead_k, "udc": self.udc.payload, "urat": self.u_rated}
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
-        m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff), eng.start.eq(accept)]
-
-        # --- DC-bus gain: the DC-bus block's divider (its multiplier is not used) -----------------
-        udc = self.i.payload.udc
-        m.d.comb += [
-            dcbus.u_rated.eq(self.u_rated),
-            dcbus.u_dc.valid.eq(accept),
-            dcbus.u_dc.payload.eq(Mux(udc[-1], 0, udc)),
-            dcbus.i.valid.eq(0),
-            dcbus.o.ready.eq(1),
-            self.dc_limited.eq(dcbus.limited),
-        ]
+        m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),
+                     eng.start.eq(accept | pending), self.dc_limited.eq(eng.o_lim)]
 
         # --- Outputs --------------------------------------------------------------------------------
         m.d.comb += [

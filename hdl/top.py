@@ -12,6 +12,7 @@
     EncoderFrontEnd illegal, hall_fault, plausibility (encoder/Hall check) ─ Protection
     Servo (modes, speed loop, open-loop angle) ─ θ, references ─ CurrentLoop; ref_step ─ Scope
     MTSpeed speed × theta_lead register ─ LeadAngle ─ θ_lead ─ CurrentLoop (inverse Park θ + θ_lead)
+        (current_loop="engine": the program computes θ_lead from the speed and the register)
 
 Timing within one PWM period (``period_start`` = ``pos`` 0):
 
@@ -49,7 +50,13 @@ from the next period boundary (T/2 after a centred sample) for one period, so th
 ``t_lead = 1/pwm_hz`` after the sample (``host.tuning.lead_angle``). ``θ_lead`` is computed from
 each M/T result (``mt.o.valid``, after the register commit of the same period start) and is
 ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (55 at 50 MHz); a
-sample taken earlier uses the previous period's value.
+sample taken earlier uses the previous period's value. With ``current_loop="engine"`` there is
+no LeadAngle: the engine computes the same ``θ_lead`` in its program from the speed it latches
+at the sample (``cl_speed``, a clock behind M/T) and the register; the same value whenever the
+sample comes more than ``LeadAngle.latency + 1`` clocks after ``mt.o.valid`` (always, unless
+``pwm_sample_point`` puts it within ``MTSpeed.latency + LeadAngle.latency + 1`` clocks after
+``period_start``); a sample in that window uses the new speed (the pipelined loop: the previous
+period's θ_lead), as its feed-forward does.
 
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
@@ -397,7 +404,8 @@ class Top(wiring.Component):
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
                             kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width)
-        self._lead = LeadAngle()
+        # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
+        self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
         self._scope = Scope(ram=scope_ram)
@@ -447,7 +455,8 @@ class Top(wiring.Component):
         m.submodules.protect = prot = self._protect
         m.submodules.gates = gates = self._gates
         m.submodules.scope = scope = self._scope
-        m.submodules.lead = lead = self._lead
+        if self._lead is not None:
+            m.submodules.lead = lead = self._lead
 
         # --- pins ---------------------------------------------------------------------------
         fault_n = Signal(init=1)
@@ -489,6 +498,21 @@ class Top(wiring.Component):
         # M/T; the loop latches it at its sample, thousands of clocks after an update).
         cl_speed = Signal.like(speed)
         m.d.sync += cl_speed.eq(speed)
+        if self._lead is not None:
+            m.d.comb += [
+                # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
+                # commits at period_start, before mt.o.valid): ready period_start + mt.latency
+                # + LeadAngle.latency, before the ADC sample unless pwm_sample_point is that
+                # early.
+                lead.speed.eq(speed),
+                lead.k.eq(regs.theta_lead),
+                lead.start.eq(mt.o.valid),
+                cl.theta_lead.eq(lead.theta),
+            ]
+        else:
+            # The engine: θ_lead from the speed it latches at the sample (cl_speed, below)
+            # and the theta_lead register, in its program (EngineCurrentLoop.lead_k).
+            m.d.comb += cl.lead_k.eq(regs.theta_lead)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -507,13 +531,6 @@ class Top(wiring.Component):
             servo.trip.eq(trip_q),
 
             cl.theta.eq(servo.theta),
-            # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
-            # commits at period_start, before mt.o.valid): ready period_start + mt.latency +
-            # LeadAngle.latency, before the ADC sample unless pwm_sample_point is that early.
-            lead.speed.eq(speed),
-            lead.k.eq(regs.theta_lead),
-            lead.start.eq(mt.o.valid),
-            cl.theta_lead.eq(lead.theta),
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
             cl.ol_ud.eq(servo.ol_ud),

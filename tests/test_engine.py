@@ -8,22 +8,33 @@ import warnings
 
 import numpy as np
 import pytest
-from amaranth.hdl import UnusedElaboratable, signed
+from amaranth.hdl import UnusedElaboratable, signed, unsigned
 
 from foc_servo.hdl.engine import HAZARD_P, HAZARD_RF, WORD, Assembler, Engine, Op, SAT_W
 from foc_servo.hdl.foc import CurrentLoop
-from foc_servo.hdl.foc_engine import (OUTS, PIPELINE_CLOCKS, SPECIALS, EngineCurrentLoop,
-                                      current_loop_program, path_lengths)
+from foc_servo.hdl.foc_engine import (DUTY_CLOCKS, OUTS, SPECIALS, EngineCurrentLoop,
+                                      current_loop_program, duty_lengths, path_lengths)
 from foc_servo.sim.harness import simulate
-from foc_servo.sim.models.engine import EngineLoopModel, EngineModel
+from foc_servo.sim.models.engine import (EngineLoopModel, EngineModel, lead_angle,
+                                         loop_model_inputs)
 from foc_servo.sim.models.foc import OUTPUT_FIELDS, CurrentLoopModel
 from foc_servo.sim.models.rotator import rotate_ideal
+from foc_servo.sim.models.svpwm import dcbus_gain
 from foc_servo.sim.verify import foc as verify_foc
 
 
-def _compare(vec, program=None):
-    exp = CurrentLoopModel().run(**vec)
-    em = EngineLoopModel(program=program)
+def _engine_vec(vec):
+    """The engine's inputs for a CurrentLoop stimulus: its random 16-bit ``theta_lead`` column
+    taken as the ``lead_k`` register (θ_lead then follows from the speed, as in the program)."""
+    out = {k: v for k, v in vec.items() if k != "theta_lead"}
+    out["lead_k"] = np.asarray(vec["theta_lead"]) % (1 << 16)
+    return out
+
+
+def _compare(vec, program=None, gain_limit=2.0):
+    """``vec``: the engine's inputs (``lead_k``); the model runs on the equivalent θ_lead."""
+    exp = CurrentLoopModel(gain_limit=gain_limit).run(**loop_model_inputs(vec))
+    em = EngineLoopModel(program=program, gain_limit=gain_limit)
     got = em.run(**vec)
     bad = {k: int(np.sum(np.asarray(exp[k]) != np.asarray(got[k]))) for k in OUTPUT_FIELDS}
     return exp, got, {k: v for k, v in bad.items() if v}, em
@@ -32,7 +43,7 @@ def _compare(vec, program=None):
 # --- the program on the interpreter against the current loop's golden model ---------------------
 
 def test_program_bit_identical_to_current_loop_model():
-    vec = verify_foc.stimulus(1500, seed=11)            # random segments + the corner cases
+    vec = _engine_vec(verify_foc.stimulus(1500, seed=11))   # random segments + the corners
     exp, got, bad, em = _compare(vec)
     assert bad == {}
     # Coverage: every path of the program ran, every flag was seen both ways.
@@ -44,12 +55,14 @@ def test_program_bit_identical_to_current_loop_model():
 def test_program_corners():
     """Saturating references, limits hit, inverted and zero-width limits, zero and negative U_dc,
     over-modulation, θ wrap, ff on/off, open loop, enable low (PI cleared)."""
-    vec = verify_foc.stimulus(0, seed=3)
+    vec = _engine_vec(verify_foc.stimulus(0, seed=3))
     n = vec["ia"].size
     rng = np.random.default_rng(5)
     extra = {k: np.copy(v) for k, v in vec.items()}
     extra["theta"] = np.where(rng.random(n) < 0.5, 0xFFFF, 0)
-    extra["theta_lead"] = np.full(n, 1)                   # θ + θ_lead wraps
+    extra["speed"] = np.where(rng.random(n) < 0.5, (1 << 31) - 1, -(1 << 31))
+    extra["lead_k"] = np.full(n, 2)                       # θ_lead = ±2: θ + θ_lead wraps
+    assert set(lead_angle(extra["speed"], 2)) == {2, (1 << 16) - 2}
     extra["udc"] = np.where(rng.random(n) < 0.5, -1, 0)
     extra["ff_enable"] = 1 - vec["ff_enable"]
     for v in (vec, extra):
@@ -57,11 +70,92 @@ def test_program_corners():
         assert bad == {}
 
 
+def _gain_cases(rng, limit_raw):
+    """(U_rated, U_dc) pairs: corners (U_dc 0, negative, tiny, > U_rated, full scale; U_rated 0
+    and full scale), the exact limit boundary (gain L and L + 1), rounding ties, random."""
+    cases = [(r, u) for r in (0, 1, 16000, 32767, 65535) for u in (-32768, -1, 0, 1, 2, 3)]
+    cases += [(r, u) for r in (0, 1, 1000, 16000, 32767, 65535)
+              for u in (r // 2, r - 1, r, r + 1, 2 * r, 32767) if 0 <= u < 32768]
+    for r in (1000, 16000, 32767, 65535):
+        for u in range(max(1, (r << 16) // (limit_raw + 1) - 2),
+                       (r << 16) // max(limit_raw - 1, 1) + 3):
+            if u < 32768:
+                cases.append((r, u))                 # gain around L: limited or not
+    exact = 0
+    for u in range(1, 32768):                        # gain exactly L, not limited
+        r = -(-(limit_raw * u - u // 2) >> 16)
+        if r < 65536 and ((r << 16) + u // 2) // u == limit_raw:
+            cases += [(r, u), (r, u + 1), (r + 1, u)]
+            exact += 1
+            if exact == 5:
+                break
+    for _ in range(200):                             # ties: R·2**17 + U = (2q + 1)·U ± …
+        u = int(rng.integers(1, 32768))
+        q = int(rng.integers(1 << 15, min(limit_raw, 65535 * 65536 // u) + 1))
+        r = (q * u) >> 16
+        cases += [(r, u), (min(r + 1, 65535), u)]
+    cases += [(int(rng.integers(0, 1 << 16)), int(rng.integers(-100, 1 << 15)))
+              for _ in range(300)]
+    return cases
+
+
+@pytest.mark.parametrize("gain_limit", [2.0, 1.0, 1.5, 3.99])
+def test_program_dc_bus_gain_is_exact(gain_limit):
+    """The gain the program computes after the duties (register ``dcg``) equals the DC-bus
+    block's ``min(round(U_rated·2**16 / U_dc), L)`` (half up; U_dc ≤ 0: L) to the LSB, with
+    the ``dc_limited`` flag, over the corners, the limit boundary and rounding ties; the next
+    sample is compensated with it (every output bit-identical to CurrentLoopModel)."""
+    rng = np.random.default_rng(17)
+    limit_raw = round(gain_limit * (1 << 16))
+    cases = _gain_cases(rng, limit_raw)
+    vec = _engine_vec(verify_foc.stimulus(0, seed=1))
+    k = np.arange(len(cases)) % vec["ia"].size
+    vec = {name: np.asarray(col)[k] for name, col in vec.items()}
+    vec["u_rated"] = np.array([r for r, _ in cases])
+    vec["udc"] = np.array([u for _, u in cases])
+    exp, got, bad, em = _compare(vec, gain_limit=gain_limit)
+    assert bad == {}
+    want, limited = dcbus_gain(vec["u_rated"], np.maximum(vec["udc"], 0),
+                               gain_limit_raw=limit_raw)
+    # The gain computed from sample n is applied to sample n + 1.
+    np.testing.assert_array_equal(got["dc_gain"][1:], want[:-1])
+    assert em.dc_gain == want[-1]
+    np.testing.assert_array_equal(got["dc_limited"], limited)
+    assert got["dc_gain"][0] == 1 << 16                  # 1.0 at power-up
+    assert 0 < limited.sum() < len(cases)
+    assert ((want == limit_raw) & (limited == 0)).sum() >= 5   # gain L exactly, not limited
+
+
+def test_program_dc_bus_gain_off_by_one_is_caught():
+    """The gain check can fail: the division's rounding term floor(U/2) taken as round(U/2)
+    (the gain 1 LSB high for some odd U_dc) shows up in the gain comparison."""
+    prog = current_loop_program()
+    regs = prog.regs
+    words = list(prog.words)
+    k = next(i for i, ins in enumerate(prog.instrs)
+             if ins.wen and ins.dst == regs["uh"] and ins.sh == 9)
+    words[k] = dataclasses.replace(prog.instrs[k], rnd=1).encode()
+    broken = dataclasses.replace(prog, words=words)
+    rng = np.random.default_rng(17)
+    cases = _gain_cases(rng, 2 << 16)
+    want, _ = dcbus_gain([r for r, _ in cases], [max(u, 0) for _, u in cases],
+                         gain_limit_raw=2 << 16)
+    em = EngineLoopModel(program=broken)
+    vec = _engine_vec(verify_foc.stimulus(0, seed=1))
+    idx = np.arange(len(cases)) % vec["ia"].size
+    vec = {name: np.asarray(col)[idx] for name, col in vec.items()}
+    vec["u_rated"] = np.array([r for r, _ in cases])
+    vec["udc"] = np.array([u for _, u in cases])
+    got = em.run(**vec)
+    diff = np.asarray(got["dc_gain"][1:]) - want[:-1]
+    assert set(diff) == {0, 1}
+
+
 def test_program_widest_values_fit_the_words():
     """The 32-bit register file (``WORD``) holds the widest value, the PI's ``kp·E``, at its
     extremes (kp = 65 535, E = ±full scale); the interpreter would raise OverflowError on a
     write that does not fit (and on P beyond ``P_WORD``), and the results match the model."""
-    vec = verify_foc.stimulus(0, seed=3)
+    vec = _engine_vec(verify_foc.stimulus(0, seed=3))
     n = vec["ia"].size
     ext = {k: np.copy(v) for k, v in vec.items()}
     ext.update(kp_d=np.full(n, 65535), kp_q=np.full(n, 65535), enable=np.ones(n, np.int64),
@@ -81,7 +175,7 @@ def test_program_breaks_when_changed():
     k = next(i for i, ins in enumerate(prog.instrs) if ins.rnd and ins.sh == 15)   # Clarke a
     words[k] = dataclasses.replace(prog.instrs[k], rnd=0).encode()
     broken = dataclasses.replace(prog, words=words)
-    _, _, bad, _ = _compare(verify_foc.stimulus(100, seed=2), program=broken)
+    _, _, bad, _ = _compare(_engine_vec(verify_foc.stimulus(100, seed=2)), program=broken)
     assert bad.get("a", 0) > 0
 
 
@@ -91,7 +185,7 @@ def test_fused_posts_change_nothing_but_length():
     fused = current_loop_program()
     assert len(fused.words) < len(plain.words)
     assert all(a < b for a, b in zip(path_lengths(fused), path_lengths(plain)))
-    vec = verify_foc.stimulus(200, seed=6)
+    vec = _engine_vec(verify_foc.stimulus(200, seed=6))
     a = EngineLoopModel(program=plain).run(**vec)
     b = EngineLoopModel(program=fused).run(**vec)
     for k in OUTPUT_FIELDS:
@@ -104,7 +198,7 @@ def test_scheduled_program_changes_nothing_but_length():
     plain = current_loop_program(schedule=False)
     sched = current_loop_program()
     assert all(a < b for a, b in zip(path_lengths(sched), path_lengths(plain)))
-    vec = verify_foc.stimulus(200, seed=8)
+    vec = _engine_vec(verify_foc.stimulus(200, seed=8))
     a = EngineLoopModel(program=plain).run(**vec)
     b = EngineLoopModel(program=sched).run(**vec)
     for k in OUTPUT_FIELDS:
@@ -113,7 +207,7 @@ def test_scheduled_program_changes_nothing_but_length():
 
 def test_program_park_against_float_rotation():
     """Independent check: i_d, i_q against the float Park of the engine's own α, β."""
-    vec = verify_foc.stimulus(300, seed=4)
+    vec = _engine_vec(verify_foc.stimulus(300, seed=4))
     _, got, _, _ = _compare(vec)
     xf, yf = rotate_ideal(got["i_alpha"], got["i_beta"], (-vec["theta"]) % (1 << 16),
                           width=16, angle_width=16)
@@ -143,11 +237,40 @@ def test_div_step_is_floor_division():
             for _ in range(16):
                 A.emit(Op.DIV, b=f"k.{d}")
             A.alu(Op.ADD, None, "s.PQ", 0, out="r")
-        _, em = _small(build)
-        em.p = num                                      # P is architectural state
-        em.run({"x": 0, "y": 0}, {})
-        assert em.outs["r"] == num // d
-        assert em.p >> 16 == num % d
+
+        def build_rep(A):                               # the same 16 steps in one word
+            A.div(f"k.{d}", 16)
+            A.alu(Op.ADD, None, "s.PQ", 0, out="r")
+        for b in (build, build_rep):
+            prog, em = _small(b)
+            em.p = num                                  # P is architectural state
+            trace = em.run({"x": 0, "y": 0}, {})
+            assert em.outs["r"] == num // d
+            assert em.p >> 16 == num % d
+            assert len(trace) == 16 + 1 + 1 + 1         # 16 steps, a NOP (HAZARD_P), ADD, END
+        assert len(prog.words) == 4 and prog.instrs[0].sh == 15
+
+
+def test_repeated_div_errors_and_program_size():
+    """``Assembler.div``: 1 … 32 steps, not in a delay slot; the current-loop program fits the
+    256-word ROM (4 block RAMs on the iCE40) with its DIVs repeated."""
+    A = Assembler(specials=("x",), conds=(), outs=("ang",))
+    with pytest.raises(ValueError, match=r"^Assembler: DIV steps must be from 1 to 32, not 33$"):
+        A.div("r.d", 33)
+    with pytest.raises(ValueError, match=r"^Assembler: DIV takes no operand A \(it is the "
+                                         r"constant 1\), not 'r.x'$"):
+        A.emit(Op.DIV, a="r.x", b="r.d")
+    A.br("!F", "l")
+    A.div("r.d", 2)
+    A.nop()
+    A.label("l")
+    A.end()
+    with pytest.raises(ValueError, match=r"^Assembler: a repeated DIV in a branch delay slot "
+                                         r"at 1$"):
+        A.assemble()
+    prog = current_loop_program()
+    assert len(prog.words) <= 256
+    assert sorted(i.sh + 1 for i in prog.instrs if i.op == Op.DIV) == [16, 18]
 
 
 def test_rounding_saturation_and_overflow_check():
@@ -258,12 +381,11 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
     dut = Engine(program=prog, special_shapes={n: signed(20) for n in SPECIALS},
                  out_widths=OUTS)
     model = EngineModel(prog, out_widths=OUTS)
-    vec = verify_foc.stimulus(60, seed=9)
+    vec = _engine_vec(verify_foc.stimulus(60, seed=9))
     rng = np.random.default_rng(9)
     idx = np.concatenate([np.arange(60), rng.choice(np.arange(60, vec["ia"].size), 40,
                                                     replace=False)])
-    samples = [EngineLoopModel.specials_of(vec, int(k), int(rng.integers(0, 1 << 17)))
-               for k in idx]
+    samples = [EngineLoopModel.specials_of(vec, int(k)) for k in idx]
     errors, clocks = [], [0]
 
     async def testbench(ctx):
@@ -321,9 +443,21 @@ def test_engine_current_loop_signature_and_parameters():
 
 def _check_signature_and_parameters():
     dut = EngineCurrentLoop()
-    assert dut.signature == CurrentLoop().signature
-    assert dut.latencies == [n + PIPELINE_CLOCKS for n in path_lengths(dut.program)]
+    # CurrentLoop's ports, but the theta_lead register (lead_k) in place of θ_lead.
+    mine = dict(dut.signature.members)
+    theirs = dict(CurrentLoop().signature.members)
+    assert mine.pop("lead_k").shape == theirs.pop("theta_lead").shape == unsigned(16)
+    assert mine == theirs
+    assert dut.latencies == [n + DUTY_CLOCKS for n in duty_lengths(dut.program)]
     assert dut.latency == max(dut.latencies) <= 240
+    assert dut.interval == max(path_lengths(dut.program)) + 3 > dut.latency
+    assert dut.gain_limit_raw == 2 << 16
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop gain_limit must be at least 1.0 "
+                                         r"and below 4.0, not 4.0$"):
+        EngineCurrentLoop(gain_limit=4.0)
+    with pytest.raises(TypeError, match=r"^EngineCurrentLoop gain_limit must be a number, "
+                                        r"not 'x'$"):
+        EngineCurrentLoop(gain_limit="x")
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop width must be 16 \(the program is "
                                          r"written for it\), not 12$"):
         EngineCurrentLoop(width=12)
@@ -338,9 +472,9 @@ def test_engine_current_loop_against_model():
     CurrentLoopModel one clock after each transfer), with EngineCurrentLoop as the dut."""
     from amaranth.lib import data
     dut = EngineCurrentLoop()
-    vec = verify_foc.stimulus(40, seed=21)
+    vec = _engine_vec(verify_foc.stimulus(40, seed=21))
     n = vec["ia"].size
-    exp = CurrentLoopModel().run(**vec)
+    exp = CurrentLoopModel().run(**loop_model_inputs(vec))
     in_layout = data.StructLayout(verify_foc._input_shapes(dut))
     out_layout = data.StructLayout(verify_foc._output_shapes(dut))
     bench = verify_foc._CurrentLoopBench(dut, in_layout, verify_foc._pack(in_layout, vec, n),

@@ -584,6 +584,7 @@ def test_top_current_loop_duties_match_the_model(current_loop):
     ports (sample and configuration inputs), the whole sequence replayed through
     ``CurrentLoopModel``: the duties, voltages, currents and flags of every pass are bit-identical,
     each within the loop's latency, with no overrun."""
+    from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CONFIG_FIELDS, SAMPLE_FIELDS, CurrentLoopModel
     clk = 33.333e6          # the ADC model checks the datasheet timing at this clock
     top = Top(clk_hz=clk, pwm_hz=50e3, baud=clk / 8, current_loop=current_loop, resets={
@@ -598,20 +599,28 @@ def test_top_current_loop_duties_match_the_model(current_loop):
               int(rng.integers(5000, 22000)), 0) for _ in range(64)]
     adc = AdcPartModel(cs_n=top.adc_cs_n, sclk=top.adc_sclk, sdo=top.adc_sdo, clk_hz=clk,
                        source=lambda n: codes[n % len(codes)])
+    # The engine takes the theta_lead register (lead_k) and computes θ_lead from the speed it
+    # latches at the sample (the pipelined loop: θ_lead from LeadAngle, at M/T's strobe).
+    fields = SAMPLE_FIELDS if current_loop == "pipelined" else engine_fields()
     ports = {"ia": cl.i.payload.ia, "ib": cl.i.payload.ib, "udc": cl.i.payload.udc,
-             **{f: getattr(cl, f) for f in SAMPLE_FIELDS + CONFIG_FIELDS
+             **{f: getattr(cl, f) for f in fields + CONFIG_FIELDS
                 if f not in ("ia", "ib", "udc")}}
     outs = {"duty_a": cl.o.payload.a, "duty_b": cl.o.payload.b, "duty_c": cl.o.payload.c,
             **{f: getattr(cl, f) for f in ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q",
                                            "u_alpha", "u_beta", "sat_d", "sat_q")}}
-    ins, got, lat, phase_lat = [], [], [], []
+    ins, got, lat, phase_lat, mt_seen = [], [], [], [], []
 
     async def testbench(ctx):
         ctx.set(top.hall, HALL_OK)
         start = None
+        mt_valid = None
         for clock in range(14 * top.pwm_period):
+            if ctx.get(top._mt.o.valid):
+                mt_valid = clock
             if ctx.get(cl.i.valid):             # accepted at the coming edge (never busy here)
                 ins.append({f: ctx.get(p) for f, p in ports.items()})
+                mt_seen.append((ctx.get(top._mt.o.payload.speed),
+                                None if mt_valid is None else clock - mt_valid))
                 start = clock
             if ctx.get(cl.o.valid):             # o.ready is always high: a one-clock transfer
                 got.append({f: ctx.get(p) for f, p in outs.items()})
@@ -635,14 +644,25 @@ def test_top_current_loop_duties_match_the_model(current_loop):
     assert max(lat) <= cl.latency and min(lat) >= (134 if current_loop == "engine" else 48)
     # The phase currents (dead-time compensation, over-current check): the loop's figure, 27 / 6.
     assert set(phase_lat) == {cl.phase_latency} == {27 if current_loop == "engine" else 6}
-    ref = CurrentLoopModel().run(**{f: [s[f] for s in ins] for f in ins[0]})
+    recorded = {f: np.array([s[f] for s in ins]) for f in ins[0]}
+    if current_loop == "engine":
+        ks = recorded["lead_k"]
+        recorded = loop_model_inputs(recorded)
+        # The θ_lead the engine used is LeadAngle's: every sample came more than
+        # LeadAngle.latency + 1 clocks after M/T's last result (LeadAngle's θ_lead of that speed
+        # was in place), and the speed the engine latched (a clock behind M/T) is that result.
+        for (mt_speed, since), s in zip(mt_seen, ins):
+            assert since is None or since > LeadAngle.latency + 1
+            assert s["speed"] == mt_speed
+        assert all(recorded["theta_lead"] == _lead_model(recorded["speed"], ks))
+    ref = CurrentLoopModel().run(**recorded)
     for f in outs:
         assert [g[f] for g in got] == list(ref[f][:len(got)]), f
     # The case mix the comparison covered: over-modulation, saturated PIs, varying angle.
     assert 0 < sum(ref["overmod"][:len(got)]) < len(got)
     assert any(ref["sat_q"][:len(got)]) and not all(ref["sat_q"][:len(got)])
     assert all(s["enable"] for s in ins) and len({s["theta"] for s in ins}) > 5
-    assert ins[-1]["speed"] > 0 and ins[-1]["theta_lead"] > 0      # feed-forward and lead active
+    assert ins[-1]["speed"] > 0 and recorded["theta_lead"][-1] > 0  # feed-forward, lead active
 
 
 def test_top_hall_edges_with_a_still_encoder_trip_encoder_hall():
@@ -763,12 +783,16 @@ def _encoder_process(top, clocks_per_edge):
     return process
 
 
-def test_top_theta_lead_advances_the_inverse_park_angle():
+@pytest.mark.parametrize("current_loop", ["pipelined", "engine"])
+def test_top_theta_lead_advances_the_inverse_park_angle(current_loop):
     """Open loop at the fixed angle 0 with u_d only (set at reset): u_αβ points along θ + θ_lead,
     θ_lead = speed/N_FS · theta_lead: 0 while M/T reads no speed yet, then ≈ 45° with the encoder
-    at 6000 r/min = N_FS/2 and theta_lead = 90°; the Park rotation (i_d, i_q) is not advanced."""
+    at 6000 r/min = N_FS/2 and theta_lead = 90°; the Park rotation (i_d, i_q) is not advanced.
+    The pipelined loop takes θ_lead from LeadAngle, the engine computes it in its program from
+    the speed it latches at the sample (a PWM period above the engine's latency)."""
     k = 0x4000                          # a quarter turn at full-scale speed
-    top = Top(pwm_hz=250e3, baud=BAUD,
+    top = Top(pwm_hz=250e3 if current_loop == "pipelined" else 100e3, baud=BAUD,
+              current_loop=current_loop,
               resets={"mode": Mode.OPEN_LOOP.value, "ol_u_d": 16000, "theta_lead": k})
     seen = []
 
@@ -778,10 +802,13 @@ def test_top_theta_lead_advances_the_inverse_park_angle():
             # Just after each current-loop pass: its θ_lead and the M/T speed it was made from.
             await ctx.tick().until(top._loop.done)
             await ctx.tick().repeat(2)
-            seen.append((ctx.get(top._mt.o.payload.speed), ctx.get(top._loop.theta_lead),
+            lead = (ctx.get(top._loop.theta_lead) if current_loop == "pipelined" else
+                    int(_lead_model(ctx.get(top._loop.speed), ctx.get(top._loop.lead_k))))
+            seen.append((ctx.get(top._mt.o.payload.speed), lead,
                          ctx.get(top._loop.u_alpha), ctx.get(top._loop.u_beta)))
 
-    simulate(top, [testbench], [_encoder_process(top, 25)], name="test_top_theta_lead")
+    simulate(top, [testbench], [_encoder_process(top, 25)],
+             name=f"test_top_theta_lead_{current_loop}")
     angles = [math.degrees(math.atan2(ub, ua)) for _, _, ua, ub in seen]
     # The first pass: no speed measured yet, no advance; the vector is on the fixed angle 0.
     assert seen[0][:2] == (0, 0) and angles[0] == pytest.approx(0, abs=0.01)

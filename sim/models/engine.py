@@ -1,6 +1,6 @@
 # Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
 """Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
-clock (one instruction per clock, two branch delay slots) with the gateware's timing where a
+clock (one instruction per clock, two branch delay slots; a DIV word ``sh + 1`` times) with the gateware's timing where a
 program can see it: register and output writes land ``WRITE_DELAY`` (3) instructions late (the
 X4 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
 words two (the special operands are registered in the R stage); flags are sequential; P is
@@ -19,7 +19,8 @@ from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W,
                            P_WORD, WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
-__all__ = ["EngineModel"]
+__all__ = ["EngineModel", "EngineLoopModel", "engine_fields", "lead_angle",
+           "loop_model_inputs"]
 
 ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 
@@ -115,6 +116,7 @@ class EngineModel:
         queue = collections.deque([0, 1, 2])
         fetch = 3
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
+        rep = 0                           # repeats of the DIV in R so far
         p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
@@ -207,6 +209,11 @@ class EngineModel:
                 while pending:
                     self._write(pending.popleft())
                 break
+            if op == Op.DIV and rep < ins.sh:         # a repeated DIV: issued again
+                rep += 1
+                queue.appendleft(pc)
+                continue
+            rep = 0
             if taken:
                 fetch = ins.tgt
             queue.append(fetch)
@@ -219,63 +226,99 @@ def _signed(v, bits):
     return v - (1 << bits) if v >> (bits - 1) else v
 
 
+def engine_fields():
+    """Per-sample inputs of :class:`EngineLoopModel` (and of the gateware
+    :class:`~foc_servo.hdl.foc_engine.EngineCurrentLoop`): ``CurrentLoopModel``'s, with the
+    inverse Park's advance ``theta_lead`` replaced by the ``lead_k`` register (θ_lead is
+    computed from the sample's speed, :func:`lead_angle`)."""
+    from .foc import SAMPLE_FIELDS
+    return tuple("lead_k" if f == "theta_lead" else f for f in SAMPLE_FIELDS)
+
+
+def lead_angle(speed, k):
+    """θ_lead of :class:`~foc_servo.hdl.top.LeadAngle` (and of the engine's program):
+    ``round_shift(n·k, 15) mod 2**16``, ``n = sat(round_shift(speed, 16), signed(16))`` (speed
+    Q1.31 of N_FS, ``k`` UQ0.16 turns at N_FS; rounding half away from zero)."""
+    import numpy as np
+    from amaranth.hdl import signed
+    from ...hdl.fixed import round_shift_np, saturate_np
+    n = np.asarray(saturate_np(round_shift_np(np.asarray(speed, dtype=np.int64), 16),
+                               signed(16)), dtype=np.int64)
+    return np.asarray(round_shift_np(n * np.asarray(k, dtype=np.int64), 15),
+                      dtype=np.int64) & 0xFFFF
+
+
+def loop_model_inputs(inputs):
+    """The inputs of :class:`~foc_servo.sim.models.foc.CurrentLoopModel` equivalent to the
+    engine's ``inputs`` (dict of arrays): ``theta_lead`` from ``speed`` and ``lead_k``."""
+    out = {k: v for k, v in inputs.items() if k != "lead_k"}
+    out["theta_lead"] = lead_angle(inputs["speed"], inputs["lead_k"])
+    return out
+
+
 class EngineLoopModel:
     """The current-loop program (:func:`foc_servo.hdl.foc_engine.current_loop_program`) on
-    :class:`EngineModel`, with the ports of :class:`~foc_servo.sim.models.foc.CurrentLoopModel`:
-    :meth:`run` takes and returns the same dictionaries, so the two can be compared directly.
+    :class:`EngineModel`, with the ports of :class:`~foc_servo.sim.models.foc.CurrentLoopModel`
+    but ``lead_k`` in place of ``theta_lead`` (:func:`engine_fields`, :func:`loop_model_inputs`):
+    :meth:`run` returns the same dictionary, so the two can be compared directly.
+
+    The DC-bus gain is the program's own (its register ``dcg``, 1.0 at power-up, written after
+    each sample's duties for the next sample).
 
     Attributes
     ----------
     engine : EngineModel
-    dc_gain : int
-        DC-bus gain (UQ2.16) the next sample will be compensated with.
     traces : list
         The instruction trace of every sample of the last :meth:`run`.
     """
 
     def __init__(self, *, gain_limit=2.0, program=None):
         from ...hdl.foc_engine import OUTS, current_loop_program
-        self.program = program if program is not None else current_loop_program()
+        limit_raw = round(gain_limit * (1 << 16))
+        self.program = (program if program is not None
+                        else current_loop_program(gain_limit_raw=limit_raw))
         self.engine = EngineModel(self.program, out_widths=OUTS)
-        self.gain_limit_raw = round(gain_limit * (1 << 16))
-        self.dc_gain = 1 << 16
         self.traces = []
 
+    @property
+    def dc_gain(self):
+        """DC-bus gain (UQ2.16) the next sample will be compensated with."""
+        return self.engine.rf[self.program.regs["dcg"]]
+
     @staticmethod
-    def specials_of(v, k, dc_gain):
+    def specials_of(v, k):
         """Special operands and conditions of sample ``k`` of the input arrays ``v``."""
         from ...hdl.fixed import round_shift_np, saturate_np
         from amaranth.hdl import signed
         g = lambda name: int(v[name][k])
         nspd = int(saturate_np(round_shift_np(g("speed"), 32 - 16), signed(16)))
         spec = {"ia": g("ia"), "ib": g("ib"), "theta": g("theta") % (1 << 16),
-                "lead": g("theta_lead") % (1 << 16), "id_ref": g("id_ref"),
+                "klead": g("lead_k"), "id_ref": g("id_ref"),
                 "iq_ref": g("iq_ref"), "ol_ud": g("ol_ud"), "ol_uq": g("ol_uq"), "nspd": nspd,
                 "gain_a": g("gain_a"), "gain_b": g("gain_b"), "off_a": g("offset_a"),
                 "off_b": g("offset_b"), "kp_d": g("kp_d"), "kx_d": g("kx_d"),
                 "lo_d": g("lim_lo_d"), "hi_d": g("lim_hi_d"), "kp_q": g("kp_q"),
                 "kx_q": g("kx_q"), "lo_q": g("lim_lo_q"), "hi_q": g("lim_hi_q"),
-                "ff_l": g("ff_l"), "ff_psi": g("ff_psi"), "scale": g("scale"), "dcg": dc_gain}
+                "ff_l": g("ff_l"), "ff_psi": g("ff_psi"), "scale": g("scale"),
+                "udc": g("udc"), "urat": g("u_rated")}
         en, ol, ff = g("enable") != 0, g("ol_enable") != 0, g("ff_enable") != 0
         conds = {"RUN": en and not ol, "OL": ol, "FF": ff and en and not ol}
         return spec, conds
 
     def run(self, **inputs):
         import numpy as np
-        from .foc import CONFIG_FIELDS, OUTPUT_FIELDS, SAMPLE_FIELDS
-        from .svpwm import dcbus_gain
-        arrays = np.broadcast_arrays(*(np.asarray(inputs[k], dtype=np.int64)
-                                       for k in SAMPLE_FIELDS + CONFIG_FIELDS))
-        v = dict(zip(SAMPLE_FIELDS + CONFIG_FIELDS, (np.atleast_1d(a) for a in arrays)))
+        from .foc import CONFIG_FIELDS, OUTPUT_FIELDS
+        fields = engine_fields() + CONFIG_FIELDS
+        arrays = np.broadcast_arrays(*(np.asarray(inputs[k], dtype=np.int64) for k in fields))
+        v = dict(zip(fields, (np.atleast_1d(a) for a in arrays)))
         n = v["ia"].size
         out = {k: np.zeros(n, dtype=np.int64) for k in OUTPUT_FIELDS}
         self.traces = []
         for k in range(n):
-            spec, conds = self.specials_of(v, k, self.dc_gain)
+            spec, conds = self.specials_of(v, k)
+            applied = self.dc_gain
             self.traces.append(self.engine.run(spec, conds))
             o = self.engine.outs
-            gain, limited = dcbus_gain(v["u_rated"][k], max(int(v["udc"][k]), 0),
-                                       gain_limit_raw=self.gain_limit_raw)
             res = {"a": _signed(o["pa"], 16), "b": _signed(o["pb"], 16),
                    "c": _signed(o["pc"], 16), "i_alpha": _signed(o["pa"], 16),
                    "i_beta": _signed(o["i_beta"], 16), "i_d": _signed(o["i_d"], 16),
@@ -283,9 +326,8 @@ class EngineLoopModel:
                    "u_q": _signed(o["u_q"], 16), "u_alpha": _signed(o["u_alpha"], 16),
                    "u_beta": _signed(o["u_beta"], 16), "duty_a": o["da"], "duty_b": o["db"],
                    "duty_c": o["dc"], "overmod": o["om"], "sat_d": o["sat_d"],
-                   "sat_q": o["sat_q"], "dc_gain": self.dc_gain, "dc_limited": int(limited),
+                   "sat_q": o["sat_q"], "dc_gain": applied, "dc_limited": o["lim"],
                    "udc": int(v["udc"][k])}
             for name, val in res.items():
                 out[name][k] = val
-            self.dc_gain = int(gain)
         return out

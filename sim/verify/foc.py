@@ -30,12 +30,13 @@ CHECKED_OUTPUTS = ("duty_a", "duty_b", "duty_c", "overmod", "a", "b", "c", "i_al
 
 
 def _input_shapes(dut):
-    """Shape of every per-sample and configuration input of ``dut``."""
+    """Shape of every per-sample and configuration input of ``dut`` (the engine's current loop
+    has ``lead_k`` in place of ``theta_lead``)."""
     shapes = {}
-    for name in SAMPLE_FIELDS + CONFIG_FIELDS:
+    for name in SAMPLE_FIELDS + CONFIG_FIELDS + ("lead_k",):
         if name in ("ia", "ib", "udc"):
             shapes[name] = signed(dut.adc_width)
-        else:
+        elif name in dut.signature.members:
             shapes[name] = getattr(dut, name).shape()
     return shapes
 
@@ -266,7 +267,7 @@ class _CurrentLoopBench(wiring.Component):
             dut.i.payload.udc.eq(word.udc),
             dut.o.ready.eq(1),
         ]
-        for name in SAMPLE_FIELDS + CONFIG_FIELDS:
+        for name, _ in self._in_layout:
             if name not in ("ia", "ib", "udc"):
                 m.d.comb += getattr(dut, name).eq(word[name])
 
