@@ -159,7 +159,7 @@ class DeadTimeSpec(Elaboratable):
     def elaborate(self, platform):
         m = Module()
         dw = self.dead_width
-        cls = mutant(Gates, ("steady & (off + 1 >= dead)", "steady")) if self.broken else Gates
+        cls = mutant(Gates, ("steady & long_enough", "steady")) if self.broken else Gates
         gates = cls(dead_width=dw)
         m.submodules.gates, internal = elaborate_with_internals(gates, platform)
 
