@@ -1041,15 +1041,34 @@ def _sby_env(engine):
 
 
 def _check_messages(il_text):
-    """``{cell number: message}`` of the ``$check`` cells (the asserts) of an RTLIL text."""
-    return {int(n): fmt for n, fmt in re.findall(
-        r'cell \$check \$(\d+)\n\s+parameter \\FORMAT "([^"]*)"', il_text)}
+    """``{"path.N": message}`` of the ``$check`` cells (the asserts) of an RTLIL text, ``path``
+    the instance path from the top module (``""`` for its own, ``"gates."`` for a submodule's):
+    the cell numbers restart in every module, so a number alone may name several asserts."""
+    modules, top = {}, None
+    for head, name, body in re.findall(r"((?:attribute [^\n]*\n)*)module (\S+)\n(.*?)\nend\n",
+                                       il_text, re.S):
+        checks = {int(n): fmt for n, fmt in re.findall(
+            r'cell \$check \$(\d+)\n\s+parameter \\FORMAT "([^"]*)"', body)}
+        subs = dict((inst, typ) for typ, inst in re.findall(r"cell (\\\S+) \\(\S+)\n", body))
+        modules[name] = (checks, subs)
+        if "attribute \\top 1" in head:
+            top = name
+    messages = {}
+
+    def walk(name, path):
+        checks, subs = modules.get(name, ({}, {}))
+        messages.update({f"{path}{n}": fmt for n, fmt in checks.items()})
+        for inst, typ in subs.items():
+            walk(typ, f"{path}{inst}.")
+    if top is not None:
+        walk(top, "")
+    return messages
 
 
 def _failed_asserts(log_text, messages, engine_part):
-    found = re.findall(rf"{engine_part}: .*Assert failed in top: .*?_witness_\.check_(\d+)",
-                       log_text)
-    return sorted({messages.get(int(n), f"check {n}") for n in found})
+    found = re.findall(rf"{engine_part}: .*Assert failed in top: .*?\(([\w.]*?)_witness_\."
+                       rf"check_(\d+)\)", log_text)
+    return sorted({messages.get(f"{path}{n}", f"check {path}{n}") for path, n in found})
 
 
 def _sby(workdir, il_text, *, mode, depth, engine, timeout_s, label, progress):
