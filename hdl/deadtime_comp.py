@@ -32,10 +32,11 @@ slope and limit are both halved, so the trapezoid is the same in clocks of high 
 modes (an odd ``C`` rounds up).
 
 Timing. ``comp`` is computed from each ``phase`` transfer: the three magnitudes shift together,
-then one clamp and negation, shared, serves phase a, b, c in consecutive clocks, so ``comp.a``
-holds the new value ``2 + band + sym`` clocks after the transfer, ``comp.b`` one clock and
-``comp.c`` two clocks later (at most :attr:`DeadTimeComp.comp_latency`), and holds; a new
-transfer cancels the phases not yet loaded; the duties pass from ``i`` to ``o``
+then one clamp and, a clock later, one negation, shared, serve phase a, b, c in consecutive
+clocks, so ``comp.a`` holds the new value ``3 + band + sym`` clocks after the transfer,
+``comp.b`` one clock and ``comp.c`` two clocks later (at most
+:attr:`DeadTimeComp.comp_latency`), and holds; a new transfer cancels the phases not yet loaded
+(also one whose clamp is done: a ``comp`` loads only in a clock without a transfer); the duties pass from ``i`` to ``o``
 combinationally (:attr:`DeadTimeComp.latency` = 0): the timer's shadow register is the pipeline
 register, so the block adds no current-loop latency. In the top the phase currents arrive
 ``Clarke.latency`` clocks after the sample and the duties ``CurrentLoop.latency`` clocks after it,
@@ -97,7 +98,7 @@ class DeadTimeComp(wiring.Component):
         Clocks from ``i`` to ``o``: 0.
     comp_latency : int
         Most clocks from a ``phase`` transfer (clock ``t``) to all of its ``comp`` (from clock
-        ``t + comp_latency``): ``4 + 2**shift_width`` (phase a ``2 + band + sym`` for the
+        ``t + comp_latency``): ``5 + 2**shift_width`` (phase a ``3 + band + sym`` for the
         values latched, b one clock later, c two).
 
     Raises
@@ -137,7 +138,7 @@ class DeadTimeComp(wiring.Component):
 
     @property
     def comp_latency(self):
-        return 4 + (1 << self._shift_width)
+        return 5 + (1 << self._shift_width)
 
     def elaborate(self, platform):
         m = Module()
@@ -184,16 +185,22 @@ class DeadTimeComp(wiring.Component):
 
         # The turn's phase: m = min(u >> k, L), comp = ±m (s the sign), on one clamp and one
         # negation shared by the three phases. (A stored ~L and ±m as (m XOR s) + s take fewer
-        # LUT4s but more iCE40 logic cells after packing: 394–416 against 350.)
+        # LUT4s but more iCE40 logic cells after packing: 394–416 against 350 unregistered.)
         u = Signal(unsigned(min(cw, w - 1)))
         s = Signal()
         m.d.comb += [u.eq(pick(low)), s.eq(pick(neg))]
         over = pick(high) | (u > limit)
-        mc = Mux(over, limit, u)
+        # Registered between the clamp and the negation (ECP5: the pick, the compare and the
+        # negation in one clock made the block's critical path).
+        mc = Signal(unsigned(cw))
+        s_q = Signal()
+        fire_q = Signal()
+        turn_q = Signal(range(3))
+        m.d.sync += [mc.eq(Mux(over, limit, u)), s_q.eq(s), fire_q.eq(fire), turn_q.eq(turn)]
         value = Signal(signed(cw + 1))
-        m.d.comb += value.eq(Mux(s, -mc, mc))
+        m.d.comb += value.eq(Mux(s_q, -mc, mc))
         for k, p in enumerate("abc"):
-            with m.If(fire & (turn == k)):
+            with m.If(fire_q & ~self.phase.valid & (turn_q == k)):
                 m.d.sync += self.comp[p].eq(value)
 
         for p in "abc":

@@ -39,8 +39,8 @@ def test_deadtime_comp_parameter_validation(kwargs, message):
 @pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # attributes only
 def test_deadtime_comp_attributes_and_verilog():
     dut = DeadTimeComp()
-    assert dut.latency == 0 and dut.comp_latency == 20
-    assert DeadTimeComp(shift_width=2).comp_latency == 8
+    assert dut.latency == 0 and dut.comp_latency == 21
+    assert DeadTimeComp(shift_width=2).comp_latency == 9
     assert "module" in verilog.convert(dut, ports=ports(dut))
 
 
@@ -155,12 +155,12 @@ def test_deadtime_comp_latency_cycle_by_cycle():
         comp, out, _ = run_dut(stim)
         want = model.trapezoid(stim["phase"][10], 50, shift, sym)
         assert want.all()
-        # Phase a from 12 + k, b one clock later, c two (one shared clamp).
+        # Phase a from 13 + k, b one clock later, c two (one shared clamp and negation).
         for ph in range(3):
-            np.testing.assert_array_equal(comp[:12 + k + ph, ph], 0)
-            np.testing.assert_array_equal(comp[12 + k + ph:, ph], want[ph])
-        np.testing.assert_array_equal(out[14 + k:], 1000 + comp[14 + k:])
-        assert 4 + k <= DeadTimeComp().comp_latency == 4 + (1 << 4)
+            np.testing.assert_array_equal(comp[:13 + k + ph, ph], 0)
+            np.testing.assert_array_equal(comp[13 + k + ph:, ph], want[ph])
+        np.testing.assert_array_equal(out[15 + k:], 1000 + comp[15 + k:])
+        assert 5 + k <= DeadTimeComp().comp_latency == 5 + (1 << 4)
 
 
 def test_deadtime_comp_trapezoid_shape():

@@ -76,10 +76,10 @@ def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, 
             sym = int(symmetric[t])
             k = int(shift[t]) + sym
             # Loaded at t, k shifts in t+1 … t+k, phase a clamped at t+1+k, b at t+2+k, c at
-            # t+3+k (one shared clamp), each visible from the clock after. A new transfer
-            # cancels the phases not yet loaded.
+            # t+3+k (one shared clamp), each negated and loaded a clock later, visible from the
+            # clock after that. A new transfer cancels the phases not yet loaded.
             values = trapezoid(phase[t], clocks[t], shift[t], sym)
-            pending = [(t + 2 + k + ph, ph, values[ph]) for ph in range(3)]
+            pending = [(t + 3 + k + ph, ph, values[ph]) for ph in range(3)]
     o = apply(duty, comp, scale[:, None])
     return comp, o
 
