@@ -49,7 +49,7 @@ from ..hdl.foc import CurrentLoop
 from ..hdl.gates import Gates
 from ..hdl.hostlink import LinkCore
 from ..hdl.pi import PI
-from ..hdl.protect import FAULTS, Protection
+from ..hdl.protect import FAULTS, Protection, udc_compares
 from ..hdl.regmap import REGMAP, Access, RegMap
 from ..hdl.regs import RegisterFile, ram_slots, staging_slots
 from ..hdl.servo import Servo
@@ -159,7 +159,7 @@ class DeadTimeSpec(Elaboratable):
     def elaborate(self, platform):
         m = Module()
         dw = self.dead_width
-        cls = mutant(Gates, ("steady & (off + 1 >= dead)", "steady")) if self.broken else Gates
+        cls = mutant(Gates, ("steady & long_enough", "steady")) if self.broken else Gates
         gates = cls(dead_width=dw)
         m.submodules.gates, internal = elaborate_with_internals(gates, platform)
 
@@ -255,21 +255,24 @@ class FaultSpec(Elaboratable):
         # compare by the `abs_compare` proof (AbsCompareSpec). Written here as the magnitude
         # compare, the induction has to re-prove that arithmetic identity in every step of
         # every sampled cause: 1.6 s → 177 s, and > 600 s for the broken variant's BMC.
+        # The same holds for the U_dc verdicts (`udc_compares`, also in `abs_compare`).
         over = abs_exceeds
+        udc_over, udc_below, udc_above = udc_compares(m, prot.udc.payload, prot.ov_limit,
+                                                      prot.uv_limit)
 
-        i, udc, speed = prot.i.payload, prot.udc.payload, prot.speed.payload
+        i, speed = prot.i.payload, prot.speed.payload
         armed = Signal()
         with m.If(~prot.uv_enable):
             m.d.sync += armed.eq(0)
-        with m.Elif(prot.udc.valid & (udc > prot.uv_limit)):
+        with m.Elif(prot.udc.valid & udc_above):
             m.d.sync += armed.eq(1)
 
         sampled = {
             "oc_a": (prot.i.valid, over(i.a, prot.oc_limit)),
             "oc_b": (prot.i.valid, over(i.b, prot.oc_limit)),
             "oc_c": (prot.i.valid, over(i.c, prot.oc_limit)),
-            "ov": (prot.udc.valid, udc > prot.ov_limit),
-            "uv": (prot.udc.valid, udc < prot.uv_limit),
+            "ov": (prot.udc.valid, udc_over),
+            "uv": (prot.udc.valid, udc_below),
             "os": (prot.speed.valid, over(speed, prot.os_limit)),
         }
         last, now = {}, {}
@@ -316,17 +319,20 @@ class FaultSpec(Elaboratable):
 
 
 class AbsCompareSpec(Elaboratable):
-    """Proof of :func:`~foc_servo.hdl.fixed.abs_exceeds` (``|v| > limit`` without forming
-    ``|v|``, Protection's over-current and over-speed comparator) against the magnitude compare
-    ``Mux(v < 0, −v, v) > limit`` formed two bits wider, for every ``v`` and ``limit`` at the
-    widths :class:`FaultSpec` uses (16-bit currents, 32-bit speed; ``AnySeq`` inputs).
-    :class:`FaultSpec` states its causes with ``abs_exceeds``; this proof makes that the
+    """Proof of Protection's comparators against the plain comparisons, for every input (``AnySeq``)
+    at the widths :class:`FaultSpec` uses: :func:`~foc_servo.hdl.fixed.abs_exceeds` (``|v| >
+    limit`` on one carry chain without forming ``|v|``, the over-current and over-speed verdicts)
+    against ``Mux(v < 0, −v, v) > limit`` formed two bits wider, at 16 and 32 bits; and
+    :func:`~foc_servo.hdl.protect.udc_compares` (the bus-voltage verdicts on two chains) against
+    ``udc > ov_limit``, ``udc < uv_limit``, ``udc > uv_limit`` at ``signed(16)``.
+    :class:`FaultSpec` states its causes with these functions; this proof makes that the
     documented definition.
 
     Parameters
     ----------
     broken : bool
-        Compare ``~v > limit`` for ``v < 0`` (off by one: misses ``|v| = limit + 1``).
+        Compare ``~v > limit`` for ``v < 0`` (off by one: misses ``|v| = limit + 1``), and take
+        ``udc > uv_limit`` as ``udc ≥ uv_limit`` (the equality dropped).
     """
 
     def __init__(self, *, broken=False):
@@ -343,6 +349,15 @@ class AbsCompareSpec(Elaboratable):
             got = Mux(v[-1], ~v > limit, v > limit) if self.broken else abs_exceeds(v, limit)
             m.d.comb += [Assert(got == (mag > limit), f"abs_compare: |v| > limit at {width} bit"),
                          Cover(got & v[-1] & (mag == limit + 1))]
+        udc, ov, uv = (Signal(signed(16), name=n) for n in ("udc", "ov_limit", "uv_limit"))
+        m.d.comb += [x.eq(AnySeq(signed(16))) for x in (udc, ov, uv)]
+        over, below, above = udc_compares(m, udc, ov, uv)
+        if self.broken:
+            above = ~below
+        m.d.comb += [Assert(over == (udc > ov), "abs_compare: udc > ov_limit"),
+                     Assert(below == (udc < uv), "abs_compare: udc < uv_limit"),
+                     Assert(above == (udc > uv), "abs_compare: udc > uv_limit"),
+                     Cover(above & (udc == uv + 1))]
         return m
 
 
@@ -960,7 +975,8 @@ PROOFS = {p.name: p for p in (
     Proof("fault", FaultSpec, 4, 8,
           "Protection + Gates: all gates off within 3 clocks of a fault, until a clear"),
     Proof("abs_compare", AbsCompareSpec, 1, 1,
-          "Protection's |v| > limit comparator: equal to the magnitude compare, 16 and 32 bit"),
+          "Protection's comparators: |v| > limit equal to the magnitude compare (16 and 32 "
+          "bit), the U_dc verdicts to the plain compares"),
     Proof("pi", PISpec, 5, 10,
           "current-loop PI: output within its limits, integrator within them, never wrapping"),
     Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,
@@ -1025,15 +1041,34 @@ def _sby_env(engine):
 
 
 def _check_messages(il_text):
-    """``{cell number: message}`` of the ``$check`` cells (the asserts) of an RTLIL text."""
-    return {int(n): fmt for n, fmt in re.findall(
-        r'cell \$check \$(\d+)\n\s+parameter \\FORMAT "([^"]*)"', il_text)}
+    """``{"path.N": message}`` of the ``$check`` cells (the asserts) of an RTLIL text, ``path``
+    the instance path from the top module (``""`` for its own, ``"gates."`` for a submodule's):
+    the cell numbers restart in every module, so a number alone may name several asserts."""
+    modules, top = {}, None
+    for head, name, body in re.findall(r"((?:attribute [^\n]*\n)*)module (\S+)\n(.*?)\nend\n",
+                                       il_text, re.S):
+        checks = {int(n): fmt for n, fmt in re.findall(
+            r'cell \$check \$(\d+)\n\s+parameter \\FORMAT "([^"]*)"', body)}
+        subs = dict((inst, typ) for typ, inst in re.findall(r"cell (\\\S+) \\(\S+)\n", body))
+        modules[name] = (checks, subs)
+        if "attribute \\top 1" in head:
+            top = name
+    messages = {}
+
+    def walk(name, path):
+        checks, subs = modules.get(name, ({}, {}))
+        messages.update({f"{path}{n}": fmt for n, fmt in checks.items()})
+        for inst, typ in subs.items():
+            walk(typ, f"{path}{inst}.")
+    if top is not None:
+        walk(top, "")
+    return messages
 
 
 def _failed_asserts(log_text, messages, engine_part):
-    found = re.findall(rf"{engine_part}: .*Assert failed in top: .*?_witness_\.check_(\d+)",
-                       log_text)
-    return sorted({messages.get(int(n), f"check {n}") for n in found})
+    found = re.findall(rf"{engine_part}: .*Assert failed in top: .*?\(([\w.]*?)_witness_\."
+                       rf"check_(\d+)\)", log_text)
+    return sorted({messages.get(f"{path}{n}", f"check {path}{n}") for path, n in found})
 
 
 def _sby(workdir, il_text, *, mode, depth, engine, timeout_s, label, progress):

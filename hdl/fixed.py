@@ -34,7 +34,7 @@ import math
 import numbers
 
 import numpy as np
-from amaranth.hdl import Const, Mux, Shape, Value, signed, unsigned
+from amaranth.hdl import Cat, Const, Mux, Shape, Value, signed, unsigned
 
 __all__ = [
     "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
@@ -72,13 +72,25 @@ def check_choice(owner, name, value, choices):
 
 def abs_exceeds(v, limit):
     """``|v| > limit`` for a signed ``v`` and an unsigned ``limit``, exactly (the most negative
-    ``v`` included), without forming ``|v|``: for ``v < 0``, ``|v| = ~v + 1``, so ``|v| > limit``
-    ⟺ ``~v ≥ limit``. The two comparisons run side by side and ``v``'s sign selects: no negating
-    carry chain in front of a comparator (the protection's thresholds at 100 MHz)."""
+    ``v`` included), on one carry chain and without forming ``|v|``.
+
+    With ``s`` the sign of ``v`` and ``u = v XOR s`` its one's-complement magnitude (``|v|`` for
+    ``v ≥ 0``, ``|v| − 1`` below; a LUT per bit, no adder), ``|v| = u + s``, so
+    ``|v| ≤ limit ⟺ limit + ~u + ~s ≥ 2**n`` (``n`` bits wide): the carry out of one chain
+    whose carry-in is ``~s``. The XOR LUT yields ``~u`` directly, so no inverter stands in front
+    of the chain (iCE40: one logic cell per bit for the XOR, one for the carry; the two
+    comparisons side by side that this replaces cost twice the chain and an inverter per bit)."""
     v = Value.cast(v)
     if not v.shape().signed:
         raise TypeError(f"abs_exceeds needs a signed value, not {v.shape()!r}")
-    return Mux(v[-1], ~v >= limit, v > limit)
+    limit = Value.cast(limit)
+    s = v[-1]
+    n = max(len(v) - 1, len(limit))
+    nu = ~(v[:-1] ^ s.replicate(len(v) - 1)).as_unsigned()
+    nu = Cat(nu, Const((1 << (n - len(v) + 1)) - 1, n - len(v) + 1))    # ~u, n bits
+    # The carry-in rides in a low bit of its own: ~s + 1 carries ~s into bit 1.
+    total = Cat(~s, limit.as_unsigned(), Const(0, n - len(limit))) + Cat(Const(1, 1), nu)
+    return ~total[n + 1]
 
 
 def _check_int(name, value, minimum, maximum=None):

@@ -12,7 +12,7 @@ shorter than the dead time is dropped cleanly (the opposite switch turns off, no
 it turns back on a dead time after the pulse) — no runt pulse, also when enabling mid-pulse.
 """
 
-from amaranth.hdl import Assert, Module, Mux, Signal, unsigned
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.wiring import In, Out
 
@@ -83,7 +83,11 @@ class Gates(wiring.Component):
         m = Module()
         dw = self._dead_width
         run = self.enable & ~self.trip
-        dead = Mux(self.dead_time == 0, 1, self.dead_time)
+        # `off + 1 ≥ max(dead_time, 1)` as `off ≥ dead_time − (dead_time ≠ 0)`: the right side
+        # once for the three phases, inverted (d_n), so each phase's compare is one carry chain
+        # `off + d_n + 1` with no adder or inverter in front.
+        d_n = Signal(unsigned(dw))
+        m.d.comb += d_n.eq(~Mux(self.dead_time == 0, 0, self.dead_time - 1))
         stopped = Signal()                      # trip or ~enable on the previous clock
         m.d.sync += stopped.eq(~run)
 
@@ -110,7 +114,8 @@ class Gates(wiring.Component):
                 m.d.sync += high.eq(want_h)
             with m.Elif(low):
                 m.d.sync += low.eq(want_l)
-            with m.Elif(steady & (off + 1 >= dead)):
+            long_enough = (Cat(Const(1, 1), off) + Cat(Const(1, 1), d_n))[dw + 1]
+            with m.Elif(steady & long_enough):
                 m.d.sync += [high.eq(want_h), low.eq(want_l)]
 
             m.d.comb += [

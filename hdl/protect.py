@@ -29,13 +29,13 @@ low. To clear an under-voltage trip while the bus is still low (bus switched off
 ``uv_enable`` first.
 """
 
-from amaranth.hdl import Module, Mux, Shape, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, Value, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .fixed import abs_exceeds, check_param, shape_range
 
-__all__ = ["FAULTS", "FAULT_LAYOUT", "Protection"]
+__all__ = ["FAULTS", "FAULT_LAYOUT", "Protection", "udc_compares"]
 
 #: Cause names, in bit order of :data:`FAULT_LAYOUT` (bit 0 first).
 FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator",
@@ -43,6 +43,34 @@ FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcu
 
 #: One flag per cause.
 FAULT_LAYOUT = data.StructLayout({name: 1 for name in FAULTS})
+
+
+def _ordered(x):
+    """``x`` as unsigned bits in the same order (offset binary for a signed ``x``)."""
+    x = Value.cast(x)
+    return Cat(x[:-1], ~x[-1]) if x.shape().signed else x.as_unsigned()
+
+
+def udc_compares(m, udc, ov_limit, uv_limit):
+    """``(udc > ov_limit, udc < uv_limit, udc > uv_limit)``, the bus-voltage verdicts, on two
+    carry chains sharing one inverted ``udc`` (signed or unsigned, all three of one shape).
+
+    The codes are compared in offset binary (the sign bit flipped: unsigned chains then order
+    signed values). ``ov_limit + ~udc + 1`` carries unless ``udc > ov_limit``;
+    ``uv_limit + ~udc = uv_limit − udc − 1 (+ 2**w)`` carries iff ``udc < uv_limit``, and its
+    sum is all ones iff ``udc = uv_limit``, so the arming's ``udc > uv_limit`` is neither. The
+    three plain comparisons cost three chains and an inverter per limit bit. The ``abs_compare``
+    proof shows them equal; :class:`~foc_servo.boards.prove.FaultSpec` states the causes with
+    this function (as with :func:`~.fixed.abs_exceeds`). ``m`` takes the shared inverted
+    ``udc`` (one signal, so that both chains read the same LUTs).
+    """
+    w = len(Value.cast(udc))
+    udc_n = Signal(w, name="udc_n")
+    m.d.comb += udc_n.eq(~_ordered(udc))
+    ov_ok = (Cat(Const(1, 1), _ordered(ov_limit)) + Cat(Const(1, 1), udc_n))[w + 1]
+    uv_diff = _ordered(uv_limit) + udc_n
+    below = uv_diff[w]
+    return ~ov_ok, below, ~below & ~uv_diff[:w].all()
 
 
 class Protection(wiring.Component):
@@ -162,11 +190,12 @@ class Protection(wiring.Component):
             return now
 
         i = self.i.payload
-        udc = self.udc.payload
+        udc_over, udc_below, udc_above = udc_compares(m, self.udc.payload, self.ov_limit,
+                                                      self.uv_limit)
         armed = Signal()
         with m.If(~self.uv_enable):
             m.d.sync += armed.eq(0)
-        with m.Elif(self.udc.valid & (udc > self.uv_limit)):
+        with m.Elif(self.udc.valid & udc_above):
             m.d.sync += armed.eq(1)
         m.d.comb += self.uv_armed.eq(armed)
 
@@ -176,9 +205,8 @@ class Protection(wiring.Component):
             "overcurrent_b": sampled("oc_b", self.i.valid, abs_exceeds(i.b, self.oc_limit)),
             "overcurrent_c": sampled("oc_c", self.i.valid, abs_exceeds(i.c, self.oc_limit)),
             "overcurrent_comparator": self.oc_comp,
-            "overvoltage": sampled("ov", self.udc.valid, udc > self.ov_limit),
-            "undervoltage": self.uv_enable & armed
-                            & sampled("uv", self.udc.valid, udc < self.uv_limit),
+            "overvoltage": sampled("ov", self.udc.valid, udc_over),
+            "undervoltage": self.uv_enable & armed & sampled("uv", self.udc.valid, udc_below),
             "overspeed": sampled("os", self.speed.valid,
                                  abs_exceeds(self.speed.payload, self.os_limit)),
             "encoder": self.encoder_illegal,

@@ -664,44 +664,57 @@ class PWMTimer(wiring.Component):
     def elaborate(self, platform):
         m = Module()
         n = self._n
-        cw = self._count_width
         pos = self.position
         last = pos == 2 * n - 1
+        # The compares are kept saturated to kw bits (kw: the width of 2N): every level compare
+        # is then against a counter of at most 2N, so any value from 2N up acts alike.
+        kw = (2 * n).bit_length()
 
-        shadow = Signal(_duty_layout(cw))
-        active = Signal(_duty_layout(cw))
+        def sat(c):
+            return c[:kw] | c[kw:].any().replicate(kw) if len(c) > kw else c
+
+        shadow = Signal(data.StructLayout({p: unsigned(kw) for p in "abc"}))
+        active = Signal(data.StructLayout({p: unsigned(kw) for p in "abc"}))
         sym = Signal()                          # active mode
         first = Signal(init=1)                  # pos = 0: the period's first clock
         sample = Signal()                       # pos = the previous clock's target
 
         m.d.comb += self.duty.ready.eq(1)
         with m.If(self.duty.valid):
-            m.d.sync += shadow.eq(self.duty.payload)
+            m.d.sync += [shadow[p].eq(sat(self.duty.payload[p])) for p in "abc"]
         m.d.sync += [pos.eq(Mux(last, 0, pos + 1)), first.eq(last)]
         with m.If(last):
             # A write on the boundary clock itself still makes this period.
-            m.d.sync += [active.eq(Mux(self.duty.valid, self.duty.payload, shadow)),
-                         sym.eq(self.symmetric)]
+            m.d.sync += [active[p].eq(Mux(self.duty.valid, sat(self.duty.payload[p]), shadow[p]))
+                         for p in "abc"]
+            m.d.sync += sym.eq(self.symmetric)
+
+        # The level of a phase with compare c is `k ≤ c` for one counter k shared by the three
+        # phases: asymmetric k = pos + 1 (1 … 2N; high for pos < c), symmetric the triangle
+        # k = N − pos in the first half, pos − N + 1 in the second (N … 1, 1 … N; high for
+        # N − c ≤ pos < N + c). Both saturate by themselves (k ≤ N resp. 2N, k ≥ 1 so c = 0
+        # is never high), so the levels are those of the window compares clock for clock with
+        # one carry chain per phase. k is kept inverted (k_n = ~k) so that `c ≥ k` is
+        # `c + k_n + 1` carrying out: no inverter in front of the chains. `down`: the
+        # triangle's first half (k steps down to 1, stays there one clock, then steps up).
+        ones = (1 << kw) - 1
+        k_n = Signal(kw, init=ones ^ 1)
+        down = Signal()
+        k = ~k_n
+        with m.If(last):
+            m.d.sync += [k_n.eq(Mux(self.symmetric, ones ^ n, ones ^ 1)), down.eq(1)]
+        with m.Else():
+            with m.If(k == 1):
+                m.d.sync += down.eq(0)
+            with m.If(sym & down):
+                with m.If(k != 1):
+                    m.d.sync += k_n.eq(k_n + 1)     # k − 1
+            with m.Else():
+                m.d.sync += k_n.eq(k_n - 1)         # k + 1
 
         m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
         for p in "abc":
-            # The period's compare c, clamped, as the window edges the counter is compared
-            # with: symmetric high for n − c ≤ pos < n + c (c ≤ n), asymmetric for pos < c
-            # (c ≤ 2n). The edges are registered from `active` in every clock, so neither the
-            # duty input's path (the dead-time compensation's sum) nor the counter's reaches
-            # a clamp or an adder (the whole top's 100 MHz). In the period's first clock they
-            # still hold the last period's values, and the level comes from `active` directly:
-            # pos = 0 is high iff c ≥ n (symmetric) or c ≠ 0 (asymmetric). The levels are those
-            # of the compare `pos + c ≥ n ∧ pos < n + c` they replace, clock for clock.
-            lo = Signal(range(2 * n + 1), init=n, name=f"lo_{p}")
-            hi = Signal(range(2 * n + 1), init=n, name=f"hi_{p}")
-            c_asym = Signal(range(2 * n + 1), name=f"c_asym_{p}")
-            c_sym = Mux(active[p] > n, n, active[p])
-            m.d.sync += [lo.eq(n - c_sym), hi.eq(n + c_sym),
-                         c_asym.eq(Mux(active[p] > 2 * n, 2 * n, active[p]))]
-            level_sym = Mux(first, active[p] >= n, (pos >= lo) & (pos < hi))
-            level_asym = Mux(first, active[p] != 0, pos < c_asym)
-            m.d.comb += self.pwm[p].eq(Mux(sym, level_sym, level_asym))
+            m.d.comb += self.pwm[p].eq(active[p] >= k)
 
         m.d.comb += [
             # `first` is pos = 0, registered: the period event leaves a flip-flop, not a compare

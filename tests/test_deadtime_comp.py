@@ -39,8 +39,8 @@ def test_deadtime_comp_parameter_validation(kwargs, message):
 @pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # attributes only
 def test_deadtime_comp_attributes_and_verilog():
     dut = DeadTimeComp()
-    assert dut.latency == 0 and dut.comp_latency == 18
-    assert DeadTimeComp(shift_width=2).comp_latency == 6
+    assert dut.latency == 0 and dut.comp_latency == 21
+    assert DeadTimeComp(shift_width=2).comp_latency == 9
     assert "module" in verilog.convert(dut, ports=ports(dut))
 
 
@@ -82,7 +82,7 @@ def random_stim(rng, t_len, *, width=16, count_width=16, clocks_width=8, shift_w
     fs = 1 << (width - 1)
     corners = np.array([-fs, -fs + 1, -1, 0, 1, fs - 1, 2, -2, 3, -3])
     phase = rng.integers(-fs, fs, size=(t_len, 3))
-    small = rng.integers(-300, 301, size=(t_len, 3))
+    small = rng.integers(max(-300, -fs), min(301, fs), size=(t_len, 3))
     pick = rng.random((t_len, 3))
     phase = np.where(pick < 0.3, small, phase)
     phase = np.where(pick > 0.85, rng.choice(corners, size=(t_len, 3)), phase)
@@ -95,6 +95,8 @@ def random_stim(rng, t_len, *, width=16, count_width=16, clocks_width=8, shift_w
     duty = np.minimum(rng.integers(0, 1 << count_width, size=(t_len, 3)), scale[:, None])
     duty = np.where(rng.random((t_len, 3)) < 0.1, scale[:, None], duty)
     duty = np.where(rng.random((t_len, 3)) < 0.1, 0, duty)
+    near = np.maximum(scale[:, None] - rng.integers(0, 8, size=(t_len, 3)), 0)
+    duty = np.where(rng.random((t_len, 3)) < 0.1, near, duty)
     return {
         "phase_valid": (rng.random(t_len) < 0.12).astype(np.int64),
         "phase": phase,
@@ -119,6 +121,7 @@ def model_of(stim, shift_width=4):
     (2, {}),
     (3, {"width": 12, "count_width": 10, "clocks_width": 5, "shift_width": 3}),
     (4, {"width": 23, "count_width": 24, "clocks_width": 16, "shift_width": 5}),
+    (5, {"width": 8, "count_width": 12, "clocks_width": 9, "shift_width": 2}),  # w − 1 < C
 ])
 def test_deadtime_comp_matches_model_bit_for_bit(seed, params):
     rng = np.random.default_rng(seed)
@@ -152,10 +155,12 @@ def test_deadtime_comp_latency_cycle_by_cycle():
         comp, out, _ = run_dut(stim)
         want = model.trapezoid(stim["phase"][10], 50, shift, sym)
         assert want.all()
-        np.testing.assert_array_equal(comp[:12 + k], 0)
-        np.testing.assert_array_equal(comp[12 + k:], np.tile(want, (t_len - 12 - k, 1)))
-        np.testing.assert_array_equal(out[12 + k:], 1000 + comp[12 + k:])
-        assert 2 + k <= 2 + (1 << 4)                        # comp_latency (shift_width 4)
+        # Phase a from 13 + k, b one clock later, c two (one shared clamp and negation).
+        for ph in range(3):
+            np.testing.assert_array_equal(comp[:13 + k + ph, ph], 0)
+            np.testing.assert_array_equal(comp[13 + k + ph:, ph], want[ph])
+        np.testing.assert_array_equal(out[15 + k:], 1000 + comp[15 + k:])
+        assert 5 + k <= DeadTimeComp().comp_latency == 5 + (1 << 4)
 
 
 def test_deadtime_comp_trapezoid_shape():

@@ -4,9 +4,10 @@
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Const, Value, unsigned
+from amaranth.hdl import Const, Value, signed, unsigned
 
 import foc_servo.sim.verify.protect as verify_protect
+from foc_servo.hdl.fixed import abs_exceeds, shape_range
 from foc_servo.hdl.protect import FAULTS, Protection
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.protect import INPUTS, pack_flags, protect_np, unpack_flags
@@ -211,3 +212,85 @@ def test_protect_magnitude_compare_exhaustive_small_width():
     expect = [(int(abs(v) > lim),) * 2 for v, lim in cases]
     assert seen == expect
     assert sum(e[0] for e in expect) > 100         # both verdicts well represented
+
+
+def _run_against_model(dut, cols):
+    """Drive ``dut`` with the per-clock columns ``cols`` (:data:`INPUTS`) and compare every
+    output in every clock with :func:`protect_np`."""
+    n = len(cols["fault_n"])
+    record = []
+
+    async def testbench(ctx):
+        for t in range(n):
+            v = {k: int(cols[k][t]) for k in INPUTS}
+            ctx.set(dut.fault_n, v["fault_n"])
+            ctx.set(dut.oc_comp, v["oc_comp"])
+            ctx.set(dut.i.valid, v["i_valid"])
+            ctx.set(dut.i.payload, {p: v[p] for p in "abc"})
+            ctx.set(dut.udc.valid, v["udc_valid"])
+            ctx.set(dut.udc.payload, v["udc"])
+            ctx.set(dut.speed.valid, v["speed_valid"])
+            ctx.set(dut.speed.payload, v["speed"])
+            for r in ("encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
+                      "uv_limit", "uv_enable", "os_limit", "clear"):
+                ctx.set(getattr(dut, r), v[r])
+            ctx.set(dut.mask, {name: (v["mask"] >> k) & 1 for k, name in enumerate(FAULTS)})
+            record.append((ctx.get(dut.trip), ctx.get(dut.present.as_value()),
+                           ctx.get(dut.first.as_value()), ctx.get(dut.seen.as_value()),
+                           ctx.get(dut.uv_armed)))
+            await ctx.tick()
+
+    simulate(dut, [testbench])
+    exp = protect_np(cols)
+    got = np.array(record)
+    for k, key in enumerate(("trip", "present", "first", "seen", "uv_armed")):
+        np.testing.assert_array_equal(got[:, k], exp[key], err_msg=key)
+    return exp
+
+
+@pytest.mark.parametrize("udc_shape", [signed(4), unsigned(3)])
+def test_protect_udc_compares_exhaustive_small_width(udc_shape):
+    """Over-voltage ``udc > ov_limit``, under-voltage ``udc < uv_limit`` and the arming's
+    ``udc > uv_limit`` share one inverted U_dc on two carry chains (the third verdict is the
+    second chain's sum all ones): every code against every limit (both at once), with the
+    check disarmed every seventh clock (in order, then shuffled) so that the arming is seen anew, against the model."""
+    lo, hi = shape_range(udc_shape)
+    pairs = [(u, lim) for u in range(lo, hi + 1) for lim in range(lo, hi + 1)]
+    pairs = pairs + [pairs[k] for k in np.random.default_rng(7).permutation(len(pairs))]
+    steps = []
+    for k, (u, lim) in enumerate(pairs):
+        steps.append({"udc_valid": 1, "udc": u, "ov_limit": lim, "uv_limit": lim,
+                      "uv_enable": int(k % 7 != 0), "clear": 1})
+    cols = {k: np.array([s.get(k, DEFAULTS[k]) for s in steps], dtype=np.int64) for k in INPUTS}
+    exp = _run_against_model(Protection(udc_shape=udc_shape), cols)
+    bits = exp["present"]
+    assert ((bits & flags("overvoltage")) != 0).sum() > 20
+    assert ((bits & flags("undervoltage")) != 0).sum() > 5
+    assert exp["uv_armed"].sum() > 20
+
+
+@pytest.mark.parametrize("v_width, limit_width", [(5, 5), (6, 3), (3, 6), (2, 1)])
+def test_abs_exceeds_exhaustive_mixed_widths(v_width, limit_width):
+    """:func:`abs_exceeds` (one carry chain, carry-in ``~sign``) equals Python's
+    ``abs(v) > limit`` for every value and limit, also when the widths differ."""
+    from amaranth.hdl import Module, Signal
+    from amaranth.sim import Simulator
+    v = Signal(signed(v_width))
+    lim = Signal(unsigned(limit_width))
+    out = Signal()
+    m = Module()
+    m.d.comb += out.eq(abs_exceeds(v, lim))
+    cases = [(a, b) for a in range(-(1 << (v_width - 1)), 1 << (v_width - 1))
+             for b in range(1 << limit_width)]
+    seen = []
+
+    async def testbench(ctx):
+        for a, b in cases:
+            ctx.set(v, a)
+            ctx.set(lim, b)
+            seen.append(ctx.get(out))
+
+    sim = Simulator(m)
+    sim.add_testbench(testbench)
+    sim.run()
+    assert seen == [int(abs(a) > b) for a, b in cases]

@@ -136,7 +136,7 @@ def test_sby_config():
 
 
 def test_mutant():
-    broken = mutant(Gates, ("steady & (off + 1 >= dead)", "steady"))
+    broken = mutant(Gates, ("steady & long_enough", "steady"))
     assert broken is not Gates and broken.__name__ == "Gates"
     _, signals = elaborate_with_internals(broken(dead_width=4))
     assert signals["off_a"].shape().width == 4

@@ -488,6 +488,61 @@ def test_pwm_timer_mid_period_duty_writes_wait_for_the_boundary():
     assert lv[60:80, 0].all() and lv[60:80, 2].sum() == 13 and lv[60:73, 2].all()
 
 
+@pytest.mark.parametrize("clk_hz, pwm_hz, count_width", [
+    (1e6, 50e3, 16),        # N = 10
+    (0.8e6, 100e3, 4),      # N = 4, 2N = 8: the level counter as wide as the compares
+    (1.1e6, 100e3, 5),      # N = 6 (5.5 rounds up), compares from 2**4 up saturate
+    (1e6, 19e3, 8),         # N = 26
+])
+def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_width):
+    """Levels clock by clock against :func:`model.pwm_levels` of the period's active compares
+    and mode, under random duty writes (often on the boundary clock, values at every edge:
+    0, 1, N − 1 … N + 1, 2N − 1 … 2N + 1, the counter's and the port's largest) and random
+    mode changes; ``period_start`` and ``position`` too."""
+    dut = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=count_width)
+    n, per = dut.half_period, dut.period
+    top = (1 << count_width) - 1
+    kw = (2 * n).bit_length()
+    edges = sorted({v for v in (0, 1, n - 1, n, n + 1, 2 * n - 1, 2 * n, 2 * n + 1,
+                                (1 << kw) - 1, 1 << kw, top) if 0 <= v <= top})
+    rng = np.random.default_rng(count_width)
+    clocks = 30 * per
+    actions, valid, duty, sym_in = {}, np.zeros(clocks, int), np.zeros((clocks, 3), int), []
+    sym = 0
+    for t in range(clocks):
+        act = []
+        if rng.random() < 0.03:
+            sym ^= 1
+            act.append((dut.symmetric, sym))
+        boundary = t % per == per - 1
+        if rng.random() < (0.5 if boundary else 0.08):
+            d = [int(rng.choice(edges)) if rng.random() < 0.4 else
+                 int(rng.integers(0, min(top, 2 * n + 1) + 1)) for _ in range(3)]
+            valid[t], duty[t] = 1, d
+            act += [(dut.duty.payload, dict(zip("abc", d))), (dut.duty.valid, 1)]
+        elif t and valid[t - 1]:
+            act.append((dut.duty.valid, 0))
+        sym_in.append(sym)
+        actions[t] = act
+    rec = record_timer(dut, clocks, actions)
+    # Reference: the shadow takes every write; the period's last clock makes it (or that
+    # clock's own write) active together with the mode set in that clock.
+    shadow, active, mode = [0, 0, 0], [0, 0, 0], 0
+    want = np.zeros((clocks, 3), int)
+    for t in range(clocks):
+        pos = t % per
+        for ph in range(3):
+            want[t, ph] = model.pwm_levels(active[ph], n, bool(mode))[pos]
+        if valid[t]:
+            shadow = list(duty[t])
+        if pos == per - 1:
+            active, mode = list(shadow), sym_in[t]
+    np.testing.assert_array_equal(rec[:, :3], want)
+    np.testing.assert_array_equal(rec[:, 5], np.arange(clocks) % per)
+    np.testing.assert_array_equal(rec[:, 3], (np.arange(clocks) % per == 0).astype(int))
+    assert 0.2 < want.mean() < 0.8 and len(set(map(tuple, want.tolist()))) >= 6
+
+
 def test_pwm_timer_sample_point_and_full_scale():
     dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10
     actions = {0: [(dut.sample_custom, 1), (dut.sample_point, 3)],

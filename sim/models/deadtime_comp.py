@@ -66,17 +66,20 @@ def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, 
                                        for x in (scale, symmetric, clocks, shift))
     comp = np.zeros((t_len, 3), dtype=np.int64)
     cur = np.zeros(3, dtype=np.int64)
-    pending = None                  # (clock at which comp takes the new value, values)
+    pending = []                    # (clock from which comp[phase] takes value, phase, value)
     for t in range(t_len):
-        if pending is not None and pending[0] == t:
-            cur = pending[1]
-            pending = None
+        for when, ph, value in pending:
+            if when == t:
+                cur[ph] = value
         comp[t] = cur
         if phase_valid[t]:
             sym = int(symmetric[t])
             k = int(shift[t]) + sym
-            # Loaded at t, k shifts in t+1 … t+k, clamped at t+1+k, visible from t+2+k.
-            pending = (t + 2 + k, trapezoid(phase[t], clocks[t], shift[t], sym))
+            # Loaded at t, k shifts in t+1 … t+k, phase a clamped at t+1+k, b at t+2+k, c at
+            # t+3+k (one shared clamp), each negated and loaded a clock later, visible from the
+            # clock after that. A new transfer cancels the phases not yet loaded.
+            values = trapezoid(phase[t], clocks[t], shift[t], sym)
+            pending = [(t + 3 + k + ph, ph, values[ph]) for ph in range(3)]
     o = apply(duty, comp, scale[:, None])
     return comp, o
 
