@@ -1140,8 +1140,11 @@ class Engine(wiring.Component):
         cw, n = self._config_width, len(self._config)
         # Per instruction the config word its A operand reads (0 for none: read, not used).
         words = [cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0 for ins in prog.instrs]
+        # (In a block RAM: as a LUT ROM on ``pc_next`` it lengthened the branch condition's
+        # path to 32.8 ns, 30.5 MHz on the UP5K; the block RAM's address takes pc_next as is.)
         m.submodules.cfg_rom = cfg_rom = Memory(shape=range(max(n, 2)),
-                                                depth=max(len(words), 2), init=words)
+                                                depth=max(len(words), 2), init=words,
+                                                attrs={"rom_style": "block"})
         look = cfg_rom.read_port()              # the word of the instruction at pc (F)
         m.d.comb += look.addr.eq(pc_next)
         init = [(v & ((1 << cw) - 1)) - ((v >> (cw - 1) & 1) << cw) for v in self._config_init]
