@@ -78,10 +78,10 @@ A RAM written from the port (written at the end of the ``valid`` clock) therefor
 every clock, what the flip-flops would have held, with one exception: a domain reset loads the
 flip-flops with their reset values at once, while the RAM (block RAM keeps its contents) gets
 them from the reset walk, which puts each exported word on the port (its reset value, read from
-the RAM's reset half) in clock ``2 + i`` after the reset clock (slot ``i``; the RAM holds it from clock ``3 + i``);
-from clock ``2 + reset_clocks`` after the reset on every exported word is its reset value again. At
-power-up the walk runs too; a consumer RAM initialised with :func:`export_init` (the reset
-values) matches from the first clock.
+the RAM's reset half) in clock ``2 + i`` after the reset clock (slot ``i``; the RAM holds it
+from clock ``3 + i``); from clock ``2 + reset_clocks`` after the reset on every exported word
+is its reset value again. At power-up the walk runs too; a consumer RAM initialised with
+:func:`export_init` (the reset values) matches from the first clock.
 """
 
 import itertools

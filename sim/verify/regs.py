@@ -42,8 +42,8 @@ class Bench(Elaboratable):
 
     ``stim`` = Cat(addr, we, w_data, stb, lock, commit, rst, *ro registers); ``outs`` = Cat(ack,
     status, r_data, *strobes, *rw registers (not the exported ones), and with ``export`` the
-    port's valid, index, data, the last two as 0 while valid is low), in :attr:`stim_fields` / :attr:`out_fields` order
-    (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
+    port's valid, index, data, the last two as 0 while valid is low), in :attr:`stim_fields` /
+    :attr:`out_fields` order (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
     RAM keeps its contents, as block RAM does).
     """
 
