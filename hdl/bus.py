@@ -18,7 +18,7 @@ low word first.
 from amaranth.lib import enum, wiring
 from amaranth.lib.wiring import In, Out
 
-__all__ = ["ADDR_WIDTH", "DATA_WIDTH", "Status", "RegBusSignature"]
+__all__ = ["ADDR_WIDTH", "DATA_WIDTH", "Status", "RegBusSignature", "WordWriteSignature"]
 
 ADDR_WIDTH = 16
 DATA_WIDTH = 32
@@ -52,3 +52,31 @@ class RegBusSignature(wiring.Signature):
             "r_data": In(data_width),
             "status": In(Status),
         })
+
+
+class WordWriteSignature(wiring.Signature):
+    """A RAM write port, seen from the writer: ``valid`` (write in this clock), ``index`` (the
+    word, ``range(depth)``) and ``data`` (``width`` bits). The register file's ``export`` port
+    (:class:`~.regs.RegisterFile`) is ``Out`` of it, the loop engine's configuration RAM
+    (:class:`~.engine.Engine`) takes ``In`` of it.
+
+    Parameters
+    ----------
+    depth : int
+        Words the index addresses (at least 1).
+    width : int
+        Bits of ``data`` (default :data:`DATA_WIDTH`).
+    """
+
+    def __init__(self, depth, *, width=DATA_WIDTH):
+        if not isinstance(depth, int) or depth < 1:
+            raise TypeError(f"WordWriteSignature depth must be a positive integer, "
+                            f"not {depth!r}")
+        if not isinstance(width, int) or not 1 <= width <= 64:
+            raise TypeError(f"WordWriteSignature width must be an integer from 1 to 64, "
+                            f"not {width!r}")
+        self.depth, self.width = depth, width
+        super().__init__({"valid": Out(1), "index": Out(range(depth)), "data": Out(width)})
+
+    def __repr__(self):
+        return f"WordWriteSignature({self.depth}, width={self.width})"

@@ -51,11 +51,12 @@ special operands are selected and registered in R).
 import dataclasses
 import enum
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, signed, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
+from .bus import WordWriteSignature
 from .fixed import check_param
 from .rotator import RotatorParams
 
@@ -671,6 +672,26 @@ class Engine(wiring.Component):
         Quotient bits ``q`` of a DIV step (the low ``q`` bits of P are the special ``PQ``).
     rotator : RotatorParams
         Sine table, ``kd`` and angle folding (``ANG`` is ``rotator.angle_width`` bits).
+    config : tuple of str
+        User specials read from the configuration RAM instead of a port (A operand only; at
+        most one per instruction by the encoding), in the RAM's word order. Default ``()``.
+        The RAM holds ``config_width`` bits of each word (sign-extended when read: a value of
+        an unsigned shape needs one bit more than its width) and is written through ``cfg``;
+        it behaves exactly like a flip-flop register per word loaded at the end of each clock
+        with ``cfg.valid`` (the value an instruction reads is the word in its R clock, as for
+        a port), see "Configuration RAM" below.
+    config_init : list of int
+        The configuration RAM's initial words (default all 0), as ``cfg.data`` carries them
+        (e.g. :attr:`~.regs.RegisterFile.export_init`: the registers' reset values).
+
+    Configuration RAM (``config``): block RAM of ``len(config)`` words of ``config_width``
+    bits. The word of an instruction's config operand is looked up, in the clock before F,
+    from the next ``pc`` in a second ROM beside the program ROM (``cfg_rom``: per
+    instruction its config word), so the RAM is read in F and its data is one more input of
+    R's special AND-OR (one line, and one for ``asl``), in place of one line per config
+    special. The RAM is read one clock before the port values were: a write in the F clock
+    of the word read (``cfg.valid`` and ``cfg.index`` equal to it) is taken from ``cfg.data``
+    registered (the bypass), so each read returns the word as of the R clock.
 
     Members
     -------
@@ -682,7 +703,10 @@ class Engine(wiring.Component):
         One-clock strobe: END in X3 (the instruction before it writes back in this clock;
         from the next clock on every result is in place).
     <special> : In(shape)
-        One port per user special operand.
+        One port per user special operand (not those of ``config``).
+    cfg : In(WordWriteSignature(len(config)))
+        With ``config``: writes of the configuration RAM (``data``'s low ``config_width``
+        bits; written at the end of the ``valid`` clock).
     <cond> : In(1)
         One port per user condition.
     <out> : Out(width), <out>_we : Out(1)
@@ -694,7 +718,7 @@ class Engine(wiring.Component):
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
-                 rotator=None):
+                 rotator=None, config=(), config_init=None):
         if not isinstance(program, Program):
             raise TypeError(f"Engine program must be a Program, not {program!r}")
         user_specials = program.specials[len(BUILTIN_SPECIALS):]
@@ -712,6 +736,25 @@ class Engine(wiring.Component):
             check_param("Engine", name, value, lo, hi)
         if rotator is None:
             rotator = RotatorParams(width=16, angle_width=16)
+        if (not isinstance(config, tuple) or not all(n in user_specials for n in config)
+                or len(set(config)) != len(config)):
+            raise ValueError(f"Engine config must be a tuple of distinct user specials "
+                             f"{user_specials}, not {config!r}")
+        for name in config:
+            if name in program.bspecials:
+                raise ValueError(f"Engine config special {name!r} is a B special: config "
+                                 f"specials are A operands only")
+        if config_init is None:
+            config_init = [0] * len(config)
+        if (not isinstance(config_init, (list, tuple)) or len(config_init) != len(config)
+                or not all(isinstance(v, int) for v in config_init)):
+            raise ValueError(f"Engine config_init must be a list of {len(config)} integers, "
+                             f"not {config_init!r}")
+        self._config = config
+        self._config_width = max((Shape.cast(special_shapes[n]).width
+                                  + (0 if Shape.cast(special_shapes[n]).signed else 1)
+                                  for n in config), default=0)
+        self._config_init = [int(v) for v in config_init]
         self._program = program
         self._special_shapes = dict(special_shapes)
         self._out_widths = dict(out_widths)
@@ -731,7 +774,10 @@ class Engine(wiring.Component):
             "trace_p": Out(signed(P_WORD)),
         }
         for name, shape in self._special_shapes.items():
-            members[f"s_{name}"] = In(shape)
+            if name not in config:
+                members[f"s_{name}"] = In(shape)
+        if config:
+            members["cfg"] = In(WordWriteSignature(len(config)))
         for name in program.conds[len(BUILTIN_CONDS):]:
             members[f"c_{name}"] = In(1)
         for name, w in self._out_widths.items():
@@ -741,6 +787,8 @@ class Engine(wiring.Component):
 
     program = property(lambda self: self._program)
     rotator = property(lambda self: self._rot)
+    config = property(lambda self: self._config)
+    config_width = property(lambda self: self._config_width)
 
     def elaborate(self, platform):
         m = Module()
@@ -751,9 +799,17 @@ class Engine(wiring.Component):
         # The program ROM holds, beside each instruction, the key of its special operand A
         # (``k + 1`` for the k-th (special, asl) pair the program uses, 0 for none; in the
         # spare bits of the ROM's block RAM), decoded in R to the special's one-hot select.
-        keys = sorted({(ins.a, ins.asl) for ins in prog.instrs if ins.asp and ins.a >= 2})
+        # With ``config``, the config specials share one key (two with asl): CFG stands for
+        # the configuration RAM's read data.
+        cfg_of = {prog.specials.index(name): j for j, name in enumerate(self._config)}
+        CFG = len(prog.specials)
+
+        def key_of(ins):
+            return (CFG if ins.a in cfg_of else ins.a, ins.asl)
+
+        keys = sorted({key_of(ins) for ins in prog.instrs if ins.asp and ins.a >= 2})
         key_w = max(1, (len(keys) + 1 - 1).bit_length())
-        rom_words = [word | ((keys.index((ins.a, ins.asl)) + 1 if ins.asp and ins.a >= 2 else 0)
+        rom_words = [word | ((keys.index(key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
                              << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
                                         depth=max(len(prog.words), 2), init=rom_words)
@@ -774,6 +830,8 @@ class Engine(wiring.Component):
         rom_r = rom.read_port()
 
         pc = Signal(PC_WIDTH)
+        pc_next = Signal(PC_WIDTH)  # pc in the next clock
+        m.d.sync += pc.eq(pc_next)
         f_valid = Signal()          # an instruction is being fetched (pc)
         r_valid = Signal()          # rom_r.data is an instruction in R
         x_valid = Signal()
@@ -814,8 +872,11 @@ class Engine(wiring.Component):
         # --- Operands --------------------------------------------------------------------------------
         p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
-        specials = [Const(0), Const(0), ts, tc, kd] + [getattr(self, f"s_{name}")
-                                          for name in self._special_shapes]
+        specials = [Const(0), Const(0), ts, tc, kd] + [
+            Const(0) if name in self._config else getattr(self, f"s_{name}")
+            for name in self._special_shapes]
+        if self._config:
+            specials.append(self._config_ram(m, prog, cfg_of, pc_next))
         # The special operands are selected in R (registered with the RF read) by an AND-OR
         # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
         # value shifted by the guard; a special A only), decoded from the key the ROM holds
@@ -1101,14 +1162,50 @@ class Engine(wiring.Component):
         # it writes back (X4): from the next clock on every result is in place.
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & (ir3.op == Op.END))
+        m.d.comb += pc_next.eq(pc)
         with m.If(self.start & ~self.running):
-            m.d.sync += [self.running.eq(1), pc.eq(0), f_valid.eq(1),
-                         r_valid.eq(0), x_valid.eq(0)]
+            m.d.sync += [self.running.eq(1), f_valid.eq(1), r_valid.eq(0), x_valid.eq(0)]
+            m.d.comb += pc_next.eq(0)
         with m.Elif(halt):
             m.d.sync += [self.running.eq(0), f_valid.eq(0), r_valid.eq(0), x_valid.eq(0)]
         with m.Elif(self.running):
             with m.If(execute & (ir.op == Op.BR) & c):
-                m.d.sync += pc.eq(ir.tgt)
+                m.d.comb += pc_next.eq(ir.tgt)
             with m.Elif(~hold):
-                m.d.sync += pc.eq(pc + 1)
+                m.d.comb += pc_next.eq(pc + 1)
         return m
+
+    def _config_ram(self, m, prog, cfg_of, pc_next):
+        """The configuration RAM (class docstring): its write port, the word look-up from the
+        next ``pc`` (``cfg_rom``), the read in F and the bypass of a write in the F clock.
+        Returns the configuration operand as of the R clock (sign-extended)."""
+        cw, n = self._config_width, len(self._config)
+        # Per instruction the config word its A operand reads (0 for none: read, not used).
+        words = [cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0 for ins in prog.instrs]
+        # (In a block RAM: as a LUT ROM on ``pc_next`` it lengthened the branch condition's
+        # path to 32.8 ns, 30.5 MHz on the UP5K; the block RAM's address takes pc_next as is.)
+        m.submodules.cfg_rom = cfg_rom = Memory(shape=range(max(n, 2)),
+                                                depth=max(len(words), 2), init=words,
+                                                attrs={"rom_style": "block"})
+        look = cfg_rom.read_port()              # the word of the instruction at pc (F)
+        m.d.comb += look.addr.eq(pc_next)
+        init = [(v & ((1 << cw) - 1)) - ((v >> (cw - 1) & 1) << cw) for v in self._config_init]
+        # The read port as the register file's: asynchronous, its data registered here (one
+        # synchronous block RAM port); a read of the word being written is undefined
+        # (``no_rw_check``): the bypass below replaces it.
+        m.submodules.cfg_ram = ram = Memory(shape=signed(cw), depth=n, init=init,
+                                            attrs={"no_rw_check": 1})
+        wr = ram.write_port()
+        rd = ram.read_port(domain="comb")
+        m.d.comb += [wr.en.eq(self.cfg.valid), wr.addr.eq(self.cfg.index),
+                     wr.data.eq(self.cfg.data[:cw]), rd.addr.eq(look.data)]
+        rd_data = Signal(signed(cw), reset_less=True)
+        byp = Signal()
+        byp_data = Signal(signed(cw), reset_less=True)
+        m.d.sync += [rd_data.eq(rd.data),
+                     byp.eq(self.cfg.valid & (self.cfg.index == look.data))]
+        with m.If(self.cfg.valid):
+            m.d.sync += byp_data.eq(self.cfg.data[:cw])
+        value = Signal(signed(cw))
+        m.d.comb += value.eq(Mux(byp, byp_data, rd_data))
+        return value

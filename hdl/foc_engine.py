@@ -24,15 +24,16 @@ from amaranth.hdl import Module, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from .bus import WordWriteSignature
 from .dsp import saturate_bits
 from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
-from .fixed import Q, UQ, round_shift
+from .fixed import Q, UQ, check_choice, round_shift
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
-           "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "ENGINE_WIDTH",
-           "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC"]
+           "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
+           "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -43,8 +44,20 @@ DCBUS_GAIN_FRAC = 16
 SPECIALS = ("ia", "ib", "theta", "klead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
             "gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q",
             "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "udc", "urat")
-#: Specials that may be operand B.
-BSPECIALS = ("off_a", "off_b", "nspd", "scale")
+#: Specials that may be operand B (not a configuration special: ``config="ram"`` reads those
+#: as A operands only).
+BSPECIALS = ("ia", "ib", "nspd", "scale")
+#: The configuration specials read from the engine's configuration RAM with ``config="ram"``,
+#: in its word order (the port each comes from with ``config="ports"``: :data:`CONFIG_PORTS`).
+CONFIG = ("gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q", "kx_q",
+          "lo_q", "hi_q", "ff_l", "ff_psi")
+#: ``config="ports"``: the EngineCurrentLoop port of each configuration special.
+CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
+                "off_b": "offset_b", "kp_d": "kp_d", "kx_d": "kx_d", "lo_d": "lim_lo_d",
+                "hi_d": "lim_hi_d", "kp_q": "kp_q", "kx_q": "kx_q", "lo_q": "lim_lo_q",
+                "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi"}
+#: Values of ``EngineCurrentLoop(config=...)``.
+CONFIGS = ("ports", "ram")
 #: User conditions.
 CONDS = ("RUN", "OL", "FF")
 #: Output registers and their widths (``ang`` is the engine's angle register).
@@ -199,8 +212,8 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
 
     # --- Park angle, Clarke ------------------------------------------------------------------------
     A.alu(Op.RSUB, None, "s.theta", 0, out="ang")                     # −θ
-    A.alu(Op.SUB, "r.ta", "s.ia", "b.off_a")
-    A.alu(Op.SUB, "r.tb", "s.ib", "b.off_b")
+    A.alu(Op.RSUB, "r.ta", "s.off_a", "b.ia")                        # ia − off_a
+    A.alu(Op.RSUB, "r.tb", "s.off_b", "b.ib")
     A.mul("s.gain_a", "r.ta")
     A.post("r.a", clarke_gain_frac, sat=SAT_W, out="pa")   # (posts fuse into the next MUL)
     A.mul("s.gain_b", "r.tb")
@@ -448,6 +461,21 @@ class EngineCurrentLoop(wiring.Component):
         turns; read while the program runs (like the gains), θ_lead = ``round_shift(n·k, 15)``
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
 
+    Parameters
+    ----------
+    config : str
+        Where the 14 configuration values (:data:`CONFIG`: Clarke gains and offsets, the PIs'
+        gains and limits, the decoupling ``ff_l``, ``ff_psi``) come from: ``"ports"``
+        (default) the input ports of :class:`~.foc.CurrentLoop` (``gain_a``, ``offset_a``,
+        ``kp_d``, ``lim_lo_d``, …); ``"ram"`` the engine's configuration RAM, written through
+        the ``config`` port (:class:`~.bus.WordWriteSignature`, word ``j`` = ``CONFIG[j]`` in
+        the register file's read format; e.g. the register file's ``export`` port), which has
+        none of those input ports. Both give the same results in the same clocks when each
+        RAM word is written in the clock before the port value would change.
+    config_init : list of int
+        ``config="ram"``: the RAM's initial words (default all 0; the top passes the
+        registers' reset values, :attr:`~.regs.RegisterFile.export_init`).
+
     Attributes
     ----------
     latency : int
@@ -468,7 +496,8 @@ class EngineCurrentLoop(wiring.Component):
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
-                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0):
+                 kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
+                 config="ports", config_init=None):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -489,6 +518,17 @@ class EngineCurrentLoop(wiring.Component):
             raise ValueError(f"EngineCurrentLoop gain_limit must be at least 1.0 and below 4.0, "
                              f"not {gain_limit!r}")
         self._gain_limit_raw = limit_raw
+        check_choice("EngineCurrentLoop", "config", config, CONFIGS)
+        if config_init is not None and config != "ram":
+            raise ValueError(f"EngineCurrentLoop config_init applies only to config='ram', "
+                             f"not config={config!r}")
+        if config_init is not None and (not isinstance(config_init, (list, tuple))
+                                        or len(config_init) != len(CONFIG)
+                                        or not all(isinstance(v, int) for v in config_init)):
+            raise ValueError(f"EngineCurrentLoop config_init must be a list of {len(CONFIG)} "
+                             f"integers, not {config_init!r}")
+        self._config = config
+        self._config_init = list(config_init) if config_init is not None else [0] * len(CONFIG)
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
         self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw)
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
@@ -496,13 +536,7 @@ class EngineCurrentLoop(wiring.Component):
         self._phase_latency = phase_latency(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
-        super().__init__({
-            "i": In(stream.Signature(data.StructLayout(
-                {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
-            "theta": In(unsigned(aw)), "lead_k": In(unsigned(16)),
-            "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
-            "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
-            "speed": In(signed(SPEED_WIDTH)),
+        ports = {
             "ff_l": In(FF_FORMAT.shape), "ff_psi": In(FF_FORMAT.shape),
             "gain_a": In(clarke_gain_format.shape), "gain_b": In(clarke_gain_format.shape),
             "offset_a": In(signed(adc_width + 1)), "offset_b": In(signed(adc_width + 1)),
@@ -510,6 +544,19 @@ class EngineCurrentLoop(wiring.Component):
             "lim_lo_d": In(sw), "lim_hi_d": In(sw),
             "kp_q": In(kp_format.shape), "kx_q": In(kx_format.shape),
             "lim_lo_q": In(sw), "lim_hi_q": In(sw),
+        }
+        #: The configuration specials' shapes (the ports' shapes in both modes).
+        self._config_shapes = {name: ports[CONFIG_PORTS[name]].shape for name in CONFIG}
+        if config == "ram":
+            ports = {"config": In(WordWriteSignature(len(CONFIG)))}
+        super().__init__({
+            "i": In(stream.Signature(data.StructLayout(
+                {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
+            "theta": In(unsigned(aw)), "lead_k": In(unsigned(16)),
+            "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
+            "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
+            "speed": In(signed(SPEED_WIDTH)),
+            **ports,
             "u_rated": In(unsigned(adc_width)), "scale": In(unsigned(cw)),
             "o": Out(stream.Signature(data.StructLayout({p: unsigned(cw) for p in "abc"}))),
             "overmod": Out(1),
@@ -523,6 +570,7 @@ class EngineCurrentLoop(wiring.Component):
         })
 
     program = property(lambda self: self._program)
+    config_mode = property(lambda self: self._config)
     width = property(lambda self: ENGINE_WIDTH)
     adc_width = property(lambda self: 16)
     angle_width = property(lambda self: 16)
@@ -540,16 +588,16 @@ class EngineCurrentLoop(wiring.Component):
         shapes = {
             "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "klead": unsigned(16),
             "id_ref": sw, "iq_ref": sw, "ol_ud": sw, "ol_uq": sw, "nspd": sw,
-            "gain_a": self.gain_a.shape(), "gain_b": self.gain_b.shape(),
-            "off_a": self.offset_a.shape(), "off_b": self.offset_b.shape(),
-            "kp_d": self.kp_d.shape(), "kx_d": self.kx_d.shape(), "lo_d": sw, "hi_d": sw,
-            "kp_q": self.kp_q.shape(), "kx_q": self.kx_q.shape(), "lo_q": sw, "hi_q": sw,
-            "ff_l": self.ff_l.shape(), "ff_psi": self.ff_psi.shape(),
+            **self._config_shapes,
             "scale": self.scale.shape(), "udc": signed(16), "urat": self.u_rated.shape(),
         }
+        shapes = {name: shapes[name] for name in SPECIALS}
+        ram = self._config == "ram"
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
                                            out_widths=OUTS, width=w, guard=8,
-                                           div_bits=16, rotator=self._rot)
+                                           div_bits=16, rotator=self._rot,
+                                           config=CONFIG if ram else (),
+                                           config_init=self._config_init if ram else None)
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program
@@ -585,12 +633,14 @@ class EngineCurrentLoop(wiring.Component):
                 self.udc.payload.eq(self.i.payload.udc),
             ]
         m.d.sync += self.udc.valid.eq(accept)
-        config = {"gain_a": self.gain_a, "gain_b": self.gain_b, "off_a": self.offset_a,
-                  "off_b": self.offset_b, "kp_d": self.kp_d, "kx_d": self.kx_d,
-                  "lo_d": self.lim_lo_d, "hi_d": self.lim_hi_d, "kp_q": self.kp_q,
-                  "kx_q": self.kx_q, "lo_q": self.lim_lo_q, "hi_q": self.lim_hi_q,
-                  "ff_l": self.ff_l, "ff_psi": self.ff_psi, "scale": self.scale,
-                  "klead": self.lead_k, "udc": self.udc.payload, "urat": self.u_rated}
+        # The configuration: ports into the engine's specials, or the engine's RAM's writes.
+        if ram:
+            wiring.connect(m, wiring.flipped(self.config), eng.cfg)
+            config = {}
+        else:
+            config = {name: getattr(self, CONFIG_PORTS[name]) for name in CONFIG}
+        config.update({"scale": self.scale, "klead": self.lead_k, "udc": self.udc.payload,
+                       "urat": self.u_rated})
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),

@@ -62,6 +62,26 @@ the RAM is used in a clock that writes the same word (a write's own ``t + 1``; t
 the reset part while it writes a slot), so the RAM's read-during-write result is left undefined
 (``no_rw_check``). Strobes, the immediate registers' Out members, status and the windows are as
 with ``"ff"``.
+
+Exported registers (``staging="bram"``, ``export``; docs/AREA.md §4 stage 3, "active values
+where they are read"). The active words of the shadowed registers named in ``export`` are not
+flip-flops of the register file: the ``export`` port (:class:`~.bus.WordWriteSignature`) carries
+each of them instead, as a write to a consumer's RAM, in exactly the clock its flip-flops would
+have been loaded::
+
+    s + 1 + i   copied slot i is an exported word: export.valid, export.index (the word's
+                position among the exported words, :func:`export_words`), export.data (the
+                word in its read format, as the staging RAM holds it: the top word of a signed
+                register sign-extended to 32 bits)
+
+A RAM written from the port (written at the end of the ``valid`` clock) therefore holds, in
+every clock, what the flip-flops would have held, with one exception: a domain reset loads the
+flip-flops with their reset values at once, while the RAM (block RAM keeps its contents) gets
+them from the reset walk, which puts each exported word on the port (its reset value, read from
+the RAM's reset half) in clock ``2 + i`` after the reset clock (slot ``i``; the RAM holds it
+from clock ``3 + i``); from clock ``2 + reset_clocks`` after the reset on every exported word
+is its reset value again. At power-up the walk runs too; a consumer RAM initialised with
+:func:`export_init` (the reset values) matches from the first clock.
 """
 
 import itertools
@@ -72,11 +92,12 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from .bus import DATA_WIDTH, RegBusSignature, Status
+from .bus import DATA_WIDTH, RegBusSignature, Status, WordWriteSignature
 from .fixed import check_choice
 from .regmap import REGMAP, Access, RegMap
 
-__all__ = ["RegisterFile", "STAGINGS", "ram_slots", "staging_slots", "word_index"]
+__all__ = ["RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
+           "staging_slots", "word_index"]
 
 #: Values of ``RegisterFile(staging=...)``.
 STAGINGS = ("ff", "bram")
@@ -99,6 +120,19 @@ def ram_slots(regmap, copy_last=()):
     address order (read back from the RAM, never copied)."""
     return staging_slots(regmap, copy_last) + [
         (a, r, k) for a, r, k in regmap.words() if r.access is Access.RW and r.shadow is None]
+
+
+def export_words(regmap, export):
+    """The exported words of ``regmap`` (``RegisterFile(export=...)``): ``[(addr, register,
+    k), ...]``, the words of the registers named in ``export`` in that order (low word first);
+    the position in this list is the ``export.index`` of the word."""
+    return [(a, r, k) for name in export for a, r, k in regmap.words() if r.name == name]
+
+
+def export_init(regmap, export):
+    """The reset values of the exported words (:func:`export_words`) in their read format (the
+    32-bit words the ``export`` port carries, unsigned): a consumer RAM's initial contents."""
+    return [r.read_word(r.bits(r.reset), k) for _, r, k in export_words(regmap, export)]
 
 
 def word_index(regmap):
@@ -167,6 +201,10 @@ class RegisterFile(wiring.Component):
     copy_last : tuple of str
         ``staging="bram"`` only: shadowed registers copied last, in this order (the last one in
         the copy's last clock; see :func:`staging_slots`). Default ``()``.
+    export : tuple of str
+        ``staging="bram"`` only: shadowed registers whose active value is not held here but
+        written to a consumer's RAM through the ``export`` port (module docstring); they have
+        no Out member. Default ``()``.
 
     Members
     -------
@@ -181,7 +219,10 @@ class RegisterFile(wiring.Component):
         :attr:`commit_clocks` clocks before the new values are wanted.
     <rw register> : Out(register.shape, init=reset)
         The active value the control path uses (enum, StructLayout of the fields, or the raw
-        fixed-point shape ``register.fmt.shape``).
+        fixed-point shape ``register.fmt.shape``); not for the exported registers.
+    export : Out(WordWriteSignature(len(export_words)))
+        Only with ``export``: the exported active words as RAM writes (``valid``, ``index``,
+        ``data``), in the clocks the module docstring gives.
     <ro register> : In(register.shape)
         Status from the control path.
     <strobe register> : Out(1)
@@ -210,40 +251,50 @@ class RegisterFile(wiring.Component):
     reset_clocks : int
         ``"bram"``: clocks after a reset during which accesses are held off while the reset
         values are written back into every staging slot (``slots``); ``"ff"``: 0.
+    exported : tuple of str
+        The ``export`` parameter (``export`` is the port).
+    export_words : list
+        :func:`export_words`: ``(addr, register, k)`` per ``export.index``.
+    export_init : list of int
+        :func:`export_init`: the exported words' reset values (a consumer RAM's init).
 
     Raises
     ------
     TypeError
         ``regmap`` is not a :class:`~.regmap.RegMap`; ``staging`` is not a string;
-        ``copy_last`` is not a tuple of strings.
+        ``copy_last`` or ``export`` is not a tuple of strings.
     ValueError
-        ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` names a register that is not
-        a shadowed ``rw`` register of ``regmap``, or is given with ``staging="ff"``.
+        ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` or ``export`` names a
+        register that is not a shadowed ``rw`` register of ``regmap``, repeats a name, or is
+        given with ``staging="ff"``.
     """
 
     latency = 2
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
-        if (not isinstance(copy_last, tuple)
-                or not all(isinstance(n, str) for n in copy_last)):
-            raise TypeError(f"RegisterFile copy_last must be a tuple of register names, "
-                            f"not {copy_last!r}")
-        for name in copy_last:
-            if (name not in regmap or regmap[name].access is not Access.RW
-                    or regmap[name].shadow is None):
-                raise ValueError(f"RegisterFile copy_last must name shadowed rw registers, "
-                                 f"not {name!r}")
-        if copy_last and staging != "bram":
-            raise ValueError(f"RegisterFile copy_last applies only to staging='bram', "
-                             f"not staging={staging!r}")
-        if len(set(copy_last)) != len(copy_last):
-            raise ValueError(f"RegisterFile copy_last must not repeat a name, not {copy_last!r}")
+        for param, names in (("copy_last", copy_last), ("export", export)):
+            if (not isinstance(names, tuple)
+                    or not all(isinstance(n, str) for n in names)):
+                raise TypeError(f"RegisterFile {param} must be a tuple of register names, "
+                                f"not {names!r}")
+            for name in names:
+                if (name not in regmap or regmap[name].access is not Access.RW
+                        or regmap[name].shadow is None):
+                    raise ValueError(f"RegisterFile {param} must name shadowed rw registers, "
+                                     f"not {name!r}")
+            if names and staging != "bram":
+                raise ValueError(f"RegisterFile {param} applies only to staging='bram', "
+                                 f"not staging={staging!r}")
+            if len(set(names)) != len(names):
+                raise ValueError(f"RegisterFile {param} must not repeat a name, not {names!r}")
         self._regmap = regmap
         self._staging = staging
         self._copy_last = copy_last
+        self._export = export
+        self._export_words = export_words(regmap, export)
         self._slots = staging_slots(regmap, copy_last) if staging == "bram" else []
         self._copied = len(self._slots)
         if staging == "bram" and not self._slots:
@@ -260,9 +311,12 @@ class RegisterFile(wiring.Component):
         self._ram_addr = {**self._slot_of, **{a: base + len(self._slots) + j
                                                for j, (a, _, _) in enumerate(self._consts)}}
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
+        if export:
+            members["export"] = Out(WordWriteSignature(len(self._export_words)))
         for r in regmap:
             if r.access is Access.RW:
-                members[r.name] = Out(r.shape, init=r.init)
+                if r.name not in export:        # (exported: the consumer's RAM holds it)
+                    members[r.name] = Out(r.shape, init=r.init)
             elif r.access is Access.RO:
                 members[r.name] = In(r.shape)
             elif r.access is Access.STROBE:
@@ -275,6 +329,9 @@ class RegisterFile(wiring.Component):
     regmap = property(lambda self: self._regmap)
     staging = property(lambda self: self._staging)
     copy_last = property(lambda self: self._copy_last)
+    exported = property(lambda self: self._export)
+    export_words = property(lambda self: list(self._export_words))
+    export_init = property(lambda self: export_init(self._regmap, self._export))
     slots = property(lambda self: len(self._slots))
     commit_clocks = property(lambda self: self._copied + 1)
     commit_latency = commit_clocks
@@ -511,9 +568,28 @@ class RegisterFile(wiring.Component):
         ld = Signal(nc, name="copy_ld")
         m.d.sync += ld.eq(Cat(start, ld[:-1]))
         for i, (_, r, k) in enumerate(slots[:nc]):
+            if r.name in self._export:
+                continue                        # on the export port instead (below)
             with m.If(ld[i]):
                 lo, hi = r.word_slice(k)
                 m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd_data[:hi - lo])
+        # The export port: the exported slot's word in its load clock, copy or walk (``load``
+        # with ``dst``), its export index and whether it is one looked up from ``cnt`` in the
+        # reading clock and registered beside ``dst`` (no decode of ``dst`` behind a register).
+        if self._export:
+            index_of = {self._slot_of[a]: j for j, (a, _, _) in enumerate(self._export_words)}
+            exp_on = Signal(name="export_on")
+            exp_index = Signal(range(len(self._export_words)), name="export_index")
+            exp_on_c = Signal()
+            exp_index_c = Signal.like(exp_index)
+            with m.Switch(cnt):
+                for i, j in sorted(index_of.items()):
+                    with m.Case(i):
+                        m.d.comb += [exp_on_c.eq(1), exp_index_c.eq(j)]
+            with m.If(start | run):
+                m.d.sync += [exp_on.eq(exp_on_c), exp_index.eq(exp_index_c)]
+            m.d.comb += [self.export.valid.eq(load & exp_on), self.export.index.eq(exp_index),
+                         self.export.data.eq(rd_data)]
 
         # t + 1: the access's RAM word and word format, looked up from the word select.
         with m.Switch(sel):

@@ -43,6 +43,15 @@ whose ``lock`` falls in the copy window (or is high at its start) is applied a p
 and the current loop must be idle in the window too (the sample not within ``loop_latency +
 commit_clocks`` clocks of the period end).
 
+**Engine configuration in RAM** (``current_loop="engine"`` with ``regs_staging="bram"``, the
+iCEBreaker): the register file holds no flip-flops for the current loop's 14 configuration
+registers (:data:`ENGINE_CONFIG`: Clarke gains and offsets, PI gains and limits, decoupling
+``L`` and ``ψ``); its commit copy writes them through its ``export`` port into the loop
+engine's configuration RAM in the clocks the flip-flops would have changed
+(``EngineCurrentLoop(config="ram")``), so the loop sees the same values in the same clocks.
+(One exception, in the reset walk's 63 clocks after a domain reset: the flip-flops would have
+held the reset values at once, the RAM gets them word by word.)
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -87,6 +96,7 @@ from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
 from .fixed import check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
+from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
@@ -110,6 +120,14 @@ SYNC_STAGES = 2
 #: Values of ``Top(current_loop=...)``: :class:`~.foc.CurrentLoop`,
 #: :class:`~.foc_engine.EngineCurrentLoop`.
 CURRENT_LOOPS = ("pipelined", "engine")
+#: The registers of the loop engine's configuration RAM (``current_loop="engine"``,
+#: ``regs_staging="bram"``), in its word order (:data:`~.foc_engine.CONFIG`).
+ENGINE_CONFIG = tuple({
+    "gain_a": "clarke_gain_a", "gain_b": "clarke_gain_b", "off_a": "clarke_offset_a",
+    "off_b": "clarke_offset_b", "kp_d": "pi_d_kp", "kx_d": "pi_d_kx", "lo_d": "pi_d_lim_lo",
+    "hi_d": "pi_d_lim_hi", "kp_q": "pi_q_kp", "kx_q": "pi_q_kx", "lo_q": "pi_q_lim_lo",
+    "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
+}[name] for name in ENGINE_CONFIG_SPECIALS)
 
 
 def _raw(port):
@@ -385,8 +403,11 @@ class Top(wiring.Component):
         # Built here (after every check) so that their timing attributes are known.
         # "bram": the timer latches pwm_symmetric in the period's last clock, so that word is
         # copied in the copy's last clock (it changes after the latch, as with "ff").
+        # The engine's configuration registers in its RAM (module docstring).
+        cfg_ram = current_loop == "engine" and regs_staging == "bram"
         self._regs = RegisterFile(regmap, staging=regs_staging,
-                                  copy_last=("pwm_symmetric",) if regs_staging == "bram" else ())
+                                  copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
+                                  export=ENGINE_CONFIG if cfg_ram else ())
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -396,6 +417,8 @@ class Top(wiring.Component):
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
+                      EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
+                                        config_init=self._regs.export_init) if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
@@ -556,6 +579,21 @@ class Top(wiring.Component):
         ]
 
         # --- registers → blocks (register name ≠ port name in places) -----------------------
+        # The current loop's configuration: the register file's active values, or (the engine
+        # with "bram" staging) the register file's export port into the engine's RAM.
+        if "export" in regs.signature.members:
+            wiring.connect(m, regs=regs.export, current_loop=cl.config)
+        else:
+            m.d.comb += [
+                cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
+                cl.lim_lo_d.eq(regs.pi_d_lim_lo), cl.lim_hi_d.eq(regs.pi_d_lim_hi),
+                cl.kp_q.eq(regs.pi_q_kp), cl.kx_q.eq(regs.pi_q_kx),
+                cl.lim_lo_q.eq(regs.pi_q_lim_lo), cl.lim_hi_q.eq(regs.pi_q_lim_hi),
+                cl.gain_a.eq(regs.clarke_gain_a), cl.offset_a.eq(regs.clarke_offset_a),
+                cl.gain_b.eq(regs.clarke_gain_b), cl.offset_b.eq(regs.clarke_offset_b),
+                cl.ff_l.eq(regs.decouple_l),
+                cl.ff_psi.eq(regs.decouple_psi),
+            ]
         m.d.comb += [
             _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
             servo.speed_ref.eq(regs.speed_ref),
@@ -567,16 +605,8 @@ class Top(wiring.Component):
             servo.ol_theta.eq(regs.ol_angle),
             servo.ol_freq.eq(regs.ol_freq),
 
-            cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
-            cl.lim_lo_d.eq(regs.pi_d_lim_lo), cl.lim_hi_d.eq(regs.pi_d_lim_hi),
-            cl.kp_q.eq(regs.pi_q_kp), cl.kx_q.eq(regs.pi_q_kx),
-            cl.lim_lo_q.eq(regs.pi_q_lim_lo), cl.lim_hi_q.eq(regs.pi_q_lim_hi),
-            cl.gain_a.eq(regs.clarke_gain_a), cl.offset_a.eq(regs.clarke_offset_a),
-            cl.gain_b.eq(regs.clarke_gain_b), cl.offset_b.eq(regs.clarke_offset_b),
             cl.u_rated.eq(regs.u_rated),
             cl.ff_enable.eq(regs.decouple_enable),
-            cl.ff_l.eq(regs.decouple_l),
-            cl.ff_psi.eq(regs.decouple_psi),
 
             timer.symmetric.eq(regs.pwm_symmetric),
             timer.sample_custom.eq(regs.pwm_sample_custom),

@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from amaranth.hdl import UnusedElaboratable, signed, unsigned
+from amaranth.hdl import Elaboratable, Module, UnusedElaboratable, signed, unsigned
 
 from foc_servo.hdl.engine import HAZARD_P, HAZARD_RF, WORD, Assembler, Engine, Op, SAT_W
 from foc_servo.hdl.foc import CurrentLoop
@@ -568,3 +568,136 @@ def test_phase_latency_attribute(loop):
         assert dut.phase_latency == dut.stage_latency["clarke"]
     else:
         assert dut.phase_latency + 20 < min(dut.latencies)
+
+
+# --- EngineCurrentLoop(config="ram") ------------------------------------------------------------
+
+class _PortsAndRam(Elaboratable):
+    """Both configurations of EngineCurrentLoop side by side (simulation only)."""
+
+    def __init__(self, ports, config_init):
+        self.ports = ports
+        self.ram = EngineCurrentLoop(config="ram", config_init=config_init)
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.ports = self.ports
+        m.submodules.ram = self.ram
+        return m
+
+
+def _config_word(shape, value):
+    """A configuration value as the register file's export port carries it (its read format:
+    sign-extended to 32 bits for a signed shape)."""
+    return value & 0xFFFF_FFFF
+
+
+def _random_config(rng, shape):
+    if shape.signed:
+        return int(rng.integers(-(1 << (shape.width - 1)), 1 << (shape.width - 1)))
+    return int(rng.integers(0, 1 << shape.width))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
+    """config="ram" against config="ports" on the same samples: every RAM word is written (in
+    random clocks, also while the program runs and in the clock before it reads the word: the
+    bypass) one clock before the same value reaches the ports loop's input, as the register
+    file's export port writes it one clock before its flip-flop would change. Every output is
+    compared in every clock."""
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    rng = np.random.default_rng(seed)
+    ports = EngineCurrentLoop()
+    shapes = [getattr(ports, CONFIG_PORTS[n]).shape() for n in CONFIG]
+    init = [_random_config(rng, s) for s in shapes]
+    bench = _PortsAndRam(ports, [_config_word(s, v) for s, v in zip(shapes, init)])
+    a, b = bench.ports, bench.ram
+    outs = ["busy", "done", "overmod", "dc_limited", "overrun", "overruns", "count", "sat_d",
+            "sat_q", "i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q", "u_alpha", "u_beta"]
+    fig = {"clocks": 0, "writes": 0, "runs": 0, "mismatch": None}
+
+    async def testbench(ctx):
+        for name, v in zip(CONFIG, init):
+            ctx.set(getattr(a, CONFIG_PORTS[name]), v)
+        later = None                                # (port, value) for the next clock
+        for clock in range(6000):
+            if later is not None:
+                ctx.set(getattr(a, later[0]), later[1])
+                later = None
+            ctx.set(b.config.valid, 0)
+            if rng.random() < 0.4:
+                j = int(rng.integers(len(CONFIG)))
+                v = _random_config(rng, shapes[j]) if rng.random() < 0.8 else init[j]
+                ctx.set(b.config.valid, 1)
+                ctx.set(b.config.index, j)
+                ctx.set(b.config.data, _config_word(shapes[j], v))
+                later = (CONFIG_PORTS[CONFIG[j]], v)
+                fig["writes"] += 1
+            start = not ctx.get(a.busy) and rng.random() < 0.2
+            for dut in (a, b):
+                ctx.set(dut.i.valid, int(start))
+                ctx.set(dut.o.ready, 1)
+            if start:
+                fig["runs"] += 1
+                sample = {"ia": int(rng.integers(-32768, 32768)),
+                          "ib": int(rng.integers(-32768, 32768)),
+                          "udc": int(rng.integers(0, 32768)), "aux": 0}
+                values = {"theta": int(rng.integers(1 << 16)),
+                          "theta_lead": int(rng.integers(1 << 16)),
+                          "id_ref": int(rng.integers(-32768, 32768)),
+                          "iq_ref": int(rng.integers(-32768, 32768)),
+                          "ol_ud": int(rng.integers(-32768, 32768)),
+                          "ol_uq": int(rng.integers(-32768, 32768)),
+                          "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
+                          "ff_enable": int(rng.random() < 0.6),
+                          "speed": int(rng.integers(-(1 << 31), 1 << 31)),
+                          "u_rated": int(rng.integers(1 << 16)),
+                          "scale": int(rng.integers(1 << 16))}
+                for dut in (a, b):
+                    ctx.set(dut.i.payload, sample)
+                    for name, v in values.items():
+                        ctx.set(getattr(dut, name), v)
+            got_a = [ctx.get(getattr(a, n)) for n in outs] + [
+                ctx.get(a.o.valid), ctx.get(a.o.payload.as_value()), ctx.get(a.phase.valid),
+                ctx.get(a.phase.payload.as_value())]
+            got_b = [ctx.get(getattr(b, n)) for n in outs] + [
+                ctx.get(b.o.valid), ctx.get(b.o.payload.as_value()), ctx.get(b.phase.valid),
+                ctx.get(b.phase.payload.as_value())]
+            if got_a != got_b and fig["mismatch"] is None:
+                fig["mismatch"] = (clock, [(n, x, y) for n, x, y in
+                                           zip(outs + ["o.valid", "o", "phase.valid", "phase"],
+                                               got_a, got_b) if x != y])
+            fig["clocks"] += 1
+            await ctx.tick()
+
+    simulate(bench, [testbench], name="engine_config_ram")
+    assert fig["mismatch"] is None, fig["mismatch"]
+    assert fig["runs"] > 15 and fig["writes"] > 2000
+
+
+def test_engine_current_loop_config_ram_ports_and_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
+        _check_config_ram_ports_and_errors()
+        gc.collect()
+
+
+def _check_config_ram_ports_and_errors():
+    from foc_servo.hdl.bus import WordWriteSignature
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    ram = EngineCurrentLoop(config="ram")
+    ports = EngineCurrentLoop()
+    members = set(ram.signature.members)
+    assert members == (set(ports.signature.members) - set(CONFIG_PORTS.values())) | {"config"}
+    sig = ram.signature.members["config"].signature
+    assert isinstance(sig, WordWriteSignature) and sig.depth == len(CONFIG) == 14
+    assert ram.config_mode == "ram" and ports.config_mode == "ports"
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config must be one of 'ports', "
+                                         r"'ram', not 'regs'$"):
+        EngineCurrentLoop(config="regs")
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init applies only to "
+                                         r"config='ram', not config='ports'$"):
+        EngineCurrentLoop(config_init=[0] * 14)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 14 "
+                                         r"integers, not \[0\]$"):
+        EngineCurrentLoop(config="ram", config_init=[0])

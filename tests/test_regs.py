@@ -8,11 +8,12 @@ from amaranth.hdl import signed, unsigned
 
 from foc_servo.hdl.bus import Status
 from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
-from foc_servo.hdl.regs import RegisterFile, staging_slots, word_index
+from foc_servo.hdl.bus import WordWriteSignature
+from foc_servo.hdl.regs import RegisterFile, export_init, export_words, staging_slots, word_index
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.regs import RegisterFileModel
 from foc_servo.sim.verify import regs as verify_regs
-from foc_servo.sim.verify.regs import run, window_word
+from foc_servo.sim.verify.regs import run, run_export, window_word
 
 
 async def access(ctx, dut, addr, *, we=0, data=0, lock=0):
@@ -306,6 +307,16 @@ BRAM = dict(staging="bram", copy_last=("pwm_symmetric",))
      r"^RegisterFile copy_last must not repeat a name, not \('mode', 'mode'\)$"),
     ({"copy_last": ("mode",)}, ValueError,
      r"^RegisterFile copy_last applies only to staging='bram', not staging='ff'$"),
+    ({"staging": "bram", "export": "pi_d_kp"}, TypeError,
+     r"^RegisterFile export must be a tuple of register names, not 'pi_d_kp'$"),
+    ({"staging": "bram", "export": ("u_rated", "prot_oc_limit")}, ValueError,
+     r"^RegisterFile export must name shadowed rw registers, not 'prot_oc_limit'$"),
+    ({"staging": "bram", "export": ("st_mode",)}, ValueError,
+     r"^RegisterFile export must name shadowed rw registers, not 'st_mode'$"),
+    ({"staging": "bram", "export": ("pi_d_kp", "pi_d_kp")}, ValueError,
+     r"^RegisterFile export must not repeat a name, not \('pi_d_kp', 'pi_d_kp'\)$"),
+    ({"export": ("pi_d_kp",)}, ValueError,
+     r"^RegisterFile export applies only to staging='bram', not staging='ff'$"),
 ])
 def test_register_file_staging_validation(kwargs, exc, msg):
     with pytest.raises(exc, match=msg):
@@ -510,6 +521,84 @@ def test_random_bram_comparison_detects_a_wrong_copy_order_or_a_copy_under_lock(
                         lambda self, **kw: step(self, **{**kw, "lock": 0}))   # copies under lock
     fig = run(400, seed=1, **BRAM)
     assert fig["mismatches"] > 0
+
+
+# --- staging="bram" with export ------------------------------------------------------------
+
+#: The loop engine's configuration registers (hdl/top.py exports them on the iCEBreaker) and a
+#: two-word register (``mt_k``) for the word index.
+EXPORT = ("pi_d_kp", "pi_d_kx", "pi_d_lim_lo", "pi_d_lim_hi", "pi_q_kp", "pi_q_kx",
+          "pi_q_lim_lo", "pi_q_lim_hi", "clarke_gain_a", "clarke_offset_a", "clarke_gain_b",
+          "clarke_offset_b", "decouple_l", "decouple_psi", "mt_k")
+
+
+def test_export_ports_words_and_init():
+    dut = RegisterFile(**BRAM, export=EXPORT)
+    words = export_words(REGMAP, EXPORT)
+    assert [(r.name, k) for _, r, k in words] == [(n, 0) for n in EXPORT] + [("mt_k", 1)]
+    assert dut.exported == EXPORT and dut.export_words == words
+    assert dut.export_init == export_init(REGMAP, EXPORT) == [
+        r.read_word(r.bits(r.reset), k) for _, r, k in words]
+    assert dut.export_init[EXPORT.index("pi_d_lim_lo")] == (-28378) & 0xFFFFFFFF   # sign-ext.
+    members = set(dut.signature.members)
+    assert members == (set(RegisterFile(**BRAM).signature.members) - set(EXPORT)) | {"export"}
+    sig = dut.signature.members["export"].signature
+    assert isinstance(sig, WordWriteSignature) and (sig.depth, sig.width) == (len(EXPORT) + 1, 32)
+    # Same slots, timing attributes and host reads as without export.
+    plain = RegisterFile(**BRAM)
+    assert (dut.slots, dut.commit_clocks, dut.reset_clocks) == (
+        plain.slots, plain.commit_clocks, plain.reset_clocks)
+
+
+def test_export_port_writes_each_word_in_its_copy_clock():
+    """Commit in clock s: exported slot i is on the port (valid, its export index, the new
+    word sign-extended) in clock s + 1 + i and in no other clock; after a reset the walk puts
+    the reset values on the port in clocks 2 + i."""
+    export = ("pi_q_lim_lo", "clarke_gain_a")       # order unlike the slots'
+    dut = RegisterFile(**BRAM, export=export)
+    slots = staging_slots(REGMAP, BRAM["copy_last"])
+    slot = {r.name: i for i, (_, r, _) in enumerate(slots)}
+    value = {"pi_q_lim_lo": -1234, "clarke_gain_a": 0x1_2345}
+
+    async def tb(ctx):
+        seen = []
+        for c in range(dut.reset_clocks + 3):       # the power-up walk
+            if ctx.get(dut.export.valid):
+                seen.append((c, ctx.get(dut.export.index), ctx.get(dut.export.data)))
+            await ctx.tick()
+        # (power-up: the walk starts in clock 0 rather than 1 after a reset clock)
+        assert seen == [(1 + slot[n], j, export_init(REGMAP, export)[j])
+                        for j, n in sorted(enumerate(export), key=lambda x: slot[x[1]])]
+        for name, v in value.items():
+            await access(ctx, dut, REGMAP[name].addr, we=1, data=v, lock=1)
+        ctx.set(dut.bus.lock, 0)
+        ctx.set(dut.commit, 1)                      # clock s = 0
+        seen = []
+        for c in range(dut.commit_clocks + 2):
+            if ctx.get(dut.export.valid):
+                seen.append((c, ctx.get(dut.export.index), ctx.get(dut.export.data)))
+            await ctx.tick()
+            ctx.set(dut.commit, 0)
+        want = [(1 + slot[n], j, value[n] & 0xFFFFFFFF) for j, n in enumerate(export)]
+        assert seen == sorted(want)
+    run_tb(dut, tb, "regs_bram_export")
+
+
+def test_random_traffic_with_export_matches_the_model():
+    fig = run(2500, seed=7, rst_p=0.002, **BRAM, export=EXPORT)
+    assert fig["mismatches"] == 0 and fig["stuck"] == 0, fig["first_mismatch"]
+    assert fig["export_writes"] > 100 and fig["resets"] > 0 and fig["copies"] > 10
+
+
+def test_export_ram_holds_what_the_flip_flops_hold():
+    """A RAM written from the port equals, clock by clock, the flip-flops of the same register
+    file built without export (random frames, commits, resets); a consumer one clock late
+    differs."""
+    fig = run_export(2000, seed=5, export=EXPORT, copy_last=BRAM["copy_last"])
+    assert fig["mismatches"] == 0, fig["first_mismatch"]
+    assert fig["changes"] > 10 and fig["commits"] > 20 and fig["resets"] > 3
+    late = run_export(800, seed=5, export=EXPORT, copy_last=BRAM["copy_last"], late=True)
+    assert late["mismatches"] > 0
 
 
 @pytest.mark.slow

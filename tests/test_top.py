@@ -576,18 +576,24 @@ def test_top_adc_model_drives_a_current_loop_pass_at_33_333_mhz():
     assert len(model.reads) >= 6
 
 
-@pytest.mark.parametrize("current_loop", ["pipelined", "engine"])
-def test_top_current_loop_duties_match_the_model(current_loop):
+@pytest.mark.parametrize("current_loop, staging", [("pipelined", "ff"), ("engine", "ff"),
+                                                   ("engine", "bram")])
+def test_top_current_loop_duties_match_the_model(current_loop, staging):
     """Either current loop in the top (``Top(current_loop=...)``): closed current loop with
     decoupling feed-forward, the encoder turning, random ADC codes (over-modulation and PI
     saturation included) from the AD7380-4 model. Every sample the loop accepts is recorded at its
     ports (sample and configuration inputs), the whole sequence replayed through
     ``CurrentLoopModel``: the duties, voltages, currents and flags of every pass are bit-identical,
-    each within the loop's latency, with no overrun."""
+    each within the loop's latency, with no overrun. The engine with ``"bram"`` staging (the
+    iCEBreaker's) reads its configuration from its RAM (written by the register file's reset
+    walk): the configuration recorded is then the registers' reset values."""
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    from foc_servo.hdl.top import ENGINE_CONFIG
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CONFIG_FIELDS, SAMPLE_FIELDS, CurrentLoopModel
     clk = 33.333e6          # the ADC model checks the datasheet timing at this clock
-    top = Top(clk_hz=clk, pwm_hz=50e3, baud=clk / 8, current_loop=current_loop, resets={
+    top = Top(clk_hz=clk, pwm_hz=50e3, baud=clk / 8, current_loop=current_loop,
+              regs_staging=staging, resets={
         "mode": Mode.CURRENT.value, "i_d_ref": -3000, "i_q_ref": 9000,
         "pi_d_kp": 0x0480, "pi_q_kp": 0x0600, "pi_d_kx": 0x3000, "pi_q_kx": 0x2000,
         "decouple_enable": 1, "decouple_l": 3000, "decouple_psi": 2000, "u_rated": 16000,
@@ -604,7 +610,12 @@ def test_top_current_loop_duties_match_the_model(current_loop):
     fields = SAMPLE_FIELDS if current_loop == "pipelined" else engine_fields()
     ports = {"ia": cl.i.payload.ia, "ib": cl.i.payload.ib, "udc": cl.i.payload.udc,
              **{f: getattr(cl, f) for f in fields + CONFIG_FIELDS
-                if f not in ("ia", "ib", "udc")}}
+                if f not in ("ia", "ib", "udc") and hasattr(cl, f)}}
+    in_ram = {port: top.regmap[reg].reset for port, reg in
+              zip((CONFIG_PORTS[n] for n in CONFIG), ENGINE_CONFIG)}
+    assert (current_loop, staging) == ("engine", "bram") or not hasattr(cl, "config")
+    if hasattr(cl, "config"):
+        assert set(in_ram) == set(CONFIG_FIELDS) - set(ports)
     outs = {"duty_a": cl.o.payload.a, "duty_b": cl.o.payload.b, "duty_c": cl.o.payload.c,
             **{f: getattr(cl, f) for f in ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q",
                                            "u_alpha", "u_beta", "sat_d", "sat_q")}}
@@ -618,7 +629,8 @@ def test_top_current_loop_duties_match_the_model(current_loop):
             if ctx.get(top._mt.o.valid):
                 mt_valid = clock
             if ctx.get(cl.i.valid):             # accepted at the coming edge (never busy here)
-                ins.append({f: ctx.get(p) for f, p in ports.items()})
+                ins.append({**{f: ctx.get(p) for f, p in ports.items()},
+                            **(in_ram if hasattr(cl, "config") else {})})
                 mt_seen.append((ctx.get(top._mt.o.payload.speed),
                                 None if mt_valid is None else clock - mt_valid))
                 start = clock
@@ -638,7 +650,7 @@ def test_top_current_loop_duties_match_the_model(current_loop):
             await ctx.delay(37 / clk)
 
     simulate(top, [testbench], [adc.process, encoder], clock_hz=clk,
-             name=f"test_top_duties_{current_loop}")
+             name=f"test_top_duties_{current_loop}_{staging}")
     overruns = got.pop()["overruns"]
     assert overruns == 0 and len(got) >= 10 and len(ins) in (len(got), len(got) + 1)
     assert max(lat) <= cl.latency and min(lat) >= (134 if current_loop == "engine" else 48)

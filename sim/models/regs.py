@@ -12,7 +12,7 @@ from amaranth.utils import ceil_log2
 from ...hdl.bus import Status
 from ...hdl.fixed import check_choice
 from ...hdl.regmap import REGMAP, Access, RegMap
-from ...hdl.regs import STAGINGS, ram_slots, staging_slots
+from ...hdl.regs import STAGINGS, export_words, ram_slots, staging_slots
 
 __all__ = ["RegisterFileModel"]
 
@@ -25,7 +25,7 @@ class RegisterFileModel:
     staged : dict
         Staging value of every ``rw`` register (for an immediate one also the active value).
     active : dict
-        Active value (the Out member) of every ``rw`` register.
+        Active value (the Out member) of every ``rw`` register but the exported ones.
     strobes : dict
         Strobe outputs during the current clock.
     ack, status, r_data_reg, win_hit
@@ -44,9 +44,12 @@ class RegisterFileModel:
         words', come from the RAM); :meth:`staged_value` reads any register's staging value. (The
         gateware's slot is looked up in t + 1 from its word select, not registered; its copy
         loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
+    exp_on, exp_index
+        ``export``: whether ``dst`` is an exported word and its export index, set with ``dst``;
+        :meth:`export_port` is the ``export`` port during the clock.
     """
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFileModel regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFileModel", "staging", staging, STAGINGS)
@@ -72,6 +75,9 @@ class RegisterFileModel:
         self.mem = (resets + [0] * (self.base - n) + resets
                     + [r.read_word(r.bits(r.reset), k) for _, r, k in consts])
         self.commit_clocks = self.copied + 1
+        self.export = tuple(export)
+        self.export_words = export_words(regmap, self.export)
+        self._export_of = {self._slot_of[a]: j for j, (a, _, _) in enumerate(self.export_words)}
         self.reset()
 
     def reset(self):
@@ -80,6 +86,8 @@ class RegisterFileModel:
         self.active = {r.name: r.bits(r.reset) for r in self._rw}
         self.staged = {n: v for n, v in self.active.items()
                        if not (self.bram and n in self._shadowed)}
+        for n in self.export:
+            del self.active[n]
         self.strobes = {r.name: 0 for r in regmap if r.access is Access.STROBE}
         self.ack = 0
         self.status = Status.OK.value
@@ -95,6 +103,15 @@ class RegisterFileModel:
         self.load = self.load_walk = 0
         self.wr_pend = self.stage_pend = self.stage_hit = 0
         self.rd_data = 0
+        self.exp_on = self.exp_index = 0
+
+    def export_port(self):
+        """The ``export`` port during this clock: ``(valid, index, data)``; ``(0, 0, 0)`` when
+        ``valid`` is low (the gateware's ``index`` and ``data`` then mean nothing: ``data`` is
+        the RAM's read data, whose address the model does not follow outside reads it uses)."""
+        if self.load and self.exp_on:
+            return 1, self.exp_index, self.rd_data
+        return 0, 0, 0
 
     @property
     def busy(self):
@@ -209,7 +226,7 @@ class RegisterFileModel:
         if self.load:
             if self.load_walk:
                 self.mem[self.dst] = self.rd_data
-            else:                                     # a copied slot
+            elif self.dst not in self._export_of:     # a copied slot (exported: on the port)
                 _, r, k = self.slots[self.dst]
                 self.active[r.name] = r.write_word(self.active[r.name], k, self.rd_data)
         if self.wr_pend:                              # t + 1 of a write: w_data still held
@@ -219,6 +236,8 @@ class RegisterFileModel:
         self.wr_pend = 0
         if reading:
             self.load, self.load_walk, self.dst = 1, self.walk, self.cnt
+            self.exp_on = int(self.cnt in self._export_of)
+            self.exp_index = self._export_of.get(self.cnt, 0)
             if self.cnt == (n if self.walk else self.copied) - 1:
                 self.cnt, self.run, self.walk = 0, 0, 0
             else:

@@ -12,7 +12,7 @@ way, a simulation-only wrapper packs all inputs into one signal and all outputs 
 
 import random
 
-from amaranth.hdl import Cat, Elaboratable, Module, ResetInserter, Signal
+from amaranth.hdl import Cat, Elaboratable, Module, Mux, ResetInserter, Signal
 from amaranth.lib.memory import Memory
 
 from ...hdl.bus import Status
@@ -41,14 +41,17 @@ class Bench(Elaboratable):
     """Simulation-only wrapper: ``stim`` drives every input, ``outs`` packs every output.
 
     ``stim`` = Cat(addr, we, w_data, stb, lock, commit, rst, *ro registers); ``outs`` = Cat(ack,
-    status, r_data, *strobes, *rw registers), in :attr:`stim_fields` / :attr:`out_fields` order
-    (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
+    status, r_data, *strobes, *rw registers (not the exported ones), and with ``export`` the
+    port's valid, index, data, the last two as 0 while valid is low), in :attr:`stim_fields` /
+    :attr:`out_fields` order (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
     RAM keeps its contents, as block RAM does).
     """
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
         self.regmap = regmap
-        self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last)
+        self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last, export=export)
+        exp = ([("export_valid", 1), ("export_index", len(self.dut.export.index)),
+                ("export_data", 32)] if export else [])
         ro = [r for r in regmap if r.access is Access.RO]
         self.stim_fields = self._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
                                          ("lock", 1), ("commit", 1), ("rst", 1),
@@ -57,7 +60,8 @@ class Bench(Elaboratable):
                                         *((r.name, 1) for r in regmap
                                           if r.access is Access.STROBE),
                                         *((r.name, r.width) for r in regmap
-                                          if r.access is Access.RW)])
+                                          if r.access is Access.RW and r.name not in export),
+                                        *exp])
         self.stim = Signal(sum(w for _, _, w in self.stim_fields))
         self.outs = Signal(sum(w for _, _, w in self.out_fields))
 
@@ -79,7 +83,9 @@ class Bench(Elaboratable):
         sinks += [_bits(getattr(dut, name)) for name, _, _ in self.stim_fields[7:]]
         m.d.comb += Cat(*sinks).eq(self.stim)
         m.d.comb += self.outs.eq(Cat(bus.ack, bus.status, bus.r_data,
-                                     *(_bits(getattr(dut, name))
+                                     *(_bits(getattr(dut, name)) if hasattr(dut, name) else
+                                       Mux(dut.export.valid,
+                                           getattr(dut.export, name[len("export_"):]), 0)
                                        for name, _, _ in self.out_fields[3:])))
         for w in self.regmap.windows:
             mem = Memory(shape=32, depth=w.size, init=[window_word(a) for a in range(w.size)])
@@ -166,11 +172,13 @@ def _cycles(regmap, accesses, rng, seen, *, commit_p, rst_p):
 
 
 def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", copy_last=(),
-        commit_p=None, rst_p=0.0):
+        export=(), commit_p=None, rst_p=0.0):
     """Simulate the register file on ``count`` random bus accesses (plus a read of every register
     word first) and compare every clock with the model.
 
-    ``staging`` / ``copy_last``: the :class:`~foc_servo.hdl.regs.RegisterFile` parameters;
+    ``staging`` / ``copy_last`` / ``export``: the :class:`~foc_servo.hdl.regs.RegisterFile`
+    parameters (the ``export`` port compared as an output, its ``valid`` clocks counted in
+    ``export_writes``);
     ``commit_p``: the probability of ``commit`` in a clock (default 0.15 for ``"ff"``, 0.02 for
     ``"bram"``, whose copy takes ``commit_clocks``); ``rst_p``: of a reset in a clock.
 
@@ -188,14 +196,15 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
     if commit_p is None:
         commit_p = 0.02 if staging == "bram" else 0.15
     rng = random.Random(seed)
-    bench = Bench(regmap, staging=staging, copy_last=copy_last)
-    model = RegisterFileModel(regmap, staging=staging, copy_last=copy_last)
+    bench = Bench(regmap, staging=staging, copy_last=copy_last, export=export)
+    model = RegisterFileModel(regmap, staging=staging, copy_last=copy_last, export=export)
     accesses = _accesses(regmap, count, rng)
     ro_regs = [r for r in regmap if r.access is Access.RO]
     windows = regmap.windows
     fig = dict(mismatches=0, vectors=len(accesses), clocks=0, reads=0, writes=0, bad_address=0,
                read_only=0, window_reads=0, commits_applied=0, commits_locked=0,
-               strobe_pulses=0, resets=0, copies=0, held=0, stuck=0, first_mismatch=None)
+               strobe_pulses=0, resets=0, copies=0, held=0, stuck=0, export_writes=0,
+               first_mismatch=None)
     out_fields = bench.out_fields
     strobe_names = [n for n, _, _ in out_fields[3:] if n in model.strobes]
     bar = Progress("regs", len(accesses), enabled=progress)
@@ -205,10 +214,12 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
 
     def expected(win_data):
         # The strobes and active values change rarely: repack them only when they do.
-        state = (tuple(model.strobes.values()), tuple(model.active.values()))
+        port = model.export_port() if export else ()
+        state = (tuple(model.strobes.values()), tuple(model.active.values()), port)
         if state != cache["state"]:
             cache["state"] = state
-            cache["word"] = bench.pack(rest_fields, {**model.strobes, **model.active})
+            exp = dict(zip(("export_valid", "export_index", "export_data"), port))
+            cache["word"] = bench.pack(rest_fields, {**model.strobes, **model.active, **exp})
         return (cache["word"] | model.ack | model.status << 1
                 | model.r_data(win_data) << 3)
 
@@ -243,6 +254,8 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
             if cyc["commit"] and not cyc["rst"]:
                 fig["commits_locked" if cyc["lock"] else "commits_applied"] += 1
             fig["resets"] += cyc["rst"]
+            if export:
+                fig["export_writes"] += model.export_port()[0]
             status = model.step(**{k: cyc[k] for k in ("stb", "addr", "we", "w_data", "lock",
                                                        "commit", "rst")}, ro=ro)
             fig["copies"] += model.started
@@ -263,4 +276,140 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
     fig["sim_s"] = simulate(bench, [testbench], name="regs")
     bar.close()
     fig["clk_per_s"] = fig["clocks"] / fig["sim_s"] if fig["sim_s"] else 0.0
+    return fig
+
+
+class ExportBench(Elaboratable):
+    """Simulation-only: two register files on the same inputs, one built with ``export`` and a
+    consumer RAM written from its ``export`` port (initialised with ``export_init``), one built
+    without (``ref``, the exported registers as flip-flops). ``outs`` = Cat(ack, r_data of
+    both, the RAM's words, the reference's exported registers); ``late`` delays the RAM's
+    write by a clock (a broken consumer, for the test that the comparison can fail)."""
+
+    def __init__(self, regmap=REGMAP, *, export, copy_last=(), late=False):
+        self.regmap = regmap
+        self.dut = RegisterFile(regmap, staging="bram", copy_last=copy_last, export=export)
+        self.ref = RegisterFile(regmap, staging="bram", copy_last=copy_last)
+        self.words = self.dut.export_words
+        self.late = late
+        ro = [r for r in regmap if r.access is Access.RO]
+        self.stim_fields = Bench._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
+                                          ("lock", 1), ("commit", 1), ("rst", 1),
+                                          *((r.name, r.width) for r in ro)])
+        regs = list(dict.fromkeys(r.name for _, r, _ in self.words))
+        self.out_fields = Bench._fields([("ack", 1), ("r_data", 32), ("ref_ack", 1),
+                                         ("ref_r_data", 32),
+                                         *((f"ram{j}", 32) for j in range(len(self.words))),
+                                         *((n, regmap[n].width) for n in regs)])
+        self.stim = Signal(sum(w for _, _, w in self.stim_fields))
+        self.outs = Signal(sum(w for _, _, w in self.out_fields))
+
+    pack = staticmethod(Bench.pack)
+    unpack = Bench.unpack
+
+    def elaborate(self, platform):
+        m = Module()
+        rst = Signal()
+        m.submodules.dut = ResetInserter(rst)(self.dut)
+        m.submodules.ref = ResetInserter(rst)(self.ref)
+        ram = Memory(shape=32, depth=len(self.words), init=self.dut.export_init)
+        m.submodules.ram = ram
+        wr = ram.write_port()
+        port = self.dut.export
+        if self.late:
+            for name in ("valid", "index", "data"):
+                late = Signal.like(getattr(port, name), name=f"late_{name}")
+                m.d.sync += late.eq(getattr(port, name))
+                m.d.comb += getattr(wr, {"valid": "en", "index": "addr"}.get(name, name)).eq(late)
+        else:
+            m.d.comb += [wr.en.eq(port.valid), wr.addr.eq(port.index), wr.data.eq(port.data)]
+        words = []
+        for j in range(len(self.words)):
+            rd = ram.read_port(domain="comb")
+            m.d.comb += rd.addr.eq(j)
+            words.append(rd.data)
+        for dut in (self.dut, self.ref):
+            bus = dut.bus
+            sinks = [bus.addr, bus.we, bus.w_data, bus.stb, bus.lock, dut.commit, rst]
+            sinks += [_bits(getattr(dut, name)) for name, _, _ in self.stim_fields[7:]]
+            m.d.comb += Cat(*sinks).eq(self.stim)
+        for w in self.regmap.windows:
+            for tag, dut in (("dut", self.dut), ("ref", self.ref)):
+                mem = Memory(shape=32, depth=w.size,
+                             init=[window_word(a) for a in range(w.size)])
+                m.submodules[f"{tag}_{w.name}_mem"] = mem
+                rd = mem.read_port()
+                m.d.comb += [rd.addr.eq(getattr(dut, f"{w.name}_rd_addr")),
+                             getattr(dut, f"{w.name}_rd_data").eq(rd.data)]
+        m.d.comb += self.outs.eq(Cat(self.dut.bus.ack, self.dut.bus.r_data, self.ref.bus.ack,
+                                     self.ref.bus.r_data, *words,
+                                     *(_bits(getattr(self.ref, n))
+                                       for n, _, _ in self.out_fields[4 + len(words):])))
+        return m
+
+
+def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commit_p=0.02,
+               rst_p=0.002, late=False):
+    """Random host traffic, frames, commits and resets (as :func:`run`) into a register file
+    with ``export`` and one without: every clock the consumer RAM written from the export port
+    must hold what the other's flip-flops hold (the exported registers' words in their read
+    format), except for a word between a reset and its rewrite by the reset walk (the
+    flip-flops take the reset value in the reset clock, the RAM from the walk: counted in
+    ``excused``); the two files' ``ack`` and ``r_data`` must agree too.
+
+    Returns
+    -------
+    dict
+        ``mismatches`` (clocks with a difference), ``clocks``, ``changes`` (clocks in which an
+        exported flip-flop word changed), ``commits`` (strobes with ``lock`` low), ``resets``,
+        ``excused`` (word-clocks excused after a reset), ``first_mismatch``.
+    """
+    rng = random.Random(seed)
+    bench = ExportBench(regmap, export=export, copy_last=copy_last, late=late)
+    accesses = _accesses(regmap, count, rng)
+    ro_regs = [r for r in regmap if r.access is Access.RO]
+    words = bench.words
+    # The walk writes exported word j (slot i) in clock 2 + i after the reset clock: excused
+    # until then (clocks 1 … 2 + i after the reset clock).
+    slot_of = {a: i for i, (a, _, _) in enumerate(bench.dut._slots)}
+    rewrite = [2 + slot_of[a] for a, _, _ in words]
+    fig = dict(mismatches=0, clocks=0, changes=0, commits=0, resets=0, excused=0,
+               first_mismatch=None)
+
+    async def testbench(ctx):
+        ro = {r.name: 0 for r in ro_regs}
+        seen = {"ack": 0, "stuck": 0}
+        since_rst = None                # clocks since the last reset clock
+        prev = None
+        for cyc in _cycles(regmap, accesses, rng, seen, commit_p=commit_p, rst_p=rst_p):
+            if rng.random() < 0.1:
+                r = rng.choice(ro_regs)
+                ro[r.name] = rng.getrandbits(r.width)
+            cyc.update(ro)
+            ctx.set(bench.stim, bench.pack(bench.stim_fields, cyc))
+            got = bench.unpack(bench.out_fields, ctx.get(bench.outs))
+            want = [r.read_word(got[r.name], k) for _, r, k in words]
+            bad = [j for j, (a, r, k) in enumerate(words)
+                   if got[f"ram{j}"] != want[j]
+                   and not (since_rst is not None and since_rst <= rewrite[j])]
+            fig["excused"] += sum(1 for j in range(len(words))
+                                  if since_rst is not None and since_rst <= rewrite[j])
+            if bad or got["ack"] != got["ref_ack"] or got["r_data"] != got["ref_r_data"]:
+                fig["mismatches"] += 1
+                if fig["first_mismatch"] is None:
+                    fig["first_mismatch"] = (
+                        f"clock {fig['clocks']}: words "
+                        f"{[(words[j][1].name, got[f'ram{j}'], want[j]) for j in bad]}, "
+                        f"ack {got['ack']}/{got['ref_ack']}, "
+                        f"r_data {got['r_data']:#x}/{got['ref_r_data']:#x}")
+            fig["changes"] += prev is not None and want != prev
+            prev = want
+            seen["ack"] = got["ack"]
+            fig["resets"] += cyc["rst"]
+            fig["commits"] += cyc["commit"] and not cyc["lock"] and not cyc["rst"]
+            since_rst = 0 if cyc["rst"] else (None if since_rst is None else since_rst + 1)
+            fig["clocks"] += 1
+            await ctx.tick()
+
+    simulate(bench, [testbench], name="regs_export")
     return fig
