@@ -643,7 +643,7 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                           "ib": int(rng.integers(-32768, 32768)),
                           "udc": int(rng.integers(0, 32768)), "aux": 0}
                 values = {"theta": int(rng.integers(1 << 16)),
-                          "theta_lead": int(rng.integers(1 << 16)),
+                          "lead_k": int(rng.integers(1 << 16)),
                           "id_ref": int(rng.integers(-32768, 32768)),
                           "iq_ref": int(rng.integers(-32768, 32768)),
                           "ol_ud": int(rng.integers(-32768, 32768)),
