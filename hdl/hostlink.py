@@ -387,10 +387,12 @@ class LinkCore(wiring.Component):
             set_j(value, value_parts)
             m.d.comb += rd_addr.eq(word(value if read is None else read))
 
+        # The receive state's reset for the next frame: one enable, applied after the FSM (it
+        # overrides every other assignment of these registers in its clock).
+        new_frame = Signal()
+
         def reset_frame():
-            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
-            m.d.sync += [h.eq(0) for h in hdr]
+            m.d.comb += new_frame.eq(1)
 
         # Address checks of word `idx`, decoded from the address bits. a_full = addr_in + idx
         # (ADDR_WIDTH + 1 bits: no wrap) as a register set with idx (idx = 0 with addr_in, idx
@@ -646,6 +648,9 @@ class LinkCore(wiring.Component):
                 with m.If(self.o.ready):
                     reset_frame()
                     m.next = "RECV"
+        with m.If(new_frame):
+            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
         m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m
 
