@@ -571,18 +571,15 @@ class LinkCore(wiring.Component):
                     m.d.sync += r_cmd.eq(0)
                 with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 4)):
                     m.d.sync += r_seq.eq(0)
-                # One incrementer for the four reply counters (one of them counts per reply).
+                # One of the four reply counters counts per reply. Each has its own
+                # incrementer: on the iCE40 a counter bit is one logic cell (LUT, carry and
+                # flip-flop together), less than a shared incrementer's select in front.
                 is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
                 which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
                 counted = (self.frames_ok, self.framing_errors, self.crc_errors, self.rejected)
-                bumped = Signal.like(self.frames_ok)
-                chosen = Const(0, len(bumped))
-                for w, c in zip(which, counted):
-                    chosen = chosen | Mux(w, c, 0)
-                m.d.comb += bumped.eq(chosen + 1)
                 for w, c in zip(which, counted):
                     with m.If(w):
-                        m.d.sync += c.eq(bumped)
+                        counter(c)
                 m.d.sync += [p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 m.d.comb += crc_init.eq(1)
                 next_j(0, parts_0)
