@@ -282,9 +282,19 @@ class LinkCore(wiring.Component):
         lmax = self.max_frame
         bus = self.bus
 
-        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[])
+        # The read port is asynchronous with a reset-less register behind it (``rd_data``), which
+        # yosys merges into the block RAM's synchronous port; ``no_rw_check`` leaves a read of
+        # the word being written undefined, so yosys does not emulate Amaranth's read-old-data
+        # behaviour in the fabric (32 flip-flops and their multiplexers on the iCE40). No read
+        # is used in a clock that writes its word: RECV writes word ``idx`` and reads it, a read
+        # access's ack writes word ``idx`` and reads it, and the next clock (RECV, CHECK, SETUP,
+        # REPLY) uses ``rd_data`` nowhere (``bus.w_data`` matters only under ``stb``). In
+        # simulation the register samples the old word, as the synchronous port did.
+        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[], attrs={"no_rw_check": 1})
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
-        rd = mem.read_port()
+        rd = mem.read_port(domain="comb")
+        rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
+        m.d.sync += rd_data.eq(rd.data)
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
@@ -356,13 +366,13 @@ class LinkCore(wiring.Component):
         flags_next = Signal.like(flags)
         m.d.sync += flags.eq(flags_next)
         jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
-                 Mux(j_dat, rd.data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
+                 Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
         # the whole top's 100 MHz).
         hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-        dat_zero = Cat(rd.data.word_select(k, 8) == 0 for k in range(4))
+        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
         jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
                       Mux(j_dat, dat_zero.bit_select(j[:2], 1),
                           Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
@@ -413,7 +423,7 @@ class LinkCore(wiring.Component):
         bus_lock = Signal()
         bus_we = Signal()
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
-                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd.data)]
+                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd_data)]
 
         # One CRC network for both directions: the decoded request byte while receiving, the
         # reply byte `jb` in the reply's CRC pass.
