@@ -323,7 +323,11 @@ class LinkCore(wiring.Component):
         nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
         j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
         p = Signal.like(j)                      # COBS block start
-        blk = Signal(range(255))                # COBS block length (non-zero bytes)
+        # A reply of at most 253 bytes (max_words ≤ 61) has no 254-byte COBS block: then the
+        # block length needs fewer bits, and the tests for such a block are constant false.
+        rlen_max = REPLY_HEADER + 4 * mw + CRC_BYTES
+        long_blocks = rlen_max >= 254
+        blk = Signal(range(min(255, rlen_max + 1)))     # COBS block length (non-zero bytes)
         blk_zero = Signal()                     # the block ended at a zero byte
         j_next = Signal.like(j)                 # j in the next clock
 
@@ -341,7 +345,7 @@ class LinkCore(wiring.Component):
         # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
         # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
         # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
-        more254 = Signal()
+        more254 = Signal() if long_blocks else Const(0, 1)
         # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
         # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
         # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
@@ -618,10 +622,14 @@ class LinkCore(wiring.Component):
                 # so j − p = 254 too) or at a zero byte.
                 next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
                 with m.If(scan_end | jb_zero):
-                    m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
+                    m.d.sync += blk_zero.eq(~scan_end)
+                    if long_blocks:
+                        m.d.sync += more254.eq((blk == 254) & (j != rlen))
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253)), blk.eq(blk + 1)]
+                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253) if long_blocks
+                                             else j == rlen_m1),
+                                 blk.eq(blk + 1)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
