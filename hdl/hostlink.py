@@ -6,8 +6,9 @@
 in front of it. The protocol constants come from :mod:`foc_servo.host.protocol`, the pure-Python
 golden model of the framing, so gateware and host cannot disagree on them.
 
-A request is buffered whole (header in registers, data words in a ``max_words``-deep
-:class:`~amaranth.lib.memory.Memory`) while its CRC runs; only after the frame's closing 0x00 are
+A request is buffered whole (header in registers, which keep the previous frame's bytes until
+overwritten; data words in a ``max_words``-deep :class:`~amaranth.lib.memory.Memory`) while its
+CRC runs; only after the frame's closing 0x00 are
 the CRC, the length, the command and every address of the burst checked against ``address_map``,
 and only then does the first bus access start, with ``bus.lock`` high until the last. A malformed
 frame therefore never writes anything, and a burst writes all its words or none.
