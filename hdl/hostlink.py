@@ -405,9 +405,6 @@ class LinkCore(wiring.Component):
         # The receive state's reset for the next frame: one enable, applied after the FSM (it
         # overrides every other assignment of these registers in its clock).
         new_frame = Signal()
-        crc_init, crc_step = Signal(), Signal()             # crc := 0xFFFF, crc := crc_next
-        idx_inc = Signal()                                  # the next received data word
-        a_load, a_inc = Signal(), Signal()                  # idx, a_full := 0, addr_in / + 1
 
         def reset_frame():
             m.d.comb += new_frame.eq(1)
@@ -476,7 +473,7 @@ class LinkCore(wiring.Component):
                         m.d.sync += cobs_left.eq(cobs_left - 1)
                         m.d.comb += [emit.eq(1), dbyte.eq(byte)]
                 with m.If(emit):
-                    m.d.comb += crc_step.eq(1)
+                    m.d.sync += crc.eq(crc_next)
                     with m.If(length <= lmax):
                         m.d.sync += length.eq(length + 1)
                     with m.Switch(length):
@@ -489,15 +486,15 @@ class LinkCore(wiring.Component):
                                 m.d.comb += [wr.data.eq(dbyte.replicate(4)),
                                              wr.en.eq(1 << bpos)]
                                 with m.If(bpos == 3):
-                                    m.d.comb += idx_inc.eq(1)
+                                    m.d.sync += idx.eq(idx + 1)
 
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & (count_in <= mw)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
+                    framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
-                m.d.comb += a_load.eq(1)
                 m.next = "REPLY"
 
                 def status(s):
@@ -543,11 +540,10 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx == count_in - 1):
-                    m.d.sync += bus_lock.eq(1)
-                    m.d.comb += a_load.eq(1)
+                    m.d.sync += [idx.eq(0), a_full.eq(addr_in), bus_lock.eq(1)]
                     m.next = "SETUP"
                 with m.Else():
-                    m.d.comb += a_inc.eq(1)
+                    m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
                 m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write)]
@@ -575,7 +571,7 @@ class LinkCore(wiring.Component):
                             m.d.sync += bus_lock.eq(0)
                             m.next = "REPLY"
                         with m.Else():
-                            m.d.comb += a_inc.eq(1)
+                            m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
                             m.next = "SETUP"
 
             with m.State("REPLY"):
@@ -595,8 +591,7 @@ class LinkCore(wiring.Component):
                 for w, c in zip(which, counted):
                     with m.If(w):
                         counter(c)
-                m.d.sync += [p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
-                m.d.comb += crc_init.eq(1)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 next_j(0, parts_0)
                 m.next = "CRC"
 
@@ -610,7 +605,8 @@ class LinkCore(wiring.Component):
             # and the byte selection) drives the state and blk's enable only, not j's
             # next-state multiplexer (the whole top's 100 MHz; the clocks are the same).
             with m.State("CRC"):                    # CRC over the reply payload
-                m.d.comb += [crc_reply.eq(1), crc_step.eq(1)]
+                m.d.comb += crc_reply.eq(1)
+                m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
                     next_j(0, parts_0, read=j + 1)
                     m.next = "SCAN"
@@ -670,21 +666,7 @@ class LinkCore(wiring.Component):
                     m.next = "RECV"
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), bpos.eq(0)]
-        # The CRC, the word index and the word address: each register's few operations as
-        # enables set in the FSM (no two in one clock), one multiplexer after it.
-        with m.If(new_frame | crc_init):
-            m.d.sync += crc.eq(0xFFFF)
-        with m.Elif(crc_step):
-            m.d.sync += crc.eq(crc_next)
-        with m.If(new_frame | a_load):
-            m.d.sync += idx.eq(0)
-        with m.Elif(idx_inc | a_inc):
-            m.d.sync += idx.eq(idx + 1)
-        with m.If(a_load):
-            m.d.sync += a_full.eq(addr_in)
-        with m.Elif(a_inc):
-            m.d.sync += a_full.eq(a_full + 1)
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
         m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m
 
