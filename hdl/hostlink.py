@@ -6,8 +6,9 @@
 in front of it. The protocol constants come from :mod:`foc_servo.host.protocol`, the pure-Python
 golden model of the framing, so gateware and host cannot disagree on them.
 
-A request is buffered whole (header in registers, data words in a ``max_words``-deep
-:class:`~amaranth.lib.memory.Memory`) while its CRC runs; only after the frame's closing 0x00 are
+A request is buffered whole (header in registers, which keep the previous frame's bytes until
+overwritten; data words in a ``max_words``-deep :class:`~amaranth.lib.memory.Memory`) while its
+CRC runs; only after the frame's closing 0x00 are
 the CRC, the length, the command and every address of the burst checked against ``address_map``,
 and only then does the first bus access start, with ``bus.lock`` high until the last. A malformed
 frame therefore never writes anything, and a burst writes all its words or none.
@@ -282,9 +283,19 @@ class LinkCore(wiring.Component):
         lmax = self.max_frame
         bus = self.bus
 
-        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[])
+        # The read port is asynchronous with a reset-less register behind it (``rd_data``), which
+        # yosys merges into the block RAM's synchronous port; ``no_rw_check`` leaves a read of
+        # the word being written undefined, so yosys does not emulate Amaranth's read-old-data
+        # behaviour in the fabric (32 flip-flops and their multiplexers on the iCE40). No read
+        # is used in a clock that writes its word: RECV writes word ``idx`` and reads it, a read
+        # access's ack writes word ``idx`` and reads it, and the next clock (RECV, CHECK, SETUP,
+        # REPLY) uses ``rd_data`` nowhere (``bus.w_data`` matters only under ``stb``). In
+        # simulation the register samples the old word, as the synchronous port did.
+        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[], attrs={"no_rw_check": 1})
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
-        rd = mem.read_port()
+        rd = mem.read_port(domain="comb")
+        rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
+        m.d.sync += rd_data.eq(rd.data)
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
@@ -313,7 +324,11 @@ class LinkCore(wiring.Component):
         nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
         j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
         p = Signal.like(j)                      # COBS block start
-        blk = Signal(range(255))                # COBS block length (non-zero bytes)
+        # A reply of at most 253 bytes (max_words ≤ 61) has no 254-byte COBS block: then the
+        # block length needs fewer bits, and the tests for such a block are constant false.
+        rlen_max = REPLY_HEADER + 4 * mw + CRC_BYTES
+        long_blocks = rlen_max >= 254
+        blk = Signal(range(min(255, rlen_max + 1)))     # COBS block length (non-zero bytes)
         blk_zero = Signal()                     # the block ended at a zero byte
         j_next = Signal.like(j)                 # j in the next clock
 
@@ -331,7 +346,7 @@ class LinkCore(wiring.Component):
         # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
         # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
         # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
-        more254 = Signal()
+        more254 = Signal() if long_blocks else Const(0, 1)
         # The CRC and SCAN passes' end tests on j, registered with j (set where j_next is: to
         # the test on j's next value, j + 1 = x as j = x − 1), so no comparison of j sits in
         # front of j's own next-state multiplexer (100 MHz). crc_last: j = dend − 1, in CRC;
@@ -356,13 +371,13 @@ class LinkCore(wiring.Component):
         flags_next = Signal.like(flags)
         m.d.sync += flags.eq(flags_next)
         jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
-                 Mux(j_dat, rd.data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
+                 Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
         # the whole top's 100 MHz).
         hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-        dat_zero = Cat(rd.data.word_select(k, 8) == 0 for k in range(4))
+        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
         jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
                       Mux(j_dat, dat_zero.bit_select(j[:2], 1),
                           Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
@@ -387,10 +402,12 @@ class LinkCore(wiring.Component):
             set_j(value, value_parts)
             m.d.comb += rd_addr.eq(word(value if read is None else read))
 
+        # The receive state's reset for the next frame: one enable, applied after the FSM (it
+        # overrides every other assignment of these registers in its clock).
+        new_frame = Signal()
+
         def reset_frame():
-            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
-            m.d.sync += [h.eq(0) for h in hdr]
+            m.d.comb += new_frame.eq(1)
 
         # Address checks of word `idx`, decoded from the address bits. a_full = addr_in + idx
         # (ADDR_WIDTH + 1 bits: no wrap) as a register set with idx (idx = 0 with addr_in, idx
@@ -408,7 +425,7 @@ class LinkCore(wiring.Component):
         bus_lock = Signal()
         bus_we = Signal()
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
-                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd.data)]
+                     bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd_data)]
 
         # One CRC network for both directions: the decoded request byte while receiving, the
         # reply byte `jb` in the reply's CRC pass.
@@ -565,18 +582,15 @@ class LinkCore(wiring.Component):
                     m.d.sync += r_cmd.eq(0)
                 with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 4)):
                     m.d.sync += r_seq.eq(0)
-                # One incrementer for the four reply counters (one of them counts per reply).
+                # One of the four reply counters counts per reply. Each has its own
+                # incrementer: on the iCE40 a counter bit is one logic cell (LUT, carry and
+                # flip-flop together), less than a shared incrementer's select in front.
                 is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
                 which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
                 counted = (self.frames_ok, self.framing_errors, self.crc_errors, self.rejected)
-                bumped = Signal.like(self.frames_ok)
-                chosen = Const(0, len(bumped))
-                for w, c in zip(which, counted):
-                    chosen = chosen | Mux(w, c, 0)
-                m.d.comb += bumped.eq(chosen + 1)
                 for w, c in zip(which, counted):
                     with m.If(w):
-                        m.d.sync += c.eq(bumped)
+                        counter(c)
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 next_j(0, parts_0)
                 m.next = "CRC"
@@ -605,10 +619,14 @@ class LinkCore(wiring.Component):
                 # so j − p = 254 too) or at a zero byte.
                 next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
                 with m.If(scan_end | jb_zero):
-                    m.d.sync += [blk_zero.eq(~scan_end), more254.eq((blk == 254) & (j != rlen))]
+                    m.d.sync += blk_zero.eq(~scan_end)
+                    if long_blocks:
+                        m.d.sync += more254.eq((blk == 254) & (j != rlen))
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253)), blk.eq(blk + 1)]
+                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253) if long_blocks
+                                             else j == rlen_m1),
+                                 blk.eq(blk + 1)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
@@ -646,6 +664,9 @@ class LinkCore(wiring.Component):
                 with m.If(self.o.ready):
                     reset_frame()
                     m.next = "RECV"
+        with m.If(new_frame):
+            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
+                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
         m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m
 
