@@ -466,10 +466,14 @@ class QuadratureDecoder(wiring.Component):
         # --- outputs: the Z offset added to the electrical position -------------------------
         # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
         # the registers alone (em ≥ cpr − z, rm ≥ cpr − Rz): one carry chain before the sums,
-        # not two.
+        # not two. θ's wrap test is the low part of the same carry chain as its sum: rm − (cpr −
+        # Rz) (as rm + ~(cpr − Rz) + 1) carries out exactly when rm ≥ cpr − Rz, and that carry
+        # goes on into θm + Qz. (A compare's carry chain feeding the sum's carry-in through a
+        # LUT was the whole ECP5 top's critical path, docs/AREA.md.)
+        wz = len(cpr_rz)
         m.d.comb += [
             self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
-            self.theta.eq(thm + qz + (rm >= cpr_rz)),
+            self.theta.eq(_add(Cat(rm, Const(0, wz - len(rm)), thm), Cat(~cpr_rz, qz), 1)[wz:]),
         ]
         return m
 
