@@ -48,8 +48,16 @@ the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. Th
 from the next period boundary (T/2 after a centred sample) for one period, so their mean is
 ``t_lead = 1/pwm_hz`` after the sample (``host.tuning.lead_angle``). ``θ_lead`` is computed from
 each M/T result (``mt.o.valid``, after the register commit of the same period start) and is
-ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (55 at 50 MHz); a
-sample taken earlier uses the previous period's value.
+ready ``MTSpeed.latency + 1 + LeadAngle.latency`` clocks after ``period_start`` (56 at 50 MHz);
+a sample taken earlier uses the previous period's value.
+
+**The speed's consumers.** M/T's result reaches the current loop, LeadAngle and the
+protection's overspeed check through one register (``cl_speed``), and the strobe that starts
+LeadAngle and samples the overspeed verdict through another (``speed_valid_q``): both one clock
+after ``mt.o.valid`` (ECP5 Fmax: M/T's output register fans out across the die; the rounding to
+16 bits and the 32-bit ``|speed| > os_limit`` compare behind it were the whole top's critical
+paths, docs/AREA.md). The Servo's speed loop, the scope and ``st_speed`` take M/T's output
+itself.
 
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
@@ -487,8 +495,11 @@ class Top(wiring.Component):
         # The current loop's copy of the speed, a clock behind M/T's output register (ECP5 Fmax:
         # the loop rounds and saturates it to 16 bits at its sample latch, across the die from
         # M/T; the loop latches it at its sample, thousands of clocks after an update).
+        # LeadAngle and the protection's overspeed verdict take the same copy, with M/T's strobe
+        # a clock later too (`speed_valid_q`; module docstring, "The speed's consumers").
         cl_speed = Signal.like(speed)
-        m.d.sync += cl_speed.eq(speed)
+        speed_valid_q = Signal()
+        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid)]
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -508,11 +519,11 @@ class Top(wiring.Component):
 
             cl.theta.eq(servo.theta),
             # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
-            # commits at period_start, before mt.o.valid): ready period_start + mt.latency +
+            # commits at period_start, before mt.o.valid): ready period_start + mt.latency + 1 +
             # LeadAngle.latency, before the ADC sample unless pwm_sample_point is that early.
-            lead.speed.eq(speed),
+            lead.speed.eq(cl_speed),
             lead.k.eq(regs.theta_lead),
-            lead.start.eq(mt.o.valid),
+            lead.start.eq(speed_valid_q),
             cl.theta_lead.eq(lead.theta),
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
@@ -524,8 +535,8 @@ class Top(wiring.Component):
 
             prot.fault_n.eq(fault_n),
             prot.oc_comp.eq(oc_comp),
-            prot.speed.valid.eq(mt.o.valid),
-            prot.speed.payload.eq(speed),
+            prot.speed.valid.eq(speed_valid_q),
+            prot.speed.payload.eq(cl_speed),
             prot.encoder_illegal.eq(enc.illegal),
             prot.hall_invalid.eq(enc.hall_fault),
             prot.encoder_hall.eq(enc.plausibility),
