@@ -397,9 +397,17 @@ class QuadratureDecoder(wiring.Component):
                     with m.Else():
                         m.d.comb += commit.eq(1)
                         m.d.sync += state.eq(_Config.IDLE)
-        new_valid = ((lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p))
+        # The pending configuration's validity and whether the commit restarts the counters,
+        # both from registers: lines_p, pp_p, z_p and lp_changed change only in IDLE, at least
+        # 2·divider_wait clocks before the commit that reads these, so their registered copies
+        # are the same values there (cycle-identical; the compares and the fan-out of `restart`
+        # into the counters' resets were in one clock before, an ECP5 near-critical path).
+        new_valid = Signal(init=valid0)
+        restart_cause = Signal(init=not valid0)
+        valid_now = (lines_p != 0) & (pp_p != 0) & (pp_p < cpr_p) & (z_p < cpr_p)
+        m.d.sync += [new_valid.eq(valid_now), restart_cause.eq(lp_changed | ~valid_now)]
         restart = Signal()
-        m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
+        m.d.comb += restart.eq(commit & restart_cause)
         with m.If(commit):
             m.d.sync += [
                 pp_q.eq(pp_p), z_q.eq(z_p),
