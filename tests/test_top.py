@@ -795,6 +795,46 @@ def test_top_theta_lead_advances_the_inverse_park_angle():
     assert math.hypot(ua, ub) == pytest.approx(16000, abs=2)
 
 
+def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
+    """LeadAngle and the protection's overspeed check take M/T's result through a register, the
+    strobe too (ECP5 Fmax; Top docstring, "The speed's consumers"), clock by clock: their
+    ``start`` / ``valid`` is ``mt.o.valid`` of the clock before with the speed of that clock;
+    θ_lead follows ``1 + LeadAngle.latency`` clocks after ``mt.o.valid``, the overspeed fault
+    (limit below the speed) ``1 + Protection.latency`` clocks after the first nonzero speed."""
+    from foc_servo.hdl.protect import Protection
+    k = 0x4000
+    top = Top(pwm_hz=250e3, baud=BAUD,
+              resets={"theta_lead": k, "prot_os_limit": 1 << 28})    # N_FS/8 = 1500 r/min
+    lead, prot, mt = top._lead, top._protect, top._mt
+    rec = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        ctx.set(top.fault_n, 1)
+        for _ in range(1500):
+            rec.append((ctx.get(mt.o.valid), ctx.get(mt.o.payload.speed),
+                        ctx.get(lead.start), ctx.get(lead.speed), ctx.get(lead.theta),
+                        ctx.get(prot.speed.valid), ctx.get(prot.speed.payload),
+                        ctx.get(prot.present.overspeed)))
+            await ctx.tick()
+
+    simulate(top, [testbench], [_encoder_process(top, 25)], name="test_top_speed_consumers")
+    valid, speed, start, lspeed, theta, pvalid, pspeed, os_ = (np.array(c) for c in zip(*rec))
+    np.testing.assert_array_equal(start[1:], valid[:-1])
+    np.testing.assert_array_equal(pvalid[1:], valid[:-1])
+    np.testing.assert_array_equal(lspeed[1:], speed[:-1])
+    np.testing.assert_array_equal(pspeed[1:], speed[:-1])
+    strobes = np.flatnonzero(valid)
+    fast = [t for t in strobes if speed[t] > 1 << 28]
+    assert len(strobes) >= 4 and fast, "M/T must measure a speed above the limit"
+    for t in strobes:
+        if t + 1 + LeadAngle.latency < len(rec):
+            assert theta[t + 1 + LeadAngle.latency] == _lead_model(int(speed[t]), k)
+    t = fast[0]
+    assert not os_[:t + 1 + Protection.latency].any()
+    assert os_[t + 1 + Protection.latency]
+
+
 # --- status registers -------------------------------------------------------------------------
 
 def _bitbang(byte, stop=1):
