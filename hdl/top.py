@@ -51,10 +51,10 @@ each M/T result (``mt.o.valid``, after the register commit of the same period st
 ready ``MTSpeed.latency + 1 + LeadAngle.latency`` clocks after ``period_start`` (56 at 50 MHz);
 a sample taken earlier uses the previous period's value.
 
-**The speed's consumers.** M/T's result reaches the current loop, LeadAngle and the
-protection's overspeed check through one register (``cl_speed``), and the strobe that starts
-LeadAngle and samples the overspeed verdict through another (``speed_valid_q``): both one clock
-after ``mt.o.valid`` (ECP5 Fmax: M/T's output register fans out across the die; the rounding to
+**The speed's consumers.** M/T's result reaches the current loop and the protection's
+overspeed check through one register (``cl_speed``), LeadAngle as the 16-bit rounded speed
+through another (``lead_n``), and the strobe that starts LeadAngle and samples the overspeed
+verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid`` (ECP5 Fmax: M/T's output register fans out across the die; the rounding to
 16 bits and the 32-bit ``|speed| > os_limit`` compare behind it were the whole top's critical
 paths, docs/AREA.md). The Servo's speed loop, the scope and ``st_speed`` take M/T's output
 itself.
@@ -140,27 +140,30 @@ def regmap_address_map(regmap):
 
 
 class LeadAngle(wiring.Component):
-    """The inverse-Park angle advance ``θ_lead = speed · k``: one sequential shift-and-add
+    """The inverse-Park angle advance ``θ_lead = n · k``: one sequential shift-and-add
     multiplication per start (16 clocks, one adder), for :attr:`CurrentLoop.theta_lead`.
 
     ::
 
-        n     = saturate(round_shift(speed, 16), signed(16))   Q1.15 of N_FS (as CurrentLoop's n)
+        n     = saturate(round_shift(speed, 16), signed(16))   Q1.15 of N_FS (as CurrentLoop's n;
+                                                               formed by the caller, Top)
         theta = round_shift(n · k, 15) mod 2**16               BinaryAngle(16)
 
     ``k`` is the advance at full-scale speed, UQ0.16 of a turn (the ``theta_lead`` register:
-    ``ω_e(N_FS)·t_lead``), so ``theta`` is the electrical angle turned in ``t_lead`` at ``speed``
-    (negative for a negative speed: it wraps as an angle). The product is computed MSB first,
-    ``acc ← 2·acc + k[15 − i]·n``, exact in ``signed(33)``; rounding half away from zero.
+    ``ω_e(N_FS)·t_lead``), so ``theta`` is the electrical angle turned in ``t_lead`` at the
+    speed ``n`` (negative for a negative speed: it wraps as an angle). The product is computed MSB
+    first, ``acc ← 2·acc + k[15 − i]·n``, exact in ``signed(33)``; rounding half away from zero.
+    (The rounding of the 32-bit speed to ``n`` is the caller's: ``Top`` registers it once beside
+    M/T's output, so that it shares no logic with the current loop's own rounding.)
 
     Members
     -------
-    speed : In(signed(32))
-        Speed, Q1.31 of N_FS; latched at ``start``.
+    n : In(signed(16))
+        Speed, Q1.15 of N_FS; latched at ``start``.
     k : In(unsigned(16))
         Advance at full-scale speed, UQ0.16 turns; latched at ``start``.
     start : In(1)
-        Strobe: compute from ``speed`` and ``k`` (restarts a computation in progress).
+        Strobe: compute from ``n`` and ``k`` (restarts a computation in progress).
     theta : Out(unsigned(16))
         The last result, BinaryAngle(16); changes only when a computation completes.
 
@@ -172,7 +175,7 @@ class LeadAngle(wiring.Component):
 
     latency = 17
 
-    speed: In(signed(SPEED_WIDTH))
+    n: In(signed(16))
     k: In(unsigned(16))
     start: In(1)
     theta: Out(unsigned(16))
@@ -186,8 +189,7 @@ class LeadAngle(wiring.Component):
         acc_next = Signal(signed(33))
         m.d.comb += acc_next.eq((acc << 1) + Mux(k[15], n, 0))
         with m.If(self.start):
-            m.d.sync += [n.eq(saturate(round_shift(self.speed, SPEED_WIDTH - 16), signed(16))),
-                         k.eq(self.k), acc.eq(0), steps.eq(16)]
+            m.d.sync += [n.eq(self.n), k.eq(self.k), acc.eq(0), steps.eq(16)]
         with m.Elif(steps != 0):
             m.d.sync += [acc.eq(acc_next), k.eq(k << 1), steps.eq(steps - 1)]
             with m.If(steps == 1):
@@ -495,11 +497,16 @@ class Top(wiring.Component):
         # The current loop's copy of the speed, a clock behind M/T's output register (ECP5 Fmax:
         # the loop rounds and saturates it to 16 bits at its sample latch, across the die from
         # M/T; the loop latches it at its sample, thousands of clocks after an update).
-        # LeadAngle and the protection's overspeed verdict take the same copy, with M/T's strobe
-        # a clock later too (`speed_valid_q`; module docstring, "The speed's consumers").
+        # The protection's overspeed verdict takes the same copy, LeadAngle the speed rounded
+        # to 16 bits in a register of its own beside it (`lead_n`: the same rounding of the
+        # same register in LeadAngle and the current loop was shared by yosys, one carry chain
+        # driving two latches across the die), with M/T's strobe a clock later too
+        # (`speed_valid_q`; module docstring, "The speed's consumers").
         cl_speed = Signal.like(speed)
+        lead_n = Signal(signed(16))
         speed_valid_q = Signal()
-        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid)]
+        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid),
+                     lead_n.eq(saturate(round_shift(speed, SPEED_WIDTH - 16), signed(16)))]
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -521,7 +528,7 @@ class Top(wiring.Component):
             # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
             # commits at period_start, before mt.o.valid): ready period_start + mt.latency + 1 +
             # LeadAngle.latency, before the ADC sample unless pwm_sample_point is that early.
-            lead.speed.eq(cl_speed),
+            lead.n.eq(lead_n),
             lead.k.eq(regs.theta_lead),
             lead.start.eq(speed_valid_q),
             cl.theta_lead.eq(lead.theta),

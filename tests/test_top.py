@@ -698,10 +698,15 @@ def test_top_hall_edges_with_a_still_encoder_trip_encoder_hall():
 
 # --- delay compensation (theta_lead) ----------------------------------------------------------
 
+def _lead_n(speed):
+    """The Q1.15 speed LeadAngle takes: Top's rounding of the Q1.31 M/T speed (``lead_n``)."""
+    return int(saturate_np(round_shift_np(speed, 16), signed(16)))
+
+
 def _lead_model(speed, k):
-    """Golden model of LeadAngle: BinaryAngle(16) advance of a Q1.31 speed times a UQ0.16 k."""
-    n = saturate_np(round_shift_np(speed, 16), signed(16))
-    return round_shift_np(n * k, 15) & 0xFFFF
+    """Golden model of Top's θ_lead: BinaryAngle(16) advance of a Q1.31 speed times a UQ0.16 k
+    (LeadAngle of ``_lead_n(speed)``)."""
+    return round_shift_np(_lead_n(speed) * k, 15) & 0xFFFF
 
 
 def test_lead_angle_bit_exact_latency_and_restart():
@@ -715,20 +720,20 @@ def test_lead_angle_bit_exact_latency_and_restart():
 
     async def testbench(ctx):
         # A restart in the middle of a computation: only the second one completes.
-        ctx.set(dut.speed, 1 << 30)
+        ctx.set(dut.n, _lead_n(1 << 30))
         ctx.set(dut.k, 0x4000)
         ctx.set(dut.start, 1)
         await ctx.tick()
         ctx.set(dut.start, 0)
         await ctx.tick().repeat(5)
         for speed, k in cases:
-            ctx.set(dut.speed, speed)
+            ctx.set(dut.n, _lead_n(speed))
             ctx.set(dut.k, k)
             ctx.set(dut.start, 1)
             before = ctx.get(dut.theta)
             await ctx.tick()
             ctx.set(dut.start, 0)
-            ctx.set(dut.speed, 12345)           # latched at start: later changes do not matter
+            ctx.set(dut.n, 12345)               # latched at start: later changes do not matter
             ctx.set(dut.k, 0x1234)
             first = None
             for t in range(1, 30):
@@ -798,7 +803,8 @@ def test_top_theta_lead_advances_the_inverse_park_angle():
 def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
     """LeadAngle and the protection's overspeed check take M/T's result through a register, the
     strobe too (ECP5 Fmax; Top docstring, "The speed's consumers"), clock by clock: their
-    ``start`` / ``valid`` is ``mt.o.valid`` of the clock before with the speed of that clock;
+    ``start`` / ``valid`` is ``mt.o.valid`` of the clock before with the speed of that clock
+    (LeadAngle's rounded to Q1.15);
     θ_lead follows ``1 + LeadAngle.latency`` clocks after ``mt.o.valid``, the overspeed fault
     (limit below the speed) ``1 + Protection.latency`` clocks after the first nonzero speed."""
     from foc_servo.hdl.protect import Protection
@@ -813,16 +819,16 @@ def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
         ctx.set(top.fault_n, 1)
         for _ in range(1500):
             rec.append((ctx.get(mt.o.valid), ctx.get(mt.o.payload.speed),
-                        ctx.get(lead.start), ctx.get(lead.speed), ctx.get(lead.theta),
+                        ctx.get(lead.start), ctx.get(lead.n), ctx.get(lead.theta),
                         ctx.get(prot.speed.valid), ctx.get(prot.speed.payload),
                         ctx.get(prot.present.overspeed)))
             await ctx.tick()
 
     simulate(top, [testbench], [_encoder_process(top, 25)], name="test_top_speed_consumers")
-    valid, speed, start, lspeed, theta, pvalid, pspeed, os_ = (np.array(c) for c in zip(*rec))
+    valid, speed, start, lead_n, theta, pvalid, pspeed, os_ = (np.array(c) for c in zip(*rec))
     np.testing.assert_array_equal(start[1:], valid[:-1])
     np.testing.assert_array_equal(pvalid[1:], valid[:-1])
-    np.testing.assert_array_equal(lspeed[1:], speed[:-1])
+    np.testing.assert_array_equal(lead_n[1:], [_lead_n(int(v)) for v in speed[:-1]])
     np.testing.assert_array_equal(pspeed[1:], speed[:-1])
     strobes = np.flatnonzero(valid)
     fast = [t for t in strobes if speed[t] > 1 << 28]
