@@ -703,8 +703,8 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None, 
         ``bram_bits``, ``dsp``, ``fmax_mhz`` (``None`` without place-and-route or when it
         failed; the slowest clock, MHz), ``timing_met`` (that Fmax against the clock, or
         ``None``), ``clock_mhz`` (actual), ``clock_requested_mhz``, ``current_loop`` (the
-        ``Top(current_loop=...)`` built), ``seed`` (nextpnr's, as given), ``scope_ram`` (its trace-buffer RAM), ``regs_staging``
-        (its register-file staging), ``pll`` (text), ``paper``
+        ``Top(current_loop=...)`` built), ``seed`` (nextpnr's, as given), ``scope_ram`` (its
+        trace-buffer RAM), ``regs_staging`` (its register-file staging), ``pll`` (text), ``paper``
         (Table 1), ``fits`` (bool, or ``None`` when not known), ``error`` (the failing tool's
         ``ERROR`` lines or ``None``), ``wall_s``, ``stages`` (wall time per stage, s),
         ``artifacts`` (name → path), ``utilisation`` (all figures, including the

@@ -54,10 +54,10 @@ a sample taken earlier uses the previous period's value.
 **The speed's consumers.** M/T's result reaches the current loop and the protection's
 overspeed check through one register (``cl_speed``), LeadAngle as the 16-bit rounded speed
 through another (``lead_n``), and the strobe that starts LeadAngle and samples the overspeed
-verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid`` (ECP5 Fmax: M/T's output register fans out across the die; the rounding to
-16 bits and the 32-bit ``|speed| > os_limit`` compare behind it were the whole top's critical
-paths, docs/AREA.md). The Servo's speed loop, the scope and ``st_speed`` take M/T's output
-itself.
+verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid`` (ECP5 Fmax:
+M/T's output register fans out across the die; the rounding to 16 bits and the 32-bit
+``|speed| > os_limit`` compare behind it were the whole top's critical paths, docs/AREA.md).
+The Servo's speed loop, the scope and ``st_speed`` take M/T's output itself.
 
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
