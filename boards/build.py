@@ -417,11 +417,13 @@ class _Stages:
                         f"[{self.board}] {label}: {elapsed:.1f} s\n")
 
 
-def _overrides(board, name):
+def _overrides(board, name, seed=None):
     stat = f"tee -q -o {name}.stat.json stat -json"
     # --timing-allow-fail: a design that places and routes but misses its clock still gets a
     # bitstream and its Fmax (reported as timing_met false) instead of a bare failure.
     pnr = f"--report {name}.report.json --timing-allow-fail"
+    if seed is not None:
+        pnr += f" --seed {seed}"
     # The gateware's Assert / Print cells out before synthesis (STRIP_CHECKS; as the vendor
     # flows' synthesis_verilog does).
     if board.family == "ice40":
@@ -474,12 +476,12 @@ def _current_loop(board, current_loop):
     return current_loop
 
 
-def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None):
+def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None):
     """Write ``board``'s build plan (sources, constraints, scripts) to ``out_dir/NAME``.
 
     Nothing is run: for a vendor board this is the Vivado / ISE tree, also archived as
     ``out_dir/NAME/foc_servo.zip``. ``clk_hz`` and ``current_loop`` as in :class:`BoardTop`
-    (checked before anything is written).
+    (checked before anything is written); ``seed`` as in :func:`build`.
 
     Returns
     -------
@@ -487,6 +489,7 @@ def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None):
         ``board`` (Board), ``top`` (BoardTop), ``dir`` (Path), ``files`` (names written),
         ``zip`` (Path or None), ``commands`` (argv lists of the build script).
     """
+    _check_seed(seed)
     top = BoardTop(board, clk_hz=clk_hz, current_loop=current_loop)
     board = top.board
     root = Path(out_dir) / board.name
@@ -498,7 +501,7 @@ def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None):
         plan = platform.prepare(top, name=NAME)
         plan.files[f"{NAME}.v"] = synthesis_verilog(plan.files.pop(f"{NAME}.il"))
     else:
-        plan = board.platform().prepare(top, name=NAME, **_overrides(board, NAME))
+        plan = board.platform().prepare(top, name=NAME, **_overrides(board, NAME, seed))
     plan.extract(root)
     zip_path = None
     if board.flow == "vendor":
@@ -665,7 +668,12 @@ def _run_bitstream(board, prep, stages):
     return result, logs
 
 
-def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=False,
+def _check_seed(seed):
+    if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool) or seed < 0):
+        raise TypeError(f"Build seed must be None or a non-negative integer, not {seed!r}")
+
+
+def build(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None, progress=False,
           json=False):
     """Build the controller for ``board`` and print its utilisation beside paper Table 1.
 
@@ -682,6 +690,9 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=Fa
     current_loop : str or None
         The current-loop gateware, ``"pipelined"`` or ``"engine"``; ``None`` (default): the
         board's choice (``"engine"`` on the iCEBreaker; :class:`BoardTop`).
+    seed : int or None
+        nextpnr's placement seed (``--seed``; ``None``: nextpnr's default, 1). The whole top's
+        Fmax moves by ±4 MHz from seed to seed on the ECP5. Ignored by the vendor flows.
     progress : bool
         Stage lines on stderr while the tools run.
     json : bool
@@ -695,8 +706,8 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=Fa
         ``bram_bits``, ``dsp``, ``fmax_mhz`` (``None`` without place-and-route or when it
         failed; the slowest clock, MHz), ``timing_met`` (that Fmax against the clock, or
         ``None``), ``clock_mhz`` (actual), ``clock_requested_mhz``, ``current_loop`` (the
-        ``Top(current_loop=...)`` built), ``scope_ram`` (its trace-buffer RAM), ``regs_staging``
-        (its register-file staging), ``pll`` (text), ``paper``
+        ``Top(current_loop=...)`` built), ``seed`` (nextpnr's, as given), ``scope_ram`` (its
+        trace-buffer RAM), ``regs_staging`` (its register-file staging), ``pll`` (text), ``paper``
         (Table 1), ``fits`` (bool, or ``None`` when not known), ``error`` (the failing tool's
         ``ERROR`` lines or ``None``), ``wall_s``, ``stages`` (wall time per stage, s),
         ``artifacts`` (name → path), ``utilisation`` (all figures, including the
@@ -713,7 +724,7 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=Fa
     stages = _Stages(board.name, progress)
     prep = stages.run("elaborate + write build plan",
                       lambda: prepare(board, out_dir=out_dir, clk_hz=clk_hz,
-                                      current_loop=current_loop))
+                                      current_loop=current_loop, seed=seed))
     root, top = prep["dir"], prep["top"]
     artifacts = {"dir": root}
     if board.flow == "vendor":
@@ -741,7 +752,7 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, progress=Fa
         "bram_bits": res.get("bram_bits"), "dsp": res.get("dsp"),
         "fmax_mhz": res["fmax_mhz"], "fmax": res["fmax"], "timing_met": res.get("timing_met"),
         "clock_mhz": round(top.clk_hz / 1e6, 6),
-        "clock_requested_mhz": round(top.pll.f_req_hz / 1e6, 6),
+        "clock_requested_mhz": round(top.pll.f_req_hz / 1e6, 6), "seed": seed,
         "current_loop": top.current_loop, "scope_ram": top.top.scope_ram,
         "regs_staging": top.top.regs_staging,
         "pll": top.pll.describe(), "pll_divs": top.pll.divs,

@@ -58,14 +58,22 @@ the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. Th
 from the next period boundary (T/2 after a centred sample) for one period, so their mean is
 ``t_lead = 1/pwm_hz`` after the sample (``host.tuning.lead_angle``). ``θ_lead`` is computed from
 each M/T result (``mt.o.valid``, after the register commit of the same period start) and is
-ready ``MTSpeed.latency + LeadAngle.latency`` clocks after ``period_start`` (55 at 50 MHz); a
-sample taken earlier uses the previous period's value. With ``current_loop="engine"`` there is
+ready ``MTSpeed.latency + 1 + LeadAngle.latency`` clocks after ``period_start`` (56 at 50 MHz);
+a sample taken earlier uses the previous period's value. With ``current_loop="engine"`` there is
 no LeadAngle: the engine computes the same ``θ_lead`` in its program from the speed it latches
 at the sample (``cl_speed``, a clock behind M/T) and the register; the same value whenever the
-sample comes more than ``LeadAngle.latency + 1`` clocks after ``mt.o.valid`` (always, unless
-``pwm_sample_point`` puts it within ``MTSpeed.latency + LeadAngle.latency + 1`` clocks after
+sample comes more than ``LeadAngle.latency + 2`` clocks after ``mt.o.valid`` (always, unless
+``pwm_sample_point`` puts it within ``MTSpeed.latency + LeadAngle.latency + 2`` clocks after
 ``period_start``); a sample in that window uses the new speed (the pipelined loop: the previous
 period's θ_lead), as its feed-forward does.
+
+**The speed's consumers.** M/T's result reaches the current loop and the protection's
+overspeed check through one register (``cl_speed``), LeadAngle as the 16-bit rounded speed
+through another (``lead_n``), and the strobe that starts LeadAngle and samples the overspeed
+verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid`` (ECP5 Fmax:
+M/T's output register fans out across the die; the rounding to 16 bits and the 32-bit
+``|speed| > os_limit`` compare behind it were the whole top's critical paths, docs/AREA.md).
+The Servo's speed loop, the scope and ``st_speed`` take M/T's output itself.
 
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
@@ -157,27 +165,30 @@ def regmap_address_map(regmap):
 
 
 class LeadAngle(wiring.Component):
-    """The inverse-Park angle advance ``θ_lead = speed · k``: one sequential shift-and-add
+    """The inverse-Park angle advance ``θ_lead = n · k``: one sequential shift-and-add
     multiplication per start (16 clocks, one adder), for :attr:`CurrentLoop.theta_lead`.
 
     ::
 
-        n     = saturate(round_shift(speed, 16), signed(16))   Q1.15 of N_FS (as CurrentLoop's n)
+        n     = saturate(round_shift(speed, 16), signed(16))   Q1.15 of N_FS (as CurrentLoop's n;
+                                                               formed by the caller, Top)
         theta = round_shift(n · k, 15) mod 2**16               BinaryAngle(16)
 
     ``k`` is the advance at full-scale speed, UQ0.16 of a turn (the ``theta_lead`` register:
-    ``ω_e(N_FS)·t_lead``), so ``theta`` is the electrical angle turned in ``t_lead`` at ``speed``
-    (negative for a negative speed: it wraps as an angle). The product is computed MSB first,
-    ``acc ← 2·acc + k[15 − i]·n``, exact in ``signed(33)``; rounding half away from zero.
+    ``ω_e(N_FS)·t_lead``), so ``theta`` is the electrical angle turned in ``t_lead`` at the
+    speed ``n`` (negative for a negative speed: it wraps as an angle). The product is computed MSB
+    first, ``acc ← 2·acc + k[15 − i]·n``, exact in ``signed(33)``; rounding half away from zero.
+    (The rounding of the 32-bit speed to ``n`` is the caller's: ``Top`` registers it once beside
+    M/T's output, so that it shares no logic with the current loop's own rounding.)
 
     Members
     -------
-    speed : In(signed(32))
-        Speed, Q1.31 of N_FS; latched at ``start``.
+    n : In(signed(16))
+        Speed, Q1.15 of N_FS; latched at ``start``.
     k : In(unsigned(16))
         Advance at full-scale speed, UQ0.16 turns; latched at ``start``.
     start : In(1)
-        Strobe: compute from ``speed`` and ``k`` (restarts a computation in progress).
+        Strobe: compute from ``n`` and ``k`` (restarts a computation in progress).
     theta : Out(unsigned(16))
         The last result, BinaryAngle(16); changes only when a computation completes.
 
@@ -189,7 +200,7 @@ class LeadAngle(wiring.Component):
 
     latency = 17
 
-    speed: In(signed(SPEED_WIDTH))
+    n: In(signed(16))
     k: In(unsigned(16))
     start: In(1)
     theta: Out(unsigned(16))
@@ -203,8 +214,7 @@ class LeadAngle(wiring.Component):
         acc_next = Signal(signed(33))
         m.d.comb += acc_next.eq((acc << 1) + Mux(k[15], n, 0))
         with m.If(self.start):
-            m.d.sync += [n.eq(saturate(round_shift(self.speed, SPEED_WIDTH - 16), signed(16))),
-                         k.eq(self.k), acc.eq(0), steps.eq(16)]
+            m.d.sync += [n.eq(self.n), k.eq(self.k), acc.eq(0), steps.eq(16)]
         with m.Elif(steps != 0):
             m.d.sync += [acc.eq(acc_next), k.eq(k << 1), steps.eq(steps - 1)]
             with m.If(steps == 1):
@@ -519,17 +529,25 @@ class Top(wiring.Component):
         # The current loop's copy of the speed, a clock behind M/T's output register (ECP5 Fmax:
         # the loop rounds and saturates it to 16 bits at its sample latch, across the die from
         # M/T; the loop latches it at its sample, thousands of clocks after an update).
+        # The protection's overspeed verdict takes the same copy, LeadAngle the speed rounded
+        # to 16 bits in a register of its own beside it (`lead_n`: the same rounding of the
+        # same register in LeadAngle and the current loop was shared by yosys, one carry chain
+        # driving two latches across the die), with M/T's strobe a clock later too
+        # (`speed_valid_q`; module docstring, "The speed's consumers").
         cl_speed = Signal.like(speed)
-        m.d.sync += cl_speed.eq(speed)
+        speed_valid_q = Signal()
+        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid)]
         if self._lead is not None:
+            lead_n = Signal(signed(16))
+            m.d.sync += lead_n.eq(saturate(round_shift(speed, SPEED_WIDTH - 16), signed(16)))
             m.d.comb += [
                 # θ_lead = speed · theta_lead, recomputed from each new M/T speed (the register
                 # commits at period_start, before mt.o.valid): ready period_start + mt.latency
-                # + LeadAngle.latency, before the ADC sample unless pwm_sample_point is that
+                # + 1 + LeadAngle.latency, before the ADC sample unless pwm_sample_point is that
                 # early.
-                lead.speed.eq(speed),
+                lead.n.eq(lead_n),
                 lead.k.eq(regs.theta_lead),
-                lead.start.eq(mt.o.valid),
+                lead.start.eq(speed_valid_q),
                 cl.theta_lead.eq(lead.theta),
             ]
         else:
@@ -564,8 +582,8 @@ class Top(wiring.Component):
 
             prot.fault_n.eq(fault_n),
             prot.oc_comp.eq(oc_comp),
-            prot.speed.valid.eq(mt.o.valid),
-            prot.speed.payload.eq(speed),
+            prot.speed.valid.eq(speed_valid_q),
+            prot.speed.payload.eq(cl_speed),
             prot.encoder_illegal.eq(enc.illegal),
             prot.hall_invalid.eq(enc.hall_fault),
             prot.encoder_hall.eq(enc.plausibility),

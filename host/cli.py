@@ -180,7 +180,8 @@ def cmd_prove(args):
 def cmd_build(args):
     from ..boards.build import build
     build(args.board, out_dir=args.out, clk_hz=args.clk_mhz * 1e6 if args.clk_mhz else None,
-          current_loop=args.current_loop, progress=not args.quiet, json=args.json)
+          current_loop=args.current_loop, seed=args.seed, progress=not args.quiet,
+          json=args.json)
 
 
 def cmd_fmax(args):
@@ -242,6 +243,8 @@ def build_parser():
                    help="current-loop gateware: pipelined (CurrentLoop) or engine "
                         "(EngineCurrentLoop, fewer LUTs and multipliers) (default: the board's: "
                         "engine on the iCEBreaker, pipelined elsewhere)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="nextpnr placement seed (iCEBreaker, ULX3S; default: nextpnr's, 1)")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--json", action="store_true",
                    help="print the figures as one JSON object on the last line")

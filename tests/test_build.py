@@ -314,7 +314,8 @@ def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
     assert {"board", "title", "flow", "lut", "lut_kind", "ff", "bram_bits", "dsp", "fmax_mhz",
             "fmax", "timing_met", "clock_mhz", "clock_requested_mhz", "pll", "pll_divs", "paper",
             "fits", "error", "utilisation", "wall_s", "stages", "artifacts",
-            "current_loop", "scope_ram", "regs_staging"} == keys
+            "current_loop", "scope_ram", "regs_staging", "seed"} == keys
+    assert r["seed"] is None
 
 
 # --- vendor build trees ---------------------------------------------------------------------------
@@ -363,6 +364,22 @@ def test_hardware_synthesis_drops_the_gateware_checks():
     assert (r["lut4"], r["carry"]) == (1, 0) and "$check" not in r["cells"]
     for name in ("icebreaker", "ulx3s"):
         assert _overrides(get_board(name), NAME)["script_after_read"] == STRIP_CHECKS
+
+
+def test_build_seed_reaches_nextpnr(tmp_path):
+    """``seed`` becomes nextpnr's ``--seed`` in the written build script (none without it);
+    a bad seed is refused before anything is written."""
+    from foc_servo.boards.build import _overrides, prepare
+    assert "--seed" not in _overrides(get_board("ulx3s"), NAME)["nextpnr_opts"]
+    assert _overrides(get_board("ulx3s"), NAME, 3)["nextpnr_opts"].endswith(" --seed 3")
+    plan = prepare("icebreaker", out_dir=tmp_path, seed=5)
+    pnr = [c for c in plan["commands"] if c[0].startswith("nextpnr")]
+    assert len(pnr) == 1 and pnr[0][pnr[0].index("--seed") + 1] == "5"
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(TypeError, match=r"^Build seed must be None or a non-negative "
+                                            r"integer, not "):
+            prepare("ulx3s", out_dir=tmp_path / "bad", seed=bad)
+    assert not (tmp_path / "bad").exists()
 
 
 def _verilog_ports(text):

@@ -120,6 +120,17 @@ def test_build_current_loop_option_reaches_build(monkeypatch, args, passed):
     assert seen["json"] is True and seen["progress"] is False and seen["clk_hz"] is None
 
 
+def test_build_seed_option_reaches_build(monkeypatch):
+    """``foc-servo build --seed N`` reaches ``build(seed=N)``; without it nextpnr keeps its own."""
+    import foc_servo.boards.build as build_mod
+    seen = {}
+    monkeypatch.setattr(build_mod, "build", lambda board, **kw: seen.update(board=board, **kw))
+    main(["build", "--board", "ulx3s", "--quiet"])
+    assert seen["seed"] is None
+    main(["build", "--board", "ulx3s", "--quiet", "--seed", "7"])
+    assert seen["seed"] == 7
+
+
 def test_build_current_loop_option_rejects_unknown(capsys):
     with pytest.raises(SystemExit):
         main(["build", "--board", "ulx3s", "--current-loop", "cordic"])

@@ -730,10 +730,15 @@ def test_top_hall_edges_with_a_still_encoder_trip_encoder_hall():
 
 # --- delay compensation (theta_lead) ----------------------------------------------------------
 
+def _lead_n(speed):
+    """The Q1.15 speed LeadAngle takes: Top's rounding of the Q1.31 M/T speed (``lead_n``)."""
+    return int(saturate_np(round_shift_np(speed, 16), signed(16)))
+
+
 def _lead_model(speed, k):
-    """Golden model of LeadAngle: BinaryAngle(16) advance of a Q1.31 speed times a UQ0.16 k."""
-    n = saturate_np(round_shift_np(speed, 16), signed(16))
-    return round_shift_np(n * k, 15) & 0xFFFF
+    """Golden model of Top's θ_lead: BinaryAngle(16) advance of a Q1.31 speed times a UQ0.16 k
+    (LeadAngle of ``_lead_n(speed)``)."""
+    return round_shift_np(_lead_n(speed) * k, 15) & 0xFFFF
 
 
 def test_lead_angle_bit_exact_latency_and_restart():
@@ -747,20 +752,20 @@ def test_lead_angle_bit_exact_latency_and_restart():
 
     async def testbench(ctx):
         # A restart in the middle of a computation: only the second one completes.
-        ctx.set(dut.speed, 1 << 30)
+        ctx.set(dut.n, _lead_n(1 << 30))
         ctx.set(dut.k, 0x4000)
         ctx.set(dut.start, 1)
         await ctx.tick()
         ctx.set(dut.start, 0)
         await ctx.tick().repeat(5)
         for speed, k in cases:
-            ctx.set(dut.speed, speed)
+            ctx.set(dut.n, _lead_n(speed))
             ctx.set(dut.k, k)
             ctx.set(dut.start, 1)
             before = ctx.get(dut.theta)
             await ctx.tick()
             ctx.set(dut.start, 0)
-            ctx.set(dut.speed, 12345)           # latched at start: later changes do not matter
+            ctx.set(dut.n, 12345)               # latched at start: later changes do not matter
             ctx.set(dut.k, 0x1234)
             first = None
             for t in range(1, 30):
@@ -832,6 +837,47 @@ def test_top_theta_lead_advances_the_inverse_park_angle(current_loop):
     assert lead_deg == pytest.approx(45, rel=0.005)
     assert angles[-1] == pytest.approx(lead_deg, abs=0.02)
     assert math.hypot(ua, ub) == pytest.approx(16000, abs=2)
+
+
+def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
+    """LeadAngle and the protection's overspeed check take M/T's result through a register, the
+    strobe too (ECP5 Fmax; Top docstring, "The speed's consumers"), clock by clock: their
+    ``start`` / ``valid`` is ``mt.o.valid`` of the clock before with the speed of that clock
+    (LeadAngle's rounded to Q1.15);
+    θ_lead follows ``1 + LeadAngle.latency`` clocks after ``mt.o.valid``, the overspeed fault
+    (limit below the speed) ``1 + Protection.latency`` clocks after the first nonzero speed."""
+    from foc_servo.hdl.protect import Protection
+    k = 0x4000
+    top = Top(pwm_hz=250e3, baud=BAUD,
+              resets={"theta_lead": k, "prot_os_limit": 1 << 28})    # N_FS/8 = 1500 r/min
+    lead, prot, mt = top._lead, top._protect, top._mt
+    rec = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        ctx.set(top.fault_n, 1)
+        for _ in range(1500):
+            rec.append((ctx.get(mt.o.valid), ctx.get(mt.o.payload.speed),
+                        ctx.get(lead.start), ctx.get(lead.n), ctx.get(lead.theta),
+                        ctx.get(prot.speed.valid), ctx.get(prot.speed.payload),
+                        ctx.get(prot.present.overspeed)))
+            await ctx.tick()
+
+    simulate(top, [testbench], [_encoder_process(top, 25)], name="test_top_speed_consumers")
+    valid, speed, start, lead_n, theta, pvalid, pspeed, os_ = (np.array(c) for c in zip(*rec))
+    np.testing.assert_array_equal(start[1:], valid[:-1])
+    np.testing.assert_array_equal(pvalid[1:], valid[:-1])
+    np.testing.assert_array_equal(lead_n[1:], [_lead_n(int(v)) for v in speed[:-1]])
+    np.testing.assert_array_equal(pspeed[1:], speed[:-1])
+    strobes = np.flatnonzero(valid)
+    fast = [t for t in strobes if speed[t] > 1 << 28]
+    assert len(strobes) >= 4 and fast, "M/T must measure a speed above the limit"
+    for t in strobes:
+        if t + 1 + LeadAngle.latency < len(rec):
+            assert theta[t + 1 + LeadAngle.latency] == _lead_model(int(speed[t]), k)
+    t = fast[0]
+    assert not os_[:t + 1 + Protection.latency].any()
+    assert os_[t + 1 + Protection.latency]
 
 
 # --- status registers -------------------------------------------------------------------------
