@@ -732,7 +732,8 @@ def test_top_hall_edges_with_a_still_encoder_trip_encoder_hall():
 
 def _lead_n(speed):
     """The Q1.15 speed LeadAngle takes: Top's rounding of the Q1.31 M/T speed (``lead_n``)."""
-    return int(saturate_np(round_shift_np(speed, 16), signed(16)))
+    n = saturate_np(round_shift_np(np.asarray(speed, dtype=np.int64), 16), signed(16))
+    return int(n) if np.ndim(n) == 0 else np.asarray(n, dtype=np.int64)
 
 
 def _lead_model(speed, k):
