@@ -18,6 +18,22 @@ DEFAULTS = {"fault_n": 1, "oc_comp": 0, "i_valid": 0, "a": 0, "b": 0, "c": 0, "u
             "uv_enable": 0, "os_limit": 1000, "mask": (1 << len(FAULTS)) - 1, "clear": 0}
 
 
+def _drive(ctx, dut, v):
+    """Every input of ``dut`` (a Protection) from the values ``v`` (names as DEFAULTS)."""
+    ctx.set(dut.fault_n, v["fault_n"])
+    ctx.set(dut.oc_comp, v["oc_comp"])
+    ctx.set(dut.i.valid, v["i_valid"])
+    ctx.set(dut.i.payload, {p: v[p] for p in "abc"})
+    ctx.set(dut.udc.valid, v["udc_valid"])
+    ctx.set(dut.udc.payload, v["udc"])
+    ctx.set(dut.speed.valid, v["speed_valid"])
+    ctx.set(dut.speed.payload, v["speed"])
+    for r in ("encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
+              "uv_limit", "uv_enable", "os_limit", "clear"):
+        ctx.set(getattr(dut, r), v[r])
+    ctx.set(dut.mask, {name: (v["mask"] >> k) & 1 for k, name in enumerate(FAULTS)})
+
+
 def run_clocks(steps):
     """Drive one clock per entry of ``steps`` (a dict of the inputs that differ from
     :data:`DEFAULTS` in that clock) and return the outputs seen in each clock, checked against
@@ -28,21 +44,7 @@ def run_clocks(steps):
 
     async def testbench(ctx):
         for s in steps:
-            v = {**DEFAULTS, **s}
-            ctx.set(dut.fault_n, v["fault_n"])
-            ctx.set(dut.oc_comp, v["oc_comp"])
-            ctx.set(dut.i.valid, v["i_valid"])
-            ctx.set(dut.i.payload, {p: v[p] for p in "abc"})
-            ctx.set(dut.udc.valid, v["udc_valid"])
-            ctx.set(dut.udc.payload, v["udc"])
-            ctx.set(dut.speed.valid, v["speed_valid"])
-            ctx.set(dut.speed.payload, v["speed"])
-            ctx.set(dut.encoder_illegal, v["encoder_illegal"])
-            ctx.set(dut.hall_invalid, v["hall_invalid"])
-            ctx.set(dut.encoder_hall, v["encoder_hall"])
-            for r in ("oc_limit", "ov_limit", "uv_limit", "uv_enable", "os_limit", "clear"):
-                ctx.set(getattr(dut, r), v[r])
-            ctx.set(dut.mask, {n: (v["mask"] >> k) & 1 for k, n in enumerate(FAULTS)})
+            _drive(ctx, dut, {**DEFAULTS, **s})
             record.append({
                 "trip": ctx.get(dut.trip),
                 "present": ctx.get(dut.present.as_value()),
@@ -222,19 +224,7 @@ def _run_against_model(dut, cols):
 
     async def testbench(ctx):
         for t in range(n):
-            v = {k: int(cols[k][t]) for k in INPUTS}
-            ctx.set(dut.fault_n, v["fault_n"])
-            ctx.set(dut.oc_comp, v["oc_comp"])
-            ctx.set(dut.i.valid, v["i_valid"])
-            ctx.set(dut.i.payload, {p: v[p] for p in "abc"})
-            ctx.set(dut.udc.valid, v["udc_valid"])
-            ctx.set(dut.udc.payload, v["udc"])
-            ctx.set(dut.speed.valid, v["speed_valid"])
-            ctx.set(dut.speed.payload, v["speed"])
-            for r in ("encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
-                      "uv_limit", "uv_enable", "os_limit", "clear"):
-                ctx.set(getattr(dut, r), v[r])
-            ctx.set(dut.mask, {name: (v["mask"] >> k) & 1 for k, name in enumerate(FAULTS)})
+            _drive(ctx, dut, {k: int(cols[k][t]) for k in INPUTS})
             record.append((ctx.get(dut.trip), ctx.get(dut.present.as_value()),
                            ctx.get(dut.first.as_value()), ctx.get(dut.seen.as_value()),
                            ctx.get(dut.uv_armed)))
