@@ -3,7 +3,7 @@ yosys writes, counted per HDL source file.
 
 An iCE40 logic cell (``ICESTORM_LC``) holds one LUT4, one flip-flop whose D input is that LUT's
 output, and one carry. nextpnr-ice40's packer (``ice40/pack.cc``: ``pack_lut_lutffs``,
-``pack_nonlut_ffs``, ``pack_carries``) gives
+``pack_nonlut_ffs``, ``pack_carries``, ``merge_carry_luts``; chain legalisation after it) gives
 
 * every ``SB_LUT4`` a cell; an ``SB_DFF*`` joins it when the LUT's output drives that D input and
   nothing else;
@@ -12,13 +12,16 @@ output, and one carry. nextpnr-ice40's packer (``ice40/pack.cc``: ``pack_lut_lut
   multiplier's output, a port, or another flip-flop;
 * an ``SB_CARRY`` the cell of the LUT that reads its carry-in on I3 and its two operands on I1
   and I2 (an adder bit); any other carry — a comparator's, or the first bit of a chain with a
-  constant carry-in — gets a cell of its own.
+  constant carry-in — gets a cell of its own, into which a LUT of at most two inputs (on I2, I3,
+  without a flip-flop) driving one of its operands may move;
+* a carry chain whose carry-in comes from logic a feed-in cell, and a carry-out read by logic
+  (a comparator's result) a feed-out cell.
 
-So a design needs about ``LUT4 + lone flip-flops + lone carries`` cells, which is what
-:func:`logic_cells` counts. It is an estimate: nextpnr may add a few cells to route carry chains
-across tiles, and packs the constant drivers into two more (the iCEBreaker top, session 10:
-11 992 estimated, 11 808 by nextpnr). Its use is the breakdown: which source's flip-flops and
-carries cost cells of their own.
+So a design needs about ``LUT4 − merged LUTs + lone flip-flops + lone carries + chain cells``,
+which is what :func:`logic_cells` counts. It is an estimate (nextpnr's choices depend on the
+order it visits cells, and it adds its constant drivers): the iCEBreaker top of session 10,
+11 738 estimated against 11 808 by nextpnr at the start, 9 831 against 9 847 later. Its use is
+the breakdown: which source's flip-flops and carries cost cells of their own.
 """
 
 import re
@@ -77,11 +80,13 @@ def logic_cells(netlist):
     Returns
     -------
     dict
-        ``total`` and ``by_source`` (HDL file stem → figures), each with ``cells`` (the estimate),
-        ``lut4``, ``ff``, ``ff_alone`` (flip-flops that take a cell of their own), ``carry`` and
-        ``carry_alone`` (carries that take a cell of their own). A LUT or carry is counted where
-        yosys' ``src`` attribute says it came from; cells without one (most LUTs after ABC) count
-        as ``"(no source)"``.
+        ``total`` and ``by_source`` (HDL file stem → figures, the most cells first), each with
+        ``cells`` (the estimate), ``lut4``, ``lut_merged`` (LUTs moved into a lone carry's
+        cell), ``ff``, ``ff_alone`` (flip-flops that take a cell of their own), ``carry``,
+        ``carry_alone`` (carries that take a cell of their own) and ``chain`` (feed-in / feed-out
+        cells). A cell counts where yosys' ``src`` attribute says it came from; one without it
+        (most LUTs after ABC) where most cells of its instance come from (:func:`_sources`),
+        else as ``"(no source)"``.
     """
     cells = _top_module(netlist).get("cells", {})
     driver = {}
@@ -104,7 +109,8 @@ def logic_cells(netlist):
     def lut_alone(name):                # the LUT's output drives one flip-flop's D only
         o = bit(cells[name], "O")
         us = users.get(o, [])
-        return not (len(us) == 1 and us[0][1] == "D" and cells[us[0][0]]["type"].startswith("SB_DFF"))
+        return not (len(us) == 1 and us[0][1] == "D"
+                    and cells[us[0][0]]["type"].startswith("SB_DFF"))
 
     source = _sources(cells)
     groups = defaultdict(Counter)
@@ -154,12 +160,12 @@ def logic_cells(netlist):
                 break
     total = Counter()
     by_source = {}
-    for source, g in groups.items():
+    for name, g in groups.items():
         g["cells"] = (g["lut4"] - g["lut_merged"] + g["ff_alone"] + g["carry_alone"]
                       + g["chain"])
         if g["cells"] or g["ff"] or g["carry"]:
-            by_source[source] = {k: g[k] for k in _KEYS}
-            total.update(by_source[source])
+            by_source[name] = {k: g[k] for k in _KEYS}
+            total.update(by_source[name])
     by_source = dict(sorted(by_source.items(), key=lambda kv: (-kv[1]["cells"], kv[0])))
     return {"total": {k: total[k] for k in _KEYS}, "by_source": by_source}
 
