@@ -144,6 +144,19 @@ def _accesses(regmap, count, rng):
     return out[:count + len(words)] if count else out
 
 
+def _with_status(cycles, ro_regs, rng):
+    """``cycles`` (from :func:`_cycles`) with the status inputs: one random ``ro`` register
+    takes a random value in 10 % of the clocks. Yields ``(cycle, status)``; the cycle holds the
+    status values too."""
+    ro = {r.name: 0 for r in ro_regs}
+    for cyc in cycles:
+        if rng.random() < 0.1:
+            r = rng.choice(ro_regs)
+            ro[r.name] = rng.getrandbits(r.width)
+        cyc.update(ro)
+        yield cyc, ro
+
+
 def _cycles(regmap, accesses, rng, seen, *, commit_p, rst_p):
     """Per-clock input dicts (without ro) for ``accesses``: frames of 1 … 8 accesses under
     ``lock``, 0 … 3 idle clocks between accesses (30 %), ``commit`` (probability ``commit_p``)
@@ -224,15 +237,11 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
                 | model.r_data(win_data) << 3)
 
     async def testbench(ctx):
-        ro = {r.name: 0 for r in ro_regs}
         prev_addr = 0
         done = 0
         seen = {"ack": 0, "stuck": 0}
-        for cyc in _cycles(regmap, accesses, rng, seen, commit_p=commit_p, rst_p=rst_p):
-            if rng.random() < 0.1:
-                r = rng.choice(ro_regs)
-                ro[r.name] = rng.getrandbits(r.width)
-            cyc.update(ro)
+        for cyc, ro in _with_status(_cycles(regmap, accesses, rng, seen, commit_p=commit_p,
+                                            rst_p=rst_p), ro_regs, rng):
             ctx.set(bench.stim, bench.pack(bench.stim_fields, cyc))
             got = ctx.get(bench.outs)
             win_data = {w.name: window_word(prev_addr & (w.size - 1)) for w in windows}
@@ -377,15 +386,11 @@ def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commi
                first_mismatch=None)
 
     async def testbench(ctx):
-        ro = {r.name: 0 for r in ro_regs}
         seen = {"ack": 0, "stuck": 0}
         since_rst = None                # clocks since the last reset clock
         prev = None
-        for cyc in _cycles(regmap, accesses, rng, seen, commit_p=commit_p, rst_p=rst_p):
-            if rng.random() < 0.1:
-                r = rng.choice(ro_regs)
-                ro[r.name] = rng.getrandbits(r.width)
-            cyc.update(ro)
+        for cyc, _ in _with_status(_cycles(regmap, accesses, rng, seen, commit_p=commit_p,
+                                           rst_p=rst_p), ro_regs, rng):
             ctx.set(bench.stim, bench.pack(bench.stim_fields, cyc))
             got = bench.unpack(bench.out_fields, ctx.get(bench.outs))
             want = [r.read_word(got[r.name], k) for _, r, k in words]
