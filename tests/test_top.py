@@ -999,3 +999,103 @@ def test_top_status_registers_read_provoked_values():
     assert seen["flags_held"] == flags
     assert seen["flags_cleared"] & ~bit["dc_limited"] == 0
     assert seen["flags_after"] == bit["dc_limited"]
+
+
+def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
+    """The iCEBreaker's configuration path end to end (engine current loop, ``"bram"`` staging):
+    a host frame writes the Clarke gains and offsets and, a frame later, the q-axis PI's gains
+    and limits; the register file's export port carries them into the engine's configuration
+    RAM, which the program reads. Every sample's outputs are replayed through
+    ``CurrentLoopModel`` with each configuration taking effect at the first sample accepted
+    after the ``period_start`` whose commit copy follows the frame: bit-identical. The
+    same replay with either switch one sample earlier or later differs (the test sees when a
+    word arrives, not only that it does). ("After its frame": after the register file's last
+    write of the frame, with the commit copy starting after it.)"""
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    from foc_servo.hdl.top import ENGINE_CONFIG
+    from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
+    from foc_servo.sim.models.foc import CurrentLoopModel
+    clk = 33.333e6
+    resets = {"mode": Mode.CURRENT.value, "i_d_ref": -3000, "i_q_ref": 9000,
+              "pi_d_kp": 0x0480, "pi_q_kp": 0x0600, "pi_d_kx": 0x3000, "pi_q_kx": 0x2000,
+              "u_rated": 16000, "enc_lines": 100, "prot_mask": 0x7FF & ~(1 << 10)}
+    top = Top(clk_hz=clk, pwm_hz=50e3, baud=clk / 8, current_loop="engine",
+              regs_staging="bram", resets=resets)
+    cl = top._loop
+    assert hasattr(cl, "config")
+    bench = _Bench(top, clk / 8)
+    rm = top.regmap
+    frames = [{"clarke_gain_a": 29000, "clarke_offset_a": -700, "clarke_gain_b": 36000,
+               "clarke_offset_b": 450},
+              {"pi_q_kp": 0x0C00, "pi_q_kx": 0x0800, "pi_q_lim_lo": -9000,
+               "pi_q_lim_hi": 7000}]
+    rng = np.random.default_rng(11)
+    codes = [(int(rng.integers(-9000, 9000)), int(rng.integers(-9000, 9000)),
+              int(rng.integers(12000, 20000)), 0) for _ in range(64)]
+    adc = AdcPartModel(cs_n=top.adc_cs_n, sclk=top.adc_sclk, sdo=top.adc_sdo, clk_hz=clk,
+                       source=lambda n: codes[n % len(codes)])
+    fields = engine_fields()
+    ports = {"ia": cl.i.payload.ia, "ib": cl.i.payload.ib, "udc": cl.i.payload.udc,
+             **{f: getattr(cl, f) for f in fields if f not in ("ia", "ib", "udc")},
+             **{f: getattr(cl, f) for f in ("u_rated", "scale")}}
+    outs = {"duty_a": cl.o.payload.a, "duty_b": cl.o.payload.b, "duty_c": cl.o.payload.c,
+            **{f: getattr(cl, f) for f in ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q",
+                                           "u_alpha", "u_beta", "sat_d", "sat_q")}}
+    bus = top._regs.bus
+    ins, got, accepted, starts, writes, replied = [], [], [], [], [], []
+
+    def probe(ctx):
+        clock = host.clocks
+        if ctx.get(bus.stb) and ctx.get(bus.we) and ctx.get(bus.ack):
+            writes.append(clock)
+        if ctx.get(top._timer.period_start):
+            starts.append(clock)
+        if ctx.get(cl.i.valid):
+            ins.append({f: ctx.get(p) for f, p in ports.items()})
+            accepted.append(clock)
+        if ctx.get(cl.o.valid):
+            got.append({f: ctx.get(p) for f, p in outs.items()})
+    host = _TracingHost(bench, probe)
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await host.tick(ctx, 3 * top.pwm_period)
+        for values in frames:
+            addr = _addr(top, next(iter(values)))
+            assert [_addr(top, n) for n in values] == list(range(addr, addr + len(values)))
+            await host.write(ctx, addr, *(rm[n].to_words(v)[0] for n, v in values.items()))
+            replied.append(host.clocks)
+            await host.tick(ctx, 3 * top.pwm_period)
+
+    simulate(bench, [testbench], [adc.process], clock_hz=clk, name="test_top_engine_config")
+    assert len(got) >= len(ins) - 1 >= 12
+    # The configuration in force: the reset values, then each frame from its commit on.
+    port_of = {reg: CONFIG_PORTS[s] for s, reg in zip(CONFIG, ENGINE_CONFIG)}
+    config = {port_of[reg]: rm[reg].reset for reg in ENGINE_CONFIG}
+    switches = []
+    for t in replied:
+        # The frame's last register write; the commit copy that starts after it (the copy's
+        # first clock is commit_clocks before its period_start).
+        w = max(c for c in writes if c < t)
+        commit = next(s for s in starts if s - top.commit_clocks > w)
+        switches.append(next(i for i, a in enumerate(accepted) if a > commit))
+    assert switches[0] < switches[1] < len(got)
+    recorded = {f: np.array([s[f] for s in ins[:len(got)]]) for f in ins[0]}
+    recorded = loop_model_inputs(recorded)
+
+    def replay(at):
+        cfg = {f: np.full(len(got), v) for f, v in config.items()}
+        for k, values in zip(at, frames):
+            for n, v in values.items():
+                cfg[port_of[n]][k:] = v
+        return CurrentLoopModel().run(**recorded, **cfg)
+
+    def matches(ref):
+        return all([g[f] for g in got] == list(ref[f]) for f in outs)
+
+    assert matches(replay(switches))
+    for j in range(2):
+        for d in (-1, 1):
+            moved = list(switches)
+            moved[j] += d
+            assert not matches(replay(moved)), (j, d)
