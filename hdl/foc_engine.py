@@ -20,8 +20,9 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Module, Signal, signed, unsigned
+from amaranth.hdl import Cat, Module, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
+from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from .bus import WordWriteSignature
@@ -33,7 +34,8 @@ from .rotator import RotatorParams
 
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
-           "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC"]
+           "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -58,6 +60,12 @@ CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
                 "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi"}
 #: Values of ``EngineCurrentLoop(config=...)``.
 CONFIGS = ("ports", "ram")
+#: Values of ``EngineCurrentLoop(status=...)``.
+STATUSES = ("ports", "ram")
+#: The status outputs (``status="ram"``: the status RAM's words, in this order).
+STATUS = ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q", "u_alpha", "u_beta")
+#: The engine output each status value is written by.
+STATUS_OUTS = {"i_alpha": "pa", **{name: name for name in STATUS[1:]}}
 #: User conditions.
 CONDS = ("RUN", "OL", "FF")
 #: Output registers and their widths (``ang`` is the engine's angle register).
@@ -432,6 +440,31 @@ def phase_latency(program):
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
+def status_quiet(program):
+    """Clocks from ``done`` of :class:`EngineCurrentLoop` running ``program`` (that clock
+    included) in which no status output (:data:`STATUS`) is written: after its last duty
+    (``o.valid``, before ``done``) the program writes no status output, and the next program
+    starts at the earliest in the ``done`` clock (a sample accepted then), writing its first
+    status output ``START_CLOCKS + k + WRITE_DELAY`` clocks after that (``k`` instruction
+    clocks before it, on the straight-line start of the program)."""
+    outs = ("",) + tuple(OUTS)
+    status = {outs.index(STATUS_OUTS[name]) for name in STATUS}
+    dc = outs.index("dc")
+    instrs = program.instrs
+    for path in _paths(program):
+        last = max(k for k, pc in enumerate(path) if instrs[pc].out == dc)
+        if any(instrs[pc].out in status for pc in path[last + 1:]):
+            raise ValueError("engine program: a status output written after the last duty")
+    k = 0
+    for ins in instrs:
+        if ins.op in (Op.BR, Op.END):
+            break
+        if ins.out in status:
+            return START_CLOCKS + k + WRITE_DELAY
+        k += _clocks(ins)
+    raise ValueError("engine program: no status output written before the first branch")
+
+
 class EngineCurrentLoop(wiring.Component):
     """The current loop of :class:`~.foc.CurrentLoop` as a program of the loop engine.
 
@@ -475,6 +508,29 @@ class EngineCurrentLoop(wiring.Component):
     config_init : list of int
         ``config="ram"``: the RAM's initial words (default all 0; the top passes the
         registers' reset values, :attr:`~.regs.RegisterFile.export_init`).
+    status : str
+        Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
+        registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM
+        written in the same clocks (word ``j`` = ``STATUS[j]``, 0 at power-up; a domain reset
+        does not clear it, where it clears the registers), read through two synchronous
+        read ports in place of those members (``status_rd``, ``status_probe``, below).
+
+    Status RAM (``status="ram"``): two block RAMs of ``len(STATUS)`` words of ``width``
+    bits, one per read port, written together at the engine's output writes (the registers'
+    load clocks). Each read port takes ``addr`` (a word of :data:`STATUS`) and shows the word
+    one clock later on ``data``:
+
+    * ``status_rd`` reads transparently: ``data`` in clock ``t + 1`` is the value the
+      register ``STATUS[addr]`` holds in ``t + 1`` (``addr`` given in ``t``); for the register
+      file (:attr:`~.regs.RegisterFile` ``status_ram``), whose read multiplexer samples its
+      inputs in ``t + 1``. (On the iCE40 synthesis adds the bypass of a write in ``t``.)
+    * ``status_probe`` reads the old word: ``data`` in ``c + 1`` is the value the register
+      held in ``c`` (``addr`` given in ``c``), as a flip-flop sampling the register in ``c``
+      would hold it in ``c + 1``; for the scope (:class:`~.scope.Scope` ``ram_sources``), which
+      samples a probe in ``c`` and writes it in ``c + 1``. Valid only in the
+      :attr:`status_quiet` clocks from ``done`` on (no status output is written then, so the
+      RAM's read-during-write behaviour never matters; it is left undefined): the scope, strobed
+      by ``done``, samples its channels in ``done`` … ``done + channels − 1``.
 
     Attributes
     ----------
@@ -491,13 +547,18 @@ class EngineCurrentLoop(wiring.Component):
     phase_latency : int
         Clocks from the accepted sample to the ``phase`` transfer (the program's write of
         phase c, :func:`phase_latency`).
+    status_quiet : int
+        :func:`status_quiet` of the program: from ``done`` (included), the clocks in which no
+        status output is written.
+    status_mode : str
+        The ``status`` parameter.
     program : Program
     """
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
                  kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
-                 config="ports", config_init=None):
+                 config="ports", config_init=None, status="ports"):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -527,6 +588,9 @@ class EngineCurrentLoop(wiring.Component):
                                         or not all(isinstance(v, int) for v in config_init)):
             raise ValueError(f"EngineCurrentLoop config_init must be a list of {len(CONFIG)} "
                              f"integers, not {config_init!r}")
+        check_choice("EngineCurrentLoop", "status", status, STATUSES)
+        self._status = status
+        self._status_mems = {}                  # status="ram": made by elaborate()
         self._config = config
         self._config_init = list(config_init) if config_init is not None else [0] * len(CONFIG)
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
@@ -534,6 +598,7 @@ class EngineCurrentLoop(wiring.Component):
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
+        self._status_quiet = status_quiet(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
         ports = {
@@ -549,6 +614,11 @@ class EngineCurrentLoop(wiring.Component):
         self._config_shapes = {name: ports[CONFIG_PORTS[name]].shape for name in CONFIG}
         if config == "ram":
             ports = {"config": In(WordWriteSignature(len(CONFIG)))}
+        if status == "ram":
+            rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
+            status_ports = {"status_rd": Out(rd), "status_probe": Out(rd)}
+        else:
+            status_ports = {name: Out(sw) for name in STATUS}
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
@@ -563,8 +633,7 @@ class EngineCurrentLoop(wiring.Component):
             "phase": Out(stream.Signature(data.StructLayout({p: sw for p in "abc"}),
                                           always_ready=True)),
             "udc": Out(stream.Signature(signed(adc_width), always_ready=True)),
-            **{name: Out(sw) for name in ("i_alpha", "i_beta", "i_d", "i_q",
-                                          "u_d", "u_q", "u_alpha", "u_beta")},
+            **status_ports,
             "sat_d": Out(1), "sat_q": Out(1), "dc_limited": Out(1), "busy": Out(1),
             "overrun": Out(1), "overruns": Out(16), "count": Out(32), "done": Out(1),
         })
@@ -580,6 +649,11 @@ class EngineCurrentLoop(wiring.Component):
     interval = property(lambda self: self._interval)
     gain_limit_raw = property(lambda self: self._gain_limit_raw)
     phase_latency = property(lambda self: self._phase_latency)
+    status_quiet = property(lambda self: self._status_quiet)
+    status_mode = property(lambda self: self._status)
+    #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
+    #: for a testbench; ``None`` before it and with ``"ports"``.
+    status_memory = property(lambda self: self._status_mems.get("status_rd"))
 
     def elaborate(self, platform):
         m = Module()
@@ -597,7 +671,10 @@ class EngineCurrentLoop(wiring.Component):
                                            out_widths=OUTS, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
                                            config=CONFIG if ram else (),
-                                           config_init=self._config_init if ram else None)
+                                           config_init=self._config_init if ram else None,
+                                           strobe_outs=(tuple(STATUS_OUTS[n] for n in STATUS
+                                                              if STATUS_OUTS[n] != "pa")
+                                                        if self._status == "ram" else ()))
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program
@@ -652,11 +729,47 @@ class EngineCurrentLoop(wiring.Component):
             self.o.payload.c.eq(eng.o_dc),
             self.phase.payload.a.eq(eng.o_pa), self.phase.payload.b.eq(eng.o_pb),
             self.phase.payload.c.eq(eng.o_pc),
-            self.i_alpha.eq(eng.o_pa), self.i_beta.eq(eng.o_i_beta),
-            self.i_d.eq(eng.o_i_d), self.i_q.eq(eng.o_i_q),
-            self.u_d.eq(eng.o_u_d), self.u_q.eq(eng.o_u_q),
-            self.u_alpha.eq(eng.o_u_alpha), self.u_beta.eq(eng.o_u_beta),
             self.sat_d.eq(eng.o_sat_d), self.sat_q.eq(eng.o_sat_q),
         ]
+        if self._status == "ports":
+            m.d.comb += [getattr(self, name).eq(getattr(eng, f"o_{STATUS_OUTS[name]}"))
+                         for name in STATUS]
+        else:
+            self._status_ram(m, eng)
         m.d.sync += self.phase.valid.eq(eng.o_pc_we)
         return m
+
+    def _status_ram(self, m, eng):
+        """The status RAM (class docstring): written at the engine's writes of the status
+        outputs, read through ``status_rd`` (transparent) and ``status_probe`` (old word)."""
+        strobes = [getattr(eng, f"o_{STATUS_OUTS[name]}_we") for name in STATUS]
+        addr = Signal(range(len(STATUS)))
+        for j, we in enumerate(strobes):        # one strobe at a time (one write per clock)
+            with m.If(we):
+                m.d.comb += addr.eq(j)
+        # The register file's port reads the word written in its clock (transparent), the
+        # scope's the word before it; the scope reads only while no status output is written
+        # (``status_quiet``): a read of the word being written is left undefined there
+        # (``no_rw_check``: no bypass logic).
+        # (The scope's: an asynchronous read port with its data registered here, which yosys
+        # merges into the block RAM's synchronous port; a synchronous port reading the old word
+        # made it add 38 flip-flops.)
+        # One RAM per read port (a block RAM has one), both written alike.
+        self._status_mems = {
+            name: Memory(shape=signed(ENGINE_WIDTH), depth=len(STATUS), init=[],
+                         attrs={} if name == "status_rd" else {"no_rw_check": 1})
+            for name in ("status_rd", "status_probe")}
+        for name, transparent in (("status_rd", True), ("status_probe", False)):
+            port = getattr(self, name)
+            m.submodules[f"{name}_ram"] = mem = self._status_mems[name]
+            wr = mem.write_port()
+            m.d.comb += [wr.en.eq(Cat(*strobes).any()), wr.addr.eq(addr),
+                         wr.data.eq(eng.o_data[:ENGINE_WIDTH])]
+            if transparent:
+                rd = mem.read_port(transparent_for=(wr,))
+                m.d.comb += [rd.addr.eq(port.addr), rd.en.eq(port.en), port.data.eq(rd.data)]
+            else:
+                rd = mem.read_port(domain="comb")
+                data_q = Signal(signed(ENGINE_WIDTH), reset_less=True)
+                m.d.comb += [rd.addr.eq(port.addr), port.data.eq(data_q)]
+                m.d.sync += data_q.eq(rd.data)

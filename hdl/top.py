@@ -105,6 +105,7 @@ from .encoder import EncoderFrontEnd
 from .fixed import check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
+from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
@@ -415,9 +416,13 @@ class Top(wiring.Component):
         # copied in the copy's last clock (it changes after the latch, as with "ff").
         # The engine's configuration registers in its RAM (module docstring).
         cfg_ram = current_loop == "engine" and regs_staging == "bram"
+        # ... and its status in its status RAM, read by the register file and the scope.
+        self._status_ram = cfg_ram
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=ENGINE_CONFIG if cfg_ram else ())
+                                  export=ENGINE_CONFIG if cfg_ram else (),
+                                  status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
+                                              if cfg_ram else ()))
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -428,7 +433,8 @@ class Top(wiring.Component):
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init) if cfg_ram else
+                                        config_init=self._regs.export_init,
+                                        status="ram") if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
@@ -441,7 +447,11 @@ class Top(wiring.Component):
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
-        self._scope = Scope(ram=scope_ram)
+        self._scope = Scope(ram=scope_ram, ram_sources=ENGINE_STATUS if cfg_ram else ())
+        if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
+            raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
+                             f"after the engine's done, which leaves only "
+                             f"{self._loop.status_quiet} clocks without a status write")
 
         super().__init__({
             "uart_rx": In(1, init=1),
@@ -700,14 +710,19 @@ class Top(wiring.Component):
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),
-            src.i_d.eq(cl.i_d), src.i_q.eq(cl.i_q),
             src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q),
-            src.i_alpha.eq(cl.i_alpha), src.i_beta.eq(cl.i_beta),
-            src.u_d.eq(cl.u_d), src.u_q.eq(cl.u_q),
-            src.u_alpha.eq(cl.u_alpha), src.u_beta.eq(cl.u_beta),
             src.theta.eq(theta_q),
             src.u_dc.eq(adc.o.payload.udc),
         ]
+        # The loop's status: its ports, or (the engine's status RAM) one read port of it each
+        # for the register file and the scope (the scope samples it in the engine's quiet
+        # clocks after done: checked in __init__).
+        if self._status_ram:
+            wiring.connect(m, current_loop=cl.status_probe, scope=scope.ram_rd)
+            wiring.connect(m, current_loop=cl.status_rd, regs=regs.status_rd)
+        else:
+            m.d.comb += [getattr(src, n).eq(getattr(cl, n)) for n in ENGINE_STATUS]
+            m.d.comb += [getattr(regs, f"st_{n}").eq(getattr(cl, n)) for n in ENGINE_STATUS]
 
         # --- status registers ---------------------------------------------------------------
         speed_loops = Signal(16)
@@ -752,10 +767,6 @@ class Top(wiring.Component):
             regs.st_position.eq(enc.count),
             regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
-            regs.st_i_d.eq(cl.i_d), regs.st_i_q.eq(cl.i_q),
-            regs.st_i_alpha.eq(cl.i_alpha), regs.st_i_beta.eq(cl.i_beta),
-            regs.st_u_d.eq(cl.u_d), regs.st_u_q.eq(cl.u_q),
-            regs.st_u_alpha.eq(cl.u_alpha), regs.st_u_beta.eq(cl.u_beta),
             regs.st_udc.eq(adc.o.payload.udc),
             regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
             regs.st_speed_loops.eq(speed_loops),
