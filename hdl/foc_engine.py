@@ -52,12 +52,13 @@ BSPECIALS = ("ia", "ib", "nspd", "scale")
 #: The configuration specials read from the engine's configuration RAM with ``config="ram"``,
 #: in its word order (the port each comes from with ``config="ports"``: :data:`CONFIG_PORTS`).
 CONFIG = ("gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q", "kx_q",
-          "lo_q", "hi_q", "ff_l", "ff_psi")
+          "lo_q", "hi_q", "ff_l", "ff_psi", "klead", "urat")
 #: ``config="ports"``: the EngineCurrentLoop port of each configuration special.
 CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
                 "off_b": "offset_b", "kp_d": "kp_d", "kx_d": "kx_d", "lo_d": "lim_lo_d",
                 "hi_d": "lim_hi_d", "kp_q": "kp_q", "kx_q": "kx_q", "lo_q": "lim_lo_q",
-                "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi"}
+                "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi", "klead": "lead_k",
+                "urat": "u_rated"}
 #: Values of ``EngineCurrentLoop(config=...)``.
 CONFIGS = ("ports", "ram")
 #: Values of ``EngineCurrentLoop(status=...)``.
@@ -493,14 +494,17 @@ class EngineCurrentLoop(wiring.Component):
         The ``theta_lead`` register: the inverse Park's advance at full-scale speed, UQ0.16
         turns; read while the program runs (like the gains), θ_lead = ``round_shift(n·k, 15)``
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
+        With ``config="ram"`` the configuration RAM's word ``klead`` instead (as ``u_rated``'s:
+        word ``urat``).
 
     Parameters
     ----------
     config : str
-        Where the 14 configuration values (:data:`CONFIG`: Clarke gains and offsets, the PIs'
-        gains and limits, the decoupling ``ff_l``, ``ff_psi``) come from: ``"ports"``
-        (default) the input ports of :class:`~.foc.CurrentLoop` (``gain_a``, ``offset_a``,
-        ``kp_d``, ``lim_lo_d``, …); ``"ram"`` the engine's configuration RAM, written through
+        Where the 16 configuration values (:data:`CONFIG`: Clarke gains and offsets, the PIs'
+        gains and limits, the decoupling ``ff_l``, ``ff_psi``, then ``lead_k`` and
+        ``u_rated``) come from: ``"ports"`` (default) the input ports of
+        :class:`~.foc.CurrentLoop` (``gain_a``, ``offset_a``, ``kp_d``, ``lim_lo_d``, …) and
+        ``lead_k``, ``u_rated``; ``"ram"`` the engine's configuration RAM, written through
         the ``config`` port (:class:`~.bus.WordWriteSignature`, word ``j`` = ``CONFIG[j]`` in
         the register file's read format; e.g. the register file's ``export`` port), which has
         none of those input ports. Both give the same results in the same clocks when each
@@ -609,6 +613,7 @@ class EngineCurrentLoop(wiring.Component):
             "lim_lo_d": In(sw), "lim_hi_d": In(sw),
             "kp_q": In(kp_format.shape), "kx_q": In(kx_format.shape),
             "lim_lo_q": In(sw), "lim_hi_q": In(sw),
+            "lead_k": In(unsigned(16)), "u_rated": In(unsigned(adc_width)),
         }
         #: The configuration specials' shapes (the ports' shapes in both modes).
         self._config_shapes = {name: ports[CONFIG_PORTS[name]].shape for name in CONFIG}
@@ -622,12 +627,12 @@ class EngineCurrentLoop(wiring.Component):
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
-            "theta": In(unsigned(aw)), "lead_k": In(unsigned(16)),
+            "theta": In(unsigned(aw)),
             "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
             "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
             **ports,
-            "u_rated": In(unsigned(adc_width)), "scale": In(unsigned(cw)),
+            "scale": In(unsigned(cw)),
             "o": Out(stream.Signature(data.StructLayout({p: unsigned(cw) for p in "abc"}))),
             "overmod": Out(1),
             "phase": Out(stream.Signature(data.StructLayout({p: sw for p in "abc"}),
@@ -663,7 +668,7 @@ class EngineCurrentLoop(wiring.Component):
             "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "klead": unsigned(16),
             "id_ref": sw, "iq_ref": sw, "ol_ud": sw, "ol_uq": sw, "nspd": sw,
             **self._config_shapes,
-            "scale": self.scale.shape(), "udc": signed(16), "urat": self.u_rated.shape(),
+            "scale": self.scale.shape(), "udc": signed(16),
         }
         shapes = {name: shapes[name] for name in SPECIALS}
         ram = self._config == "ram"
@@ -716,8 +721,7 @@ class EngineCurrentLoop(wiring.Component):
             config = {}
         else:
             config = {name: getattr(self, CONFIG_PORTS[name]) for name in CONFIG}
-        config.update({"scale": self.scale, "klead": self.lead_k, "udc": self.udc.payload,
-                       "urat": self.u_rated})
+        config.update({"scale": self.scale, "udc": self.udc.payload})
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),

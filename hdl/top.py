@@ -44,13 +44,18 @@ and the current loop must be idle in the window too (the sample not within ``loo
 commit_clocks`` clocks of the period end).
 
 **Engine configuration in RAM** (``current_loop="engine"`` with ``regs_staging="bram"``, the
-iCEBreaker): the register file holds no flip-flops for the current loop's 14 configuration
+iCEBreaker): the register file holds no flip-flops for the current loop's 16 configuration
 registers (:data:`ENGINE_CONFIG`: Clarke gains and offsets, PI gains and limits, decoupling
-``L`` and ``ψ``); its commit copy writes them through its ``export`` port into the loop
-engine's configuration RAM in the clocks the flip-flops would have changed
-(``EngineCurrentLoop(config="ram")``), so the loop sees the same values in the same clocks.
-(One exception, in the reset walk's 63 clocks after a domain reset: the flip-flops would have
-held the reset values at once, the RAM gets them word by word.)
+``L`` and ``ψ``, ``theta_lead``, ``u_rated``); its commit copy writes them through its
+``export`` port into the loop engine's configuration RAM in the clocks the flip-flops would
+have changed (``EngineCurrentLoop(config="ram")``), so the loop sees the same values in the
+same clocks. (One exception, in the reset walk's 63 clocks after a domain reset: the
+flip-flops would have held the reset values at once, the RAM gets them word by word.) The
+loop's eight status values (``st_i_alpha`` … ``st_u_beta``, the scope's sources of the same
+names) are in the engine's status RAM (``EngineCurrentLoop(status="ram")``), read through one
+read port each by the register file (``RegisterFile(status_ram=...)``) and the scope
+(``Scope(ram_sources=...)``): the same values in the same clocks as from the registers (a
+domain reset does not clear the RAM, where it cleared the registers).
 
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
@@ -136,6 +141,7 @@ ENGINE_CONFIG = tuple({
     "off_b": "clarke_offset_b", "kp_d": "pi_d_kp", "kx_d": "pi_d_kx", "lo_d": "pi_d_lim_lo",
     "hi_d": "pi_d_lim_hi", "kp_q": "pi_q_kp", "kx_q": "pi_q_kx", "lo_q": "pi_q_lim_lo",
     "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
+    "klead": "theta_lead", "urat": "u_rated",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
 
 
@@ -563,7 +569,8 @@ class Top(wiring.Component):
         else:
             # The engine: θ_lead from the speed it latches at the sample (cl_speed, below)
             # and the theta_lead register, in its program (EngineCurrentLoop.lead_k).
-            m.d.comb += cl.lead_k.eq(regs.theta_lead)
+            if "export" not in regs.signature.members:      # (else in its RAM, below)
+                m.d.comb += cl.lead_k.eq(regs.theta_lead)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -621,6 +628,7 @@ class Top(wiring.Component):
                 cl.gain_b.eq(regs.clarke_gain_b), cl.offset_b.eq(regs.clarke_offset_b),
                 cl.ff_l.eq(regs.decouple_l),
                 cl.ff_psi.eq(regs.decouple_psi),
+                cl.u_rated.eq(regs.u_rated),
             ]
         m.d.comb += [
             _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
@@ -633,7 +641,6 @@ class Top(wiring.Component):
             servo.ol_theta.eq(regs.ol_angle),
             servo.ol_freq.eq(regs.ol_freq),
 
-            cl.u_rated.eq(regs.u_rated),
             cl.ff_enable.eq(regs.decouple_enable),
 
             timer.symmetric.eq(regs.pwm_symmetric),

@@ -642,8 +642,8 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                 sample = {"ia": int(rng.integers(-32768, 32768)),
                           "ib": int(rng.integers(-32768, 32768)),
                           "udc": int(rng.integers(0, 32768)), "aux": 0}
+                # (lead_k, u_rated: configuration, randomised by the writes above.)
                 values = {"theta": int(rng.integers(1 << 16)),
-                          "lead_k": int(rng.integers(1 << 16)),
                           "id_ref": int(rng.integers(-32768, 32768)),
                           "iq_ref": int(rng.integers(-32768, 32768)),
                           "ol_ud": int(rng.integers(-32768, 32768)),
@@ -651,7 +651,6 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                           "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
                           "ff_enable": int(rng.random() < 0.6),
                           "speed": int(rng.integers(-(1 << 31), 1 << 31)),
-                          "u_rated": int(rng.integers(1 << 16)),
                           "scale": int(rng.integers(1 << 16))}
                 for dut in (a, b):
                     ctx.set(dut.i.payload, sample)
@@ -690,15 +689,16 @@ def _check_config_ram_ports_and_errors():
     members = set(ram.signature.members)
     assert members == (set(ports.signature.members) - set(CONFIG_PORTS.values())) | {"config"}
     sig = ram.signature.members["config"].signature
-    assert isinstance(sig, WordWriteSignature) and sig.depth == len(CONFIG) == 14
+    assert isinstance(sig, WordWriteSignature) and sig.depth == len(CONFIG) == 16
+    assert {"lead_k", "u_rated"} <= set(ports.signature.members) - members
     assert ram.config_mode == "ram" and ports.config_mode == "ports"
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop config must be one of 'ports', "
                                          r"'ram', not 'regs'$"):
         EngineCurrentLoop(config="regs")
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init applies only to "
                                          r"config='ram', not config='ports'$"):
-        EngineCurrentLoop(config_init=[0] * 14)
-    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 14 "
+        EngineCurrentLoop(config_init=[0] * 16)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 16 "
                                          r"integers, not \[0\]$"):
         EngineCurrentLoop(config="ram", config_init=[0])
 

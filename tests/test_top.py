@@ -615,7 +615,7 @@ def test_top_current_loop_duties_match_the_model(current_loop, staging):
               zip((CONFIG_PORTS[n] for n in CONFIG), ENGINE_CONFIG)}
     assert (current_loop, staging) == ("engine", "bram") or not hasattr(cl, "config")
     if hasattr(cl, "config"):
-        assert set(in_ram) == set(CONFIG_FIELDS) - set(ports)
+        assert set(in_ram) == (set(CONFIG_FIELDS) | set(fields)) - set(ports)
     # The iCEBreaker's engine ("bram") keeps its status in its status RAM: its words (the RAM
     # is made when the top is elaborated: looked up in the testbench).
     from foc_servo.hdl.foc_engine import STATUS
