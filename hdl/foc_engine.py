@@ -613,12 +613,16 @@ class EngineCurrentLoop(wiring.Component):
             "lim_lo_d": In(sw), "lim_hi_d": In(sw),
             "kp_q": In(kp_format.shape), "kx_q": In(kx_format.shape),
             "lim_lo_q": In(sw), "lim_hi_q": In(sw),
-            "lead_k": In(unsigned(16)), "u_rated": In(unsigned(adc_width)),
         }
+        lead_k, u_rated = In(unsigned(16)), In(unsigned(adc_width))
         #: The configuration specials' shapes (the ports' shapes in both modes).
-        self._config_shapes = {name: ports[CONFIG_PORTS[name]].shape for name in CONFIG}
+        shapes = {**ports, "lead_k": lead_k, "u_rated": u_rated}
+        self._config_shapes = {name: shapes[CONFIG_PORTS[name]].shape for name in CONFIG}
+        # (The members in the order they had before lead_k and u_rated were configuration.)
+        first, last = {"lead_k": lead_k}, {"u_rated": u_rated}
         if config == "ram":
             ports = {"config": In(WordWriteSignature(len(CONFIG)))}
+            first, last = {}, {}
         if status == "ram":
             rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
             status_ports = {"status_rd": Out(rd), "status_probe": Out(rd)}
@@ -627,12 +631,12 @@ class EngineCurrentLoop(wiring.Component):
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
-            "theta": In(unsigned(aw)),
+            "theta": In(unsigned(aw)), **first,
             "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
             "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
             **ports,
-            "scale": In(unsigned(cw)),
+            **last, "scale": In(unsigned(cw)),
             "o": Out(stream.Signature(data.StructLayout({p: unsigned(cw) for p in "abc"}))),
             "overmod": Out(1),
             "phase": Out(stream.Signature(data.StructLayout({p: sw for p in "abc"}),
