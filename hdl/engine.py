@@ -683,6 +683,10 @@ class Engine(wiring.Component):
     config_init : list of int
         The configuration RAM's initial words (default all 0), as ``cfg.data`` carries them
         (e.g. :attr:`~.regs.RegisterFile.export_init`: the registers' reset values).
+    strobe_outs : tuple of str
+        Outputs (of ``out_widths``, not ``ang``, not 1-bit) with no register: only their write
+        strobe ``o_<name>_we`` and the write data ``o_data``, for a consumer that keeps them
+        elsewhere (e.g. a RAM). Default ``()``.
 
     Configuration RAM (``config``): block RAM of ``len(config)`` words of ``config_width``
     bits. The word of an instruction's config operand is looked up, in the clock before F,
@@ -710,7 +714,11 @@ class Engine(wiring.Component):
     <cond> : In(1)
         One port per user condition.
     <out> : Out(width), <out>_we : Out(1)
-        Output registers (held) and their one-clock write strobes.
+        Output registers (held) and their one-clock write strobes (``strobe_outs``: the
+        strobe only).
+    o_data : Out(signed(WORD))
+        The value written back in this clock (X4): what an output written in this clock
+        (its ``_we`` high) takes, its low ``width`` bits.
     trace_* : Out
         Per-clock view of the instruction in X4 (write back), for the tests:
         ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
@@ -718,7 +726,7 @@ class Engine(wiring.Component):
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
-                 rotator=None, config=(), config_init=None):
+                 rotator=None, config=(), config_init=None, strobe_outs=()):
         if not isinstance(program, Program):
             raise TypeError(f"Engine program must be a Program, not {program!r}")
         user_specials = program.specials[len(BUILTIN_SPECIALS):]
@@ -750,6 +758,12 @@ class Engine(wiring.Component):
                 or not all(isinstance(v, int) for v in config_init)):
             raise ValueError(f"Engine config_init must be a list of {len(config)} integers, "
                              f"not {config_init!r}")
+        if (not isinstance(strobe_outs, tuple) or len(set(strobe_outs)) != len(strobe_outs)
+                or not all(n in out_widths and n != "ang" and out_widths[n] > 1
+                           for n in strobe_outs)):
+            raise ValueError(f"Engine strobe_outs must be a tuple of distinct outputs of "
+                             f"out_widths, wider than 1 bit, not ang, not {strobe_outs!r}")
+        self._strobe_outs = strobe_outs
         self._config = config
         self._config_width = max((Shape.cast(special_shapes[n]).width
                                   + (0 if Shape.cast(special_shapes[n]).signed else 1)
@@ -772,6 +786,7 @@ class Engine(wiring.Component):
             "trace_dst": Out(7),
             "trace_y": Out(signed(WORD)),
             "trace_p": Out(signed(P_WORD)),
+            "o_data": Out(signed(WORD)),
         }
         for name, shape in self._special_shapes.items():
             if name not in config:
@@ -781,7 +796,8 @@ class Engine(wiring.Component):
         for name in program.conds[len(BUILTIN_CONDS):]:
             members[f"c_{name}"] = In(1)
         for name, w in self._out_widths.items():
-            members[f"o_{name}"] = Out(w)
+            if name not in strobe_outs:
+                members[f"o_{name}"] = Out(w)
             members[f"o_{name}_we"] = Out(1)
         super().__init__(members)
 
@@ -789,6 +805,7 @@ class Engine(wiring.Component):
     rotator = property(lambda self: self._rot)
     config = property(lambda self: self._config)
     config_width = property(lambda self: self._config_width)
+    strobe_outs = property(lambda self: self._strobe_outs)
 
     def elaborate(self, platform):
         m = Module()
@@ -1127,10 +1144,13 @@ class Engine(wiring.Component):
         m.d.comb += self.trace_pc.eq(x4_pc)
 
         # Outputs (written in X4, like the register file).
+        m.d.comb += self.o_data.eq(y)
         for i, (name, ow) in enumerate(self._out_widths.items(), start=1):
-            reg = getattr(self, f"o_{name}")
             we = getattr(self, f"o_{name}_we")
             m.d.comb += we.eq(writes4 & (w4_out == i))
+            if name in self._strobe_outs:
+                continue                        # no register: o_data with the strobe
+            reg = getattr(self, f"o_{name}")
             with m.If(we):
                 m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
 

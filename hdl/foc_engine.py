@@ -20,8 +20,9 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Module, Signal, signed, unsigned
+from amaranth.hdl import Cat, Module, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
+from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 
 from .bus import WordWriteSignature
@@ -33,7 +34,8 @@ from .rotator import RotatorParams
 
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
-           "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC"]
+           "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -50,14 +52,21 @@ BSPECIALS = ("ia", "ib", "nspd", "scale")
 #: The configuration specials read from the engine's configuration RAM with ``config="ram"``,
 #: in its word order (the port each comes from with ``config="ports"``: :data:`CONFIG_PORTS`).
 CONFIG = ("gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q", "kx_q",
-          "lo_q", "hi_q", "ff_l", "ff_psi")
+          "lo_q", "hi_q", "ff_l", "ff_psi", "klead", "urat")
 #: ``config="ports"``: the EngineCurrentLoop port of each configuration special.
 CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
                 "off_b": "offset_b", "kp_d": "kp_d", "kx_d": "kx_d", "lo_d": "lim_lo_d",
                 "hi_d": "lim_hi_d", "kp_q": "kp_q", "kx_q": "kx_q", "lo_q": "lim_lo_q",
-                "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi"}
+                "hi_q": "lim_hi_q", "ff_l": "ff_l", "ff_psi": "ff_psi", "klead": "lead_k",
+                "urat": "u_rated"}
 #: Values of ``EngineCurrentLoop(config=...)``.
 CONFIGS = ("ports", "ram")
+#: Values of ``EngineCurrentLoop(status=...)``.
+STATUSES = ("ports", "ram")
+#: The status outputs (``status="ram"``: the status RAM's words, in this order).
+STATUS = ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q", "u_alpha", "u_beta")
+#: The engine output each status value is written by.
+STATUS_OUTS = {"i_alpha": "pa", **{name: name for name in STATUS[1:]}}
 #: User conditions.
 CONDS = ("RUN", "OL", "FF")
 #: Output registers and their widths (``ang`` is the engine's angle register).
@@ -432,6 +441,31 @@ def phase_latency(program):
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
+def status_quiet(program):
+    """Clocks from ``done`` of :class:`EngineCurrentLoop` running ``program`` (that clock
+    included) in which no status output (:data:`STATUS`) is written: after its last duty
+    (``o.valid``, before ``done``) the program writes no status output, and the next program
+    starts at the earliest in the ``done`` clock (a sample accepted then), writing its first
+    status output ``START_CLOCKS + k + WRITE_DELAY`` clocks after that (``k`` instruction
+    clocks before it, on the straight-line start of the program)."""
+    outs = ("",) + tuple(OUTS)
+    status = {outs.index(STATUS_OUTS[name]) for name in STATUS}
+    dc = outs.index("dc")
+    instrs = program.instrs
+    for path in _paths(program):
+        last = max(k for k, pc in enumerate(path) if instrs[pc].out == dc)
+        if any(instrs[pc].out in status for pc in path[last + 1:]):
+            raise ValueError("engine program: a status output written after the last duty")
+    k = 0
+    for ins in instrs:
+        if ins.op in (Op.BR, Op.END):
+            break
+        if ins.out in status:
+            return START_CLOCKS + k + WRITE_DELAY
+        k += _clocks(ins)
+    raise ValueError("engine program: no status output written before the first branch")
+
+
 class EngineCurrentLoop(wiring.Component):
     """The current loop of :class:`~.foc.CurrentLoop` as a program of the loop engine.
 
@@ -460,14 +494,17 @@ class EngineCurrentLoop(wiring.Component):
         The ``theta_lead`` register: the inverse Park's advance at full-scale speed, UQ0.16
         turns; read while the program runs (like the gains), θ_lead = ``round_shift(n·k, 15)``
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
+        With ``config="ram"`` the configuration RAM's word ``klead`` instead (as ``u_rated``'s:
+        word ``urat``).
 
     Parameters
     ----------
     config : str
-        Where the 14 configuration values (:data:`CONFIG`: Clarke gains and offsets, the PIs'
-        gains and limits, the decoupling ``ff_l``, ``ff_psi``) come from: ``"ports"``
-        (default) the input ports of :class:`~.foc.CurrentLoop` (``gain_a``, ``offset_a``,
-        ``kp_d``, ``lim_lo_d``, …); ``"ram"`` the engine's configuration RAM, written through
+        Where the 16 configuration values (:data:`CONFIG`: Clarke gains and offsets, the PIs'
+        gains and limits, the decoupling ``ff_l``, ``ff_psi``, then ``lead_k`` and
+        ``u_rated``) come from: ``"ports"`` (default) the input ports of
+        :class:`~.foc.CurrentLoop` (``gain_a``, ``offset_a``, ``kp_d``, ``lim_lo_d``, …) and
+        ``lead_k``, ``u_rated``; ``"ram"`` the engine's configuration RAM, written through
         the ``config`` port (:class:`~.bus.WordWriteSignature`, word ``j`` = ``CONFIG[j]`` in
         the register file's read format; e.g. the register file's ``export`` port), which has
         none of those input ports. Both give the same results in the same clocks when each
@@ -475,6 +512,29 @@ class EngineCurrentLoop(wiring.Component):
     config_init : list of int
         ``config="ram"``: the RAM's initial words (default all 0; the top passes the
         registers' reset values, :attr:`~.regs.RegisterFile.export_init`).
+    status : str
+        Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
+        registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM
+        written in the same clocks (word ``j`` = ``STATUS[j]``, 0 at power-up; a domain reset
+        does not clear it, where it clears the registers), read through two synchronous
+        read ports in place of those members (``status_rd``, ``status_probe``, below).
+
+    Status RAM (``status="ram"``): two block RAMs of ``len(STATUS)`` words of ``width``
+    bits, one per read port, written together at the engine's output writes (the registers'
+    load clocks). Each read port takes ``addr`` (a word of :data:`STATUS`) and shows the word
+    one clock later on ``data``:
+
+    * ``status_rd`` reads transparently: ``data`` in clock ``t + 1`` is the value the
+      register ``STATUS[addr]`` holds in ``t + 1`` (``addr`` given in ``t``); for the register
+      file (:attr:`~.regs.RegisterFile` ``status_ram``), whose read multiplexer samples its
+      inputs in ``t + 1``. (On the iCE40 synthesis adds the bypass of a write in ``t``.)
+    * ``status_probe`` reads the old word: ``data`` in ``c + 1`` is the value the register
+      held in ``c`` (``addr`` given in ``c``), as a flip-flop sampling the register in ``c``
+      would hold it in ``c + 1``; for the scope (:class:`~.scope.Scope` ``ram_sources``), which
+      samples a probe in ``c`` and writes it in ``c + 1``. Valid only in the
+      :attr:`status_quiet` clocks from ``done`` on (no status output is written then, so the
+      RAM's read-during-write behaviour never matters; it is left undefined): the scope, strobed
+      by ``done``, samples its channels in ``done`` … ``done + channels − 1``.
 
     Attributes
     ----------
@@ -491,13 +551,18 @@ class EngineCurrentLoop(wiring.Component):
     phase_latency : int
         Clocks from the accepted sample to the ``phase`` transfer (the program's write of
         phase c, :func:`phase_latency`).
+    status_quiet : int
+        :func:`status_quiet` of the program: from ``done`` (included), the clocks in which no
+        status output is written.
+    status_mode : str
+        The ``status`` parameter.
     program : Program
     """
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
                  kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
-                 config="ports", config_init=None):
+                 config="ports", config_init=None, status="ports"):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -527,6 +592,9 @@ class EngineCurrentLoop(wiring.Component):
                                         or not all(isinstance(v, int) for v in config_init)):
             raise ValueError(f"EngineCurrentLoop config_init must be a list of {len(CONFIG)} "
                              f"integers, not {config_init!r}")
+        check_choice("EngineCurrentLoop", "status", status, STATUSES)
+        self._status = status
+        self._status_mems = {}                  # status="ram": made by elaborate()
         self._config = config
         self._config_init = list(config_init) if config_init is not None else [0] * len(CONFIG)
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
@@ -534,6 +602,7 @@ class EngineCurrentLoop(wiring.Component):
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
+        self._status_quiet = status_quiet(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
         ports = {
@@ -545,26 +614,35 @@ class EngineCurrentLoop(wiring.Component):
             "kp_q": In(kp_format.shape), "kx_q": In(kx_format.shape),
             "lim_lo_q": In(sw), "lim_hi_q": In(sw),
         }
+        lead_k, u_rated = In(unsigned(16)), In(unsigned(adc_width))
         #: The configuration specials' shapes (the ports' shapes in both modes).
-        self._config_shapes = {name: ports[CONFIG_PORTS[name]].shape for name in CONFIG}
+        shapes = {**ports, "lead_k": lead_k, "u_rated": u_rated}
+        self._config_shapes = {name: shapes[CONFIG_PORTS[name]].shape for name in CONFIG}
+        # (The members in the order they had before lead_k and u_rated were configuration.)
+        first, last = {"lead_k": lead_k}, {"u_rated": u_rated}
         if config == "ram":
             ports = {"config": In(WordWriteSignature(len(CONFIG)))}
+            first, last = {}, {}
+        if status == "ram":
+            rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
+            status_ports = {"status_rd": Out(rd), "status_probe": Out(rd)}
+        else:
+            status_ports = {name: Out(sw) for name in STATUS}
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
-            "theta": In(unsigned(aw)), "lead_k": In(unsigned(16)),
+            "theta": In(unsigned(aw)), **first,
             "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
             "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
             **ports,
-            "u_rated": In(unsigned(adc_width)), "scale": In(unsigned(cw)),
+            **last, "scale": In(unsigned(cw)),
             "o": Out(stream.Signature(data.StructLayout({p: unsigned(cw) for p in "abc"}))),
             "overmod": Out(1),
             "phase": Out(stream.Signature(data.StructLayout({p: sw for p in "abc"}),
                                           always_ready=True)),
             "udc": Out(stream.Signature(signed(adc_width), always_ready=True)),
-            **{name: Out(sw) for name in ("i_alpha", "i_beta", "i_d", "i_q",
-                                          "u_d", "u_q", "u_alpha", "u_beta")},
+            **status_ports,
             "sat_d": Out(1), "sat_q": Out(1), "dc_limited": Out(1), "busy": Out(1),
             "overrun": Out(1), "overruns": Out(16), "count": Out(32), "done": Out(1),
         })
@@ -580,6 +658,11 @@ class EngineCurrentLoop(wiring.Component):
     interval = property(lambda self: self._interval)
     gain_limit_raw = property(lambda self: self._gain_limit_raw)
     phase_latency = property(lambda self: self._phase_latency)
+    status_quiet = property(lambda self: self._status_quiet)
+    status_mode = property(lambda self: self._status)
+    #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
+    #: for a testbench; ``None`` before it and with ``"ports"``.
+    status_memory = property(lambda self: self._status_mems.get("status_rd"))
 
     def elaborate(self, platform):
         m = Module()
@@ -589,7 +672,7 @@ class EngineCurrentLoop(wiring.Component):
             "ia": signed(16), "ib": signed(16), "theta": unsigned(16), "klead": unsigned(16),
             "id_ref": sw, "iq_ref": sw, "ol_ud": sw, "ol_uq": sw, "nspd": sw,
             **self._config_shapes,
-            "scale": self.scale.shape(), "udc": signed(16), "urat": self.u_rated.shape(),
+            "scale": self.scale.shape(), "udc": signed(16),
         }
         shapes = {name: shapes[name] for name in SPECIALS}
         ram = self._config == "ram"
@@ -597,7 +680,10 @@ class EngineCurrentLoop(wiring.Component):
                                            out_widths=OUTS, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
                                            config=CONFIG if ram else (),
-                                           config_init=self._config_init if ram else None)
+                                           config_init=self._config_init if ram else None,
+                                           strobe_outs=(tuple(STATUS_OUTS[n] for n in STATUS
+                                                              if STATUS_OUTS[n] != "pa")
+                                                        if self._status == "ram" else ()))
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program
@@ -639,8 +725,7 @@ class EngineCurrentLoop(wiring.Component):
             config = {}
         else:
             config = {name: getattr(self, CONFIG_PORTS[name]) for name in CONFIG}
-        config.update({"scale": self.scale, "klead": self.lead_k, "udc": self.udc.payload,
-                       "urat": self.u_rated})
+        config.update({"scale": self.scale, "udc": self.udc.payload})
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),
@@ -652,11 +737,47 @@ class EngineCurrentLoop(wiring.Component):
             self.o.payload.c.eq(eng.o_dc),
             self.phase.payload.a.eq(eng.o_pa), self.phase.payload.b.eq(eng.o_pb),
             self.phase.payload.c.eq(eng.o_pc),
-            self.i_alpha.eq(eng.o_pa), self.i_beta.eq(eng.o_i_beta),
-            self.i_d.eq(eng.o_i_d), self.i_q.eq(eng.o_i_q),
-            self.u_d.eq(eng.o_u_d), self.u_q.eq(eng.o_u_q),
-            self.u_alpha.eq(eng.o_u_alpha), self.u_beta.eq(eng.o_u_beta),
             self.sat_d.eq(eng.o_sat_d), self.sat_q.eq(eng.o_sat_q),
         ]
+        if self._status == "ports":
+            m.d.comb += [getattr(self, name).eq(getattr(eng, f"o_{STATUS_OUTS[name]}"))
+                         for name in STATUS]
+        else:
+            self._status_ram(m, eng)
         m.d.sync += self.phase.valid.eq(eng.o_pc_we)
         return m
+
+    def _status_ram(self, m, eng):
+        """The status RAM (class docstring): written at the engine's writes of the status
+        outputs, read through ``status_rd`` (transparent) and ``status_probe`` (old word)."""
+        strobes = [getattr(eng, f"o_{STATUS_OUTS[name]}_we") for name in STATUS]
+        addr = Signal(range(len(STATUS)))
+        for j, we in enumerate(strobes):        # one strobe at a time (one write per clock)
+            with m.If(we):
+                m.d.comb += addr.eq(j)
+        # The register file's port reads the word written in its clock (transparent), the
+        # scope's the word before it; the scope reads only while no status output is written
+        # (``status_quiet``): a read of the word being written is left undefined there
+        # (``no_rw_check``: no bypass logic).
+        # (The scope's: an asynchronous read port with its data registered here, which yosys
+        # merges into the block RAM's synchronous port; a synchronous port reading the old word
+        # made it add 38 flip-flops.)
+        # One RAM per read port (a block RAM has one), both written alike.
+        self._status_mems = {
+            name: Memory(shape=signed(ENGINE_WIDTH), depth=len(STATUS), init=[],
+                         attrs={} if name == "status_rd" else {"no_rw_check": 1})
+            for name in ("status_rd", "status_probe")}
+        for name, transparent in (("status_rd", True), ("status_probe", False)):
+            port = getattr(self, name)
+            m.submodules[f"{name}_ram"] = mem = self._status_mems[name]
+            wr = mem.write_port()
+            m.d.comb += [wr.en.eq(Cat(*strobes).any()), wr.addr.eq(addr),
+                         wr.data.eq(eng.o_data[:ENGINE_WIDTH])]
+            if transparent:
+                rd = mem.read_port(transparent_for=(wr,))
+                m.d.comb += [rd.addr.eq(port.addr), rd.en.eq(port.en), port.data.eq(rd.data)]
+            else:
+                rd = mem.read_port(domain="comb")
+                data_q = Signal(signed(ENGINE_WIDTH), reset_less=True)
+                m.d.comb += [rd.addr.eq(port.addr), port.data.eq(data_q)]
+                m.d.sync += data_q.eq(rd.data)

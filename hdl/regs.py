@@ -82,13 +82,28 @@ the RAM's reset half) in clock ``2 + i`` after the reset clock (slot ``i``; the 
 from clock ``3 + i``); from clock ``2 + reset_clocks`` after the reset on every exported word
 is its reset value again. At power-up the walk runs too; a consumer RAM initialised with
 :func:`export_init` (the reset values) matches from the first clock.
+
+Status read from a RAM (``status_ram``; docs/AREA.md, "Session 11: engine status"). The
+read-only registers named in ``status_ram`` have no ``In`` member: their values live in a
+consumer's RAM (e.g. the loop engine's status RAM), read through the ``status_rd`` port, a
+synchronous read port whose ``data`` in clock ``t + 1`` is the register's value in ``t + 1``
+for ``addr`` given in ``t`` (a transparent read)::
+
+    t      status_rd.addr: the addressed register's position in ``status_ram``, looked up
+           combinationally from the word index (ten address bits, no compare)
+    t + 1  status_rd.data: one more term of the read multiplexer (its own one-hot bit, the
+           sign bit for the sign extension), sampled in this clock like every status input
+
+so such a read returns exactly what a status input sampled in ``t + 1`` would, in the same
+clocks (``ack`` in ``t + 2``). ``addr`` is driven in every clock (a read in a clock without an
+access is harmless).
 """
 
 import itertools
 
 from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, unsigned
 from amaranth.lib import wiring
-from amaranth.lib.memory import Memory
+from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
@@ -205,6 +220,10 @@ class RegisterFile(wiring.Component):
         ``staging="bram"`` only: shadowed registers whose active value is not held here but
         written to a consumer's RAM through the ``export`` port (module docstring); they have
         no Out member. Default ``()``.
+    status_ram : tuple of str
+        Read-only registers of one word each, all of one shape, whose values are read from a
+        consumer's RAM through the ``status_rd`` port (module docstring), in this order (the
+        read address of a register is its position); they have no In member. Default ``()``.
 
     Members
     -------
@@ -224,7 +243,11 @@ class RegisterFile(wiring.Component):
         Only with ``export``: the exported active words as RAM writes (``valid``, ``index``,
         ``data``), in the clocks the module docstring gives.
     <ro register> : In(register.shape)
-        Status from the control path.
+        Status from the control path (not those of ``status_ram``).
+    status_rd : In(ReadPort.Signature(addr_width=ceil_log2(len(status_ram)), shape=...))
+        Only with ``status_ram``: ``addr`` (out; the position in ``status_ram``) in clock
+        ``t``, the register's value in ``t + 1`` on ``data`` (in) in ``t + 1`` (a transparent
+        synchronous read port of the consumer's RAM; ``en`` is always 1).
     <strobe register> : Out(1)
         One-clock pulse in ``t + 1`` after a write with bit 0 set.
     <window>_rd_addr : Out(window.addr_width)
@@ -262,16 +285,18 @@ class RegisterFile(wiring.Component):
     ------
     TypeError
         ``regmap`` is not a :class:`~.regmap.RegMap`; ``staging`` is not a string;
-        ``copy_last`` or ``export`` is not a tuple of strings.
+        ``copy_last``, ``export`` or ``status_ram`` is not a tuple of strings.
     ValueError
         ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` or ``export`` names a
         register that is not a shadowed ``rw`` register of ``regmap``, repeats a name, or is
-        given with ``staging="ff"``.
+        given with ``staging="ff"``; ``status_ram`` names a register that is not a one-word
+        ``ro`` register, repeats a name, or names registers of different shapes.
     """
 
     latency = 2
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(),
+                 status_ram=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
@@ -290,6 +315,22 @@ class RegisterFile(wiring.Component):
                                  f"not staging={staging!r}")
             if len(set(names)) != len(names):
                 raise ValueError(f"RegisterFile {param} must not repeat a name, not {names!r}")
+        if (not isinstance(status_ram, tuple)
+                or not all(isinstance(n, str) for n in status_ram)):
+            raise TypeError(f"RegisterFile status_ram must be a tuple of register names, "
+                            f"not {status_ram!r}")
+        for name in status_ram:
+            if (name not in regmap or regmap[name].access is not Access.RO
+                    or regmap[name].words != 1):
+                raise ValueError(f"RegisterFile status_ram must name one-word ro registers, "
+                                 f"not {name!r}")
+        if len(set(status_ram)) != len(status_ram):
+            raise ValueError(f"RegisterFile status_ram must not repeat a name, "
+                             f"not {status_ram!r}")
+        if len({(regmap[n].width, regmap[n].signed) for n in status_ram}) > 1:
+            raise ValueError(f"RegisterFile status_ram must name registers of one shape, "
+                             f"not {status_ram!r}")
+        self._status_ram = status_ram
         self._regmap = regmap
         self._staging = staging
         self._copy_last = copy_last
@@ -313,11 +354,15 @@ class RegisterFile(wiring.Component):
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
+        if status_ram:
+            r0 = regmap[status_ram[0]]
+            members["status_rd"] = In(ReadPort.Signature(
+                addr_width=ceil_log2(len(status_ram)), shape=r0.fmt.shape))
         for r in regmap:
             if r.access is Access.RW:
                 if r.name not in export:        # (exported: the consumer's RAM holds it)
                     members[r.name] = Out(r.shape, init=r.init)
-            elif r.access is Access.RO:
+            elif r.access is Access.RO and r.name not in status_ram:
                 members[r.name] = In(r.shape)
             elif r.access is Access.STROBE:
                 members[r.name] = Out(1)
@@ -330,6 +375,7 @@ class RegisterFile(wiring.Component):
     staging = property(lambda self: self._staging)
     copy_last = property(lambda self: self._copy_last)
     exported = property(lambda self: self._export)
+    status_ram = property(lambda self: self._status_ram)
     export_words = property(lambda self: list(self._export_words))
     export_init = property(lambda self: export_init(self._regmap, self._export))
     slots = property(lambda self: len(self._slots))
@@ -388,6 +434,8 @@ class RegisterFile(wiring.Component):
                     m.d.sync += _bits(port).eq(staged)
             elif r.access is Access.RW:
                 held[r.name] = _bits(port)
+            elif r.access is Access.RO and r.name in self._status_ram:
+                held[r.name] = None             # in the consumer's RAM (status_rd)
             elif r.access is Access.RO:
                 held[r.name] = _bits(port)
             elif r.access is Access.CONST:
@@ -459,6 +507,7 @@ class RegisterFile(wiring.Component):
                 sign[hi - lo] = Signal(name=f"sign{hi - lo}")
             return held_r[lo:hi], held_r[hi - 1]
 
+        terms, sign_terms = [], {}
         if muxed:
             hot = Signal(len(muxed), name="hot")
             with m.If(access):
@@ -467,13 +516,34 @@ class RegisterFile(wiring.Component):
                     for j, (i, r, k, _) in enumerate(muxed):
                         with m.Case(_index_of(words[i][0], block_bits, picked)):
                             m.d.sync += hot.eq(1 << j)
-            terms, sign_terms = [], {}
             for j, (i, r, k, held_r) in enumerate(muxed):
                 value, sx = part(r, k, held_r)
                 value = Value.cast(value)
                 terms.append(value & hot[j].replicate(len(value)))
                 if sx is not None:
                     sign_terms.setdefault(len(value), []).append(sx & hot[j])
+        if self._status_ram:
+            # The status words in the consumer's RAM: its address looked up from the index in
+            # t, its data one more term in t + 1 under a hot bit of its own.
+            st_hot = Signal(name="status_hot")
+            rd = self.status_rd
+            r0 = self._regmap[self._status_ram[0]]
+            with m.Switch(index):
+                for j, name in enumerate(self._status_ram):
+                    with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
+                        m.d.comb += rd.addr.eq(j)
+            with m.If(access):
+                m.d.sync += st_hot.eq(0)
+                with m.Switch(index):
+                    for name in self._status_ram:
+                        with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
+                            m.d.sync += st_hot.eq(1)
+            value, sx = part(r0, 0, Value.cast(rd.data))
+            value = Value.cast(value)
+            terms.append(value & st_hot.replicate(len(value)))
+            if sx is not None:
+                sign_terms.setdefault(len(value), []).append(sx & st_hot)
+        if terms:
             m.d.comb += word.eq(_or_tree(terms))
             for w, bits in sign_terms.items():
                 m.d.comb += sign[w].eq(_or_tree(bits))

@@ -36,6 +36,14 @@ spread over the whole design. ``done`` waits until the last channel of the last 
 RAM (``write_clocks`` = ``channels + 1`` clocks from the strobe). ``arm`` abandons the channels
 not yet taken; one taken in the clock before ``arm`` still reaches the RAM in ``arm``'s clock.
 
+**Sources read from a RAM** (``ram_sources``; docs/AREA.md, "Session 11: engine status").
+Sources held in another block's RAM rather than in flip-flops (the loop engine's status,
+``EngineCurrentLoop(status="ram")``) are not members of ``src``: the channel that samples one
+in clock ``c`` puts its position in ``ram_sources`` on ``ram_rd.addr`` in ``c``, and the RAM's
+synchronous read gives the value the source had in ``c`` on ``ram_rd.data`` in ``c + 1``,
+where it takes the place of the write register's data. The sample word and every timing above
+are unchanged: such a source reads exactly as if it were a member of ``src``.
+
 **Capture** (``state``: :class:`ScopeState`)::
 
     arm ─► PRE: samples go into the ring; once `pretrigger` of them are in (pre_full), a trigger
@@ -67,7 +75,7 @@ from collections.abc import Mapping
 from amaranth.hdl import (C, Cat, ClockSignal, Instance, Module, Mux, Shape, Signal, Value,
                           signed, unsigned)
 from amaranth.lib import data, enum, wiring
-from amaranth.lib.memory import Memory
+from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
@@ -167,11 +175,18 @@ class Scope(wiring.Component):
     ram : str
         ``"bram"`` (an :class:`~amaranth.lib.memory.Memory`) or ``"ice40_spram"`` (one
         ``SB_SPRAM256KA``: ``width`` ≤ 16 and ``channels · depth`` ≤ 16 384; synthesis only).
+    ram_sources : tuple of str
+        Sources of one shape read through ``ram_rd`` (module docstring) rather than ``src``,
+        in their RAM's word order. Default ``()``.
 
     Members
     -------
     src : In(StructLayout(sources))
-        The source signals, one field per name.
+        The source signals, one field per name (not those of ``ram_sources``).
+    ram_rd : In(ReadPort.Signature(addr_width=max(1, ceil_log2(len(ram_sources))), shape))
+        Only with ``ram_sources``: ``addr`` (out) the position in ``ram_sources`` of the
+        source sampled in this clock; ``data`` (in) that source's value of the clock before
+        (a synchronous read port of the RAM, the word before a write in the same clock).
     sel : In(ArrayLayout(unsigned(sel_width), channels))
         Source code of each channel (latched at ``arm``); a code ≥ ``len(sources)`` records 0.
     strobe : In(1)
@@ -214,8 +229,14 @@ class Scope(wiring.Component):
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
-                 decim_width=16, ram="bram"):
+                 decim_width=16, ram="bram", ram_sources=()):
         shapes = check_scope(sources, channels, depth, width, decim_width, ram)
+        if (not isinstance(ram_sources, tuple) or len(set(ram_sources)) != len(ram_sources)
+                or not all(n in shapes for n in ram_sources)
+                or len({shapes[n] for n in ram_sources}) > 1):
+            raise ValueError(f"Scope ram_sources must be a tuple of distinct sources of one "
+                             f"shape, not {ram_sources!r}")
+        self._ram_sources = ram_sources
         self._ram = ram
         self._sources = shapes
         self._channels = channels
@@ -225,8 +246,14 @@ class Scope(wiring.Component):
         self._abits = depth.bit_length() - 1
         self._sel_width = max(ceil_log2(len(shapes)), 1)
         self._cbits = ceil_log2(channels)
+        extra = {}
+        if ram_sources:
+            extra["ram_rd"] = In(ReadPort.Signature(
+                addr_width=max(1, ceil_log2(len(ram_sources))), shape=shapes[ram_sources[0]]))
         super().__init__({
-            "src": In(data.StructLayout(shapes)),
+            **extra,
+            "src": In(data.StructLayout({n: shape for n, shape in shapes.items()
+                                         if n not in ram_sources})),
             "sel": In(data.ArrayLayout(unsigned(self._sel_width), channels)),
             "strobe": In(1),
             "decim": In(unsigned(decim_width)),
@@ -255,10 +282,15 @@ class Scope(wiring.Component):
     write_clocks = property(lambda self: self._channels + 1)
     strobe_interval = property(lambda self: self._channels)
     ram = property(lambda self: self._ram)
+    ram_sources = property(lambda self: self._ram_sources)
 
     def _aligned(self, name):
         """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
-        value = Value.cast(self.src[name]).as_unsigned()
+        return self._align(self.src[name])
+
+    def _align(self, value):
+        """``value`` MSB-aligned to ``width`` bits (raw, unsigned)."""
+        value = Value.cast(value).as_unsigned()
         sw, w = len(value), self._width
         return value[sw - w:] if sw >= w else value << (w - sw)
 
@@ -314,10 +346,15 @@ class Scope(wiring.Component):
         # Sample word: one multiplexer, the source code of the channel sampled in this clock.
         names = self.source_names
         sample = Signal(unsigned(width))
+        ram_src = Signal()              # the source sampled in this clock is in a RAM
         with m.Switch(sel[0]):
             for code, name in enumerate(names):
                 with m.Case(code):
-                    m.d.comb += sample.eq(self._aligned(name))
+                    if name in self._ram_sources:
+                        m.d.comb += [ram_src.eq(1),
+                                     self.ram_rd.addr.eq(self._ram_sources.index(name))]
+                    else:
+                        m.d.comb += sample.eq(self._aligned(name))
         if n > 1:
             with m.If(self.arm):
                 m.d.sync += phase.eq(0)
@@ -341,6 +378,14 @@ class Scope(wiring.Component):
             wr_addr.eq(Cat(Mux(busy, slot, wr_ptr), phase)),
             wr_data.eq(sample),
         ]
+        if self._ram_sources:
+            # A source in a RAM: its read data (the value of the clock before) in place of the
+            # write register's (0 for it).
+            ram_q = Signal()
+            m.d.sync += ram_q.eq(ram_src)
+            wr_word = Signal(unsigned(width))
+            m.d.comb += wr_word.eq(wr_data | Mux(ram_q, self._align(self.ram_rd.data), 0))
+            wr_data = wr_word
         # One RAM port: the registered write, or else the read-back window, its index translated
         # by the write pointer.
         addr = Signal(range(words))

@@ -44,13 +44,18 @@ and the current loop must be idle in the window too (the sample not within ``loo
 commit_clocks`` clocks of the period end).
 
 **Engine configuration in RAM** (``current_loop="engine"`` with ``regs_staging="bram"``, the
-iCEBreaker): the register file holds no flip-flops for the current loop's 14 configuration
+iCEBreaker): the register file holds no flip-flops for the current loop's 16 configuration
 registers (:data:`ENGINE_CONFIG`: Clarke gains and offsets, PI gains and limits, decoupling
-``L`` and ``ψ``); its commit copy writes them through its ``export`` port into the loop
-engine's configuration RAM in the clocks the flip-flops would have changed
-(``EngineCurrentLoop(config="ram")``), so the loop sees the same values in the same clocks.
-(One exception, in the reset walk's 63 clocks after a domain reset: the flip-flops would have
-held the reset values at once, the RAM gets them word by word.)
+``L`` and ``ψ``, ``theta_lead``, ``u_rated``); its commit copy writes them through its
+``export`` port into the loop engine's configuration RAM in the clocks the flip-flops would
+have changed (``EngineCurrentLoop(config="ram")``), so the loop sees the same values in the
+same clocks. (One exception, in the reset walk's 63 clocks after a domain reset: the
+flip-flops would have held the reset values at once, the RAM gets them word by word.) The
+loop's eight status values (``st_i_alpha`` … ``st_u_beta``, the scope's sources of the same
+names) are in the engine's status RAM (``EngineCurrentLoop(status="ram")``), read through one
+read port each by the register file (``RegisterFile(status_ram=...)``) and the scope
+(``Scope(ram_sources=...)``): the same values in the same clocks as from the registers (a
+domain reset does not clear the RAM, where it cleared the registers).
 
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
@@ -105,6 +110,7 @@ from .encoder import EncoderFrontEnd
 from .fixed import check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
+from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
@@ -135,6 +141,7 @@ ENGINE_CONFIG = tuple({
     "off_b": "clarke_offset_b", "kp_d": "pi_d_kp", "kx_d": "pi_d_kx", "lo_d": "pi_d_lim_lo",
     "hi_d": "pi_d_lim_hi", "kp_q": "pi_q_kp", "kx_q": "pi_q_kx", "lo_q": "pi_q_lim_lo",
     "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
+    "klead": "theta_lead", "urat": "u_rated",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
 
 
@@ -415,9 +422,13 @@ class Top(wiring.Component):
         # copied in the copy's last clock (it changes after the latch, as with "ff").
         # The engine's configuration registers in its RAM (module docstring).
         cfg_ram = current_loop == "engine" and regs_staging == "bram"
+        # ... and its status in its status RAM, read by the register file and the scope.
+        self._status_ram = cfg_ram
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=ENGINE_CONFIG if cfg_ram else ())
+                                  export=ENGINE_CONFIG if cfg_ram else (),
+                                  status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
+                                              if cfg_ram else ()))
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -428,7 +439,8 @@ class Top(wiring.Component):
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init) if cfg_ram else
+                                        config_init=self._regs.export_init,
+                                        status="ram") if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
@@ -441,7 +453,11 @@ class Top(wiring.Component):
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
-        self._scope = Scope(ram=scope_ram)
+        self._scope = Scope(ram=scope_ram, ram_sources=ENGINE_STATUS if cfg_ram else ())
+        if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
+            raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
+                             f"after the engine's done, which leaves only "
+                             f"{self._loop.status_quiet} clocks without a status write")
 
         super().__init__({
             "uart_rx": In(1, init=1),
@@ -553,7 +569,8 @@ class Top(wiring.Component):
         else:
             # The engine: θ_lead from the speed it latches at the sample (cl_speed, below)
             # and the theta_lead register, in its program (EngineCurrentLoop.lead_k).
-            m.d.comb += cl.lead_k.eq(regs.theta_lead)
+            if "export" not in regs.signature.members:      # (else in its RAM, below)
+                m.d.comb += cl.lead_k.eq(regs.theta_lead)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
             regs.commit.eq(timer.period_start if regs.staging == "ff" else
@@ -611,6 +628,7 @@ class Top(wiring.Component):
                 cl.gain_b.eq(regs.clarke_gain_b), cl.offset_b.eq(regs.clarke_offset_b),
                 cl.ff_l.eq(regs.decouple_l),
                 cl.ff_psi.eq(regs.decouple_psi),
+                cl.u_rated.eq(regs.u_rated),
             ]
         m.d.comb += [
             _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
@@ -623,7 +641,6 @@ class Top(wiring.Component):
             servo.ol_theta.eq(regs.ol_angle),
             servo.ol_freq.eq(regs.ol_freq),
 
-            cl.u_rated.eq(regs.u_rated),
             cl.ff_enable.eq(regs.decouple_enable),
 
             timer.symmetric.eq(regs.pwm_symmetric),
@@ -700,14 +717,19 @@ class Top(wiring.Component):
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),
-            src.i_d.eq(cl.i_d), src.i_q.eq(cl.i_q),
             src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q),
-            src.i_alpha.eq(cl.i_alpha), src.i_beta.eq(cl.i_beta),
-            src.u_d.eq(cl.u_d), src.u_q.eq(cl.u_q),
-            src.u_alpha.eq(cl.u_alpha), src.u_beta.eq(cl.u_beta),
             src.theta.eq(theta_q),
             src.u_dc.eq(adc.o.payload.udc),
         ]
+        # The loop's status: its ports, or (the engine's status RAM) one read port of it each
+        # for the register file and the scope (the scope samples it in the engine's quiet
+        # clocks after done: checked in __init__).
+        if self._status_ram:
+            wiring.connect(m, current_loop=cl.status_probe, scope=scope.ram_rd)
+            wiring.connect(m, current_loop=cl.status_rd, regs=regs.status_rd)
+        else:
+            m.d.comb += [getattr(src, n).eq(getattr(cl, n)) for n in ENGINE_STATUS]
+            m.d.comb += [getattr(regs, f"st_{n}").eq(getattr(cl, n)) for n in ENGINE_STATUS]
 
         # --- status registers ---------------------------------------------------------------
         speed_loops = Signal(16)
@@ -752,10 +774,6 @@ class Top(wiring.Component):
             regs.st_position.eq(enc.count),
             regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
-            regs.st_i_d.eq(cl.i_d), regs.st_i_q.eq(cl.i_q),
-            regs.st_i_alpha.eq(cl.i_alpha), regs.st_i_beta.eq(cl.i_beta),
-            regs.st_u_d.eq(cl.u_d), regs.st_u_q.eq(cl.u_q),
-            regs.st_u_alpha.eq(cl.u_alpha), regs.st_u_beta.eq(cl.u_beta),
             regs.st_udc.eq(adc.o.payload.udc),
             regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
             regs.st_speed_loops.eq(speed_loops),

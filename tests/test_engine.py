@@ -642,8 +642,8 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                 sample = {"ia": int(rng.integers(-32768, 32768)),
                           "ib": int(rng.integers(-32768, 32768)),
                           "udc": int(rng.integers(0, 32768)), "aux": 0}
+                # (lead_k, u_rated: configuration, randomised by the writes above.)
                 values = {"theta": int(rng.integers(1 << 16)),
-                          "lead_k": int(rng.integers(1 << 16)),
                           "id_ref": int(rng.integers(-32768, 32768)),
                           "iq_ref": int(rng.integers(-32768, 32768)),
                           "ol_ud": int(rng.integers(-32768, 32768)),
@@ -651,7 +651,6 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                           "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
                           "ff_enable": int(rng.random() < 0.6),
                           "speed": int(rng.integers(-(1 << 31), 1 << 31)),
-                          "u_rated": int(rng.integers(1 << 16)),
                           "scale": int(rng.integers(1 << 16))}
                 for dut in (a, b):
                     ctx.set(dut.i.payload, sample)
@@ -690,14 +689,140 @@ def _check_config_ram_ports_and_errors():
     members = set(ram.signature.members)
     assert members == (set(ports.signature.members) - set(CONFIG_PORTS.values())) | {"config"}
     sig = ram.signature.members["config"].signature
-    assert isinstance(sig, WordWriteSignature) and sig.depth == len(CONFIG) == 14
+    assert isinstance(sig, WordWriteSignature) and sig.depth == len(CONFIG) == 16
+    assert {"lead_k", "u_rated"} <= set(ports.signature.members) - members
     assert ram.config_mode == "ram" and ports.config_mode == "ports"
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop config must be one of 'ports', "
                                          r"'ram', not 'regs'$"):
         EngineCurrentLoop(config="regs")
     with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init applies only to "
                                          r"config='ram', not config='ports'$"):
-        EngineCurrentLoop(config_init=[0] * 14)
-    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 14 "
+        EngineCurrentLoop(config_init=[0] * 16)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 16 "
                                          r"integers, not \[0\]$"):
         EngineCurrentLoop(config="ram", config_init=[0])
+
+
+# --- EngineCurrentLoop(status="ram") ------------------------------------------------------------
+
+class _PortsAndStatusRam(Elaboratable):
+    """status="ports" and status="ram" side by side (simulation only)."""
+
+    def __init__(self):
+        self.ports = EngineCurrentLoop()
+        self.ram = EngineCurrentLoop(status="ram")
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.ports = self.ports
+        m.submodules.ram = self.ram
+        return m
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_engine_current_loop_status_ram_reads_what_the_ports_hold(seed):
+    """status="ram" against status="ports" on the same random samples (also accepted in the
+    ``done`` clock, back to back), both read ports given a random word in every clock:
+    ``status_rd.data`` in clock t + 1 is the ports loop's status output of t + 1 (a
+    transparent read), ``status_probe.data`` in c + 1 its output of c (the old word), and the
+    RAM holds the outputs in every clock. No status output changes in the ``status_quiet``
+    clocks from ``done`` on (its writes land in the RAM at the end of a clock; the scope's
+    reads there never meet one); every other output is equal in every clock."""
+    from foc_servo.hdl.foc_engine import STATUS
+    rng = np.random.default_rng(seed)
+    bench = _PortsAndStatusRam()
+    a, b = bench.ports, bench.ram
+    assert b.status_quiet == a.status_quiet == 12
+    outs = ["busy", "done", "overmod", "dc_limited", "overrun", "overruns", "count", "sat_d",
+            "sat_q"]
+    fig = {"runs": 0, "back_to_back": 0, "changes": 0, "bad": None, "quiet_bad": None}
+
+    def bad(clock, what):
+        if fig["bad"] is None:
+            fig["bad"] = (clock, what)
+
+    async def testbench(ctx):
+        prev_status, prev_addr, dones = None, None, []
+        for clock in range(5000):
+            done = bool(ctx.get(a.done))
+            start = (not ctx.get(a.busy) or done) and rng.random() < (0.5 if done else 0.05)
+            for dut in (a, b):
+                ctx.set(dut.i.valid, int(start))
+                ctx.set(dut.o.ready, 1)
+            if start:
+                fig["runs"] += 1
+                fig["back_to_back"] += done
+                sample = {"ia": int(rng.integers(-32768, 32768)),
+                          "ib": int(rng.integers(-32768, 32768)),
+                          "udc": int(rng.integers(0, 32768)), "aux": 0}
+                values = {"theta": int(rng.integers(1 << 16)),
+                          "lead_k": int(rng.integers(1 << 16)),
+                          "id_ref": int(rng.integers(-32768, 32768)),
+                          "iq_ref": int(rng.integers(-32768, 32768)),
+                          "ol_ud": int(rng.integers(-32768, 32768)),
+                          "ol_uq": int(rng.integers(-32768, 32768)),
+                          "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
+                          "ff_enable": int(rng.random() < 0.6),
+                          "speed": int(rng.integers(-(1 << 31), 1 << 31)),
+                          "u_rated": int(rng.integers(1 << 16)),
+                          "scale": int(rng.integers(1 << 16))}
+                for dut in (a, b):
+                    ctx.set(dut.i.payload, sample)
+                    for name, v in values.items():
+                        ctx.set(getattr(dut, name), v)
+            status = [ctx.get(getattr(a, n)) for n in STATUS]
+            if [ctx.get(b.status_memory.data[j]) for j in range(len(STATUS))] != status:
+                bad(clock, "RAM words")
+            if prev_addr is not None:
+                if ctx.get(b.status_rd.data) != status[prev_addr[0]]:
+                    bad(clock, ("status_rd", prev_addr[0]))
+                if ctx.get(b.status_probe.data) != prev_status[prev_addr[1]]:
+                    bad(clock, ("status_probe", prev_addr[1]))
+            if prev_status is not None and status != prev_status:
+                fig["changes"] += 1
+                # Written at the end of the clock before: not one of the quiet clocks.
+                if any(d <= clock - 1 < d + a.status_quiet for d in dones):
+                    fig["quiet_bad"] = fig["quiet_bad"] or clock
+            if done:
+                dones = dones[-3:] + [clock]
+            if [ctx.get(getattr(a, n)) for n in outs] != [ctx.get(getattr(b, n)) for n in outs]:
+                bad(clock, "outputs")
+            if (ctx.get(a.o.payload.as_value()), ctx.get(a.phase.payload.as_value())) != \
+                    (ctx.get(b.o.payload.as_value()), ctx.get(b.phase.payload.as_value())):
+                bad(clock, "o, phase")
+            addr = (int(rng.integers(len(STATUS))), int(rng.integers(len(STATUS))))
+            ctx.set(b.status_rd.addr, addr[0])
+            ctx.set(b.status_probe.addr, addr[1])
+            prev_status, prev_addr = status, addr
+            await ctx.tick()
+
+    simulate(bench, [testbench], name="engine_status_ram")
+    assert fig["bad"] is None, fig["bad"]
+    assert fig["quiet_bad"] is None, fig["quiet_bad"]
+    assert fig["runs"] > 15 and fig["back_to_back"] > 3 and fig["changes"] > 20
+
+
+def test_engine_current_loop_status_ram_ports_and_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
+        _check_status_ram_ports_and_errors()
+        gc.collect()
+
+
+def _check_status_ram_ports_and_errors():
+    from foc_servo.hdl.foc_engine import STATUS, status_quiet
+    ram = EngineCurrentLoop(status="ram")
+    ports = EngineCurrentLoop()
+    assert set(ram.signature.members) == (set(ports.signature.members) - set(STATUS)) | {
+        "status_rd", "status_probe"}
+    assert ram.status_mode == "ram" and ports.status_mode == "ports"
+    assert ports.status_memory is None and ram.status_memory is None    # not elaborated
+    assert status_quiet(ram.program) == ram.status_quiet
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop status must be one of "
+                                         r"'ports', 'ram', not 'regs'$"):
+        EngineCurrentLoop(status="regs")
+    with pytest.raises(ValueError, match=r"^Engine strobe_outs must be a tuple of distinct "
+                                         r"outputs of out_widths, wider than 1 bit, not "
+                                         r"ang, not \('ang',\)$"):
+        Engine(program=ram.program, special_shapes={n: signed(16) for n in SPECIALS},
+               out_widths=OUTS, strobe_outs=("ang",))

@@ -1,10 +1,13 @@
 # amaranth: UnusedElaboratable=no
 # Ref: issue 5 item 1 (register file, shadowing); hdl/bus.py (register bus)
+import gc
 import re
+import warnings
 
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import signed, unsigned
+from amaranth.hdl import Elaboratable, Module, Signal, UnusedElaboratable, signed, unsigned
+from amaranth.lib.memory import Memory
 
 from foc_servo.hdl.bus import Status
 from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
@@ -611,3 +614,110 @@ def test_register_file_bram_100k_random_accesses():
 def test_register_file_100k_random_accesses():
     fig = run(100_000, seed=0)
     assert fig["mismatches"] == 0, fig["first_mismatch"]
+
+
+# --- status read from a RAM (status_ram) ---------------------------------------------------------
+
+STATUS_RAM = ("st_i_alpha", "st_i_beta", "st_i_d", "st_i_q", "st_u_d", "st_u_q", "st_u_alpha",
+              "st_u_beta")
+
+
+class _StatusRamBench(Elaboratable):
+    """A register file reading ``STATUS_RAM`` from a RAM (a transparent read port) beside one
+    reading the same values from flip-flops loaded in the same clocks (simulation only)."""
+
+    def __init__(self, staging):
+        self.ref = RegisterFile(REGMAP, staging=staging)
+        self.dut = RegisterFile(REGMAP, staging=staging, status_ram=STATUS_RAM)
+        self.st_we = Signal()
+        self.st_addr = Signal(range(len(STATUS_RAM)))
+        self.st_data = Signal(signed(16))
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.ref = self.ref
+        m.submodules.dut = self.dut
+        m.submodules.mem = mem = Memory(shape=signed(16), depth=len(STATUS_RAM), init=[])
+        wr = mem.write_port()
+        rd = mem.read_port(transparent_for=(wr,))
+        m.d.comb += [wr.en.eq(self.st_we), wr.addr.eq(self.st_addr), wr.data.eq(self.st_data),
+                     rd.addr.eq(self.dut.status_rd.addr), rd.en.eq(self.dut.status_rd.en),
+                     self.dut.status_rd.data.eq(rd.data)]
+        for j, name in enumerate(STATUS_RAM):
+            held = Signal(signed(16), name=f"held_{name}")
+            with m.If(self.st_we & (self.st_addr == j)):
+                m.d.sync += held.eq(self.st_data)
+            m.d.comb += getattr(self.ref, name).eq(held)
+        return m
+
+
+@pytest.mark.parametrize("staging", ["ff", "bram"])
+def test_status_ram_reads_equal_status_inputs_clock_by_clock(staging):
+    """``status_ram``: random status writes in random clocks (also in an access's clock and the
+    one after), random reads of every word: the bus (ack, status, r_data sign-extended) is the
+    same in every clock as a register file's whose status inputs are flip-flops loaded in those
+    clocks."""
+    import numpy as np
+    rng = np.random.default_rng(11)
+    bench = _StatusRamBench(staging)
+    ref, dut = bench.ref, bench.dut
+    st_addrs = [REGMAP[n].addr for n in STATUS_RAM]
+    others = [a for a, r, k in REGMAP.words() if r.name not in STATUS_RAM]
+    fig = {"reads": 0, "status_reads": 0, "negative": 0, "bad": None}
+
+    async def tb(ctx):
+        stb, addr = 0, 0
+        for clock in range(3000):
+            ctx.set(bench.st_we, int(rng.random() < 0.5))
+            ctx.set(bench.st_addr, int(rng.integers(len(STATUS_RAM))))
+            ctx.set(bench.st_data, int(rng.integers(-32768, 32768)))
+            if not stb and rng.random() < 0.5:
+                stb = 1
+                addr = (int(rng.choice(st_addrs)) if rng.random() < 0.7 else
+                        int(rng.choice(others)))
+                for rf in (ref, dut):
+                    ctx.set(rf.bus.addr, addr)
+                    ctx.set(rf.bus.we, 0)
+            for rf in (ref, dut):
+                ctx.set(rf.bus.stb, stb)
+            got = [(ctx.get(rf.bus.ack), ctx.get(rf.bus.status), ctx.get(rf.bus.r_data))
+                   for rf in (ref, dut)]
+            if got[0] != got[1] and fig["bad"] is None:
+                fig["bad"] = (clock, hex(addr), got)
+            if got[0][0]:
+                fig["reads"] += 1
+                if addr in st_addrs:
+                    fig["status_reads"] += 1
+                    fig["negative"] += got[0][2] >> 31
+                stb = 0
+            await ctx.tick()
+
+    simulate(bench, [tb], name=f"regs_status_ram_{staging}")
+    assert fig["bad"] is None, fig["bad"]
+    assert fig["status_reads"] > 300 and fig["reads"] > fig["status_reads"] + 100
+    assert fig["negative"] > 50
+
+
+def test_status_ram_members_and_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        dut = RegisterFile(REGMAP, status_ram=STATUS_RAM)
+        members = dut.signature.members
+        assert "status_rd" in members and not set(STATUS_RAM) & set(members)
+        assert dut.status_ram == STATUS_RAM
+        sig = members["status_rd"].signature
+        assert sig.addr_width == 3 and sig.shape == signed(16)
+        for bad, exc, msg in (
+                (["st_i_d"], TypeError, r"^RegisterFile status_ram must be a tuple of register "
+                                        r"names, not \['st_i_d'\]$"),
+                (("pi_d_kp",), ValueError, r"^RegisterFile status_ram must name one-word ro "
+                                           r"registers, not 'pi_d_kp'$"),
+                (("scope_arm",), ValueError, r"^RegisterFile status_ram must name one-word "
+                                             r"ro registers, not 'scope_arm'$"),
+                (("st_i_d", "st_i_d"), ValueError, r"^RegisterFile status_ram must not repeat "),
+                (("st_i_d", "st_mode"), ValueError, r"^RegisterFile status_ram must name "
+                                                    r"registers of one shape, ")):
+            with pytest.raises(exc, match=msg):
+                RegisterFile(REGMAP, status_ram=bad)
+        del dut
+        gc.collect()

@@ -428,3 +428,95 @@ def test_scope_ram_threaded_from_top_and_board():
         assert BoardTop("icebreaker").top.scope_ram == "ice40_spram"
         assert BoardTop("ulx3s").top.scope_ram == "bram"
         gc.collect()
+
+
+# --- sources read from a RAM (ram_sources) -------------------------------------------------------
+
+RAM_SOURCES = {"ramp": signed(16), "wide": signed(32), "other": signed(16), "narrow": unsigned(8)}
+
+
+class _RamSourcesBench(Elaboratable):
+    """A Scope reading ``other`` and ``ramp`` from a RAM (its words 0 and 1, written in the
+    clocks their flip-flops load; an asynchronous read port registered: the old word) beside
+    one reading the flip-flops (simulation only)."""
+
+    def __init__(self):
+        params = dict(sources=RAM_SOURCES, channels=3, depth=16)
+        self.ref = Scope(**params)
+        self.dut = Scope(**params, ram_sources=("other", "ramp"))
+        self.ramp = Signal(signed(16))
+        self.other = Signal(signed(16))
+        self.we = Signal(2)
+        self.wide = Signal(signed(32))
+        self.narrow = Signal(unsigned(8))
+
+    def elaborate(self, platform):
+        m = Module()
+        m.submodules.ref = self.ref
+        m.submodules.dut = self.dut
+        m.submodules.mem = mem = Memory(shape=signed(16), depth=2, init=[])
+        rd = mem.read_port(domain="comb")
+        data = Signal(signed(16))
+        m.d.comb += [rd.addr.eq(self.dut.ram_rd.addr), self.dut.ram_rd.data.eq(data)]
+        m.d.sync += data.eq(rd.data)
+        for j, name in enumerate(("other", "ramp")):
+            held = Signal(signed(16), name=f"held_{name}")
+            wr = mem.write_port()
+            value = getattr(self, name)
+            m.d.comb += [wr.addr.eq(j), wr.data.eq(value), wr.en.eq(self.we[j])]
+            with m.If(self.we[j]):
+                m.d.sync += held.eq(value)
+            m.d.comb += self.ref.src[name].eq(held)
+        for name in ("wide", "narrow"):
+            m.d.comb += [self.ref.src[name].eq(getattr(self, name)),
+                         self.dut.src[name].eq(getattr(self, name))]
+        return m
+
+
+def test_scope_ram_sources_read_as_flip_flops():
+    """``ram_sources``: random values written in random clocks, random strobes, arms, triggers,
+    channel codes and read-backs: the scope reading two of its sources from a RAM behaves in
+    every clock exactly as one reading them from flip-flops loaded in the same clocks."""
+    rng = np.random.default_rng(3)
+    bench = _RamSourcesBench()
+    ref, dut = bench.ref, bench.dut
+    assert dut.ram_sources == ("other", "ramp") and "ramp" not in dut.src.shape().members
+    outs = ("state", "done", "pre_full", "rd_data")
+    fig = {"bad": None, "nonzero": 0}
+
+    async def tb(ctx):
+        for clock in range(3000):
+            ctx.set(bench.ramp, int(rng.integers(-32768, 32768)))
+            ctx.set(bench.other, int(rng.integers(-32768, 32768)))
+            ctx.set(bench.we, int(rng.integers(4)))
+            ctx.set(bench.wide, int(rng.integers(-(1 << 31), 1 << 31)))
+            ctx.set(bench.narrow, int(rng.integers(256)))
+            arm = int(clock == 0 or rng.random() < 0.004)
+            values = {"strobe": int(rng.random() < 0.3), "arm": arm,
+                      "force": int(rng.random() < 0.02), "trigger": 0, "decim": 0,
+                      "pretrigger": 5, "rd_addr": int(rng.integers(64))}
+            for scope in (ref, dut):
+                for name, v in values.items():
+                    ctx.set(getattr(scope, name), v)
+                if arm:
+                    for c in range(3):
+                        ctx.set(scope.sel[c], (c + clock) % 5)
+            got = [[ctx.get(getattr(s, n)) for n in outs] for s in (ref, dut)]
+            if got[0] != got[1] and fig["bad"] is None:
+                fig["bad"] = (clock, got)
+            fig["nonzero"] += got[0][3] != 0
+            await ctx.tick()
+
+    simulate(bench, [tb], name="scope_ram_sources")
+    assert fig["bad"] is None, fig["bad"]
+    assert fig["nonzero"] > 500
+
+
+def test_scope_ram_sources_validation():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        for bad in (["ramp"], ("nope",), ("ramp", "ramp"), ("ramp", "wide")):
+            with pytest.raises(ValueError, match=r"^Scope ram_sources must be a tuple of "
+                                                 r"distinct sources of one shape, not "):
+                Scope(sources=RAM_SOURCES, ram_sources=bad)
+        gc.collect()
