@@ -1018,7 +1018,7 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     same replay with either switch one sample earlier or later differs (the test sees when a
     word arrives, not only that it does). ("After its frame": after the register file's last
     write of the frame, with the commit copy starting after it.)"""
-    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, STATUS
     from foc_servo.hdl.top import ENGINE_CONFIG
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CurrentLoopModel
@@ -1041,13 +1041,15 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
               int(rng.integers(12000, 20000)), 0) for _ in range(64)]
     adc = AdcPartModel(cs_n=top.adc_cs_n, sclk=top.adc_sclk, sdo=top.adc_sdo, clk_hz=clk,
                        source=lambda n: codes[n % len(codes)])
-    fields = engine_fields()
+    # The sample's inputs at the loop's ports (the configuration is in its RAM, the status
+    # outputs in its status RAM: looked up in the testbench, the RAM is made at elaboration).
     ports = {"ia": cl.i.payload.ia, "ib": cl.i.payload.ib, "udc": cl.i.payload.udc,
-             **{f: getattr(cl, f) for f in fields if f not in ("ia", "ib", "udc")},
-             **{f: getattr(cl, f) for f in ("u_rated", "scale")}}
+             **{f: getattr(cl, f) for f in engine_fields() + ("u_rated", "scale")
+                if f not in ("ia", "ib", "udc") and hasattr(cl, f)}}
     outs = {"duty_a": cl.o.payload.a, "duty_b": cl.o.payload.b, "duty_c": cl.o.payload.c,
             **{f: getattr(cl, f) for f in ("i_alpha", "i_beta", "i_d", "i_q", "u_d", "u_q",
-                                           "u_alpha", "u_beta", "sat_d", "sat_q")}}
+                                           "u_alpha", "u_beta", "sat_d", "sat_q")
+               if f not in STATUS}}
     bus = top._regs.bus
     ins, got, accepted, starts, writes, replied = [], [], [], [], [], []
 
@@ -1065,6 +1067,7 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     host = _TracingHost(bench, probe)
 
     async def testbench(ctx):
+        outs.update({f: cl.status_memory.data[j] for j, f in enumerate(STATUS)})
         ctx.set(top.hall, HALL_OK)
         await host.tick(ctx, 3 * top.pwm_period)
         for values in frames:
@@ -1088,14 +1091,14 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
         switches.append(next(i for i, a in enumerate(accepted) if a > commit))
     assert switches[0] < switches[1] < len(got)
     recorded = {f: np.array([s[f] for s in ins[:len(got)]]) for f in ins[0]}
-    recorded = loop_model_inputs(recorded)
+    assert set(recorded) | set(config) >= set(engine_fields())
 
     def replay(at):
         cfg = {f: np.full(len(got), v) for f, v in config.items()}
         for k, values in zip(at, frames):
             for n, v in values.items():
                 cfg[port_of[n]][k:] = v
-        return CurrentLoopModel().run(**recorded, **cfg)
+        return CurrentLoopModel().run(**loop_model_inputs({**recorded, **cfg}))
 
     def matches(ref):
         return all([g[f] for g in got] == list(ref[f]) for f in outs)
