@@ -422,7 +422,9 @@ class Top(wiring.Component):
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
+        # Only U_dc's code held between samples (st_udc, the scope); the current loop latches
+        # i_a, i_b (and U_dc) with the sample, so theirs are the shift registers (−32 FF).
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=("udc",))
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
