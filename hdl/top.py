@@ -632,7 +632,6 @@ class Top(wiring.Component):
             timer.sample_custom.eq(regs.pwm_sample_custom),
             timer.sample_point.eq(regs.pwm_sample_point),
             gates.dead_time.eq(regs.dead_time),
-            dtc.scale.eq(timer.full_scale),
             dtc.symmetric.eq(regs.pwm_symmetric),
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
