@@ -118,6 +118,14 @@ class AdcInterface(wiring.Component):
         part's ``f_SCLK``. Default 25 MHz (``h = 1`` at 50 MHz, 16.7 MHz at 33.333 MHz).
     part : str or AdcPart
         ``"AD7380-4"`` (see :data:`PARTS`) or a timing record.
+    held : tuple of str or None
+        The channels (of :data:`CHANNELS`, the part's ``lines`` first) whose code is copied
+        into an output register with the frame's last bit, so that ``payload`` holds it
+        between valids (``None``, the default: all of them). The others' ``payload`` is the shift register
+        itself, valid from ``o.valid`` for :attr:`hold` clocks (no copy: on the iCE40 a
+        register loaded from a register costs a logic cell per bit); a consumer that needs it
+        longer latches it at ``o.valid``, as the current loops do (:class:`~.top.Top` holds
+        only ``udc``, for its status register and the scope).
 
     Members
     -------
@@ -135,8 +143,9 @@ class AdcInterface(wiring.Component):
     o : Out(stream.Signature(data.StructLayout({"ia", "ib", "udc", "aux": signed(bits)}),
         always_ready=True))
         The codes of the conversion started by the strobe, raw two's complement ADC codes (SDOA →
-        ``ia``, SDOB → ``ib``, SDOC → ``udc``, SDOD → ``aux``); ``payload`` holds between
-        valids.
+        ``ia``, SDOB → ``ib``, SDOC → ``udc``, SDOD → ``aux``). All are valid in the
+        ``o.valid`` clock; a ``held`` channel's code holds between valids, another's for
+        :attr:`hold` clocks (from the ``o.valid`` clock) at least.
     busy : Out(1)
         A transaction (or the recovery time after it) is in progress.
     overrun : Out(1)
@@ -151,6 +160,12 @@ class AdcInterface(wiring.Component):
         Clocks from the strobe to the CS falling edge (the sampling instant): 1.
     min_period : int
         Smallest number of clocks between two strobes that are both served.
+    hold : int
+        Clocks (the ``o.valid`` clock included) that a channel not ``held`` keeps its code at
+        least: ``min_period − 2·h·(bits − 1)``, the next read frame shifting its first bit in
+        ``2·h·(bits − 1)`` clocks before its own ``o.valid``.
+    held : tuple of str
+        The parameter.
     half_period : int
         ``h``, system clocks per SCLK half period; ``sclk_actual_hz = clk_hz / (2·h)``.
 
@@ -164,7 +179,7 @@ class AdcInterface(wiring.Component):
 
     sample_delay = 1
 
-    def __init__(self, *, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4"):
+    def __init__(self, *, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4", held=None):
         if isinstance(part, str):
             if part not in PARTS:
                 raise ValueError(f"AdcInterface part must be one of {sorted(PARTS)}, "
@@ -182,6 +197,16 @@ class AdcInterface(wiring.Component):
             raise ValueError(f"AdcInterface sclk_hz must be above 0 and at most the "
                              f"{part.name}'s f_SCLK of {part.f_sclk_max_hz / 1e6:g} MHz, "
                              f"not {sclk_hz!r}")
+        names = CHANNELS[:part.lines]
+        if held is None:
+            held = names
+        if (not isinstance(held, tuple) or not all(isinstance(n, str) for n in held)
+                or len(set(held)) != len(held)):
+            raise TypeError(f"AdcInterface held must be None or a tuple of distinct channel "
+                            f"names, not {held!r}")
+        if not set(held) <= set(names):
+            raise ValueError(f"AdcInterface held must name channels of {names!r}, "
+                             f"not {held!r}")
         h = max(1, math.ceil(clk_hz / (2 * sclk_hz) - 1e-9))
         # Half periods must also meet t_SCLKH / t_SCLKL (a slow part, or a very slow clock).
         h = max(h, _clocks(part.t_sclkh_s, clk_hz), _clocks(part.t_sclkl_s, clk_hz))
@@ -189,6 +214,7 @@ class AdcInterface(wiring.Component):
         self._clk_hz = float(clk_hz)
         self._part = part
         self._h = h
+        self._held = tuple(n for n in names if n in held)     # in channel order
         n_csh = max(1, _clocks(part.t_csh_s, clk_hz))
         n_conv = max(_clocks(part.t_convert_s, clk_hz), _clocks(part.t_cyc_s, clk_hz))
         # Convert pulse: CS low for t_CSH clocks too (no separate minimum low time is used).
@@ -225,6 +251,8 @@ class AdcInterface(wiring.Component):
     latency = property(lambda self: self._latency)
     latency_s = property(lambda self: self._latency / self._clk_hz)
     min_period = property(lambda self: self._min_period)
+    held = property(lambda self: self._held)
+    hold = property(lambda self: self._min_period - 2 * self._h * (self._part.bits - 1))
 
     def elaborate(self, platform):
         m = Module()
@@ -241,6 +269,10 @@ class AdcInterface(wiring.Component):
         sclk = Signal(init=1)
         valid = Signal()
         m.d.comb += [self.cs_n.eq(cs_n), self.sclk.eq(sclk), self.o.valid.eq(valid)]
+        # A channel not held: its payload is its shift register, which holds the code after
+        # the frame's last bit until the next frame's first bit (``hold``).
+        m.d.comb += [self.o.payload[n].eq(sh) for n, sh in zip(names, shreg)
+                     if n not in self._held]
         m.d.sync += [valid.eq(0), self.overrun.eq(0)]
 
         done = timer == 0
@@ -283,7 +315,8 @@ class AdcInterface(wiring.Component):
                             m.d.sync += [cs_n.eq(1), valid.eq(1),
                                          timer.eq(self._n_recover - 1)]
                             for k, (n, sh) in enumerate(zip(names, shreg)):
-                                m.d.sync += self.o.payload[n].eq((sh << 1) | self.sdo[k])
+                                if n in self._held:
+                                    m.d.sync += self.o.payload[n].eq((sh << 1) | self.sdo[k])
                             m.next = "RECOVER"
                         with m.Else():
                             m.d.sync += sclk.eq(0)

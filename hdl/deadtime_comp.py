@@ -23,13 +23,22 @@ currents with one 1-bit shifter per phase (no multiplier)::
     u_x    = i_x XOR sign(i_x)                           |i_x|, or |i_x| − 1 for i_x < 0
     m_x    = min(u_x >> k, L)
     comp_x = i_x < 0 ? −m_x : m_x                        signed(clocks_width + 1)
-    o_x    = clamp(duty_x + comp_x, 0, scale)            never wraps
+    o_x    = clamp(duty_x + comp_x, 0, 2**count_width − 1)   never wraps
 
 (``C`` = ``clocks``, ``band`` = ``shift``.) It is odd-symmetric about −1/2 LSB (``i`` and
 ``−1 − i`` get opposite corrections) and 0 for ``−2**k ≤ i_x < 2**k``; the one's-complement
 magnitude needs no adder and the clamp compares only ``clocks_width`` bits. In symmetric mode
 slope and limit are both halved, so the trapezoid is the same in clocks of high time in both
 modes (an odd ``C`` rounds up).
+
+The full scale. A corrected duty may exceed the timer's full scale (``duty_x`` up to it plus
+``comp_x``); it is not clamped to it here: :class:`~.svpwm.PWMTimer` treats every compare from
+its full scale up as the full scale (always high), in the mode it runs the duties in. So the
+levels are those of ``clamp(duty_x + comp_x, 0, full_scale)`` of that mode, without an 18-bit
+compare and multiplexer per phase here (iCE40: −80 logic cells). (Until session 11 the block
+clamped to the ``scale`` of the mode set when the duties were written; the two differ only if
+that mode is not the one the timer runs them in, a mode change racing a duty write, when the
+duties were computed for the other scale anyway; docs/AREA.md.)
 
 Timing. ``comp`` is computed from each ``phase`` transfer: the three magnitudes shift together,
 then one clamp and, a clock later, one negation, shared, serve phase a, b, c in consecutive
@@ -62,7 +71,7 @@ class DeadTimeComp(wiring.Component):
     width : int
         Width ``w`` of the phase currents, Q1.(w−1) of I_FS, 8 … 23 (as the current loop).
     count_width : int
-        Width of the duties (compares) and of ``scale``, 4 … 24.
+        Width of the duties (compares), 4 … 24.
     clocks_width : int
         Width of ``clocks``, 1 … 16.
     shift_width : int
@@ -76,10 +85,9 @@ class DeadTimeComp(wiring.Component):
     i : In(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(count_width)})))
         Duties in compare counts (``CurrentLoop.o``).
     o : Out(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(count_width)})))
-        Corrected duties (for ``PWMTimer.duty``): ``clamp(i + comp, 0, scale)`` per phase,
+        Corrected duties (for ``PWMTimer.duty``): ``clamp(i + comp, 0, 2**count_width − 1)``
+        per phase (the timer clamps to its full scale, module docstring),
         combinational, as are ``o.valid = i.valid`` and ``i.ready = o.ready``.
-    scale : In(unsigned(count_width))
-        Count of a 100 % duty (``PWMTimer.full_scale``).
     symmetric : In(1)
         1: centre-aligned PWM (high time 2·compare); latched with each ``phase`` transfer.
     clocks : In(unsigned(clocks_width))
@@ -124,7 +132,6 @@ class DeadTimeComp(wiring.Component):
                                          always_ready=True)),
             "i": In(stream.Signature(duties)),
             "o": Out(stream.Signature(duties)),
-            "scale": In(unsigned(count_width)),
             "symmetric": In(1),
             "clocks": In(unsigned(clocks_width)),
             "shift": In(unsigned(shift_width)),
@@ -203,13 +210,17 @@ class DeadTimeComp(wiring.Component):
             with m.If(fire_q & ~self.phase.valid & (turn_q == k)):
                 m.d.sync += self.comp[p].eq(value)
 
+        cw_duty = self._count_width
         for p in "abc":
-            # Duties: i + comp in signed(count_width + 2), clamped to [0, scale].
+            # Duties: i + comp in signed(count_width + 2), clamped to [0, 2**count_width − 1]
+            # (not to the full scale: the timer's, module docstring). The upper clamp looks at
+            # the bits above count_width (a LUT, no carry chain).
             total = Signal(signed(self._count_width + 2), name=f"total_{p}")
             m.d.comb += [
                 total.eq(self.i.payload[p] + self.comp[p]),
                 self.o.payload[p].eq(Mux(total[-1], 0,
-                                         Mux(total > self.scale, self.scale, total))),
+                                         Mux(total[cw_duty:].any(), (1 << cw_duty) - 1,
+                                             total[:cw_duty]))),
             ]
         m.d.comb += [
             self.o.valid.eq(self.i.valid),

@@ -40,7 +40,7 @@ __all__ = [
     "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
     "saturate", "clamp", "round_shift", "sat_add", "sat_sub", "mul_round",
     "saturate_np", "clamp_np", "round_shift_np", "mul_round_np", "shape_range",
-    "is_int", "check_param",
+    "is_int", "check_param", "at_least",
 ]
 
 
@@ -91,6 +91,29 @@ def abs_exceeds(v, limit):
     # The carry-in rides in a low bit of its own: ~s + 1 carries ~s into bit 1.
     total = Cat(~s, limit.as_unsigned(), Const(0, n - len(limit))) + Cat(Const(1, 1), nu)
     return ~total[n + 1]
+
+
+def at_least(value, k):
+    """``value ≥ k`` for an unsigned ``value`` and a constant integer ``k``, as plain logic.
+
+    yosys maps every ``≥`` / ``<`` onto a carry chain (on the iCE40 a logic cell per bit that no
+    LUT shares, and a feed-out cell for the result); against a constant the comparison is an
+    AND/OR of the bits: from the LSB up, ``ge = v[i] & ge`` where ``k[i] = 1`` and
+    ``v[i] | ge`` where it is 0 (``ge`` starting true) is ``v[:i+1] ≥ k[:i+1]``, a few LUT4s
+    for a narrow ``value``. ``k ≤ 0`` is always true, ``k ≥ 2**len(value)`` never."""
+    value = Value.cast(value)
+    if value.shape().signed:
+        raise TypeError(f"at_least needs an unsigned value, not {value.shape()!r}")
+    if not is_int(k):
+        raise TypeError(f"at_least needs an integer constant, not {k!r}")
+    if k <= 0:
+        return Const(1, 1)
+    if k >= 1 << len(value):
+        return Const(0, 1)
+    ge = Const(1, 1)
+    for i in range(len(value)):
+        ge = (value[i] & ge) if (k >> i) & 1 else (value[i] | ge)
+    return ge
 
 
 def _check_int(name, value, minimum, maximum=None):

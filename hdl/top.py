@@ -107,7 +107,7 @@ from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
-from .fixed import check_choice, round_shift, saturate
+from .fixed import at_least, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import STATUS as ENGINE_STATUS
@@ -433,7 +433,9 @@ class Top(wiring.Component):
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz)
+        # Only U_dc's code held between samples (st_udc, the scope); the current loop latches
+        # i_a, i_b (and U_dc) with the sample, so theirs are the shift registers (−32 FF).
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=("udc",))
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
@@ -647,7 +649,6 @@ class Top(wiring.Component):
             timer.sample_custom.eq(regs.pwm_sample_custom),
             timer.sample_point.eq(regs.pwm_sample_point),
             gates.dead_time.eq(regs.dead_time),
-            dtc.scale.eq(timer.full_scale),
             dtc.symmetric.eq(regs.pwm_symmetric),
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
@@ -683,9 +684,10 @@ class Top(wiring.Component):
 
             # scope_decim: "every n ticks, 0 acts as 1"; Scope.decim: "every decim + 1".
             scope.decim.eq(Mux(regs.scope_decim == 0, 0, regs.scope_decim - 1)),
-            # scope_pretrig is 16 bits, Scope.pretrigger log2(depth): clamp to depth − 1.
-            scope.pretrigger.eq(Mux(regs.scope_pretrig >= scope.depth, scope.depth - 1,
-                                    regs.scope_pretrig)),
+            # scope_pretrig is 16 bits, Scope.pretrigger log2(depth): clamp to depth − 1 (any
+            # bit from log2(depth) up: an OR, not a compare's carry chain).
+            scope.pretrigger.eq(Mux(regs.scope_pretrig[len(scope.pretrigger):].any(),
+                                    scope.depth - 1, regs.scope_pretrig)),
             _raw(scope.trig_src).eq(_raw(regs.scope_trig_src)),
             scope.arm.eq(regs.scope_arm),
             scope.force.eq(regs.scope_force),
@@ -693,12 +695,15 @@ class Top(wiring.Component):
         assert tuple(regs.prot_mask.shape().members) == FAULTS
         # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must
         # still record 0, so out-of-range codes saturate to the first unused code (not truncate,
-        # which would alias them onto real sources).
+        # which would alias them onto real sources). `chan ≥ n_src` against the constant as
+        # logic (fixed.at_least), not on a carry chain (iCE40: 6 logic cells each).
         n_src = len(scope.source_names)
         unused = min(n_src, (1 << scope.sel_width) - 1)
+        sw = scope.sel_width
         for c in range(scope.channels):
             chan = getattr(regs, f"scope_chan{c}")
-            m.d.comb += scope.sel[c].eq(Mux(chan >= n_src, unused, chan))
+            beyond = chan[sw:].any() | at_least(chan[:sw], n_src)
+            m.d.comb += scope.sel[c].eq(Mux(beyond, unused, chan))
         # Window: 12-bit word offset = channel · 1024 + index; 16-bit samples zero-extended
         # (the host sign-extends the signed sources).
         m.d.comb += [

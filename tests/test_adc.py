@@ -92,6 +92,43 @@ def test_adc_codes_round_trip_and_latency_cycle_by_cycle(clk_hz):
     assert all(r[1] for r in rec if r[0])
 
 
+@pytest.mark.parametrize("held", [None, ("udc",), ()])
+def test_adc_held_channels_and_hold_window(held):
+    # Back-to-back strobes (min_period apart): a held channel keeps its code until the next
+    # valid; another (its shift register) for exactly `hold` clocks from its valid.
+    dut = AdcInterface(clk_hz=33.333e6, held=held)
+    assert dut.held == (CHANNELS if held is None else held)
+    p = dut.min_period
+    strobes = [1, 1 + p, 1 + 2 * p]
+    # Codes whose first shifted-in bit changes them (not the corners 0 / −1 / −2**15 …).
+    codes = np.array([[0x1234, -0x4321, 0x0F0F, -0x7070]] * 16) + np.arange(16)[:, None]
+    rec, model, codes = run_interface(dut, strobes, 1 + 3 * p + 2, codes=codes)
+    valid_at = [t for t, r in enumerate(rec) if r[2]]
+    assert valid_at == [s + dut.latency for s in strobes]
+    for k, t in enumerate(valid_at[:2]):
+        for c, name in enumerate(CHANNELS):
+            seq = [rec[u][4][c] for u in range(t, valid_at[k + 1])]
+            assert seq[0] == codes[2 * k][c]
+            if name in dut.held:
+                assert set(seq) == {seq[0]}, name
+            else:
+                assert seq[:dut.hold] == [seq[0]] * dut.hold, name
+                # Then the next frame's bits come in.
+                assert seq[dut.hold] != seq[0], name
+    assert dut.hold == p - 2 * dut.half_period * (AD7380_4.bits - 1)
+
+
+def test_adc_held_validation():
+    with pytest.raises(TypeError, match=r"^AdcInterface held must be None or a tuple of "
+                                        r"distinct channel names, not \['udc'\]$"):
+        AdcInterface(held=["udc"])
+    with pytest.raises(TypeError, match=r"^AdcInterface held must be None or a tuple"):
+        AdcInterface(held=("udc", "udc"))
+    with pytest.raises(ValueError, match=r"^AdcInterface held must name channels of "
+                                         r"\('ia', 'ib', 'udc', 'aux'\), not \('vbus',\)$"):
+        AdcInterface(held=("vbus",))
+
+
 def test_adc_sclk_cycles_and_half_period_at_100mhz():
     dut = AdcInterface(clk_hz=100e6)
     rec, model, codes = run_interface(dut, [1], dut.min_period + 2)

@@ -13,7 +13,7 @@ from foc_servo.hdl.deadtime_comp import DeadTimeComp
 from foc_servo.sim import scenarios as S
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models import deadtime_comp as model
-from foc_servo.sim.models.svpwm import pwm_high_clocks
+from foc_servo.sim.models.svpwm import pwm_high_clocks, pwm_levels
 
 N = 2500                    # half period at 50 MHz, 10 kHz
 
@@ -48,7 +48,7 @@ def test_deadtime_comp_attributes_and_verilog():
 
 def run_dut(stim, **params):
     """Drive the block clock by clock from ``stim`` (arrays per clock: ``phase_valid``, ``phase``
-    (T, 3), ``duty`` (T, 3), ``scale``, ``symmetric``, ``clocks``, ``shift``); return ``comp`` and
+    (T, 3), ``duty`` (T, 3), ``symmetric``, ``clocks``, ``shift``); return ``comp`` and
     ``o`` (T, 3) during each clock and ``o.valid``."""
     dut = DeadTimeComp(**params)
     t_len = len(stim["phase_valid"])
@@ -64,7 +64,7 @@ def run_dut(stim, **params):
             ctx.set(dut.i.valid, int(stim["duty_valid"][t]))
             ctx.set(dut.i.payload, {p: int(v) for p, v in zip("abc", du)})
             ctx.set(dut.o.ready, 1)
-            for name in ("scale", "symmetric", "clocks", "shift"):
+            for name in ("symmetric", "clocks", "shift"):
                 ctx.set(getattr(dut, name), int(stim[name][t]))
             c, o = ctx.get(dut.comp), ctx.get(dut.o.payload)
             comp[t] = [c.a, c.b, c.c]
@@ -97,23 +97,27 @@ def random_stim(rng, t_len, *, width=16, count_width=16, clocks_width=8, shift_w
     duty = np.where(rng.random((t_len, 3)) < 0.1, 0, duty)
     near = np.maximum(scale[:, None] - rng.integers(0, 8, size=(t_len, 3)), 0)
     duty = np.where(rng.random((t_len, 3)) < 0.1, near, duty)
-    return {
+    stim = {
         "phase_valid": (rng.random(t_len) < 0.12).astype(np.int64),
         "phase": phase,
         "duty_valid": (rng.random(t_len) < 0.5).astype(np.int64),
         "duty": duty,
-        "scale": scale,
         "symmetric": per_block(rng.integers(0, 2, size=blocks)),
         "clocks": per_block(np.where(rng.random(blocks) < 0.2, (1 << clocks_width) - 1,
                                      rng.integers(0, 1 << clocks_width, size=blocks))),
         "shift": per_block(rng.integers(0, 1 << shift_width, size=blocks)),
     }
+    # Duties just below the top of the count range (the block's upper clamp; drawn last, so
+    # the other inputs are those of the earlier stimulus).
+    top = (1 << count_width) - 1 - rng.integers(0, 8, size=(t_len, 3))
+    stim["duty"] = np.where(rng.random((t_len, 3)) < 0.05, top, duty)
+    return stim
 
 
-def model_of(stim, shift_width=4):
-    return model.deadtime_comp(stim["phase_valid"], stim["phase"], stim["duty"], stim["scale"],
+def model_of(stim, shift_width=4, count_width=16):
+    return model.deadtime_comp(stim["phase_valid"], stim["phase"], stim["duty"],
                                stim["symmetric"], stim["clocks"], stim["shift"],
-                               shift_width=shift_width)
+                               shift_width=shift_width, count_width=count_width)
 
 
 @pytest.mark.parametrize("seed, params", [
@@ -127,7 +131,7 @@ def test_deadtime_comp_matches_model_bit_for_bit(seed, params):
     rng = np.random.default_rng(seed)
     stim = random_stim(rng, 3000, **params)
     comp, out, valid = run_dut(stim, **params)
-    m_comp, m_out = model_of(stim, params.get("shift_width", 4))
+    m_comp, m_out = model_of(stim, params.get("shift_width", 4), params.get("count_width", 16))
     np.testing.assert_array_equal(comp, m_comp)
     np.testing.assert_array_equal(out, m_out)
     np.testing.assert_array_equal(valid, stim["duty_valid"])
@@ -137,8 +141,24 @@ def test_deadtime_comp_matches_model_bit_for_bit(seed, params):
     tr = np.abs(model.trapezoid(stim["phase"][v], clocks, stim["shift"][v][:, None], sym))
     lim = np.where(sym == 1, (clocks + 1) >> 1, clocks)
     assert np.any((tr == lim) & (lim > 0)) and np.any((tr > 0) & (tr < lim))
+    top = (1 << params.get("count_width", 16)) - 1
     assert np.any((out == 0) & (stim["duty"] > 0)) and np.any(
-        (out == stim["scale"][:, None]) & (stim["duty"] < stim["scale"][:, None]))
+        (out == top) & (stim["duty"] < top))
+
+
+@pytest.mark.parametrize("symmetric", [0, 1])
+def test_deadtime_comp_output_beyond_full_scale_gives_the_full_scale_levels(symmetric):
+    """The block clamps at 2**count_width − 1, not at the timer's full scale: the timer's levels
+    of every corrected duty are those of the duty clamped to the full scale of the mode it runs
+    in (:func:`pwm_levels`, which the timer's own tests check clock by clock)."""
+    n = 40
+    fs = n if symmetric else 2 * n
+    for duty in (0, 1, fs - 3, fs - 1, fs):
+        for comp in (-255, -5, -1, 0, 1, 2, 5, 255):
+            o = int(model.apply(duty, comp, count_width=8))
+            clamped = min(max(duty + comp, 0), fs)
+            np.testing.assert_array_equal(pwm_levels(o, n, symmetric),
+                                          pwm_levels(clamped, n, symmetric))
 
 
 def test_deadtime_comp_latency_cycle_by_cycle():
@@ -146,7 +166,7 @@ def test_deadtime_comp_latency_cycle_by_cycle():
     z = np.zeros(t_len, dtype=np.int64)
     for shift, sym in ((0, 0), (3, 0), (3, 1), (11, 1)):
         stim = {"phase_valid": z.copy(), "phase": np.zeros((t_len, 3), dtype=np.int64),
-                "duty_valid": z + 1, "duty": np.full((t_len, 3), 1000), "scale": z + 2500,
+                "duty_valid": z + 1, "duty": np.full((t_len, 3), 1000),
                 "symmetric": z + sym, "clocks": z + 50, "shift": z + shift}
         stim["phase_valid"][10] = 1
         k = shift + sym
@@ -198,7 +218,7 @@ def test_deadtime_comp_restores_high_time(symmetric, dead, sign):
                                           dead_time=dead)
         assert lost == ideal - sign * dead                  # what the dead time costs
         comp = int(model.trapezoid(sign * 30000, dead, 4, symmetric))
-        duty = int(model.apply(compare, comp, n if symmetric else 2 * n))
+        duty = int(model.apply(compare, comp))
         fixed = model.terminal_high_clocks(duty, sign, half_period=n, symmetric=symmetric,
                                            dead_time=dead)
         assert abs(fixed - ideal) <= (dead % 2 if symmetric else 0)

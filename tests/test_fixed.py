@@ -130,3 +130,31 @@ def test_quantity_names_value_range_and_unit():
         i_q.to_raw(25.0)
     with pytest.raises(ValueError, match=r"^Quantity full_scale must be a positive number"):
         Quantity("x", Q(16, 15), 0, "V")
+
+
+@pytest.mark.parametrize("width", [1, 3, 5])
+def test_at_least_exhaustive_against_python(width):
+    """:func:`fixed.at_least` (AND/OR of the bits, no comparator) is ``v ≥ k`` for every
+    ``v`` and every constant from below 0 to beyond the range."""
+    v = Signal(unsigned(width))
+    ks = list(range(-1, (1 << width) + 2))
+    m = Module()
+    outs = {k: Signal(name=f"ge_{k + 1}") for k in ks}
+    m.d.comb += [outs[k].eq(fixed.at_least(v, k)) for k in ks]
+    got = {}
+
+    async def testbench(ctx):
+        for x in range(1 << width):
+            ctx.set(v, x)
+            for k in ks:
+                got[x, k] = ctx.get(outs[k])
+
+    simulate(m, [testbench], name="fixed_at_least")
+    assert got == {(x, k): int(x >= k) for x in range(1 << width) for k in ks}
+
+
+def test_at_least_rejects_signed_and_non_integer():
+    with pytest.raises(TypeError, match=r"^at_least needs an unsigned value, not signed\(4\)$"):
+        fixed.at_least(Signal(signed(4)), 3)
+    with pytest.raises(TypeError, match=r"^at_least needs an integer constant, not 2\.5$"):
+        fixed.at_least(Signal(4), 2.5)

@@ -35,12 +35,13 @@ def trapezoid(current, clocks, shift, symmetric):
     return np.where(neg, -mag, mag)
 
 
-def apply(duty, comp, scale):
-    """``clip(duty + comp, 0, scale)``."""
-    return np.clip(_int(duty) + _int(comp), 0, _int(scale))
+def apply(duty, comp, *, count_width=16):
+    """``clip(duty + comp, 0, 2**count_width − 1)`` (the timer clamps to its full scale)."""
+    return np.clip(_int(duty) + _int(comp), 0, (1 << count_width) - 1)
 
 
-def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, shift_width=4):
+def deadtime_comp(phase_valid, phase, duty, symmetric, clocks, shift, *, shift_width=4,
+                  count_width=16):
     """The block clock by clock.
 
     Parameters
@@ -50,8 +51,10 @@ def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, 
         Phase currents a, b, c during each clock.
     duty : array (T, 3) of int
         ``i.payload`` during each clock.
-    scale, symmetric, clocks, shift : array (T,) of int
+    symmetric, clocks, shift : array (T,) of int
         Inputs during each clock.
+    shift_width, count_width : int
+        The block's parameters.
 
     Returns
     -------
@@ -62,8 +65,8 @@ def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, 
     phase = _int(phase).reshape(-1, 3)
     duty = _int(duty).reshape(-1, 3)
     t_len = len(phase_valid)
-    scale, symmetric, clocks, shift = (np.broadcast_to(_int(x), (t_len,))
-                                       for x in (scale, symmetric, clocks, shift))
+    symmetric, clocks, shift = (np.broadcast_to(_int(x), (t_len,))
+                                for x in (symmetric, clocks, shift))
     comp = np.zeros((t_len, 3), dtype=np.int64)
     cur = np.zeros(3, dtype=np.int64)
     pending = []                    # (clock from which comp[phase] takes value, phase, value)
@@ -80,7 +83,7 @@ def deadtime_comp(phase_valid, phase, duty, scale, symmetric, clocks, shift, *, 
             # clock after that. A new transfer cancels the phases not yet loaded.
             values = trapezoid(phase[t], clocks[t], shift[t], sym)
             pending = [(t + 3 + k + ph, ph, values[ph]) for ph in range(3)]
-    o = apply(duty, comp, scale[:, None])
+    o = apply(duty, comp, count_width=count_width)
     return comp, o
 
 
