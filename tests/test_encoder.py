@@ -443,8 +443,8 @@ def test_hall_boundaries_are_the_sector_starts():
 
 
 def test_plausibility_latency_cycle_by_cycle():
-    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3
-    (and ``error`` with them), once."""
+    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3,
+    once; ``error`` holds its d from t + 2 (one clock before the check's strobes)."""
     dut = HallPlausibility()
     seen = []
 
@@ -463,7 +463,7 @@ def test_plausibility_latency_cycle_by_cycle():
     simulate(dut, [testbench], name="test_plausibility_latency")
     assert HallPlausibility.latency == model.HallPlausibilityModel.LATENCY == 3
     err = B[3] - B[1]
-    assert seen == [(0, 0, 0, 0)] * 3 + [(1, 1, 1, err), (0, 0, 0, err)]
+    assert seen == [(0, 0, 0, 0)] * 2 + [(0, 0, 0, err), (1, 1, 1, err), (0, 0, 0, err)]
     assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 3
 
 
