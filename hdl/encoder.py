@@ -594,10 +594,19 @@ class HallPlausibility(wiring.Component):
     ``tolerance`` and ``misses`` (configuration) are not pipelined: the checks take them in
     their own clock.
 
+    Parameters
+    ----------
+    theta_registered : bool
+        ``theta`` is already a register of the angle, one clock behind the other inputs (the
+        :class:`EncoderFrontEnd`'s copy ``theta_q``): the check takes it as its clock-1 value
+        instead of registering it again (16 flip-flops, each a logic cell of its own on the
+        iCE40). The outputs are then those of the default block fed the undelayed angle.
+
     Members
     -------
     theta : In(BinaryAngle(16))
-        Encoder electrical angle (the :class:`QuadratureDecoder`'s, aligned or not).
+        Encoder electrical angle (the :class:`QuadratureDecoder`'s, aligned or not); with
+        ``theta_registered``, that angle one clock late.
     aligned : In(1)
         ``theta`` is referred to the rotor: the absolute check applies, else the relative one.
     restart : In(1)
@@ -638,7 +647,11 @@ class HallPlausibility(wiring.Component):
 
     latency = 3
 
-    def __init__(self):
+    def __init__(self, *, theta_registered=False):
+        if not isinstance(theta_registered, bool):
+            raise TypeError(f"HallPlausibility theta_registered must be a bool, not "
+                            f"{theta_registered!r}")
+        self._theta_registered = theta_registered
         super().__init__({
             "theta": In(ANGLE.shape),
             "aligned": In(1),
@@ -654,6 +667,8 @@ class HallPlausibility(wiring.Component):
             "fault": Out(1),
             "error": Out(signed(ANGLE.width)),
         })
+
+    theta_registered = property(lambda self: self._theta_registered)
 
     def elaborate(self, platform):
         m = Module()
@@ -685,8 +700,12 @@ class HallPlausibility(wiring.Component):
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
-            theta1.eq(self.theta), bo1.eq(bound + self.offset),
+            bo1.eq(bound + self.offset),
         ]
+        if self._theta_registered:
+            m.d.comb += theta1.eq(self.theta)
+        else:
+            m.d.sync += theta1.eq(self.theta)
 
         # Clock 2: d = θ − (boundary + offset) (mod a turn) and the value the check compares,
         # x = d (aligned) or d − d_prev (not aligned), registered so that clock 3's compare
@@ -794,7 +813,11 @@ class EncoderFrontEnd(wiring.Component):
         :attr:`plausibility_latency` clocks after the pin changes of the Hall sector and encoder
         angle they compare (``hall_error`` one clock sooner).
     theta : Out(BinaryAngle(16))
-        Electrical angle θ_e: the decoder's exact angle when ``aligned``, else the Hall angle.
+        Electrical angle θ_e, a register or the Hall angle: the decoder's exact angle of the
+        clock before (``theta_q``, :attr:`theta_latency`) when the decoder was ``aligned`` in
+        the clock before, else the Hall angle (not delayed: :attr:`latency`). The register
+        serves the plausibility check too (its own copy of the angle) and starts the paths
+        behind θ at a flip-flop (ECP5 Fmax: the angle's sum and wrap test end there).
     ready : Out(1)
         The inputs have settled since reset.
 
@@ -803,11 +826,14 @@ class EncoderFrontEnd(wiring.Component):
     latency : int
         Clocks from a pin change to the outputs with ``length`` ≤ 1 (4: two synchroniser flops,
         the filter register, the decoder); add ``length − 1`` for a longer filter.
+    theta_latency : int
+        The same for ``theta`` once aligned (5: the decoder's angle registered).
     plausibility_latency : int
         The same for ``hall_edge``, ``hall_miss`` and ``plausibility`` (7; ``hall_error`` 6).
     """
 
     latency = 4
+    theta_latency = latency + 1
     plausibility_latency = latency + HallPlausibility.latency
     sync_stages = 2
 
@@ -817,7 +843,7 @@ class EncoderFrontEnd(wiring.Component):
         self._decoder = QuadratureDecoder(z_gate=z_gate)
         self._filter = GlitchFilter(width=6, max_length=max_length)
         self._hall = HallSensor()
-        self._plausibility = HallPlausibility()
+        self._plausibility = HallPlausibility(theta_registered=True)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hall": In(3),
             "length": In(range(max_length + 1)),
@@ -867,6 +893,11 @@ class EncoderFrontEnd(wiring.Component):
             dec.z_offset.eq(self.z_offset), dec.realign.eq(self.realign),
             hall.h.eq(flt.o[3:6]), hall.offset.eq(self.hall_offset), hall.hold.eq(~self.ready),
         ]
+        # The decoder's angle (a sum and a wrap test) and its alignment, registered: θ's source
+        # when aligned, and the plausibility check's clock-1 copy of the angle.
+        theta_q = Signal(ANGLE.shape)
+        aligned_q = Signal()
+        m.d.sync += [theta_q.eq(dec.theta), aligned_q.eq(dec.aligned)]
         for name in ("count", "e", "step", "up", "a_rise", "illegal", "index", "aligned", "busy",
                      "config_error"):
             m.d.comb += getattr(self, name).eq(getattr(dec, name))
@@ -874,10 +905,10 @@ class EncoderFrontEnd(wiring.Component):
             self.hall_sector.eq(hall.sector),
             self.hall_valid.eq(hall.valid),
             self.hall_fault.eq(hall.fault),
-            self.theta.eq(Mux(dec.aligned, dec.theta, hall.theta)),
+            self.theta.eq(Mux(aligned_q, theta_q, hall.theta)),
         ]
         m.d.comb += [
-            plaus.theta.eq(dec.theta), plaus.aligned.eq(dec.aligned),
+            plaus.theta.eq(theta_q), plaus.aligned.eq(dec.aligned),
             plaus.restart.eq(dec.busy | dec.config_error),
             plaus.sector.eq(hall.sector), plaus.valid.eq(hall.valid), plaus.hold.eq(~self.ready),
             plaus.offset.eq(self.hall_offset), plaus.tolerance.eq(self.hall_tolerance),

@@ -200,7 +200,8 @@ def test_quadrature_illegal_transition_strobe_without_count():
 
 def test_index_first_z_aligns_and_loads_offset():
     """The first Z sets aligned, clears count and loads e with z_offset; theta switches from the
-    Hall centre to floor(e·2**16 / cpr); a second Z only strobes index."""
+    Hall centre to floor(e·2**16 / cpr) one clock later (``theta_latency``: the decoder's angle
+    registered); a second Z only strobes index."""
     dut = EncoderFrontEnd()
     z_offset = 7777
     steps = [1] * 10 + [-1] * 8 + [1] * 10
@@ -212,8 +213,9 @@ def test_index_first_z_aligns_and_loads_offset():
         np.testing.assert_array_equal(out[k], want[k], err_msg=k)
     first = int(np.argmax(out["aligned"]))
     assert out["index"][first] == 1 and out["count"][first] == 0 and out["e"][first] == z_offset
-    assert out["theta"][first - 1] == (hall_centres()[0] + 1000) % 65536
-    assert out["theta"][first] == (z_offset << 16) // 20000
+    assert out["theta"][first] == (hall_centres()[0] + 1000) % 65536
+    assert out["theta"][first + 1] == (z_offset << 16) // 20000
+    assert EncoderFrontEnd.theta_latency == EncoderFrontEnd.latency + 1
     # Later index events (passing Z again going back and forth) do not realign.
     assert out["index"].sum() >= 2
     e = out["e"][first:]
@@ -274,11 +276,12 @@ def test_index_realign_and_config_change_drop_alignment():
         assert rec[-1]["e"] == 4 and rec[-1]["busy"] == 1
         await tick(1)
         assert rec[-1]["e"] == 104 and rec[-1]["aligned"] == 1 and rec[-1]["busy"] == 0
-        assert rec[-1]["theta"] == (104 << 16) // 20000
+        assert rec[-1]["theta"] == (4 << 16) // 20000           # theta: a clock later
         ctx.set(dut.realign, 1)
         await tick(1)
         ctx.set(dut.realign, 0)
         assert rec[-1]["aligned"] == 0
+        assert rec[-1]["theta"] == (104 << 16) // 20000
         ctx.set(word, pins(1, 0, 1))
         await tick(6)
         assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 0 and rec[-1]["e"] == 100

@@ -303,6 +303,7 @@ class EncoderFrontEndModel:
         self.plausibility = HallPlausibilityModel()
         self.settle = 0
         self.ready = 0
+        self.theta_q = self.aligned_q = 0
 
     def tick(self, pins, *, length=0, lines=5000, pole_pairs=4, z_offset=0, hall_offset=0,
              realign=0, hall_tolerance=8192, hall_misses=1):
@@ -313,6 +314,7 @@ class EncoderFrontEndModel:
                                restart=int(d.busy or d.config_error), sector=h.sector,
                                valid=h.valid, hold=hold, offset=hall_offset,
                                tolerance=hall_tolerance, misses=hall_misses)
+        self.theta_q, self.aligned_q = d.theta, d.aligned     # registered (theta_latency)
         flt = self.filter.o
         self.decoder.tick(flt & 1, (flt >> 1) & 1, (flt >> 2) & 1, hold=hold, lines=lines,
                           pole_pairs=pole_pairs, z_offset=z_offset, realign=realign)
@@ -327,7 +329,7 @@ class EncoderFrontEndModel:
     def values(self):
         """The outputs as a tuple in the order of :data:`OUTPUTS`."""
         d, h, p = self.decoder, self.hall, self.plausibility
-        return (d.count, d.e, d.theta if d.aligned else h.theta, d.step, d.up, d.a_rise,
+        return (d.count, d.e, self.theta_q if self.aligned_q else h.theta, d.step, d.up, d.a_rise,
                 d.illegal, d.index, d.aligned, d.busy, d.config_error, h.sector, h.valid,
                 h.fault, p.edge, p.miss, p.fault, p.error, self.ready)
 
