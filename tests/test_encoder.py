@@ -4,7 +4,8 @@
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Cat
+from amaranth.hdl import Cat, Module, Signal
+from amaranth.lib import wiring
 
 import foc_servo.hdl.encoder as hdl_encoder
 import foc_servo.sim.verify.encoder as verify_encoder
@@ -443,6 +444,56 @@ def test_hall_boundaries_are_the_sector_starts():
         assert abs(b - k * TURN / 6) <= 0.5
         first = next(t for t in range(b - 2, b + 3) if model.hall_sector(model.hall_code(t)) == k)
         assert abs(first - b) <= 1
+
+
+def test_plausibility_theta_registered_matches_the_default_block():
+    """With ``theta_registered`` the block takes the angle one clock late (the front end's
+    register) and gives the default block's outputs, clock for clock, on random inputs (edges
+    in consecutive clocks, alignment, restarts and tolerances included)."""
+    plain, late = HallPlausibility(), HallPlausibility(theta_registered=True)
+    assert (plain.theta_registered, late.theta_registered) == (False, True)
+    rng = np.random.default_rng(11)
+    n = 3000
+    stim = {"theta": rng.integers(0, TURN, n), "sector": rng.integers(0, 6, n),
+            "aligned": rng.random(n) < 0.5, "restart": rng.random(n) < 0.05,
+            "valid": rng.random(n) < 0.95, "hold": rng.random(n) < 0.02,
+            "offset": rng.integers(0, TURN, n), "tolerance": rng.integers(0, TURN, n),
+            "misses": rng.integers(0, 16, n)}
+    outs = ("edge", "miss", "fault", "error")
+    got = {"plain": [], "late": []}
+
+    class Pair(wiring.Component):
+        def __init__(self):
+            super().__init__({})
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.plain, m.submodules.late = plain, late
+            theta_q = Signal(16)
+            m.d.sync += theta_q.eq(plain.theta)
+            m.d.comb += late.theta.eq(theta_q)
+            for name in stim:
+                if name != "theta":
+                    m.d.comb += getattr(late, name).eq(getattr(plain, name))
+            return m
+
+    async def testbench(ctx):
+        for t in range(n):
+            for name, v in stim.items():
+                ctx.set(getattr(plain, name), int(v[t]))
+            await ctx.tick()
+            got["plain"].append(tuple(ctx.get(getattr(plain, k)) for k in outs))
+            got["late"].append(tuple(ctx.get(getattr(late, k)) for k in outs))
+
+    simulate(Pair(), [testbench], name="test_plausibility_theta_registered")
+    assert got["late"] == got["plain"]
+    assert sum(e for e, *_ in got["plain"]) > 100
+
+
+def test_plausibility_theta_registered_must_be_a_bool():
+    with pytest.raises(TypeError,
+                       match=r"^HallPlausibility theta_registered must be a bool, not 1$"):
+        HallPlausibility(theta_registered=1)
 
 
 def test_plausibility_latency_cycle_by_cycle():
