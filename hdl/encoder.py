@@ -587,16 +587,26 @@ class HallPlausibility(wiring.Component):
 
     Cost: a 16-bit addition and subtraction for ``d``, one subtraction for ``d − d_prev``, one
     magnitude test (the carry out of ``|x|`` in one's complement against ``tolerance``), a
-    6-entry constant table and ≈ 100 flip-flops, no multiplier or divider. Pipelined in three
-    clocks (the edge, the inputs and ``boundary + offset`` registered; ``d`` and ``d − d_prev``
-    registered; the checks) for 100 MHz on an ECP5: the Hall edges are thousands of clocks
-    apart, the two clocks cost nothing. ``tolerance`` and ``misses`` (configuration) are not
-    pipelined: the checks take them in their own clock.
+    6-entry constant table and ≈ 90 flip-flops, no multiplier or divider. Pipelined in three
+    clocks (the edge, the inputs and ``boundary + offset`` registered; ``d`` into ``error`` and
+    the compared value, ``d`` or ``d − d_prev``, registered; the checks) for 100 MHz on an
+    ECP5: the Hall edges are thousands of clocks apart, the two clocks cost nothing.
+    ``tolerance`` and ``misses`` (configuration) are not pipelined: the checks take them in
+    their own clock.
+
+    Parameters
+    ----------
+    theta_registered : bool
+        ``theta`` is already a register of the angle, one clock behind the other inputs (the
+        :class:`EncoderFrontEnd`'s copy ``theta_q``): the check takes it as its clock-1 value
+        instead of registering it again (16 flip-flops, each a logic cell of its own on the
+        iCE40). The outputs are then those of the default block fed the undelayed angle.
 
     Members
     -------
     theta : In(BinaryAngle(16))
-        Encoder electrical angle (the :class:`QuadratureDecoder`'s, aligned or not).
+        Encoder electrical angle (the :class:`QuadratureDecoder`'s, aligned or not); with
+        ``theta_registered``, that angle one clock late.
     aligned : In(1)
         ``theta`` is referred to the rotor: the absolute check applies, else the relative one.
     restart : In(1)
@@ -623,19 +633,25 @@ class HallPlausibility(wiring.Component):
     error : Out(signed(16))
         ``d`` at the last Hall edge between adjacent sectors, binary angle read as signed
         ([−180°, 180°)): once aligned, the error of ``offset`` plus the Hall sensors' own.
+        Written one clock before that edge's ``edge`` strobe (``latency − 1`` clocks after the
+        inputs: it is the register the next edge's ``d − d_prev`` reads).
 
     Attributes
     ----------
     latency : int
-        Clocks from ``sector``/``theta`` to the outputs (3). The outputs are those of the
-        unpipelined check delayed by two clocks, with ``tolerance`` and ``misses`` taken two
-        clocks after the other inputs (in the clock of the check: their change applies two
-        clocks sooner than a pipelined copy's would).
+        Clocks from ``sector``/``theta`` to the outputs (3; ``error`` 2). The outputs are those
+        of the unpipelined check delayed by two clocks (``error`` by one), with ``tolerance``
+        and ``misses`` taken two clocks after the other inputs (in the clock of the check:
+        their change applies two clocks sooner than a pipelined copy's would).
     """
 
     latency = 3
 
-    def __init__(self):
+    def __init__(self, *, theta_registered=False):
+        if not isinstance(theta_registered, bool):
+            raise TypeError(f"HallPlausibility theta_registered must be a bool, not "
+                            f"{theta_registered!r}")
+        self._theta_registered = theta_registered
         super().__init__({
             "theta": In(ANGLE.shape),
             "aligned": In(1),
@@ -651,6 +667,8 @@ class HallPlausibility(wiring.Component):
             "fault": Out(1),
             "error": Out(signed(ANGLE.width)),
         })
+
+    theta_registered = property(lambda self: self._theta_registered)
 
     def elaborate(self, platform):
         m = Module()
@@ -682,30 +700,35 @@ class HallPlausibility(wiring.Component):
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
-            theta1.eq(self.theta), bo1.eq(bound + self.offset),
+            bo1.eq(bound + self.offset),
         ]
+        if self._theta_registered:
+            m.d.comb += theta1.eq(self.theta)
+        else:
+            m.d.sync += theta1.eq(self.theta)
 
-        # Clock 2: d = θ − (boundary + offset) and dd = d − d_prev (mod a turn), both registered
-        # so that clock 3's compare starts at flip-flops (the whole top's 100 MHz on the ECP5).
-        # d_prev is d_q as clock 3 will hold it when this d reaches it: d2 if the edge in
-        # clock 3 now updates d_q, else d_q (the block alone may see edges in consecutive
-        # clocks). Clock for clock the outputs of the subtraction d2 − d_q it replaces (no
-        # Assert of it here: synthesis would keep the subtractor for it, +49 iCE40 LUT4 and
-        # +32 carries; tests/test_encoder.py checks it against the model in every clock).
+        # Clock 2: d = θ − (boundary + offset) (mod a turn) and the value the check compares,
+        # x = d (aligned) or d − d_prev (not aligned), registered so that clock 3's compare
+        # starts at flip-flops (the whole top's 100 MHz on the ECP5; the select is on the
+        # second subtraction's operand, d_q or 0, beside the first). d of an edge between
+        # adjacent sectors goes straight into d_q (the ``error`` output) in this clock: so the
+        # next edge's d_prev is d_q, also for edges in consecutive clocks (the block alone may
+        # see them), and no copy of d waits for clock 3 (iCE40: 16 flip-flops of their own).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        d2 = Signal(aw)
-        dd2 = Signal(aw)
+        x2 = Signal(aw)
         dir_q = Signal()                # the previous edge went forward
-        d_q = Signal(aw)                # d at the previous edge
+        d_q = self.error                # d at the previous edge between adjacent sectors
         d_new = Signal(aw)
         m.d.comb += d_new.eq(theta1 - bo1)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
             restart2.eq(restart1), jump2.eq(jump1),
-            d2.eq(d_new), dd2.eq(d_new - Mux(edge2 & adjacent2, d2, d_q)),
+            x2.eq(d_new - Mux(aligned1, 0, d_q)),
         ]
+        with m.If(edge1 & adjacent1):
+            m.d.sync += d_q.eq(d_new)
 
         # Clock 3: the checks and the miss count, on the state of the previous edges.
         ref_ok = Signal()               # d_q is comparable with d now
@@ -715,7 +738,7 @@ class HallPlausibility(wiring.Component):
         # y = x ^ (s repeated): |x| = y + s. That is the carry out of y + ~tol + s: one carry
         # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s).
         # ``tolerance`` and ``misses`` are taken here, in this clock (not pipelined).
-        x = Mux(aligned2, d2, dd2)
+        x = x2
         sign = x[aw - 1]
         y = x ^ sign.replicate(aw)
         over = Signal()
@@ -733,8 +756,6 @@ class HallPlausibility(wiring.Component):
 
         with m.If(edge2):
             m.d.sync += [dir_q.eq(fwd2), ref_ok.eq(adjacent2 & ~restart2)]
-            with m.If(adjacent2):
-                m.d.sync += [d_q.eq(d2), self.error.eq(d2)]
         with m.Elif(jump2):
             m.d.sync += ref_ok.eq(0)
         with m.If(miss):
@@ -788,10 +809,15 @@ class EncoderFrontEnd(wiring.Component):
     hall_sector, hall_valid, hall_fault
         From the :class:`HallSensor` (``sector``, ``valid``, ``fault``).
     hall_edge, hall_miss, plausibility, hall_error
-        From the :class:`HallPlausibility` (``edge``, ``miss``, ``fault``, ``error``), one clock
-        after the Hall sector and encoder angle they compare (:attr:`plausibility_latency`).
+        From the :class:`HallPlausibility` (``edge``, ``miss``, ``fault``, ``error``),
+        :attr:`plausibility_latency` clocks after the pin changes of the Hall sector and encoder
+        angle they compare (``hall_error`` one clock sooner).
     theta : Out(BinaryAngle(16))
-        Electrical angle θ_e: the decoder's exact angle when ``aligned``, else the Hall angle.
+        Electrical angle θ_e, a register or the Hall angle: the decoder's exact angle of the
+        clock before (``theta_q``, :attr:`theta_latency`) when the decoder was ``aligned`` in
+        the clock before, else the Hall angle (not delayed: :attr:`latency`). The register
+        serves the plausibility check too (its own copy of the angle) and starts the paths
+        behind θ at a flip-flop (ECP5 Fmax: the angle's sum and wrap test end there).
     ready : Out(1)
         The inputs have settled since reset.
 
@@ -800,11 +826,14 @@ class EncoderFrontEnd(wiring.Component):
     latency : int
         Clocks from a pin change to the outputs with ``length`` ≤ 1 (4: two synchroniser flops,
         the filter register, the decoder); add ``length − 1`` for a longer filter.
+    theta_latency : int
+        The same for ``theta`` once aligned (5: the decoder's angle registered).
     plausibility_latency : int
-        The same for ``hall_edge``, ``hall_miss``, ``plausibility`` and ``hall_error`` (7).
+        The same for ``hall_edge``, ``hall_miss`` and ``plausibility`` (7; ``hall_error`` 6).
     """
 
     latency = 4
+    theta_latency = latency + 1
     plausibility_latency = latency + HallPlausibility.latency
     sync_stages = 2
 
@@ -814,7 +843,7 @@ class EncoderFrontEnd(wiring.Component):
         self._decoder = QuadratureDecoder(z_gate=z_gate)
         self._filter = GlitchFilter(width=6, max_length=max_length)
         self._hall = HallSensor()
-        self._plausibility = HallPlausibility()
+        self._plausibility = HallPlausibility(theta_registered=True)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hall": In(3),
             "length": In(range(max_length + 1)),
@@ -864,6 +893,11 @@ class EncoderFrontEnd(wiring.Component):
             dec.z_offset.eq(self.z_offset), dec.realign.eq(self.realign),
             hall.h.eq(flt.o[3:6]), hall.offset.eq(self.hall_offset), hall.hold.eq(~self.ready),
         ]
+        # The decoder's angle (a sum and a wrap test) and its alignment, registered: θ's source
+        # when aligned, and the plausibility check's clock-1 copy of the angle.
+        theta_q = Signal(ANGLE.shape)
+        aligned_q = Signal()
+        m.d.sync += [theta_q.eq(dec.theta), aligned_q.eq(dec.aligned)]
         for name in ("count", "e", "step", "up", "a_rise", "illegal", "index", "aligned", "busy",
                      "config_error"):
             m.d.comb += getattr(self, name).eq(getattr(dec, name))
@@ -871,10 +905,10 @@ class EncoderFrontEnd(wiring.Component):
             self.hall_sector.eq(hall.sector),
             self.hall_valid.eq(hall.valid),
             self.hall_fault.eq(hall.fault),
-            self.theta.eq(Mux(dec.aligned, dec.theta, hall.theta)),
+            self.theta.eq(Mux(aligned_q, theta_q, hall.theta)),
         ]
         m.d.comb += [
-            plaus.theta.eq(dec.theta), plaus.aligned.eq(dec.aligned),
+            plaus.theta.eq(theta_q), plaus.aligned.eq(dec.aligned),
             plaus.restart.eq(dec.busy | dec.config_error),
             plaus.sector.eq(hall.sector), plaus.valid.eq(hall.valid), plaus.hold.eq(~self.ready),
             plaus.offset.eq(self.hall_offset), plaus.tolerance.eq(self.hall_tolerance),

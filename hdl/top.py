@@ -711,9 +711,8 @@ class Top(wiring.Component):
             regs.scope_rd_data.eq(scope.rd_data),
         ]
         src = scope.src
-        # θ and the current references through registers (the encoder forms θ from a sum and a
-        # wrap compare, the Servo selects it and clamps or selects the references by mode): in
-        # the trace one clock late, like st_theta (docs/AREA.md §7.12).
+        # θ and the current references through registers (the Servo selects θ and clamps or
+        # selects the references by mode): in the trace one clock late (docs/AREA.md §7.12).
         theta_q = Signal.like(servo.theta)
         id_ref_q = Signal.like(servo.id_ref)
         iq_ref_q = Signal.like(servo.iq_ref)
@@ -750,11 +749,11 @@ class Top(wiring.Component):
         # duty transfer (overmod is registered then), the speed PI's one clock after its result.
         # clear_faults clears them all (a flag still true is set again by the next loop; one
         # seen in the clear's own clock is kept).
-        # The angle as a status word one clock late: the encoder forms θ combinationally (sum
-        # and wrap compare), and the register file's read multiplexer behind it was the whole
-        # top's critical path on the ECP5 (docs/AREA.md §7.8).
-        theta_status = Signal.like(enc.theta)
-        m.d.sync += theta_status.eq(enc.theta)
+        # The angle as a status word straight from the encoder: θ is its register of the
+        # decoder's angle (or the Hall angle) behind one multiplexer, not a sum and a wrap
+        # compare (the register file's read multiplexer behind those was the whole top's
+        # critical path on the ECP5, docs/AREA.md §7.8: this copy used to register it).
+        theta_status = enc.theta
         flags = Signal(len(LOOP_FLAG_FIELDS))
         cl_done = Signal()
         speed_done = Signal()

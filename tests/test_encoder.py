@@ -4,7 +4,8 @@
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Cat
+from amaranth.hdl import Cat, Module, Signal
+from amaranth.lib import wiring
 
 import foc_servo.hdl.encoder as hdl_encoder
 import foc_servo.sim.verify.encoder as verify_encoder
@@ -200,7 +201,8 @@ def test_quadrature_illegal_transition_strobe_without_count():
 
 def test_index_first_z_aligns_and_loads_offset():
     """The first Z sets aligned, clears count and loads e with z_offset; theta switches from the
-    Hall centre to floor(e·2**16 / cpr); a second Z only strobes index."""
+    Hall centre to floor(e·2**16 / cpr) one clock later (``theta_latency``: the decoder's angle
+    registered); a second Z only strobes index."""
     dut = EncoderFrontEnd()
     z_offset = 7777
     steps = [1] * 10 + [-1] * 8 + [1] * 10
@@ -212,8 +214,9 @@ def test_index_first_z_aligns_and_loads_offset():
         np.testing.assert_array_equal(out[k], want[k], err_msg=k)
     first = int(np.argmax(out["aligned"]))
     assert out["index"][first] == 1 and out["count"][first] == 0 and out["e"][first] == z_offset
-    assert out["theta"][first - 1] == (hall_centres()[0] + 1000) % 65536
-    assert out["theta"][first] == (z_offset << 16) // 20000
+    assert out["theta"][first] == (hall_centres()[0] + 1000) % 65536
+    assert out["theta"][first + 1] == (z_offset << 16) // 20000
+    assert EncoderFrontEnd.theta_latency == EncoderFrontEnd.latency + 1
     # Later index events (passing Z again going back and forth) do not realign.
     assert out["index"].sum() >= 2
     e = out["e"][first:]
@@ -274,11 +277,12 @@ def test_index_realign_and_config_change_drop_alignment():
         assert rec[-1]["e"] == 4 and rec[-1]["busy"] == 1
         await tick(1)
         assert rec[-1]["e"] == 104 and rec[-1]["aligned"] == 1 and rec[-1]["busy"] == 0
-        assert rec[-1]["theta"] == (104 << 16) // 20000
+        assert rec[-1]["theta"] == (4 << 16) // 20000           # theta: a clock later
         ctx.set(dut.realign, 1)
         await tick(1)
         ctx.set(dut.realign, 0)
         assert rec[-1]["aligned"] == 0
+        assert rec[-1]["theta"] == (104 << 16) // 20000
         ctx.set(word, pins(1, 0, 1))
         await tick(6)
         assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 0 and rec[-1]["e"] == 100
@@ -442,9 +446,59 @@ def test_hall_boundaries_are_the_sector_starts():
         assert abs(first - b) <= 1
 
 
+def test_plausibility_theta_registered_matches_the_default_block():
+    """With ``theta_registered`` the block takes the angle one clock late (the front end's
+    register) and gives the default block's outputs, clock for clock, on random inputs (edges
+    in consecutive clocks, alignment, restarts and tolerances included)."""
+    plain, late = HallPlausibility(), HallPlausibility(theta_registered=True)
+    assert (plain.theta_registered, late.theta_registered) == (False, True)
+    rng = np.random.default_rng(11)
+    n = 3000
+    stim = {"theta": rng.integers(0, TURN, n), "sector": rng.integers(0, 6, n),
+            "aligned": rng.random(n) < 0.5, "restart": rng.random(n) < 0.05,
+            "valid": rng.random(n) < 0.95, "hold": rng.random(n) < 0.02,
+            "offset": rng.integers(0, TURN, n), "tolerance": rng.integers(0, TURN, n),
+            "misses": rng.integers(0, 16, n)}
+    outs = ("edge", "miss", "fault", "error")
+    got = {"plain": [], "late": []}
+
+    class Pair(wiring.Component):
+        def __init__(self):
+            super().__init__({})
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.plain, m.submodules.late = plain, late
+            theta_q = Signal(16)
+            m.d.sync += theta_q.eq(plain.theta)
+            m.d.comb += late.theta.eq(theta_q)
+            for name in stim:
+                if name != "theta":
+                    m.d.comb += getattr(late, name).eq(getattr(plain, name))
+            return m
+
+    async def testbench(ctx):
+        for t in range(n):
+            for name, v in stim.items():
+                ctx.set(getattr(plain, name), int(v[t]))
+            await ctx.tick()
+            got["plain"].append(tuple(ctx.get(getattr(plain, k)) for k in outs))
+            got["late"].append(tuple(ctx.get(getattr(late, k)) for k in outs))
+
+    simulate(Pair(), [testbench], name="test_plausibility_theta_registered")
+    assert got["late"] == got["plain"]
+    assert sum(e for e, *_ in got["plain"]) > 100
+
+
+def test_plausibility_theta_registered_must_be_a_bool():
+    with pytest.raises(TypeError,
+                       match=r"^HallPlausibility theta_registered must be a bool, not 1$"):
+        HallPlausibility(theta_registered=1)
+
+
 def test_plausibility_latency_cycle_by_cycle():
-    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3
-    (and ``error`` with them), once."""
+    """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3,
+    once; ``error`` holds its d from t + 2 (one clock before the check's strobes)."""
     dut = HallPlausibility()
     seen = []
 
@@ -463,7 +517,7 @@ def test_plausibility_latency_cycle_by_cycle():
     simulate(dut, [testbench], name="test_plausibility_latency")
     assert HallPlausibility.latency == model.HallPlausibilityModel.LATENCY == 3
     err = B[3] - B[1]
-    assert seen == [(0, 0, 0, 0)] * 3 + [(1, 1, 1, err), (0, 0, 0, err)]
+    assert seen == [(0, 0, 0, 0)] * 2 + [(0, 0, 0, err), (1, 1, 1, err), (0, 0, 0, err)]
     assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 3
 
 

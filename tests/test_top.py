@@ -276,7 +276,7 @@ def _status_sources(top):
     return {
         "st_mode": servo.active, "st_trip": prot.trip, "st_fault_present": prot.present,
         "st_fault_first": prot.first, "st_fault_seen": prot.seen,
-        # st_theta and st_trip show enc.theta and prot.trip one clock late (registers)
+        # st_trip shows prot.trip one clock late (a register); st_theta is enc.theta itself
         "st_enc_aligned": enc.aligned, "st_position": enc.count, "st_theta": enc.theta,
         "st_speed": mt.o.payload.speed, "st_i_d": cl.i_d, "st_i_q": cl.i_q,
         "st_i_alpha": cl.i_alpha, "st_i_beta": cl.i_beta, "st_u_d": cl.u_d, "st_u_q": cl.u_q,

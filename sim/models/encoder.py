@@ -102,7 +102,8 @@ class HallPlausibilityModel:
     """Model of :class:`~foc_servo.hdl.encoder.HallPlausibility`: the check as if it took all
     its inputs in one clock, run on the inputs delayed by the gateware's pipeline (``latency − 1``
     clocks) except ``tolerance`` and ``misses``, which the gateware's check takes in its own
-    clock."""
+    clock; ``error`` (the gateware's clock-2 register ``d_q``) is written one clock before the
+    check, from the inputs delayed by one clock."""
 
     #: Clocks from the inputs to the outputs (``HallPlausibility.latency``).
     LATENCY = 3
@@ -121,6 +122,25 @@ class HallPlausibilityModel:
         self._pipe.append(dict(theta=theta, aligned=aligned, restart=restart, sector=sector,
                                valid=valid, hold=hold, offset=offset))
         self._check(**self._pipe.pop(0), tolerance=tolerance, misses=misses)
+        self._error(**self._pipe[0])
+
+    def _edge(self, sector, hold):
+        """``(edge, fwd, adjacent)`` of ``sector`` after the state of the last checked inputs."""
+        edge = bool(self.have_q and not hold and sector != self.sector_q)
+        fwd = sector == (0 if self.sector_q == 5 else self.sector_q + 1)
+        bwd = sector == (5 if self.sector_q == 0 else self.sector_q - 1)
+        return edge, fwd, fwd or bwd
+
+    def _d(self, theta, sector, fwd, offset):
+        return (theta - self.bounds[sector if fwd else self.sector_q] - offset) % _TURN
+
+    def _error(self, *, theta, aligned, restart, sector, valid, hold, offset):
+        # The gateware writes d of an edge between adjacent sectors into ``error`` one clock
+        # before its check (its clock 2): the inputs that the next clock checks.
+        edge, fwd, adjacent = self._edge(sector, hold)
+        if edge and adjacent:
+            d = self._d(theta, sector, fwd, offset)
+            self.error = d - _TURN if d >= _TURN >> 1 else d
 
     def _check(self, *, theta, aligned, restart, sector, valid, hold, offset, tolerance, misses):
         turn, half = _TURN, _TURN >> 1
@@ -128,11 +148,8 @@ class HallPlausibilityModel:
         def mag(x):
             return turn - x if x >= half else x
 
-        edge = bool(self.have_q and not hold and sector != self.sector_q)
-        fwd = sector == (0 if self.sector_q == 5 else self.sector_q + 1)
-        bwd = sector == (5 if self.sector_q == 0 else self.sector_q - 1)
-        adjacent = fwd or bwd
-        d = (theta - self.bounds[sector if fwd else self.sector_q] - offset) % turn
+        edge, fwd, adjacent = self._edge(sector, hold)
+        d = self._d(theta, sector, fwd, offset)
         dd = (d - self.d_q) % turn
         jump = bool(restart) or aligned != self.aligned_q
         abs_miss = bool(aligned) and mag(d) > tolerance
@@ -144,8 +161,6 @@ class HallPlausibilityModel:
                   and not rel_miss)
 
         need = 1 if misses == 0 else misses
-        if edge and adjacent:
-            self.error = d - turn if d >= half else d
         self.edge, self.miss = int(edge), int(miss)
         self.fault = int(miss and self.count + 1 >= need)
         if edge:
@@ -288,6 +303,7 @@ class EncoderFrontEndModel:
         self.plausibility = HallPlausibilityModel()
         self.settle = 0
         self.ready = 0
+        self.theta_q = self.aligned_q = 0
 
     def tick(self, pins, *, length=0, lines=5000, pole_pairs=4, z_offset=0, hall_offset=0,
              realign=0, hall_tolerance=8192, hall_misses=1):
@@ -298,6 +314,7 @@ class EncoderFrontEndModel:
                                restart=int(d.busy or d.config_error), sector=h.sector,
                                valid=h.valid, hold=hold, offset=hall_offset,
                                tolerance=hall_tolerance, misses=hall_misses)
+        self.theta_q, self.aligned_q = d.theta, d.aligned     # registered (theta_latency)
         flt = self.filter.o
         self.decoder.tick(flt & 1, (flt >> 1) & 1, (flt >> 2) & 1, hold=hold, lines=lines,
                           pole_pairs=pole_pairs, z_offset=z_offset, realign=realign)
@@ -312,7 +329,7 @@ class EncoderFrontEndModel:
     def values(self):
         """The outputs as a tuple in the order of :data:`OUTPUTS`."""
         d, h, p = self.decoder, self.hall, self.plausibility
-        return (d.count, d.e, d.theta if d.aligned else h.theta, d.step, d.up, d.a_rise,
+        return (d.count, d.e, self.theta_q if self.aligned_q else h.theta, d.step, d.up, d.a_rise,
                 d.illegal, d.index, d.aligned, d.busy, d.config_error, h.sector, h.valid,
                 h.fault, p.edge, p.miss, p.fault, p.error, self.ready)
 
