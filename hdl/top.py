@@ -52,6 +52,17 @@ engine's configuration RAM in the clocks the flip-flops would have changed
 (One exception, in the reset walk's 63 clocks after a domain reset: the flip-flops would have
 held the reset values at once, the RAM gets them word by word.)
 
+**Speed-loop configuration in RAM** (``regs_staging="bram"``, either current loop): the same for
+the speed loop's gains, slew and feed-forward (:data:`SPEED_LOOP_CONFIG`: ``pi_speed_kp``,
+``pi_speed_kx``, ``speed_slew``, ``speed_ff_iq``), the export port's words after the engine's,
+into the speed loop's configuration RAM (``Servo(config="ram")``, :class:`~.servo.SpeedLoop`). The loop reads them only during a
+run, which starts at M/T's result after ``period_start`` and ends ~125 clocks later, while the
+copy runs before ``period_start``: the PWM period must leave room for both (as it did for the
+loop's ports, which the copy changed too). The reset walk writes them too, so no run starts
+while it lasts (``RegisterFile.export_walk`` holds off the Servo's speed strobe): after a reset
+the first M/T result (~40 clocks later) is not used, the speed loop runs from the next one
+(only visible when ``mode``'s reset value is SPEED; the default, DISABLED, runs no loop).
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -116,7 +127,7 @@ from .regs import STAGINGS as REGS_STAGINGS
 from .regs import RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
-from .servo import Servo
+from .servo import SPEED_CONFIG, Servo
 from .svpwm import PWMTimer, pwm_half_period
 
 __all__ = ["Top", "LeadAngle", "regmap_address_map"]
@@ -136,6 +147,10 @@ ENGINE_CONFIG = tuple({
     "hi_d": "pi_d_lim_hi", "kp_q": "pi_q_kp", "kx_q": "pi_q_kx", "lo_q": "pi_q_lim_lo",
     "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
+#: The registers of the speed loop's configuration words (``regs_staging="bram"``), in its word
+#: order (:data:`~.servo.SPEED_CONFIG`).
+SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
+                           "iq_ff": "speed_ff_iq"}[name] for name in SPEED_CONFIG)
 
 
 def _raw(port):
@@ -413,11 +428,16 @@ class Top(wiring.Component):
         # Built here (after every check) so that their timing attributes are known.
         # "bram": the timer latches pwm_symmetric in the period's last clock, so that word is
         # copied in the copy's last clock (it changes after the latch, as with "ff").
-        # The engine's configuration registers in its RAM (module docstring).
+        # The engine's and the speed loop's configuration registers in their RAMs (module
+        # docstring): one export port, the engine's words first.
         cfg_ram = current_loop == "engine" and regs_staging == "bram"
+        speed_ram = regs_staging == "bram"
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=ENGINE_CONFIG if cfg_ram else ())
+                                  export=((ENGINE_CONFIG if cfg_ram else ())
+                                          + (SPEED_LOOP_CONFIG if speed_ram else ())))
+        exported = [r.name for _, r, _ in self._regs.export_words]
+        self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -428,15 +448,20 @@ class Top(wiring.Component):
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init) if cfg_ram else
+                                        config_init=self._regs.export_init[:len(ENGINE_CONFIG)])
+                      if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
                                  shift_width=regmap["dtc_band"].width)
         self._encoder = EncoderFrontEnd()
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
+        k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
-                            kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width)
+                            kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width,
+                            **({} if k is None else dict(
+                                config="ram",
+                                config_init=self._regs.export_init[k:k + len(SPEED_CONFIG)])))
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
@@ -566,7 +591,10 @@ class Top(wiring.Component):
             # x4: every count of the decoder; a_rising: the counts that are an A rising edge.
             mt.edge.step.eq(enc.step if mt.edge_mode == "x4" else enc.a_rise),
             mt.edge.neg.eq(~enc.up),
-            servo.speed.valid.eq(mt.o.valid),
+            # ("bram": no speed-loop run starts in the register file's reset walk, which
+            # writes the loop's configuration words: module docstring.)
+            servo.speed.valid.eq(mt.o.valid if self._speed_export is None else
+                                 mt.o.valid & ~regs.export_walk),
             servo.speed.payload.eq(mt.o.payload),
             servo.theta_meas.eq(enc.theta),
             servo.trip.eq(trip_q),
@@ -599,8 +627,11 @@ class Top(wiring.Component):
         # --- registers → blocks (register name ≠ port name in places) -----------------------
         # The current loop's configuration: the register file's active values, or (the engine
         # with "bram" staging) the register file's export port into the engine's RAM.
-        if "export" in regs.signature.members:
-            wiring.connect(m, regs=regs.export, current_loop=cl.config)
+        exp = regs.export if "export" in regs.signature.members else None
+        if hasattr(cl, "config"):
+            # The export port's first words (indices 0 … 13).
+            m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < len(ENGINE_CONFIG))),
+                         cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
             m.d.comb += [
                 cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
@@ -635,14 +666,10 @@ class Top(wiring.Component):
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
 
-            servo.speed_kp.eq(regs.pi_speed_kp),
-            servo.speed_kx.eq(regs.pi_speed_kx),
             servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
             servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
             # speed_div: "every n periods, 0 acts as 1"; rate_div: "every rate_div + 1".
             servo.speed_rate_div.eq(Mux(regs.speed_div == 0, 0, regs.speed_div - 1)),
-            servo.speed_slew.eq(regs.speed_slew),
-            servo.iq_ff.eq(regs.speed_ff_iq),
             servo.speed_ref_delay.eq(regs.speed_ref_delay),
             servo.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
@@ -673,6 +700,17 @@ class Top(wiring.Component):
             scope.arm.eq(regs.scope_arm),
             scope.force.eq(regs.scope_force),
         ]
+        # The speed loop's gains, slew and feed-forward: the register file's active values, or
+        # ("bram") its export port's words from index ``_speed_export`` on into the speed
+        # loop's RAM.
+        if self._speed_export is None:
+            m.d.comb += [servo.speed_kp.eq(regs.pi_speed_kp), servo.speed_kx.eq(regs.pi_speed_kx),
+                         servo.speed_slew.eq(regs.speed_slew), servo.iq_ff.eq(regs.speed_ff_iq)]
+        else:
+            k = self._speed_export
+            m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k)),
+                         servo.speed_config.index.eq(exp.index - k),
+                         servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
         # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must
         # still record 0, so out-of-range codes saturate to the first unused code (not truncate,
