@@ -81,7 +81,10 @@ them from the reset walk, which puts each exported word on the port (its reset v
 the RAM's reset half) in clock ``2 + i`` after the reset clock (slot ``i``; the RAM holds it
 from clock ``3 + i``); from clock ``2 + reset_clocks`` after the reset on every exported word
 is its reset value again. At power-up the walk runs too; a consumer RAM initialised with
-:func:`export_init` (the reset values) matches from the first clock.
+:func:`export_init` (the reset values) matches from the first clock. ``export_walk`` is high
+while the walk's words are on the port (from the reset clock to the last one, inclusive), for a
+consumer that must not start a computation the walk's writes would land in (the speed loop,
+:class:`~.top.Top`).
 
 Status read from a RAM (``status_ram``; docs/AREA.md, "Session 11: engine status"). The
 read-only registers named in ``status_ram`` have no ``In`` member: their values live in a
@@ -242,6 +245,10 @@ class RegisterFile(wiring.Component):
     export : Out(WordWriteSignature(len(export_words)))
         Only with ``export``: the exported active words as RAM writes (``valid``, ``index``,
         ``data``), in the clocks the module docstring gives.
+    export_walk : Out(1, init=1)
+        Only with ``export``: high from a reset (and power-up) up to and including the clock
+        the reset walk puts its last word on the port: the exported words are being rewritten;
+        a consumer that must not see them change under a computation waits.
     <ro register> : In(register.shape)
         Status from the control path (not those of ``status_ram``).
     status_rd : In(ReadPort.Signature(addr_width=ceil_log2(len(status_ram)), shape=...))
@@ -354,6 +361,7 @@ class RegisterFile(wiring.Component):
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
+            members["export_walk"] = Out(1, init=1)
         if status_ram:
             r0 = regmap[status_ram[0]]
             members["status_rd"] = In(ReadPort.Signature(
@@ -659,7 +667,8 @@ class RegisterFile(wiring.Component):
             with m.If(start | run):
                 m.d.sync += [exp_on.eq(exp_on_c), exp_index.eq(exp_index_c)]
             m.d.comb += [self.export.valid.eq(load & exp_on), self.export.index.eq(exp_index),
-                         self.export.data.eq(rd_data)]
+                         self.export.data.eq(rd_data),
+                         self.export_walk.eq(walk | load_walk)]
 
         # t + 1: the access's RAM word and word format, looked up from the word select.
         with m.Switch(sel):

@@ -103,20 +103,29 @@ from amaranth.utils import ceil_log2, exact_log2
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
+from .bus import DATA_WIDTH, WordWriteSignature
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
-from .fixed import is_int, UQ, BinaryAngle, clamp
+from .fixed import is_int, UQ, BinaryAngle, check_choice, clamp
 from .mt_speed import output_layout as mt_output_layout
 from .pi import pi_widths
 
 __all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
-           "check_speed_loop", "speed_loop_timing"]
+           "CONFIGS", "SPEED_CONFIG", "check_speed_loop", "check_speed_config",
+           "speed_loop_timing"]
 
 #: Width of the current references and modulation indices, Q1.15 (docs/ARCHITECTURE.md).
 IQ_WIDTH = 16
 #: The electrical angle format.
 ANGLE = BinaryAngle(16)
+#: :class:`Servo`'s ports of the :data:`SPEED_CONFIG` inputs (``config="ports"``).
+_SERVO_CONFIG = ("speed_kp", "speed_kx", "speed_slew", "iq_ff")
 #: Fraction bits of ``ref_delay`` (steps of 1/8 speed-loop run).
 DELAY_FRAC = 3
+#: Values of ``SpeedLoop(config=...)`` / ``Servo(config=...)``.
+CONFIGS = ("ports", "ram")
+#: ``config="ram"``: the :class:`SpeedLoop` inputs held in its configuration RAM instead of
+#: ports, in the order of the words of its ``config`` port (``config.index`` = position here).
+SPEED_CONFIG = ("kp", "kx", "speed_slew", "iq_ff")
 
 
 class Mode(enum.Enum, shape=2):
@@ -154,6 +163,30 @@ def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_wi
         raise TypeError(f"SpeedLoop delay_width must be an integer from {DELAY_FRAC + 1} to "
                         f"{DELAY_FRAC + 4}, not {delay_width!r}")
     pi_widths(width, kp_format, kx_format, int_guard)
+
+
+def check_speed_config(owner, config, config_init, speed_width, kp_format, kx_format):
+    """Validate ``config`` and ``config_init`` of :class:`SpeedLoop` / :class:`Servo` (after
+    :func:`check_speed_loop`); returns the initial words (``config="ram"``: ``config_init`` or all
+    0; ``"ports"``: ``None``)."""
+    check_choice(owner, "config", config, CONFIGS)
+    if config_init is not None and config != "ram":
+        raise ValueError(f"{owner} config_init applies only to config='ram', "
+                         f"not config={config!r}")
+    if config != "ram":
+        return None
+    widths = {"kp": kp_format.width, "kx": kx_format.width, "speed_slew": speed_width}
+    for name, width in widths.items():
+        if width > DATA_WIDTH:
+            raise ValueError(f"{owner} config='ram' needs {name} in one {DATA_WIDTH}-bit word, "
+                             f"not {width} bits")
+    if config_init is None:
+        return [0] * len(SPEED_CONFIG)
+    if (not isinstance(config_init, (list, tuple)) or len(config_init) != len(SPEED_CONFIG)
+            or not all(is_int(v) and 0 <= v < 1 << DATA_WIDTH for v in config_init)):
+        raise ValueError(f"{owner} config_init must be a list of {len(SPEED_CONFIG)} "
+                         f"{DATA_WIDTH}-bit words, not {config_init!r}")
+    return list(config_init)
 
 
 # --- The speed loop's micro-program ---------------------------------------------------------------
@@ -399,6 +432,20 @@ class SpeedLoop(wiring.Component):
     ``clear`` acts in its own clock (no long path behind it: it only resets registers and
     selects ``R``'s tracking input).
 
+    **Configuration in RAM** (``config="ram"``). ``kp``, ``kx``, ``speed_slew`` and ``iq_ff``
+    (:data:`SPEED_CONFIG`) are the four words of a RAM of their own (``max(kp, kx, speed)
+    width`` bits, a block RAM: written only through the ``config`` port, initialised with
+    ``config_init``), beside the register file. Its read port's address, presented a clock
+    ahead like the register file's, is the slew's word, except for the operation whose B
+    operand is the feed-forward (its word) and in the clock before a multiplication starts
+    (that multiplication's gain; no operation that starts one reads the slew or the
+    feed-forward): the slew and feed-forward special sources and the multiplier's gain load
+    take the read data instead of the ports. ``speed_slew ≠ 0`` (the profile's on/off, read
+    every clock while ``clear``) is a flip-flop loaded with the slew's word. The program, the
+    results and the timing are those of ``config="ports"``. (As words of the register file's
+    own RAM they would need a second source on its one write port: 32 multiplexer LUTs more on
+    the iCE40; docs/AREA.md.)
+
     Parameters
     ----------
     speed_width : int
@@ -419,6 +466,17 @@ class SpeedLoop(wiring.Component):
     mul_width : int
         Signed operand width of the target's hard multiplier, 8 … 25, or ``None``; checked and
         kept for the interface (the sequential multiplier uses no hard multiplier).
+    config : str
+        Where ``kp``, ``kx``, ``speed_slew`` and ``iq_ff`` (:data:`SPEED_CONFIG`) come from:
+        ``"ports"`` (default) the members of those names; ``"ram"`` a four-word block RAM of
+        the loop's, written through the ``config`` port (*Configuration in RAM* below; the
+        iCEBreaker's top, whose register file then holds no flip-flops for them). Results and
+        timing are the same.
+    config_init : list of int
+        ``config="ram"``: the four words' initial contents, 32-bit words in
+        :data:`SPEED_CONFIG` order (the registers' reset values in their read format; default
+        all 0). ``config="ram"`` needs ``kp_format``, ``kx_format`` and ``speed_width`` of at
+        most 32 bits.
 
     Members
     -------
@@ -448,6 +506,13 @@ class SpeedLoop(wiring.Component):
     lim_lo, lim_hi : In(signed(16))
         i_q limits (the current limit), Q1.15 of I_FS. Gains, limits and the profile inputs
         must be stable while a run is in flight (see *Input timing*).
+    config : In(WordWriteSignature(4))
+        ``config="ram"`` only, instead of ``kp``, ``kx``, ``speed_slew`` and ``iq_ff``: a write
+        of word ``index`` (:data:`SPEED_CONFIG` order; ``data`` the value zero-extended or, if
+        signed, sign-extended to 32 bits, as the register file's export port carries it) in the
+        ``valid`` clock; the loop uses it from the next clock, as it would a port that changed
+        then. Never while a run is in flight or in its accepting clock (an ``Assert`` checks
+        it): the same rule as for the ports.
     rate_div : In(unsigned(div_width))
         The loop runs on every ``rate_div + 1``-th speed sample.
     clear : In(1)
@@ -479,10 +544,14 @@ class SpeedLoop(wiring.Component):
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5, mul_width=MUL_WIDTH):
+                 int_guard=16, div_width=8, delay_width=5, mul_width=MUL_WIDTH, config="ports",
+                 config_init=None):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
         self._mul_width = check_mul_width("SpeedLoop", mul_width)
+        self._config_init = check_speed_config("SpeedLoop", config, config_init, speed_width,
+                                               kp_format, kx_format)
+        self._config = config
         self._speed_width = speed_width
         self._width = width
         self._kp_format = kp_format
@@ -493,7 +562,7 @@ class SpeedLoop(wiring.Component):
         self._ops, self._timing = _program(speed_width, width, kp_format, kx_format, int_guard,
                                            self.max_delay)
         self._alu_width = max(speed_width + 2, width + int_guard + 3, width + 4)
-        super().__init__({
+        members = {
             "i": In(stream.Signature(mt_output_layout(speed_width), always_ready=True)),
             "speed_ref": In(signed(speed_width)),
             "speed_slew": In(unsigned(speed_width)),
@@ -509,7 +578,12 @@ class SpeedLoop(wiring.Component):
             "o": Out(stream.Signature(signed(IQ_WIDTH), always_ready=True)),
             "sat": Out(1),
             "ref_int": Out(signed(speed_width)),
-        })
+        }
+        if config == "ram":             # the configuration words through one RAM write port
+            for name in SPEED_CONFIG:
+                del members[name]
+            members["config"] = In(WordWriteSignature(len(SPEED_CONFIG)))
+        super().__init__(members)
 
     speed_width = property(lambda self: self._speed_width)
     width = property(lambda self: self._width)
@@ -519,6 +593,9 @@ class SpeedLoop(wiring.Component):
     div_width = property(lambda self: self._div_width)
     delay_width = property(lambda self: self._delay_width)
     mul_width = property(lambda self: self._mul_width)
+    config_mode = property(lambda self: self._config)
+    config_init = property(lambda self: None if self._config_init is None
+                           else list(self._config_init))
     max_delay = property(lambda self: (1 << (self._delay_width - DELAY_FRAC)) - 1)
     latency = property(lambda self: self._timing["latency"])
     interval = property(lambda self: self._timing["interval"])
@@ -615,8 +692,37 @@ class SpeedLoop(wiring.Component):
         acc = Signal(signed(wa))
         flag_names = sorted({f for op in ops for f in op.flags})
         flags = {f: Signal(name=f"flag_{f.lower()}") for f in flag_names}
-        snz = Signal()
-        m.d.comb += snz.eq(self.speed_slew != 0)
+        # ``config="ram"``: kp, kx, speed_slew and iq_ff in a RAM of their own (a block RAM: one
+        # write port, the ``config`` port; one read port, its address presented a clock ahead:
+        # the slew's word, the feed-forward's, or a gain's in the clock before its
+        # multiplication starts);
+        # ``speed_slew ≠ 0`` in a flip-flop loaded with the slew's word (the port's value from
+        # the next clock on, as the RAM's word).
+        ram = self._config == "ram"
+        if ram:
+            cfg = self.config
+            cfg_index = {name: SPEED_CONFIG.index(name) for name in SPEED_CONFIG}
+            cfg_w = max(kpf.width, kxf.width, sw)
+            # (An asynchronous read port with a register behind it, which yosys merges into
+            # the block RAM's synchronous port; ``no_rw_check``: no word is read in a clock that
+            # writes it (writes come between runs), so no read-during-write emulation.)
+            m.submodules.cfg_ram = cfg_ram = Memory(
+                shape=unsigned(cfg_w), depth=len(SPEED_CONFIG),
+                init=[v & ((1 << cfg_w) - 1) for v in self._config_init],
+                attrs={"ram_style": "block", "no_rw_check": 1})
+            cfg_wr = cfg_ram.write_port()
+            cfg_rd = cfg_ram.read_port(domain="comb")
+            cfg_q = Signal(cfg_w, reset_less=True)      # the RAM's read data
+            m.d.sync += cfg_q.eq(cfg_rd.data)
+            m.d.comb += [cfg_wr.en.eq(cfg.valid), cfg_wr.addr.eq(cfg.index),
+                         cfg_wr.data.eq(cfg.data[:cfg_w])]
+            slew_init = self._config_init[cfg_index["speed_slew"]] & ((1 << sw) - 1)
+            snz = Signal(init=slew_init != 0)
+            with m.If(cfg.valid & (cfg.index == cfg_index["speed_slew"])):
+                m.d.sync += snz.eq(cfg.data[:sw].any())
+        else:
+            snz = Signal()
+            m.d.comb += snz.eq(self.speed_slew != 0)
         # The run's decode reads ``speed_slew ≠ 0`` from a register (the input is stable during a
         # run; the 32-bit OR stays out of the control decode). ``clear``'s tracking uses ``snz``.
         snz_r = Signal()
@@ -893,6 +999,17 @@ class SpeedLoop(wiring.Component):
         rd_v = nv["b"][:ab]
         for k in ("TP", "TAPA", "TAPB"):
             rd_v = Mux(nv["b"] == b_code[k], rf_addr_of[k], rd_v)
+        if ram:
+            # The configuration RAM's address for the next clock: a multiplication's gain in the
+            # clock that starts it (no operation that starts one reads the slew or the
+            # feed-forward), the feed-forward for its operation, else the slew.
+            assert not any(("mult_x" in op.act or "mult_p" in op.act)
+                           and {"S", "IQFF"} & set(op.sources()) for op in ops)
+            m.d.comb += cfg_rd.addr.eq(
+                Mux(nv["act", "mult_x"], cfg_index["kx"],
+                    Mux(nv["act", "mult_p"], cfg_index["kp"],
+                        Mux(nv["b"] == b_code["IQFF"], cfg_index["iq_ff"],
+                            cfg_index["speed_slew"]))))
         m.d.comb += rf_rd_addr.eq(rd_v)
         # (Checked at each clock edge in every simulation and proved with ``speed_loop``.)
         m.d.sync += Assert(~(rf_wr_en & (rf_wr_addr == rf_rd_addr) & ~clear & (accept | running)
@@ -925,8 +1042,9 @@ class SpeedLoop(wiring.Component):
                 below = acc[:k - 1].any() if k > 1 else 0
                 cin_rnd = cin_rnd | (sel & acc[k - 1] & (~acc[-1] | below))
         sources = {
-            "R": R, "SREF": self.speed_ref, "S": self.speed_slew,
-            "IQFF": self.iq_ff << s_out, "LIM_LO": self.lim_lo << s_out,
+            "R": R, "SREF": self.speed_ref, "S": cfg_q[:sw] if ram else self.speed_slew,
+            "IQFF": (cfg_q[:IQ_WIDTH].as_signed() if ram else self.iq_ff) << s_out,
+            "LIM_LO": self.lim_lo << s_out,
             "LIM_HI": self.lim_hi << s_out, "PRD": prd,
         }
         narrow_w = sw + 1
@@ -970,7 +1088,17 @@ class SpeedLoop(wiring.Component):
                               Mux(wr_rf_raw, acc, Mux(wr_rf_g, acc_w << g, acc_w)))),
             Assert(~(accept & wr_rf), "SpeedLoop: a run's write in the accepting clock"),
         ]
+        if ram:
+            # (The RAM's words are read during a run only: a write then would change a run's
+            # input, as a port must not.)
+            m.d.comb += Assert(~(cfg.valid & (accept | running)),
+                               "SpeedLoop: a configuration write during a run")
         tests = {"neg": acc[-1], "nneg": ~acc[-1], "nz": acc.any(), "pos": ~acc[-1] & acc.any()}
+        if ram:                         # the word read in the clock before (above)
+            gain = {name: cfg_q[:f.width].as_signed() if f.signed else cfg_q[:f.width]
+                    for name, f in (("KP", kpf), ("KX", kxf))}
+        else:
+            gain = {"KP": self.kp, "KX": self.kx}
         hold_i = self.int_hold & snz_r & (flags["DNZ"] | ((d_int != 0) & flags["MVD"]))
         hold_b = (flags["AC"] & flags["DIP"]) | (flags["BC"] & flags["DIN"])
         m.d.sync += self.o.valid.eq(0)                  # a strobe (set below)
@@ -993,9 +1121,9 @@ class SpeedLoop(wiring.Component):
             for act in ("mult_x", "mult_p"):
                 with m.If(ev_act[act]):
                     if act == "mult_x":
-                        m.d.sync += [lo.eq(Mux(hold_i, 0, self.kx)), m_signed.eq(kxf.signed)]
+                        m.d.sync += [lo.eq(Mux(hold_i, 0, gain["KX"])), m_signed.eq(kxf.signed)]
                     else:
-                        m.d.sync += [lo.eq(self.kp), m_signed.eq(kpf.signed)]
+                        m.d.sync += [lo.eq(gain["KP"]), m_signed.eq(kpf.signed)]
                     m.d.sync += [mc.eq(acc << lsh[act]), hi.eq(0), half.eq(0), sticky.eq(0),
                                  m_cnt.eq(mw + max(sh[act], 0)), m_shift.eq(mw)]
 
@@ -1063,6 +1191,9 @@ class Servo(wiring.Component):
         Of the :class:`SpeedLoop`.
     phase_width : int
         Width of the open-loop phase accumulator, 16 … 48.
+    config, config_init
+        Of the :class:`SpeedLoop`: ``config="ram"`` replaces ``speed_kp``, ``speed_kx``,
+        ``speed_slew`` and ``iq_ff`` by ``speed_config``.
 
     Members
     -------
@@ -1090,6 +1221,9 @@ class Servo(wiring.Component):
         The :class:`SpeedLoop`'s ``speed_slew`` (UQ1.(speed_width−1) of N_FS per run),
         ``iq_ff`` (Q1.15 of I_FS), ``ref_delay`` (UQ(delay_width, 3) runs), ``int_hold``: the
         reference profile; all 0 = none.
+    speed_config : In(WordWriteSignature(4))
+        ``config="ram"`` only, instead of ``speed_kp``, ``speed_kx``, ``speed_slew`` and
+        ``iq_ff``: the :class:`SpeedLoop`'s ``config`` (writes into its configuration RAM).
     enable : Out(1)
         Gate enable and current-loop enable.
     ol_enable : Out(1)
@@ -1118,22 +1252,26 @@ class Servo(wiring.Component):
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5, phase_width=32, mul_width=MUL_WIDTH):
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32, mul_width=MUL_WIDTH,
+                 config="ports", config_init=None):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
         mul_width = check_mul_width("Servo", mul_width)
         if not is_int(phase_width) or not 16 <= phase_width <= 48:
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
                             f"not {phase_width!r}")
+        config_init = check_speed_config("Servo", config, config_init, speed_width, kp_format,
+                                         kx_format)
         self._loop_params = dict(speed_width=speed_width, width=width, kp_format=kp_format,
                                  kx_format=kx_format, int_guard=int_guard, div_width=div_width,
-                                 delay_width=delay_width, mul_width=mul_width)
+                                 delay_width=delay_width, mul_width=mul_width, config=config,
+                                 config_init=config_init)
         self._phase_width = phase_width
         self._speed_loop_timing = speed_loop_timing(speed_width, width, kp_format, kx_format,
                                                     int_guard, delay_width)
         a = ANGLE.shape
         q = signed(IQ_WIDTH)
-        super().__init__({
+        members = {
             "loop": In(1),
             "mode": In(Mode),
             "trip": In(1),
@@ -1170,9 +1308,15 @@ class Servo(wiring.Component):
             "speed_sat": Out(1),
             "speed_valid": Out(1),
             "speed_ref_int": Out(signed(speed_width)),
-        })
+        }
+        if config == "ram":             # SpeedLoop(config="ram"): its config port instead
+            for name in _SERVO_CONFIG:
+                del members[name]
+            members["speed_config"] = In(WordWriteSignature(len(SPEED_CONFIG)))
+        super().__init__(members)
 
     loop_params = property(lambda self: dict(self._loop_params))
+    config_mode = property(lambda self: self._loop_params["config"])
     phase_width = property(lambda self: self._phase_width)
     speed_loop_latency = property(lambda self: self._speed_loop_timing["latency"])
 
@@ -1200,15 +1344,17 @@ class Servo(wiring.Component):
         is_speed = eff == Mode.SPEED
 
         # Speed loop.
+        if self.config_mode == "ram":
+            wiring.connect(m, speed_config=wiring.flipped(self.speed_config),
+                           speed_loop=sl.config)
+        else:
+            m.d.comb += [getattr(sl, name).eq(getattr(self, port))
+                         for name, port in zip(SPEED_CONFIG, _SERVO_CONFIG)]
         m.d.comb += [
             sl.speed_ref.eq(self.speed_ref),
-            sl.kp.eq(self.speed_kp),
-            sl.kx.eq(self.speed_kx),
             sl.lim_lo.eq(self.iq_lim_lo),
             sl.lim_hi.eq(self.iq_lim_hi),
             sl.rate_div.eq(self.speed_rate_div),
-            sl.speed_slew.eq(self.speed_slew),
-            sl.iq_ff.eq(self.iq_ff),
             sl.ref_delay.eq(self.speed_ref_delay),
             sl.int_hold.eq(self.speed_int_hold),
             sl.clear.eq(~is_speed),

@@ -57,6 +57,17 @@ read port each by the register file (``RegisterFile(status_ram=...)``) and the s
 (``Scope(ram_sources=...)``): the same values in the same clocks as from the registers (a
 domain reset does not clear the RAM, where it cleared the registers).
 
+**Speed-loop configuration in RAM** (``regs_staging="bram"``, either current loop): the same for
+the speed loop's gains, slew and feed-forward (:data:`SPEED_LOOP_CONFIG`: ``pi_speed_kp``,
+``pi_speed_kx``, ``speed_slew``, ``speed_ff_iq``), the export port's words after the engine's,
+into the speed loop's configuration RAM (``Servo(config="ram")``, :class:`~.servo.SpeedLoop`). The loop reads them only during a
+run, which starts at M/T's result after ``period_start`` and ends ~125 clocks later, while the
+copy runs before ``period_start``: the PWM period must leave room for both (as it did for the
+loop's ports, which the copy changed too). The reset walk writes them too, so no run starts
+while it lasts (``RegisterFile.export_walk`` holds off the Servo's speed strobe): after a reset
+the first M/T result (~40 clocks later) is not used, the speed loop runs from the next one
+(only visible when ``mode``'s reset value is SPEED; the default, DISABLED, runs no loop).
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -122,7 +133,7 @@ from .regs import STAGINGS as REGS_STAGINGS
 from .regs import RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
-from .servo import Servo
+from .servo import SPEED_CONFIG, Servo
 from .svpwm import PWMTimer, pwm_half_period
 
 __all__ = ["Top", "LeadAngle", "regmap_address_map"]
@@ -143,6 +154,10 @@ ENGINE_CONFIG = tuple({
     "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
     "klead": "theta_lead", "urat": "u_rated",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
+#: The registers of the speed loop's configuration words (``regs_staging="bram"``), in its word
+#: order (:data:`~.servo.SPEED_CONFIG`).
+SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
+                           "iq_ff": "speed_ff_iq"}[name] for name in SPEED_CONFIG)
 
 
 def _raw(port):
@@ -420,15 +435,20 @@ class Top(wiring.Component):
         # Built here (after every check) so that their timing attributes are known.
         # "bram": the timer latches pwm_symmetric in the period's last clock, so that word is
         # copied in the copy's last clock (it changes after the latch, as with "ff").
-        # The engine's configuration registers in its RAM (module docstring).
+        # The engine's and the speed loop's configuration registers in their RAMs (module
+        # docstring): one export port, the engine's words first.
         cfg_ram = current_loop == "engine" and regs_staging == "bram"
         # ... and its status in its status RAM, read by the register file and the scope.
         self._status_ram = cfg_ram
+        speed_ram = regs_staging == "bram"
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=ENGINE_CONFIG if cfg_ram else (),
+                                  export=((ENGINE_CONFIG if cfg_ram else ())
+                                          + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()))
+        exported = [r.name for _, r, _ in self._regs.export_words]
+        self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -441,7 +461,7 @@ class Top(wiring.Component):
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init,
+                                        config_init=self._regs.export_init[:len(ENGINE_CONFIG)],
                                         status="ram") if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
@@ -449,8 +469,12 @@ class Top(wiring.Component):
                                  shift_width=regmap["dtc_band"].width)
         self._encoder = EncoderFrontEnd()
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
+        k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
-                            kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width)
+                            kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width,
+                            **({} if k is None else dict(
+                                config="ram",
+                                config_init=self._regs.export_init[k:k + len(SPEED_CONFIG)])))
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
@@ -571,7 +595,7 @@ class Top(wiring.Component):
         else:
             # The engine: θ_lead from the speed it latches at the sample (cl_speed, below)
             # and the theta_lead register, in its program (EngineCurrentLoop.lead_k).
-            if "export" not in regs.signature.members:      # (else in its RAM, below)
+            if not hasattr(cl, "config"):                   # (else in its RAM, below)
                 m.d.comb += cl.lead_k.eq(regs.theta_lead)
         m.d.comb += [
             # Loop boundary: staged registers, mode, open-loop angle, speed window.
@@ -585,7 +609,10 @@ class Top(wiring.Component):
             # x4: every count of the decoder; a_rising: the counts that are an A rising edge.
             mt.edge.step.eq(enc.step if mt.edge_mode == "x4" else enc.a_rise),
             mt.edge.neg.eq(~enc.up),
-            servo.speed.valid.eq(mt.o.valid),
+            # ("bram": no speed-loop run starts in the register file's reset walk, which
+            # writes the loop's configuration words: module docstring.)
+            servo.speed.valid.eq(mt.o.valid if self._speed_export is None else
+                                 mt.o.valid & ~regs.export_walk),
             servo.speed.payload.eq(mt.o.payload),
             servo.theta_meas.eq(enc.theta),
             servo.trip.eq(trip_q),
@@ -618,8 +645,11 @@ class Top(wiring.Component):
         # --- registers → blocks (register name ≠ port name in places) -----------------------
         # The current loop's configuration: the register file's active values, or (the engine
         # with "bram" staging) the register file's export port into the engine's RAM.
-        if "export" in regs.signature.members:
-            wiring.connect(m, regs=regs.export, current_loop=cl.config)
+        exp = regs.export if "export" in regs.signature.members else None
+        if hasattr(cl, "config"):
+            # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1).
+            m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < len(ENGINE_CONFIG))),
+                         cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
             m.d.comb += [
                 cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
@@ -653,14 +683,10 @@ class Top(wiring.Component):
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
 
-            servo.speed_kp.eq(regs.pi_speed_kp),
-            servo.speed_kx.eq(regs.pi_speed_kx),
             servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
             servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
             # speed_div: "every n periods, 0 acts as 1"; rate_div: "every rate_div + 1".
             servo.speed_rate_div.eq(Mux(regs.speed_div == 0, 0, regs.speed_div - 1)),
-            servo.speed_slew.eq(regs.speed_slew),
-            servo.iq_ff.eq(regs.speed_ff_iq),
             servo.speed_ref_delay.eq(regs.speed_ref_delay),
             servo.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
@@ -692,6 +718,17 @@ class Top(wiring.Component):
             scope.arm.eq(regs.scope_arm),
             scope.force.eq(regs.scope_force),
         ]
+        # The speed loop's gains, slew and feed-forward: the register file's active values, or
+        # ("bram") its export port's words from index ``_speed_export`` on into the speed
+        # loop's RAM.
+        if self._speed_export is None:
+            m.d.comb += [servo.speed_kp.eq(regs.pi_speed_kp), servo.speed_kx.eq(regs.pi_speed_kx),
+                         servo.speed_slew.eq(regs.speed_slew), servo.iq_ff.eq(regs.speed_ff_iq)]
+        else:
+            k = self._speed_export
+            m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k)),
+                         servo.speed_config.index.eq(exp.index - k),
+                         servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
         # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must
         # still record 0, so out-of-range codes saturate to the first unused code (not truncate,

@@ -544,7 +544,8 @@ def test_export_ports_words_and_init():
         r.read_word(r.bits(r.reset), k) for _, r, k in words]
     assert dut.export_init[EXPORT.index("pi_d_lim_lo")] == (-28378) & 0xFFFFFFFF   # sign-ext.
     members = set(dut.signature.members)
-    assert members == (set(RegisterFile(**BRAM).signature.members) - set(EXPORT)) | {"export"}
+    assert members == (set(RegisterFile(**BRAM).signature.members) - set(EXPORT)) | {
+        "export", "export_walk"}
     sig = dut.signature.members["export"].signature
     assert isinstance(sig, WordWriteSignature) and (sig.depth, sig.width) == (len(EXPORT) + 1, 32)
     # Same slots, timing attributes and host reads as without export.
@@ -556,7 +557,8 @@ def test_export_ports_words_and_init():
 def test_export_port_writes_each_word_in_its_copy_clock():
     """Commit in clock s: exported slot i is on the port (valid, its export index, the new
     word sign-extended) in clock s + 1 + i and in no other clock; after a reset the walk puts
-    the reset values on the port in clocks 2 + i."""
+    the reset values on the port in clocks 2 + i; ``export_walk`` is high up to the walk's last
+    word."""
     export = ("pi_q_lim_lo", "clarke_gain_a")       # order unlike the slots'
     dut = RegisterFile(**BRAM, export=export)
     slots = staging_slots(REGMAP, BRAM["copy_last"])
@@ -564,11 +566,14 @@ def test_export_port_writes_each_word_in_its_copy_clock():
     value = {"pi_q_lim_lo": -1234, "clarke_gain_a": 0x1_2345}
 
     async def tb(ctx):
-        seen = []
+        seen, walk = [], []
         for c in range(dut.reset_clocks + 3):       # the power-up walk
             if ctx.get(dut.export.valid):
                 seen.append((c, ctx.get(dut.export.index), ctx.get(dut.export.data)))
+            walk.append(ctx.get(dut.export_walk))
             await ctx.tick()
+        # the walk's last word (slot reset_clocks − 1) is loaded in clock reset_clocks
+        assert walk == [1] * (dut.reset_clocks + 1) + [0, 0]
         # (power-up: the walk starts in clock 0 rather than 1 after a reset clock)
         assert seen == [(1 + slot[n], j, export_init(REGMAP, export)[j])
                         for j, n in sorted(enumerate(export), key=lambda x: slot[x[1]])]

@@ -7,7 +7,7 @@ from amaranth.back import verilog
 from amaranth.hdl import Const, Value
 
 from foc_servo.hdl.fixed import Q, UQ, shape_range
-from foc_servo.hdl.servo import AngleSource, Mode, Servo, SpeedLoop
+from foc_servo.hdl.servo import SPEED_CONFIG, AngleSource, Mode, Servo, SpeedLoop
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel, SpeedLoopModel
 from foc_servo.sim.verify.servo import Packed, run, run_servo
@@ -28,14 +28,57 @@ def base_inputs(**kw):
     return d
 
 
+#: :class:`Servo`'s configuration inputs in :data:`SPEED_CONFIG` order.
+SERVO_CONFIG = ("speed_kp", "speed_kx", "speed_slew", "iq_ff")
+
+
+def config_writes(seq, keys):
+    """``config="ram"``: the per-clock values of the configuration inputs ``keys`` (in
+    :data:`SPEED_CONFIG` order) in ``seq`` as writes on the ``config`` port. A value that differs
+    in clock ``t`` from clock ``t − 1`` is written in the clocks just before ``t`` (one word per
+    clock, the changed words in order, the last in ``t − 1``), so that the RAM holds it from
+    ``t``. Returns ``(init, seq)``: the RAM's initial words (``seq[0]``'s values) and ``seq``
+    with the configuration inputs replaced by what the RAM holds in each clock (for the model)
+    and the port's ``cfg_valid``, ``cfg_index``, ``cfg_data`` added."""
+    init = [seq[0][k] for k in keys]
+    writes = [None] * len(seq)
+    for t in range(1, len(seq)):
+        changed = [j for j, k in enumerate(keys) if seq[t][k] != seq[t - 1][k]]
+        for i, j in enumerate(changed):
+            c = t - len(changed) + i
+            assert c >= 0 and writes[c] is None, f"config writes for clock {t} collide"
+            writes[c] = (j, seq[t][keys[j]])
+    ram, out = list(init), []
+    for t, i in enumerate(seq):
+        j, value = writes[t] or (0, 0)
+        out.append({**i, **dict(zip(keys, ram)), "cfg_valid": int(writes[t] is not None),
+                    "cfg_index": j, "cfg_data": value & 0xFFFF_FFFF})
+        if writes[t] is not None:
+            ram[j] = value
+    return [v & 0xFFFF_FFFF for v in init], out
+
+
+def _config_signals(port):
+    return {"cfg_valid": port.valid, "cfg_index": port.index, "cfg_data": port.data}
+
+
 def servo_clocks(seq, **params):
     """Drive :class:`Servo` with one input dict per clock; return the gateware's outputs per
-    clock, after checking them against :class:`ServoModel` clock by clock."""
-    dut = Servo(**params)
+    clock, after checking them against :class:`ServoModel` clock by clock. With
+    ``config="ram"`` the configuration inputs reach it as writes (:func:`config_writes`)."""
+    ram = params.pop("config", "ports") == "ram"
+    if ram:
+        init, seq = config_writes(seq, SERVO_CONFIG)
+        dut = Servo(config="ram", config_init=init, **params)
+    else:
+        dut = Servo(**params)
     model = ServoModel(**params)
-    want = [model.clock(i) for i in seq]
-    signals = {n: getattr(dut, n) for n in SERVO_INPUTS if n not in ("speed_valid", "speed")}
+    want = [model.clock({n: i[n] for n in SERVO_INPUTS}) for i in seq]
+    signals = {n: getattr(dut, n) for n in SERVO_INPUTS
+               if n not in ("speed_valid", "speed") and not (ram and n in SERVO_CONFIG)}
     signals.update(speed_valid=dut.speed.valid, speed=dut.speed.payload.speed)
+    if ram:
+        signals.update(_config_signals(dut.speed_config))
     bench = Packed(dut, signals, {n: getattr(dut, n) for n in want[0]})
     got = []
 
@@ -57,12 +100,21 @@ LOOP_KEYS = ("valid", "speed", "speed_ref", "kp", "kx", "lim_lo", "lim_hi", "rat
 
 def speed_loop_clocks(seq, **params):
     """Drive :class:`SpeedLoop` with per-clock dicts (:data:`LOOP_KEYS`); return (o_valid,
-    o_payload, sat, ref_int) per clock, checked against the model."""
-    dut = SpeedLoop(**params)
+    o_payload, sat, ref_int) per clock, checked against the model. With ``config="ram"`` the
+    configuration inputs reach it as writes (:func:`config_writes`)."""
+    ram = params.pop("config", "ports") == "ram"
+    if ram:
+        init, seq = config_writes(seq, SPEED_CONFIG)
+        dut = SpeedLoop(config="ram", config_init=init, **params)
+    else:
+        dut = SpeedLoop(**params)
     model = SpeedLoopModel(**params)
     want = [model.clock(*(i[k] for k in LOOP_KEYS)) for i in seq]
-    signals = {k: getattr(dut, k) for k in LOOP_KEYS if k not in ("valid", "speed")}
+    signals = {k: getattr(dut, k) for k in LOOP_KEYS
+               if k not in ("valid", "speed") and not (ram and k in SPEED_CONFIG)}
     signals.update(valid=dut.i.valid, speed=dut.i.payload.speed)
+    if ram:
+        signals.update(_config_signals(dut.config))
     bench = Packed(dut, signals, {"o_valid": dut.o.valid, "o_payload": dut.o.payload,
                                   "sat": dut.sat, "ref_int": dut.ref_int})
     got = []
@@ -121,8 +173,42 @@ def test_servo_parameter_validation(cls):
         cls(speed_width=24, width=32)
 
 
+@pytest.mark.parametrize("cls", [SpeedLoop, Servo])
+@pytest.mark.parametrize("kwargs, exc, msg", [
+    (dict(config=1), TypeError, r"^{} config must be a string, one of 'ports', 'ram', not 1$"),
+    (dict(config="rom"), ValueError, r"^{} config must be one of 'ports', 'ram', not 'rom'$"),
+    (dict(config_init=[0, 0, 0]), ValueError,
+     r"^{} config_init applies only to config='ram', not config='ports'$"),
+    (dict(config="ram", config_init=[0, 0]), ValueError,
+     r"^{} config_init must be a list of 4 32-bit words, not \[0, 0\]$"),
+    (dict(config="ram", config_init=[0, -1, 0, 0]), ValueError,
+     r"^{} config_init must be a list of 4 32-bit words, not \[0, -1, 0, 0\]$"),
+    (dict(config="ram", speed_width=40), ValueError,
+     r"^{} config='ram' needs speed_slew in one 32-bit word, not 40 bits$"),
+    (dict(config="ram", width=16, int_guard=0, kp_format=UQ(33, 12)), ValueError,
+     r"^{} config='ram' needs kp in one 32-bit word, not 33 bits$"),
+])
+def test_speed_config_validation(cls, kwargs, exc, msg):
+    with pytest.raises(exc, match=msg.format(cls.__name__)):
+        cls(**kwargs)
+
+
+def test_speed_config_ports():
+    # config="ram" replaces the ports of the configuration inputs by one RAM write port.
+    ports = set(SpeedLoop().signature.members)
+    ram = set(SpeedLoop(config="ram").signature.members)
+    assert ports - ram == set(SPEED_CONFIG) and ram - ports == {"config"}
+    assert SpeedLoop(config="ram").config_init == [0, 0, 0, 0]
+    assert SpeedLoop().config_init is None and SpeedLoop().config_mode == "ports"
+    ports = set(Servo().signature.members)
+    ram = set(Servo(config="ram", config_init=[1, 2, 3, 4]).signature.members)
+    assert ports - ram == set(SERVO_CONFIG) and ram - ports == {"speed_config"}
+    assert Servo(config="ram").config_mode == "ram"
+
+
 def test_servo_and_speed_loop_convert_to_verilog():
-    for dut, name in ((Servo(), "servo"), (SpeedLoop(width=32, kp_format=Q(16, 8)), "loop")):
+    for dut, name in ((Servo(), "servo"), (SpeedLoop(width=32, kp_format=Q(16, 8)), "loop"),
+                      (Servo(config="ram"), "servo_ram")):
         # amaranth 0.5.10 convert() cannot take constant interface members (always-ready
         # streams' `ready`, amaranth-lang/amaranth#1574): list the ports without them.
         ports = [Value.cast(v) for _, _, v in dut.signature.flatten(dut)]
@@ -533,6 +619,31 @@ def test_servo_speed_mode_runs_the_speed_loop():
     assert iq == [68, 76, 84, 92, 100] and got[-1]["id_ref"] == 11
 
 
+def test_servo_config_in_ram_gains_and_slew_change_between_runs():
+    # Servo(config="ram"): the speed loop's kp, kx, slew and feed-forward as writes on
+    # speed_config (the clocks before a run; from power-on config_init), changing every two
+    # runs: the model's results clock by clock, the same outputs as with ports, and the new
+    # values used.
+    seq = []
+    for t in range(7 * 128):
+        p = max(0, t - 3) // 128       # the run's period; at most 3 words change at a time
+        k = p // 2
+        seq.append(base_inputs(mode=SPEED, loop=int(t % 128 == 0), speed_valid=int(t % 128 == 3),
+                               speed=-(1 << 22), speed_ref=(k % 2) << 20,
+                               speed_kp=KP_ONE * (1 + k), speed_kx=(KX_ONE >> 4) * (k % 3),
+                               speed_slew=[0, 1 << 18, 3, 0][k], iq_ff=500 * (p in (3, 4)),
+                               id_set=11,
+                               iq_lim_lo=-2000, iq_lim_hi=2000))
+    got = servo_clocks(seq, config="ram")
+    assert got == servo_clocks(seq)
+    iq = [g["iq_ref"] for g in got if g["speed_valid"]]
+    # kx 0 in the first two runs; kp 1, 2, 3, 4 every two runs; slew 0, 2^18, 3, 0; iq_ff
+    # 500 in runs 3 and 4 (added while the reference moves: run 4).
+    assert iq[:2] == [64, 64] and len(set(iq[1:])) == 6
+    assert [g["speed_ref_int"] for g in got if g["speed_valid"]] == [
+        0, 0, 1 << 18, 2 << 18, (2 << 18) - 3, (2 << 18) - 6, 1 << 20]
+
+
 def test_servo_enters_speed_mode_from_a_spinning_motor_with_a_profile():
     # DISABLED with the motor at +3 slews: speed_ref_int follows the measured speed; SPEED mode
     # then ramps from there down to speed_ref with -F, not from 0 (kp = 0: i_q = feed-forward).
@@ -619,14 +730,20 @@ def test_speed_loop_random_runs_with_corner_inputs(params):
     # hold, every reference delay, and clear at random points of a run. Clock by clock against
     # the model (the helper asserts equality); a dropped rounding bit anywhere shows here
     # (checked by mutation: the rounding increments of acc >> k and of the products).
+    _corner_runs(params)
+
+
+def _corner_runs(params, *, config="ports"):
     import random
     rng = random.Random(7 + len(params))
     dut = SpeedLoop(**params)
-    seq, prev = [loop_inputs()], 0
+    # config="ram": the gains, slew and feed-forward of a run written in the 4 clocks before it.
+    extra = 4 if config == "ram" else 0
+    seq, prev = [loop_inputs() for _ in range(1 + extra)], 0
     for _ in range(40):
         kw = _corner_run_inputs(rng, dut, prev)
         prev = kw["speed_ref"]
-        gap = dut.interval + rng.choice([0, 0, 1, 7, rng.randrange(200)])
+        gap = dut.interval + extra + rng.choice([0, 0, 1, 7, rng.randrange(200)])
         run = [loop_inputs(**kw) for _ in range(gap)]
         run[0] = dict(run[0], valid=1)
         what = rng.random()
@@ -638,8 +755,36 @@ def test_speed_loop_random_runs_with_corner_inputs(params):
             run[k] = dict(run[k], clear=1)
         seq += run
     seq += [loop_inputs(**kw) for _ in range(dut.latency)]
-    got, model = speed_loop_clocks(seq, **params)
+    got, model = speed_loop_clocks(seq, config=config, **params)
     assert model.runs >= 30 and sum(g[0] for g in got) >= 25
+
+
+@pytest.mark.parametrize("params", [{}, dict(kx_format=UQ(24, 20)),
+                                    dict(width=20, kp_format=Q(16, 4), kx_format=Q(16, 20),
+                                         int_guard=4),
+                                    dict(speed_width=24, width=16, delay_width=7)])
+def test_speed_loop_config_in_ram_random_runs_with_corner_inputs(params):
+    # config="ram": kp, kx, speed_slew and iq_ff in the loop's configuration RAM, each run's
+    # written through the config port in the clocks before it (every word changes at most
+    # runs; signed gains; a slew narrower than the word). The same runs as with ports, the
+    # same results clock by clock (the model takes what the RAM holds).
+    _corner_runs(params, config="ram")
+
+
+def test_speed_loop_config_in_ram_timing_and_power_on():
+    # The words hold config_init from power-on (a run in the first clocks uses them), a write
+    # acts from the next clock (a run accepted in the clock after the last write uses it), and
+    # the slew's non-zero flag follows its word (clear tracks the speed, not speed_ref).
+    kw = dict(speed=-(1 << 20), kx=1 << 20)
+    seq = [loop_inputs(valid=int(t == 1), **kw) for t in range(IV + 2)]
+    seq += [loop_inputs(kp=3 * KP_ONE, valid=int(t == 0), **kw) for t in range(IV + 2)]
+    seq += [loop_inputs(kp=3 * KP_ONE, clear=1, speed_slew=5, speed_ref=7, **kw)
+            for t in range(4)]
+    got, model = speed_loop_clocks(seq, config="ram")
+    outs = [g[1] for g in got if g[0]]
+    # P = kp·E: 16 (kp 1, E 2^12 LSB of Q1.23 → 16 of Q1.15), then 48 (kp 3) plus the integral.
+    assert len(outs) == 2 and outs[0] == 16 + 1 and outs[1] == 48 + 1 + 2
+    assert got[-1][3] == -(1 << 20)                 # slew ≠ 0: R tracks the speed
 
 
 def test_speed_loop_product_rounding_shows_without_guard_bits():

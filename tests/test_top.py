@@ -1109,3 +1109,95 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
             moved = list(switches)
             moved[j] += d
             assert not matches(replay(moved)), (j, d)
+
+
+@pytest.mark.parametrize("current_loop", ["engine", "pipelined"])
+def test_top_bram_speed_loop_configuration_written_through_the_register_file(current_loop):
+    """``regs_staging="bram"``: the speed loop's gains, slew and feed-forward
+    (:data:`SPEED_LOOP_CONFIG`) have no flip-flops in the register file; its export port writes them into the speed loop's
+    configuration RAM (``Servo(config="ram")``, the export's words after the engine's), from the
+    reset walk (no speed-loop run starts in it) and from each commit copy. Host writes of
+    ``pi_speed_kp``, ``pi_speed_kx``, ``speed_slew`` and ``speed_ff_iq`` reach the loop at a
+    period start, and
+    the Servo's outputs are the model's clock by clock, the model taking what the export port
+    wrote; read-back returns the written values."""
+    from foc_servo.hdl.servo import SPEED_CONFIG
+    from foc_servo.hdl.top import ENGINE_CONFIG, SPEED_LOOP_CONFIG
+    from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel
+    REF = (1 << 30) + (1 << 26)         # the encoder's 6000 r/min = 2^30 of N_FS, + 375 r/min
+    top = Top(pwm_hz=PWM, baud=BAUD, current_loop=current_loop, regs_staging="bram", resets={
+        "mode": Mode.SPEED.value, "speed_ref": REF, "pi_speed_kp": 1 << 12,
+        "pi_speed_lim_lo": -9000, "pi_speed_lim_hi": 9000, "prot_mask": 0})
+    regs, servo, rm = top._regs, top._servo, top.regmap
+    names = [r.name for _, r, _ in regs.export_words]
+    engine = ENGINE_CONFIG if current_loop == "engine" else ()
+    assert names == list(engine + SPEED_LOOP_CONFIG)
+    assert servo.config_mode == "ram" and not any(hasattr(regs, n) for n in SPEED_LOOP_CONFIG)
+    config = dict(zip(SPEED_CONFIG, ("speed_kp", "speed_kx", "speed_slew", "iq_ff")))
+    ins = {n: servo.speed.valid if n == "speed_valid" else
+           servo.speed.payload.speed if n == "speed" else getattr(servo, n)
+           for n in SERVO_INPUTS if n not in config.values()}
+    cfg = servo.speed_config
+    params = {k: v for k, v in servo.loop_params.items()
+              if k not in ("mul_width", "config", "config_init")}
+    model = ServoModel(**params)
+    outs = list(model.clock({**{n: 0 for n in SERVO_INPUTS}}))      # (a throw-away model)
+    model = ServoModel(**params)
+
+    def probe(ctx):
+        return ({n: ctx.get(_raw(p)) for n, p in ins.items()},
+                (ctx.get(cfg.valid), ctx.get(cfg.index), ctx.get(cfg.data)),
+                {n: ctx.get(_raw(getattr(servo, n))) for n in outs})
+    host = _TracingHost(bench := _Bench(top, BAUD), probe)
+    new = {"pi_speed_kp": 3 << 12, "pi_speed_kx": 1 << 14, "speed_slew": 1 << 24,
+           "speed_ff_iq": 700}
+    seen = {}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        host.trace.append(probe(ctx))                           # clock 0
+        for _ in range(3):
+            await host.next_period(ctx, top)
+        await host.write(ctx, _addr(top, "pi_speed_kp"), new["pi_speed_kp"], new["pi_speed_kx"])
+        await host.write(ctx, _addr(top, "speed_slew"), new["speed_slew"], new["speed_ff_iq"])
+        seen["read"] = [(await host.read(ctx, _addr(top, n)))[0] for n in new]
+        await host.write(ctx, _addr(top, "speed_ref"), REF - (3 << 24))
+        for _ in range(5):
+            await host.next_period(ctx, top)
+
+    simulate(bench, [testbench], [_encoder_process(top, 25)],
+             name=f"test_top_speed_config_{current_loop}")
+    assert seen["read"] == list(new.values())
+    ram = [rm[n].reset for n in SPEED_LOOP_CONFIG]
+    runs, mismatches, writes = [], [], []
+    for t, (i, (valid, index, data), got) in enumerate(host.trace):
+        want = model.clock({**i, **dict(zip(config.values(), ram))})
+        if want != got:
+            mismatches.append((t, got, want))
+        if got["speed_valid"]:
+            runs.append((t, dict(zip(SPEED_CONFIG, ram)), got["iq_ref"], got["speed_ref_int"]))
+        if valid:
+            writes.append((t, index, data))
+            ram[index] = data
+    assert not mismatches, mismatches[0]
+    # The reset walk's words first (no run in it), then every period's copy; the new values
+    # from the period after the writes.
+    assert writes[0][0] < runs[0][0] and len(runs) >= 5
+    assert runs[0][1] == {"kp": 1 << 12, "kx": 0, "speed_slew": 0, "iq_ff": 0}
+    assert runs[-1][1] == dict(zip(SPEED_CONFIG, new.values()))
+    # kp 1 (the encoder's speed is exactly 2^30): i_q = 2^26 / 2^16 = 1024; kp 3 with kx 1/64
+    # from the period after the writes: 3072 + 32 per run; then the reference ramps by the
+    # slew, 2^24 per run, to the new speed_ref (with the feed-forward −700 while it moves).
+    iq = [r[2] for r in runs]
+    k = next(j for j, r in enumerate(runs) if r[1]["kp"] != 1 << 12)
+    assert k >= 3 and iq[:k] == [1024] * k and iq[k:k + 3] == [3104, 3136, 3168]
+    ramp = [r[3] - REF for r in runs if r[3] != REF]
+    assert ramp[:3] == [-(1 << 24), -(2 << 24), -(3 << 24)]
+    assert len(ramp) > 3 and set(ramp[3:]) == {-(3 << 24)}
+    # The feed-forward counts: the same trace with speed_ff_iq left at 0 is not the model's.
+    model, ram, off = ServoModel(**params), [rm[n].reset for n in SPEED_LOOP_CONFIG], 0
+    for i, (valid, index, data), got in host.trace:
+        off += model.clock({**i, **dict(zip(config.values(), ram)), "iq_ff": 0}) != got
+        if valid:
+            ram[index] = data
+    assert off > 0

@@ -46,7 +46,8 @@ class RegisterFileModel:
         loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
     exp_on, exp_index
         ``export``: whether ``dst`` is an exported word and its export index, set with ``dst``;
-        :meth:`export_port` is the ``export`` port during the clock.
+        :meth:`export_port` is the ``export`` port during the clock, :attr:`export_walk` the
+        ``export_walk`` output.
     """
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
@@ -112,6 +113,12 @@ class RegisterFileModel:
         if self.load and self.exp_on:
             return 1, self.exp_index, self.rd_data
         return 0, 0, 0
+
+    @property
+    def export_walk(self):
+        """The ``export_walk`` output during this clock: the reset walk reads, or loads its last
+        word (``export`` only)."""
+        return int(bool(self.walk or self.load_walk))
 
     @property
     def busy(self):

@@ -42,7 +42,7 @@ class Bench(Elaboratable):
 
     ``stim`` = Cat(addr, we, w_data, stb, lock, commit, rst, *ro registers); ``outs`` = Cat(ack,
     status, r_data, *strobes, *rw registers (not the exported ones), and with ``export`` the
-    port's valid, index, data, the last two as 0 while valid is low), in :attr:`stim_fields` /
+    port's valid, index, data, the last two as 0 while valid is low, and ``export_walk``), in :attr:`stim_fields` /
     :attr:`out_fields` order (name, offset, width). ``rst`` resets the register file (a ``ResetInserter``: the staging
     RAM keeps its contents, as block RAM does).
     """
@@ -51,7 +51,7 @@ class Bench(Elaboratable):
         self.regmap = regmap
         self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last, export=export)
         exp = ([("export_valid", 1), ("export_index", len(self.dut.export.index)),
-                ("export_data", 32)] if export else [])
+                ("export_data", 32), ("export_walk", 1)] if export else [])
         ro = [r for r in regmap if r.access is Access.RO]
         self.stim_fields = self._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
                                          ("lock", 1), ("commit", 1), ("rst", 1),
@@ -227,11 +227,11 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
 
     def expected(win_data):
         # The strobes and active values change rarely: repack them only when they do.
-        port = model.export_port() if export else ()
+        port = (*model.export_port(), model.export_walk) if export else ()
         state = (tuple(model.strobes.values()), tuple(model.active.values()), port)
         if state != cache["state"]:
             cache["state"] = state
-            exp = dict(zip(("export_valid", "export_index", "export_data"), port))
+            exp = dict(zip(("export_valid", "export_index", "export_data", "export_walk"), port))
             cache["word"] = bench.pack(rest_fields, {**model.strobes, **model.active, **exp})
         return (cache["word"] | model.ack | model.status << 1
                 | model.r_data(win_data) << 3)
