@@ -72,11 +72,13 @@ NAME = "foc_servo"
 #: Reset hold after PLL lock, s (module docstring).
 POR_DELAY_S = 15e-6
 
-#: ``Top(mul_width=…)`` per FPGA family: the signed operand width of its hard multiplier (ECP5
-#: ``MULT18X18D`` 18 × 18; Spartan-7 ``DSP48E1`` 25 × 18 and Spartan-6 ``DSP48A1`` 18 × 18: 18);
-#: iCE40 ``None``: products not split (yosys maps whole products onto the 16 × 16 ``SB_MAC16``
-#: better than a 16-bit split can: ``hdl/dsp.py``, docs/AREA.md §7.4).
-MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": 18, "xc6s": 18}
+#: ``Top(mul_width=…)`` per FPGA family: the signed operand width of its hard multiplier where
+#: products are split for the clock (ECP5 ``MULT18X18D`` 18 × 18 at 100 MHz; Spartan-6
+#: ``DSP48A1`` 18 × 18: 18); ``None``: products not split, the synthesiser maps them whole (iCE40:
+#: onto the 16 × 16 ``SB_MAC16`` better than a 16-bit split can, ``hdl/dsp.py``, docs/AREA.md
+#: §7.4; Spartan-7 at 50 MHz: onto cascaded ``DSP48E1``, −≈ 90 LUT6 and −2 DSP48E1 against 18,
+#: AREA.md "Session 11: Spartan-7"). Bit- and cycle-identical whatever the width.
+MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
 
 
 # --- PLL settings ---------------------------------------------------------------------------------

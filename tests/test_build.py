@@ -229,10 +229,10 @@ def test_top_runs_at_the_actual_pll_frequency(name, clk_hz, actual):
 
 
 @pytest.mark.parametrize("name, mul_width", [("icebreaker", None), ("ulx3s", 18),
-                                             ("arty_s7", 18), ("atlys", 18)])
+                                             ("arty_s7", None), ("atlys", 18)])
 def test_board_top_uses_the_family_multiplier_width(name, mul_width):
-    """ECP5, Spartan-7, Spartan-6: 18-bit multiplier operands; iCE40: products not split
-    (hdl/dsp.py)."""
+    """ECP5 (100 MHz), Spartan-6: 18-bit multiplier operands; iCE40, Spartan-7: products not
+    split (hdl/dsp.py; fewer LUTs and DSPs, the same results and clocks)."""
     widths = _inspect(lambda: BoardTop(name, current_loop="pipelined"),
                       lambda top: (top.top.mul_width, top.top._loop.mul_width,
                                    top.top._servo.loop_params["mul_width"]))
