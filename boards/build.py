@@ -263,7 +263,7 @@ class BoardTop(Elaboratable):
         gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
         family's multiplier width (:data:`MUL_WIDTH`), the board's scope RAM
         (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K) and register-file staging
-        (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K).
+        (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K and the Arty S7).
     current_loop : str or None
         ``Top(current_loop=...)``, one of :data:`~foc_servo.hdl.top.CURRENT_LOOPS`:
         ``"pipelined"`` (:class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
