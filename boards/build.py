@@ -22,7 +22,9 @@ Flows (:func:`build`):
 * ``vendor`` (Arty S7 → Vivado, Atlys → ISE): the complete build tree and a zip of it, plus a
   yosys ``synth_xilinx`` estimate run on the tree's own Verilog (so the PLL and I/O primitive
   instances are checked against yosys' cell library too). The tree's Verilog is Verilog-2001,
-  without the gateware's simulation-only ``Assert``/``Print`` (:func:`synthesis_verilog`).
+  without the gateware's simulation-only ``Assert``/``Print``, its larger ROMs marked for block
+  RAM (:func:`synthesis_verilog`). The LUT figure is Vivado's "Slice LUTs": logic LUTs and the
+  LUTs of distributed RAMs and shift registers (:func:`~.area.xilinx_luts`).
 
 The power-on timer holds the reset for 15 µs after the PLL locks: iCE40 block RAMs read as zero
 for ~3 µs after configuration (the reason Amaranth's own iCE40 clock domain has the same delay),
@@ -70,11 +72,13 @@ NAME = "foc_servo"
 #: Reset hold after PLL lock, s (module docstring).
 POR_DELAY_S = 15e-6
 
-#: ``Top(mul_width=…)`` per FPGA family: the signed operand width of its hard multiplier (ECP5
-#: ``MULT18X18D`` 18 × 18; Spartan-7 ``DSP48E1`` 25 × 18 and Spartan-6 ``DSP48A1`` 18 × 18: 18);
-#: iCE40 ``None``: products not split (yosys maps whole products onto the 16 × 16 ``SB_MAC16``
-#: better than a 16-bit split can: ``hdl/dsp.py``, docs/AREA.md §7.4).
-MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": 18, "xc6s": 18}
+#: ``Top(mul_width=…)`` per FPGA family: the signed operand width of its hard multiplier where
+#: products are split for the clock (ECP5 ``MULT18X18D`` 18 × 18 at 100 MHz; Spartan-6
+#: ``DSP48A1`` 18 × 18: 18); ``None``: products not split, the synthesiser maps them whole (iCE40:
+#: onto the 16 × 16 ``SB_MAC16`` better than a 16-bit split can, ``hdl/dsp.py``, docs/AREA.md
+#: §7.4; Spartan-7 at 50 MHz: onto cascaded ``DSP48E1``, −≈ 90 LUT6 and −2 DSP48E1 against 18,
+#: AREA.md "Session 11: Spartan-7"). Bit- and cycle-identical whatever the width.
+MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
 
 
 # --- PLL settings ---------------------------------------------------------------------------------
@@ -259,7 +263,7 @@ class BoardTop(Elaboratable):
         gives the nearest it can (:attr:`pll`); Top runs at that actual frequency, with the
         family's multiplier width (:data:`MUL_WIDTH`), the board's scope RAM
         (:attr:`~.platforms.Board.scope_ram`: one SPRAM on the UP5K) and register-file staging
-        (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K).
+        (:attr:`~.platforms.Board.regs_staging`: block RAM on the UP5K and the Arty S7).
     current_loop : str or None
         ``Top(current_loop=...)``, one of :data:`~foc_servo.hdl.top.CURRENT_LOOPS`:
         ``"pipelined"`` (:class:`~foc_servo.hdl.foc.CurrentLoop`) or ``"engine"``
@@ -436,7 +440,7 @@ def _overrides(board, name, seed=None):
     return {}
 
 
-def synthesis_verilog(rtlil_text, *, name=NAME):
+def synthesis_verilog(rtlil_text, *, name=NAME, xilinx_roms=False):
     """Verilog-2001 of an RTLIL design for vendor synthesis (Vivado, ISE).
 
     Amaranth's ``emit_verilog`` steps (``proc -nomux -norom``, ``memory_collect``, internal
@@ -447,6 +451,10 @@ def synthesis_verilog(rtlil_text, *, name=NAME):
     (yosys' own ``read_verilog``: "Can't resolve task name `\\assert'"). Amaranth's bundled
     yosys has no ``chformal``: this runs the full one (``$YOSYS`` or YoWASP).
 
+    With ``xilinx_roms`` (the vendor flows) the read-only memories worth a block RAM carry
+    ``(* rom_style = "block" *)`` (:func:`~.area.mark_xilinx_roms`): Vivado / XST and the yosys
+    estimate made on this Verilog then build them alike.
+
     Raises
     ------
     RuntimeError
@@ -454,6 +462,8 @@ def synthesis_verilog(rtlil_text, *, name=NAME):
     """
     attrs = ("-remove generator -remove top -remove src -remove amaranth.hierarchy "
              "-remove amaranth.decoding")
+    if xilinx_roms:
+        rtlil_text = area.mark_xilinx_roms(rtlil_text)
     script = (f"read_rtlil {name}.il; proc -nomux -norom; memory_collect; {STRIP_CHECKS}; "
               f"attrmap {attrs}; attrmap -modattr {attrs}; "
               f"write_verilog -norename {name}.v")
@@ -499,7 +509,8 @@ def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None
         platform = board.platform(file_templates={"{{name}}.il": "{{emit_rtlil()}}",
                                                   "{{name}}.v": "/* replaced */"})
         plan = platform.prepare(top, name=NAME)
-        plan.files[f"{NAME}.v"] = synthesis_verilog(plan.files.pop(f"{NAME}.il"))
+        plan.files[f"{NAME}.v"] = synthesis_verilog(plan.files.pop(f"{NAME}.il"),
+                                                    xilinx_roms=True)
     else:
         plan = board.platform().prepare(top, name=NAME, **_overrides(board, NAME, seed))
     plan.extract(root)
@@ -561,16 +572,20 @@ def _figures(family, cells):
                 "ff": total("TRELLIS_FF"), "dsp": total("MULT18X18D"),
                 "bram_bits": 18_432 * ebr, "carry": total("CCU2C"), "bram_blocks": ebr,
                 "alu54": total("ALU54B"), "lutram_bits": 64 * total("TRELLIS_DPR16X4")}
+    # Xilinx: ``lut`` as Vivado's / ISE's "Slice LUTs", logic and memory (area.xilinx_luts).
     if family == "xc7":
         s = area.summarise("xc7", cells)
         return {"lut": s["lut"], "lut_kind": "LUT6", "ff": s["ff"], "dsp": s["dsp"],
                 "bram_bits": 18_432 * s["bram"], "carry": s["carry4"], "bram_blocks": s["bram"],
-                "srl": s["srl"], "muxf": s["muxf"], "inv": total("INV"),
+                "lut_logic": s["lut_logic"], "lut_memory": s["lut_memory"], "srl": s["srl"],
+                "muxf": s["muxf"], "inv": total("INV"),
                 "lutram_cells": total("RAM") - total("RAMB")}
     # Spartan-6
     bram = total("RAMB16BWER") + total("RAMB8BWER") / 2
-    return {"lut": total("LUT"), "lut_kind": "LUT6", "ff": total("FD"), "dsp": total("DSP48A1"),
+    luts = area.xilinx_luts(cells)
+    return {"lut": luts["lut"], "lut_kind": "LUT6", "ff": total("FD"), "dsp": total("DSP48A1"),
             "bram_bits": int(18_432 * bram), "carry": total("CARRY4"), "bram_blocks": bram,
+            "lut_logic": luts["lut_logic"], "lut_memory": luts["lut_memory"],
             "srl": total("SRL"), "muxf": total("MUXF"), "inv": total("INV"),
             "lutram_cells": total("RAM") - total("RAMB")}
 
@@ -797,6 +812,10 @@ def report_lines(result):
         f"  {'clock':<10}{result['clock_mhz']:>24.6g} MHz   {p['clock_mhz']:>10g} MHz",
         f"  Fmax      {fmax}",
     ]
+    u = result["utilisation"]
+    if u.get("lut_memory") is not None:         # Xilinx: what the LUT figure holds
+        lines.insert(5, f"  {'':<10}= {fmt(u['lut_logic'])} logic + {fmt(u['lut_memory'])} "
+                        f"distributed RAM / SRL (+ {fmt(u.get('inv'))} INV, ≤ 1 LUT each)")
     cp = result["utilisation"].get("critical_path")
     if cp:
         lines.append(f"  critical  {cp['delay_ns']:.2f} ns, {cp['logic_levels']} logic levels: "

@@ -102,8 +102,10 @@ class Board:
         ``Top(scope_ram=…)``: ``"ice40_spram"`` on a part with ``SB_SPRAM256KA`` (iCE40 UP5K: the
         trace buffer in one SPRAM instead of 16 block RAMs), else ``"bram"``.
     regs_staging : str
-        ``Top(regs_staging=…)``: ``"bram"`` where flip-flops are short (iCE40 UP5K: the register
-        file's ≈ 600 staging flip-flops in 2 block RAMs), else ``"ff"``.
+        ``Top(regs_staging=…)``: ``"bram"`` where logic is short and block RAM is not (iCE40
+        UP5K: the register file's ≈ 600 staging flip-flops in 2 block RAMs; Spartan-7: one
+        RAMB18 for ≈ 700 FF and ≈ 400 LUT6, docs/AREA.md "Session 11: Spartan-7"), else
+        ``"ff"`` (the ECP5: its Fmax).
     current_loop : str
         The default ``Top(current_loop=…)`` of ``foc-servo build`` for this board (``--current-loop``
         overrides it): ``"engine"`` where LUTs and multipliers are short (iCE40 UP5K: the loop
@@ -235,6 +237,11 @@ ARTY_S7 = Board(
         "hall": ("jd", "7 8 9"),
     }, {"ja": ("pmod", 0), "jb": ("pmod", 1), "jd": ("pmod", 3)}, _XC_IO, _XC_PULL),
     # DS180 (7 Series FPGAs Data Sheet: Overview), Table 3: XC7S50.
+    # Register-file staging in a RAMB18: −≈ 400 LUT6, −≈ 700 FF; the timing the Arty promises
+    # stays (50 MHz, current loop 48 clocks, ADC + loop 95; the commit copy ends at the period
+    # boundary, hdl/top.py). The loop engine would save ≈ 1 700 LUT6 more but takes 134–232
+    # clocks, over issue 5's 50-clock current-loop budget: `--current-loop engine` only.
+    regs_staging="bram",
     capacity={"lut": 32_600, "ff": 65_200, "dsp": 120, "bram_bits": 75 * 36_864},
     notes=(
         "JB (a high-speed Pmod port per Digilent's reference manual) carries the ADC's 25 MHz "

@@ -300,7 +300,7 @@ class Top(wiring.Component):
         The register file's staging registers (:class:`~.regs.RegisterFile` ``staging``):
         ``"ff"`` (default, flip-flops; ``commit`` at ``period_start``) or ``"bram"`` (one block
         RAM; the commit copy runs over the :attr:`commit_clocks` clocks before ``period_start``,
-        module docstring; the iCEBreaker's choice: −≈ 600 FF).
+        module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF).
 
     Members
     -------

@@ -229,10 +229,10 @@ def test_top_runs_at_the_actual_pll_frequency(name, clk_hz, actual):
 
 
 @pytest.mark.parametrize("name, mul_width", [("icebreaker", None), ("ulx3s", 18),
-                                             ("arty_s7", 18), ("atlys", 18)])
+                                             ("arty_s7", None), ("atlys", 18)])
 def test_board_top_uses_the_family_multiplier_width(name, mul_width):
-    """ECP5, Spartan-7, Spartan-6: 18-bit multiplier operands; iCE40: products not split
-    (hdl/dsp.py)."""
+    """ECP5 (100 MHz), Spartan-6: 18-bit multiplier operands; iCE40, Spartan-7: products not
+    split (hdl/dsp.py; fewer LUTs and DSPs, the same results and clocks)."""
     widths = _inspect(lambda: BoardTop(name, current_loop="pipelined"),
                       lambda top: (top.top.mul_width, top.top._loop.mul_width,
                                    top.top._servo.loop_params["mul_width"]))
@@ -339,6 +339,84 @@ def test_synthesis_verilog_drops_simulation_checks(tmp_path):
                               cwd=tmp_path, capture_output=True, text=True).returncode == 0
     assert not reads(amaranth_v)
     assert reads(clean)
+
+
+class _Roms(wiring.Component):
+    """Memories of every kind: only ``big`` (a ROM of > 64 words, one synchronous read port) is
+    worth a block RAM on the Xilinx parts; ``small`` (64 words), ``comb`` (asynchronous read)
+    and ``ram`` (a write port) are not marked, ``kept`` keeps its own ``rom_style``."""
+    a: wiring.In(7)
+    big: wiring.Out(16)
+    small: wiring.Out(16)
+    comb: wiring.Out(16)
+    ram: wiring.Out(16)
+    kept: wiring.Out(16)
+
+    def elaborate(self, platform):
+        import random
+
+        from amaranth.lib.memory import Memory
+        m = Module()
+        rng = random.Random(5)
+        for name, depth in (("big", 128), ("small", 64), ("comb", 128), ("ram", 128),
+                            ("kept", 128)):
+            init = [rng.getrandbits(16) for _ in range(depth)]
+            attrs = {"rom_style": "logic"} if name == "kept" else {}
+            m.submodules[name] = mem = Memory(shape=16, depth=depth, init=init, attrs=attrs)
+            if name == "ram":
+                w = mem.write_port()
+                m.d.comb += [w.addr.eq(self.a), w.data.eq(self.a), w.en.eq(self.a[6])]
+            r = mem.read_port(domain="comb" if name == "comb" else "sync")
+            m.d.comb += [r.addr.eq(self.a), getattr(self, name).eq(r.data)]
+        return m
+
+
+def test_vendor_verilog_marks_the_roms_for_block_ram(tmp_path):
+    """The vendor flows' Verilog carries ``rom_style = "block"`` on each ROM of more than 64
+    words with a synchronous read (not on a small ROM, an asynchronous one or a RAM), so the
+    yosys estimate on it and Vivado / XST agree; ``synth_area``'s xc7 target applies the same
+    rule: the big ROM is a block RAM instead of ≈ 40 LUT6 and MUXF7s."""
+    from foc_servo.boards.area import mark_xilinx_roms, ports, summarise, synth_area
+    roms = _Roms()
+    text = rtlil.convert(roms, name="roms", ports=ports(roms))
+    marked = synthesis_verilog(text, name="roms", xilinx_roms=True)
+    assert synthesis_verilog(text, name="roms").count("rom_style") == 1     # kept's own
+    rom = r'\(\* rom_style = "(\w+)" \*\)\s*reg \[15:0\] \\?([a-z]+)'
+    assert re.findall(rom, marked) == [("block", "big"), ("logic", "kept")]
+    assert marked.count("rom_style") == 2
+    assert mark_xilinx_roms(mark_xilinx_roms(text)) == mark_xilinx_roms(text)
+
+    def estimate(verilog_text):
+        (tmp_path / "roms.v").write_text(verilog_text)
+        script = ("read_verilog roms.v; synth_xilinx -flatten -noiopad -noclkbuf -top roms; "
+                  "tee -q -o stat.json stat -json")
+        subprocess.run(_tool("yosys") + ["-q", "-p", script], cwd=tmp_path, check=True)
+        return json.loads((tmp_path / "stat.json").read_text())["design"]["num_cells_by_type"]
+
+    def bram(cells):
+        return sum(n for k, n in cells.items() if k.startswith("RAMB"))
+    cells, plain = estimate(marked), estimate(synthesis_verilog(text, name="roms"))
+    r = synth_area(_Roms(), "xc7", name="roms")
+    # the ROM in a RAMB18 (the RAM where yosys puts it, either way)
+    assert bram(cells) == bram(r["cells"]) == bram(plain) + 1
+    assert summarise("xc7", plain)["lut"] > summarise("xc7", cells)["lut"] + 30
+
+
+def test_xilinx_luts_count_the_luts_of_memories():
+    """``lut`` is Vivado's "Slice LUTs": logic LUTs and the LUTs of distributed RAMs and shift
+    registers (RAM32M = a whole SLICEM's four); INV and block RAM are not LUTs."""
+    from foc_servo.boards.area import summarise, xilinx_luts
+    from foc_servo.boards.build import _figures
+    cells = {"LUT2": 3, "LUT6": 2, "RAM32M": 2, "RAM64X1D": 1, "SRLC32E": 1, "RAMB18E1": 1,
+             "INV": 5, "FDRE": 7, "MUXF7": 1}
+    assert xilinx_luts(cells) == {"lut": 16, "lut_logic": 5, "lut_memory": 11}
+    assert summarise("xc7", cells)["lut"] == 16
+    for family in ("xc7", "xc6s"):
+        f = _figures(family, cells)
+        assert (f["lut"], f["lut_logic"], f["lut_memory"], f["inv"]) == (16, 5, 11, 5)
+    with pytest.raises(ValueError, match=r"^Xilinx LUT-memory cell must be one of RAM32X1S, .*, "
+                                         r"not 'RAM16X1S'$"):
+        xilinx_luts({"RAM16X1S": 1})
 
 
 class _Checked(wiring.Component):
@@ -544,6 +622,8 @@ def test_vendor_estimate(tmp_path, name, pll):
     assert r["fmax_mhz"] is None and r["timing_met"] is None
     assert r["error"] is None and r["fits"] is True
     assert r["lut"] > 0 and r["ff"] > 0 and r["lut_kind"] == "LUT6"
+    u = r["utilisation"]
+    assert r["lut"] == u["lut_logic"] + u["lut_memory"] and u["lut_memory"] > 0
     import json
     stat = json.loads((tmp_path / name / "estimate" / f"{NAME}.stat.json").read_text())
     cells = stat["design"]["num_cells_by_type"]

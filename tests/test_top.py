@@ -479,7 +479,7 @@ def test_regs_staging_threaded_from_top_and_board():
         top = Top()
         assert top.regs_staging == "ff" and top.commit_clocks == 1
         assert {name: BoardTop(name).top.regs_staging for name in BOARDS} == {
-            name: "bram" if name == "icebreaker" else "ff" for name in BOARDS}
+            name: "bram" if name in ("icebreaker", "arty_s7") else "ff" for name in BOARDS}
         del top
         gc.collect()
 
@@ -576,16 +576,16 @@ def test_top_adc_model_drives_a_current_loop_pass_at_33_333_mhz():
     assert len(model.reads) >= 6
 
 
-@pytest.mark.parametrize("current_loop, staging", [("pipelined", "ff"), ("engine", "ff"),
-                                                   ("engine", "bram")])
+@pytest.mark.parametrize("current_loop, staging", [("pipelined", "ff"), ("pipelined", "bram"),
+                                                   ("engine", "ff"), ("engine", "bram")])
 def test_top_current_loop_duties_match_the_model(current_loop, staging):
     """Either current loop in the top (``Top(current_loop=...)``): closed current loop with
     decoupling feed-forward, the encoder turning, random ADC codes (over-modulation and PI
     saturation included) from the AD7380-4 model. Every sample the loop accepts is recorded at its
     ports (sample and configuration inputs), the whole sequence replayed through
     ``CurrentLoopModel``: the duties, voltages, currents and flags of every pass are bit-identical,
-    each within the loop's latency, with no overrun. The engine with ``"bram"`` staging (the
-    iCEBreaker's) reads its configuration from its RAM (written by the register file's reset
+    each within the loop's latency, with no overrun. The pipelined loop with ``"bram"`` staging
+    is the Arty S7's configuration; the engine with ``"bram"`` staging (the iCEBreaker's) reads its configuration from its RAM (written by the register file's reset
     walk): the configuration recorded is then the registers' reset values."""
     from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
     from foc_servo.hdl.top import ENGINE_CONFIG
