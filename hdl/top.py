@@ -91,6 +91,15 @@ M/T's output register fans out across the die; the rounding to 16 bits and the 3
 ``|speed| > os_limit`` compare behind it were the whole top's critical paths, docs/AREA.md).
 The Servo's speed loop, the scope and ``st_speed`` take M/T's output itself.
 
+**References.** The current loop takes the Servo's ``id_ref`` and ``iq_ref`` through a register
+(the one the trace records, ``i_d_ref`` / ``i_q_ref``): a clock after the Servo forms them from
+the register file, the mode and the speed PI (ECP5 Fmax: the clamp and mode multiplexer in
+front of the loop's sample latch, docs/AREA.md). The loop latches them at its sample, which the
+commit, the mode copy (``period_start``) and the timing rule above keep clear of, so only a
+speed-PI result in the sample's own clock changes what it latches: the previous result, the new
+one at the next sample. (A trip lowers ``enable`` at once and the loop's PIs are then held
+cleared whatever the references.)
+
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
@@ -622,8 +631,6 @@ class Top(wiring.Component):
             cl.ol_enable.eq(servo.ol_enable),
             cl.ol_ud.eq(servo.ol_ud),
             cl.ol_uq.eq(servo.ol_uq),
-            cl.id_ref.eq(servo.id_ref),
-            cl.iq_ref.eq(servo.iq_ref),
             cl.speed.eq(cl_speed),
 
             prot.fault_n.eq(fault_n),
@@ -750,11 +757,17 @@ class Top(wiring.Component):
         src = scope.src
         # θ and the current references through registers (the Servo selects θ and clamps or
         # selects the references by mode): in the trace one clock late (docs/AREA.md §7.12).
+        # The current loop latches the same registered references (ECP5 Fmax: the register
+        # file's i_q_ref → the Servo's clamp and mode mux → the loop's sample latch was the
+        # whole top's critical path, docs/AREA.md §7.34); they change a clock later than the
+        # Servo's outputs, which the loop, latching them at its sample, sees only for a
+        # speed-PI result in the clock of the sample (module docstring, "References").
         theta_q = Signal.like(servo.theta)
         id_ref_q = Signal.like(servo.id_ref)
         iq_ref_q = Signal.like(servo.iq_ref)
         m.d.sync += [theta_q.eq(servo.theta), id_ref_q.eq(servo.id_ref),
                      iq_ref_q.eq(servo.iq_ref)]
+        m.d.comb += [cl.id_ref.eq(id_ref_q), cl.iq_ref.eq(iq_ref_q)]
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),

@@ -888,6 +888,40 @@ def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
     assert os_[t + 1 + Protection.latency]
 
 
+def test_top_current_loop_latches_the_servo_references_a_clock_late():
+    """The current loop's ``id_ref`` / ``iq_ref`` are the Servo's of the clock before, the
+    registers the trace records (ECP5 Fmax; Top docstring, "References"), clock by clock while
+    the register file's references change every clock in CURRENT mode (clamped by the Servo)."""
+    top = Top(pwm_hz=250e3, baud=BAUD, resets={"mode": Mode.CURRENT.value,
+                                               "pi_speed_lim_lo": -12000,
+                                               "pi_speed_lim_hi": 11000})
+    servo, cl, src, regs = top._servo, top._loop, top._scope.src, top._regs
+    rng = np.random.default_rng(11)
+    rec = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        ctx.set(top.fault_n, 1)
+        for _ in range(3 * top.pwm_period):
+            ctx.set(regs.i_q_ref, int(rng.integers(-1 << 15, 1 << 15)))
+            ctx.set(regs.i_d_ref, int(rng.integers(-1 << 15, 1 << 15)))
+            rec.append((ctx.get(servo.iq_ref), ctx.get(servo.id_ref), ctx.get(cl.iq_ref),
+                        ctx.get(cl.id_ref), ctx.get(src.i_q_ref), ctx.get(src.i_d_ref),
+                        ctx.get(servo.active).value))
+            await ctx.tick()
+
+    simulate(top, [testbench], name="test_top_references")
+    s_iq, s_id, c_iq, c_id, t_iq, t_id, active = (np.array(c) for c in zip(*rec))
+    np.testing.assert_array_equal(c_iq[1:], s_iq[:-1])
+    np.testing.assert_array_equal(c_id[1:], s_id[:-1])
+    np.testing.assert_array_equal(t_iq, c_iq)
+    np.testing.assert_array_equal(t_id, c_id)
+    current = active == Mode.CURRENT.value
+    assert current.sum() > top.pwm_period                    # the references moved each clock
+    assert s_iq[current].min() == -12000 and s_iq[current].max() == 11000
+    assert len(set(s_id[current])) > top.pwm_period // 2
+
+
 # --- status registers -------------------------------------------------------------------------
 
 def _bitbang(byte, stop=1):
