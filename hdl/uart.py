@@ -7,7 +7,7 @@ Both time their bits with a phase accumulator of :data:`PHASE_BITS` bits that ad
 so neither end accumulates a rate error over a byte.
 """
 
-from amaranth.hdl import Cat, Const, Module, Signal
+from amaranth.hdl import Assert, Cat, Const, Module, Signal
 from amaranth.lib import stream, wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
@@ -98,28 +98,35 @@ class UartTx(_UartBase):
         phase = Signal(PHASE_BITS + 1, reset_less=True)     # top bit: carry = a bit time passed
         shreg = Signal(9)                       # data bits then the stop bit, shifted out LSB first
         left = Signal(range(11))                # bits still to send after the current one
+        # ``left == 0`` as a flip-flop loaded with ``left`` (ECP5: the compare sat between
+        # ``left`` and ``i.ready``, on the host link's path to its frame buffer's read address,
+        # docs/AREA.md, "Session 11"); equal to the compare whenever it is used (busy).
+        left_zero = Signal(init=1)
 
         carry = phase[-1]
         with m.If(self.i.valid & ~self.busy):
             m.d.sync += phase.eq(self._increment)               # a full bit from now
         with m.Elif(self.busy):
             m.d.sync += phase.eq(phase[:-1] + self._increment)
-        last = self.busy & carry & (left == 0)
+        last = self.busy & carry & left_zero
         m.d.comb += self.i.ready.eq(~self.busy | last)
+        m.d.comb += Assert(~self.busy | (left_zero == (left == 0)), "UartTx: left_zero")
 
         with m.If(self.busy & carry):
             m.d.sync += [
                 self.tx.eq(shreg[0]),
                 shreg.eq(shreg >> 1),
                 left.eq(left - 1),
+                left_zero.eq(left == 1),
             ]
-            with m.If(left == 0):
+            with m.If(left_zero):
                 m.d.sync += [self.busy.eq(0), self.tx.eq(1)]
         with m.If(self.i.valid & self.i.ready):
             m.d.sync += [
                 self.tx.eq(0),                                  # start bit
                 shreg.eq(Cat(self.i.payload, Const(1, 1))),
                 left.eq(9),
+                left_zero.eq(0),
                 self.busy.eq(1),
             ]
         return m
