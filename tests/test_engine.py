@@ -434,11 +434,17 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
 
 # --- EngineCurrentLoop ---------------------------------------------------------------------------
 
-def test_engine_current_loop_signature_and_parameters():
+def _built_for_signatures(check):
+    """Run ``check``, whose components are built only for their signatures (no
+    ``UnusedElaboratable`` warnings from them)."""
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
-        _check_signature_and_parameters()
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        check()
         gc.collect()
+
+
+def test_engine_current_loop_signature_and_parameters():
+    _built_for_signatures(_check_signature_and_parameters)
 
 
 def _check_signature_and_parameters():
@@ -675,10 +681,7 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
 
 
 def test_engine_current_loop_config_ram_ports_and_errors():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
-        _check_config_ram_ports_and_errors()
-        gc.collect()
+    _built_for_signatures(_check_config_ram_ports_and_errors)
 
 
 def _check_config_ram_ports_and_errors():
@@ -803,10 +806,7 @@ def test_engine_current_loop_status_ram_reads_what_the_ports_hold(seed):
 
 
 def test_engine_current_loop_status_ram_ports_and_errors():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UnusedElaboratable)     # built for their signatures
-        _check_status_ram_ports_and_errors()
-        gc.collect()
+    _built_for_signatures(_check_status_ram_ports_and_errors)
 
 
 def _check_status_ram_ports_and_errors():

@@ -62,16 +62,22 @@ def _config_signals(port):
     return {"cfg_valid": port.valid, "cfg_index": port.index, "cfg_data": port.data}
 
 
+def _build(cls, names, seq, params):
+    """``cls(**params)`` for a clock-by-clock bench, and the input sequence it takes: with
+    ``params["config"] == "ram"`` (popped) the configuration inputs ``names`` become writes of
+    its configuration port (:func:`config_writes`). Returns ``(ram, dut, seq)``."""
+    ram = params.pop("config", "ports") == "ram"
+    if not ram:
+        return ram, cls(**params), seq
+    init, seq = config_writes(seq, names)
+    return ram, cls(config="ram", config_init=init, **params), seq
+
+
 def servo_clocks(seq, **params):
     """Drive :class:`Servo` with one input dict per clock; return the gateware's outputs per
     clock, after checking them against :class:`ServoModel` clock by clock. With
     ``config="ram"`` the configuration inputs reach it as writes (:func:`config_writes`)."""
-    ram = params.pop("config", "ports") == "ram"
-    if ram:
-        init, seq = config_writes(seq, SERVO_CONFIG)
-        dut = Servo(config="ram", config_init=init, **params)
-    else:
-        dut = Servo(**params)
+    ram, dut, seq = _build(Servo, SERVO_CONFIG, seq, params)
     model = ServoModel(**params)
     want = [model.clock({n: i[n] for n in SERVO_INPUTS}) for i in seq]
     signals = {n: getattr(dut, n) for n in SERVO_INPUTS
@@ -102,12 +108,7 @@ def speed_loop_clocks(seq, **params):
     """Drive :class:`SpeedLoop` with per-clock dicts (:data:`LOOP_KEYS`); return (o_valid,
     o_payload, sat, ref_int) per clock, checked against the model. With ``config="ram"`` the
     configuration inputs reach it as writes (:func:`config_writes`)."""
-    ram = params.pop("config", "ports") == "ram"
-    if ram:
-        init, seq = config_writes(seq, SPEED_CONFIG)
-        dut = SpeedLoop(config="ram", config_init=init, **params)
-    else:
-        dut = SpeedLoop(**params)
+    ram, dut, seq = _build(SpeedLoop, SPEED_CONFIG, seq, params)
     model = SpeedLoopModel(**params)
     want = [model.clock(*(i[k] for k in LOOP_KEYS)) for i in seq]
     signals = {k: getattr(dut, k) for k in LOOP_KEYS
