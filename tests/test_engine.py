@@ -434,6 +434,28 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
 
 # --- EngineCurrentLoop ---------------------------------------------------------------------------
 
+def _random_sample(rng, *, config_ports):
+    """One random ADC sample and per-sample inputs of :class:`EngineCurrentLoop` (with
+    ``config_ports`` also ``lead_k`` and ``u_rated``, ports unless they are configuration
+    words): ``(sample, values)``."""
+    sample = {"ia": int(rng.integers(-32768, 32768)), "ib": int(rng.integers(-32768, 32768)),
+              "udc": int(rng.integers(0, 32768)), "aux": 0}
+    values = {"theta": int(rng.integers(1 << 16))}
+    if config_ports:
+        values["lead_k"] = int(rng.integers(1 << 16))
+    values.update({"id_ref": int(rng.integers(-32768, 32768)),
+                   "iq_ref": int(rng.integers(-32768, 32768)),
+                   "ol_ud": int(rng.integers(-32768, 32768)),
+                   "ol_uq": int(rng.integers(-32768, 32768)),
+                   "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
+                   "ff_enable": int(rng.random() < 0.6),
+                   "speed": int(rng.integers(-(1 << 31), 1 << 31))})
+    if config_ports:
+        values["u_rated"] = int(rng.integers(1 << 16))
+    values["scale"] = int(rng.integers(1 << 16))
+    return sample, values
+
+
 def _built_for_signatures(check):
     """Run ``check``, whose components are built only for their signatures (no
     ``UnusedElaboratable`` warnings from them)."""
@@ -645,19 +667,8 @@ def test_engine_current_loop_config_ram_equals_ports_cycle_by_cycle(seed):
                 ctx.set(dut.o.ready, 1)
             if start:
                 fig["runs"] += 1
-                sample = {"ia": int(rng.integers(-32768, 32768)),
-                          "ib": int(rng.integers(-32768, 32768)),
-                          "udc": int(rng.integers(0, 32768)), "aux": 0}
                 # (lead_k, u_rated: configuration, randomised by the writes above.)
-                values = {"theta": int(rng.integers(1 << 16)),
-                          "id_ref": int(rng.integers(-32768, 32768)),
-                          "iq_ref": int(rng.integers(-32768, 32768)),
-                          "ol_ud": int(rng.integers(-32768, 32768)),
-                          "ol_uq": int(rng.integers(-32768, 32768)),
-                          "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
-                          "ff_enable": int(rng.random() < 0.6),
-                          "speed": int(rng.integers(-(1 << 31), 1 << 31)),
-                          "scale": int(rng.integers(1 << 16))}
+                sample, values = _random_sample(rng, config_ports=False)
                 for dut in (a, b):
                     ctx.set(dut.i.payload, sample)
                     for name, v in values.items():
@@ -755,20 +766,7 @@ def test_engine_current_loop_status_ram_reads_what_the_ports_hold(seed):
             if start:
                 fig["runs"] += 1
                 fig["back_to_back"] += done
-                sample = {"ia": int(rng.integers(-32768, 32768)),
-                          "ib": int(rng.integers(-32768, 32768)),
-                          "udc": int(rng.integers(0, 32768)), "aux": 0}
-                values = {"theta": int(rng.integers(1 << 16)),
-                          "lead_k": int(rng.integers(1 << 16)),
-                          "id_ref": int(rng.integers(-32768, 32768)),
-                          "iq_ref": int(rng.integers(-32768, 32768)),
-                          "ol_ud": int(rng.integers(-32768, 32768)),
-                          "ol_uq": int(rng.integers(-32768, 32768)),
-                          "enable": int(rng.random() < 0.8), "ol_enable": int(rng.random() < 0.2),
-                          "ff_enable": int(rng.random() < 0.6),
-                          "speed": int(rng.integers(-(1 << 31), 1 << 31)),
-                          "u_rated": int(rng.integers(1 << 16)),
-                          "scale": int(rng.integers(1 << 16))}
+                sample, values = _random_sample(rng, config_ports=True)
                 for dut in (a, b):
                     ctx.set(dut.i.payload, sample)
                     for name, v in values.items():
