@@ -106,7 +106,8 @@ class Harness(wiring.Component):
 
 def fmax_catalog():
     """Blocks this measures: :data:`~foc_servo.hdl.catalog.BLOCKS` plus the UART halves and the
-    loop engine's current loop (``foc_engine``, the iCEBreaker's)."""
+    loop engine's current loop (``foc_engine``, with its configuration and status as ports:
+    the iCEBreaker's top builds it with ``config="ram"``, ``status="ram"``)."""
     from ..hdl.catalog import BLOCKS
     from ..hdl.foc_engine import EngineCurrentLoop
     from ..hdl.uart import UartRx, UartTx
