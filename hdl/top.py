@@ -100,6 +100,14 @@ speed-PI result in the sample's own clock changes what it latches: the previous 
 one at the next sample. (A trip lowers ``enable`` at once and the loop's PIs are then held
 cleared whatever the references.)
 
+**Scope trigger.** The Servo's ``ref_step`` (a change of a reference or the mode at its loop
+strobe: a compare of ≈ 100 register bits) reaches the scope through a register, one clock
+later (ECP5 Fmax: the compare → the trigger → the scope's state, both seeds' critical path
+after the references above, docs/AREA.md, "Session 11"). The trigger sample is the first
+sample taken at or after the trigger's clock, so the capture differs only if a current-loop
+``done`` falls in the clock of the loop strobe itself: that sample is then the last
+pre-trigger sample and the next one the trigger sample.
+
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
@@ -646,8 +654,9 @@ class Top(wiring.Component):
             gates.trip.eq(prot.trip),
 
             scope.strobe.eq(cl.done),       # one sample per current-loop computation
-            scope.trigger.eq(servo.ref_step),
         ]
+        # The reference-step trigger a clock late (module docstring, "Scope trigger").
+        m.d.sync += scope.trigger.eq(servo.ref_step)
 
         # --- registers → blocks (register name ≠ port name in places) -----------------------
         # The current loop's configuration: the register file's active values, or (the engine

@@ -1235,3 +1235,25 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
         if valid:
             ram[index] = data
     assert off > 0
+
+
+def test_top_scope_trigger_is_the_servo_reference_step_a_clock_late():
+    """The scope's external trigger is the Servo's ``ref_step`` through a register (module
+    docstring, "Scope trigger"): every step, one clock later, and nothing else."""
+    top = Top(pwm_hz=PWM, baud=BAUD)
+    steps, triggers = [], []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        for clock in range(6 * top.pwm_period):
+            if clock % top.pwm_period == top.pwm_period // 2:     # a new reference mid-period
+                ctx.set(_raw(top._regs.i_q_ref), 1000 + clock)
+            if ctx.get(top._servo.ref_step):
+                steps.append(clock)
+            if ctx.get(top._scope.trigger):
+                triggers.append(clock)
+            await ctx.tick()
+
+    simulate(top, [testbench], name="test_top_scope_trigger")
+    assert len(steps) >= 4
+    assert triggers == [t + 1 for t in steps]
