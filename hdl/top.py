@@ -63,10 +63,11 @@ the speed loop's gains, slew and feed-forward (:data:`SPEED_LOOP_CONFIG`: ``pi_s
 into the speed loop's configuration RAM (``Servo(config="ram")``, :class:`~.servo.SpeedLoop`).
 The loop reads them only during a run, which starts at M/T's result after ``period_start`` and
 ends ~125 clocks later, while the copy runs before ``period_start``: the PWM period must leave
-room for both (as it did for the loop's ports, which the copy changed too). The reset walk writes them too, so no run starts
-while it lasts (``RegisterFile.export_walk`` holds off the Servo's speed strobe): after a reset
-the first M/T result (~40 clocks later) is not used, the speed loop runs from the next one
-(only visible when ``mode``'s reset value is SPEED; the default, DISABLED, runs no loop).
+room for both (as it did for the loop's ports, which the copy changed too). The reset walk
+writes them too, so no run starts while it lasts (``RegisterFile.export_walk`` holds off the
+Servo's speed strobe): after a reset the first M/T result (~40 clocks later) is not used, the
+speed loop runs from the next one (only visible when ``mode``'s reset value is SPEED; the
+default, DISABLED, runs no loop).
 
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
