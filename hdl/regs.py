@@ -307,33 +307,28 @@ class RegisterFile(wiring.Component):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
-        for param, names in (("copy_last", copy_last), ("export", export)):
+        # Per parameter: which registers it may name (and what they must be), and whether it
+        # needs block-RAM staging.
+        rules = {"copy_last": (copy_last, "shadowed rw", True,
+                               lambda r: r.access is Access.RW and r.shadow is not None),
+                 "export": (export, "shadowed rw", True,
+                            lambda r: r.access is Access.RW and r.shadow is not None),
+                 "status_ram": (status_ram, "one-word ro", False,
+                                lambda r: r.access is Access.RO and r.words == 1)}
+        for param, (names, kind, bram_only, allowed) in rules.items():
             if (not isinstance(names, tuple)
                     or not all(isinstance(n, str) for n in names)):
                 raise TypeError(f"RegisterFile {param} must be a tuple of register names, "
                                 f"not {names!r}")
             for name in names:
-                if (name not in regmap or regmap[name].access is not Access.RW
-                        or regmap[name].shadow is None):
-                    raise ValueError(f"RegisterFile {param} must name shadowed rw registers, "
+                if name not in regmap or not allowed(regmap[name]):
+                    raise ValueError(f"RegisterFile {param} must name {kind} registers, "
                                      f"not {name!r}")
-            if names and staging != "bram":
+            if bram_only and names and staging != "bram":
                 raise ValueError(f"RegisterFile {param} applies only to staging='bram', "
                                  f"not staging={staging!r}")
             if len(set(names)) != len(names):
                 raise ValueError(f"RegisterFile {param} must not repeat a name, not {names!r}")
-        if (not isinstance(status_ram, tuple)
-                or not all(isinstance(n, str) for n in status_ram)):
-            raise TypeError(f"RegisterFile status_ram must be a tuple of register names, "
-                            f"not {status_ram!r}")
-        for name in status_ram:
-            if (name not in regmap or regmap[name].access is not Access.RO
-                    or regmap[name].words != 1):
-                raise ValueError(f"RegisterFile status_ram must name one-word ro registers, "
-                                 f"not {name!r}")
-        if len(set(status_ram)) != len(status_ram):
-            raise ValueError(f"RegisterFile status_ram must not repeat a name, "
-                             f"not {status_ram!r}")
         if len({(regmap[n].width, regmap[n].signed) for n in status_ram}) > 1:
             raise ValueError(f"RegisterFile status_ram must name registers of one shape, "
                              f"not {status_ram!r}")
