@@ -1181,9 +1181,14 @@ class Servo(wiring.Component):
     computation. Electrical frequency ``f = ol_freq · f_loop / 2**phase_width`` (negative =
     reverse); ``theta`` is the accumulator's top 16 bits (truncated).
 
-    **Reference step.** ``ref_step`` strobes in a ``loop`` clock when any of ``mode``,
-    ``speed_ref``, ``id_set``, ``iq_set``, ``ud_set``, ``uq_set`` differs from its value at the
-    previous ``loop`` strobe (the trace buffer's ``trigger``).
+    **Reference step.** ``ref_step`` strobes in a ``loop`` clock when ``ref_change`` was high in
+    a clock after the previous ``loop`` strobe or in that strobe's own clock (a pending flag, set
+    by ``ref_change``, cleared by ``loop``): the caller raises ``ref_change`` in the clock in
+    whose end one of ``mode``, ``speed_ref``, ``id_set``, ``iq_set``, ``ud_set``, ``uq_set`` is
+    loaded (:class:`~.top.Top`: a commit of a host write to one of their registers), so the
+    first ``loop`` strobe that sees the new value strobes (the trace buffer's ``trigger``). A
+    flag instead of a compare of the ≈ 100 bits with their values at the previous strobe
+    (−98 flip-flops, docs/AREA.md "Session 12"): a write of an unchanged value strobes too.
 
     Parameters
     ----------
@@ -1221,6 +1226,9 @@ class Servo(wiring.Component):
         The :class:`SpeedLoop`'s ``speed_slew`` (UQ1.(speed_width−1) of N_FS per run),
         ``iq_ff`` (Q1.15 of I_FS), ``ref_delay`` (UQ(delay_width, 3) runs), ``int_hold``: the
         reference profile; all 0 = none.
+    ref_change : In(1)
+        Strobe: a reference or the mode is loaded at the end of this clock (sets the
+        reference-step flag, see above).
     speed_config : In(WordWriteSignature(4))
         ``config="ram"`` only, instead of ``speed_kp``, ``speed_kx``, ``speed_slew`` and
         ``iq_ff``: the :class:`SpeedLoop`'s ``config`` (writes into its configuration RAM).
@@ -1237,7 +1245,7 @@ class Servo(wiring.Component):
     active : Out(Mode)
         The effective mode (DISABLED while tripped), for the status register.
     ref_step : Out(1)
-        Reference-step strobe.
+        Reference-step strobe: ``loop`` with the flag set (see above).
     speed_sat : Out(1)
         The speed PI output is at the current limit.
     speed_valid : Out(1)
@@ -1294,6 +1302,7 @@ class Servo(wiring.Component):
             "iq_ff": In(q),
             "speed_ref_delay": In(unsigned(delay_width)),
             "speed_int_hold": In(1),
+            "ref_change": In(1),
             "enable": Out(1),
             "ol_enable": Out(1),
             "ol_ud": Out(q),
@@ -1396,10 +1405,9 @@ class Servo(wiring.Component):
         with m.If(is_speed):
             m.d.comb += [self.iq_ref.eq(sl.o.payload), self.id_ref.eq(self.id_set)]
 
-        # Reference-step detection at loop boundaries.
-        refs = Cat(self.mode, self.speed_ref, self.id_set, self.iq_set, self.ud_set, self.uq_set)
-        last = Signal(len(refs))
-        with m.If(self.loop):
-            m.d.sync += last.eq(refs)
-        m.d.comb += self.ref_step.eq(self.loop & (refs != last))
+        # Reference step: a flag set by ref_change, strobed out and cleared at loop boundaries
+        # (a change in the strobe's own clock is seen at the next one).
+        step_pending = Signal()
+        m.d.sync += step_pending.eq(self.ref_change | (step_pending & ~self.loop))
+        m.d.comb += self.ref_step.eq(self.loop & step_pending)
         return m

@@ -101,13 +101,20 @@ speed-PI result in the sample's own clock changes what it latches: the previous 
 one at the next sample. (A trip lowers ``enable`` at once and the loop's PIs are then held
 cleared whatever the references.)
 
-**Scope trigger.** The Servo's ``ref_step`` (a change of a reference or the mode at its loop
-strobe: a compare of ≈ 100 register bits) reaches the scope through a register, one clock
-later (ECP5 Fmax: the compare → the trigger → the scope's state, both seeds' critical path
-after the references above, docs/AREA.md, "Session 11"). The trigger sample is the first
-sample taken at or after the trigger's clock, so the capture differs only if a current-loop
-``done`` falls in the clock of the loop strobe itself: that sample is then the last
-pre-trigger sample and the next one the trigger sample.
+**Scope trigger.** The Servo's ``ref_step`` strobes at the first loop strobe that sees the
+value of a host write to the mode or a reference (:data:`REF_STEP_REGISTERS`): the top flags
+such a write at its ``ack`` (an address look-up on the bus, not a compare of the values) and
+passes the flag to the Servo (``ref_change``) in the clock the register file takes the commit
+that applies it (``"ff"``: ``commit`` with ``lock`` low, the Servo's strobe at the *next*
+``period_start``, as its loop sees the old values in the commit's clock; ``"bram"``: the
+copy's export-port writes, the strobe at the ``period_start`` that ends the copy). So a frame
+writing an unchanged value triggers too (session 11 and before compared ≈ 100 register bits
+with their values at the previous strobe, docs/AREA.md "Session 12"); for a changed value the
+strobe is in the same clock as before. ``ref_step`` reaches the scope through a register, one
+clock later (ECP5 Fmax, when it was the compare: docs/AREA.md, "Session 11"). The trigger
+sample is the first sample taken at or after the trigger's clock, so the capture differs only
+if a current-loop ``done`` falls in the clock of the loop strobe itself: that sample is then
+the last pre-trigger sample and the next one the trigger sample.
 
 **Status.** Besides the blocks' own outputs, the top keeps wrapping 16-bit counters of current-
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
@@ -176,6 +183,24 @@ ENGINE_CONFIG = tuple({
 #: order (:data:`~.servo.SPEED_CONFIG`).
 SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
                            "iq_ff": "speed_ff_iq"}[name] for name in SPEED_CONFIG)
+
+
+#: The registers whose host writes raise the Servo's ``ref_change`` (its ``mode``,
+#: ``speed_ref``, ``id_set``, ``iq_set``, ``ud_set``, ``uq_set``): the scope's reference-step
+#: trigger (module docstring, "Scope trigger"). All shadowed.
+REF_STEP_REGISTERS = ("mode", "speed_ref", "i_d_ref", "i_q_ref", "ol_u_d", "ol_u_q")
+
+
+def _addr_in(addr, addrs):
+    """``addr`` is one of the word addresses ``addrs``, as logic: per aligned group of 8 words
+    one compare of the bits above the low 3 and one look-up of the low 3 (not a 16-bit compare
+    per address)."""
+    hits = []
+    for hi in sorted({a >> 3 for a in addrs}):
+        low = addr[:3]
+        hits.append((addr[3:] == hi)
+                    & Cat(*(low == a & 7 for a in sorted(addrs) if a >> 3 == hi)).any())
+    return Cat(*hits).any()
 
 
 def _raw(port):
@@ -442,6 +467,7 @@ class Top(wiring.Component):
                 raise ValueError("Top dead_time_s and resets['dead_time'] both set the dead "
                                  "time: give one")
             regmap = regmap.with_constants(dict(resets))   # Register checks each value's range
+        assert all(regmap[n].shadow is not None for n in REF_STEP_REGISTERS)
         copy = len(staging_slots(regmap)) + 1               # RegisterFile.commit_clocks
         if regs_staging == "bram" and copy >= 2 * n:
             raise ValueError(f"Top regs_staging='bram' needs a PWM period longer than the "
@@ -656,7 +682,22 @@ class Top(wiring.Component):
 
             scope.strobe.eq(cl.done),       # one sample per current-loop computation
         ]
-        # The reference-step trigger a clock late (module docstring, "Scope trigger").
+        # The reference-step trigger a clock late (module docstring, "Scope trigger"). A host
+        # write to one of REF_STEP_REGISTERS (at its ack; the address and we are held until
+        # then) stays pending in `ref_dirty` until a commit that is taken applies it: "ff" a
+        # commit with lock low (lock is high from a frame's first access to its last ack, so
+        # no write is acked in such a clock), "bram" a copy, seen by its export-port writes
+        # (accesses are held off while it reads the RAM; none is acked then). That clock
+        # raises the Servo's ref_change.
+        ref_dirty = Signal()
+        ref_write = (regs.bus.ack & regs.bus.we
+                     & _addr_in(regs.bus.addr, [self._regmap[n].addr for n in REF_STEP_REGISTERS]))
+        if regs.staging == "ff":
+            committed = regs.commit & ~regs.bus.lock
+        else:                           # (always an export port: the speed loop's words)
+            committed = regs.export.valid
+        m.d.comb += servo.ref_change.eq(ref_dirty & committed)
+        m.d.sync += ref_dirty.eq(ref_write | (ref_dirty & ~committed))
         m.d.sync += scope.trigger.eq(servo.ref_step)
 
         # --- registers → blocks (register name ≠ port name in places) -----------------------

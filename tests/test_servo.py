@@ -598,11 +598,14 @@ def test_servo_open_loop_angle_sources():
 
 
 def test_servo_reference_step_strobe():
-    seq = [base_inputs(mode=SPEED, loop=int(t % 4 == 0)) for t in range(20)]
-    seq[6:] = [dict(s, speed_ref=SPEED_1667) for s in seq[6:]]   # step between strobes 4 and 8
-    seq[13:] = [dict(s, iq_set=7) for s in seq[13:]]
+    # Loop strobes at 0, 4, … 20. ref_change between strobes is seen at the next one; in a
+    # strobe's own clock (8) at the one after; two (13, 14) give one step; the values
+    # themselves do not count (a change without ref_change at 17: no step at 20).
+    seq = [base_inputs(mode=SPEED, loop=int(t % 4 == 0), ref_change=int(t in (2, 8, 13, 14)))
+           for t in range(24)]
+    seq[17:] = [dict(s, speed_ref=SPEED_1667, iq_set=7, mode=CURRENT) for s in seq[17:]]
     got = servo_clocks(seq)
-    assert [t for t, g in enumerate(got) if g["ref_step"]] == [0, 8, 16]
+    assert [t for t, g in enumerate(got) if g["ref_step"]] == [4, 12, 16]
 
 
 def test_servo_speed_mode_runs_the_speed_loop():
@@ -665,7 +668,7 @@ def test_servo_random_sequences_vs_model():
     # Loop periods of at least the speed loop's interval (~120 clocks): ~200 runs.
     result = run_servo(80_000, seed=7)
     assert result["mismatches"] == 0, result["first_mismatch"]
-    assert result["speed_runs"] > 20 and result["mode_changes"] > 3
+    assert result["speed_runs"] > 20 and result["mode_changes"] > 3 and result["ref_steps"] > 3
     assert result["ramp_runs"] > 10 and result["delayed_runs"] > 0 and result["held_runs"] > 0
 
 

@@ -1237,23 +1237,55 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
     assert off > 0
 
 
-def test_top_scope_trigger_is_the_servo_reference_step_a_clock_late():
-    """The scope's external trigger is the Servo's ``ref_step`` through a register (module
-    docstring, "Scope trigger"): every step, one clock later, and nothing else."""
-    top = Top(pwm_hz=PWM, baud=BAUD)
-    steps, triggers = [], []
+@pytest.mark.parametrize("staging", ["ff", "bram"])
+def test_top_reference_writes_strobe_ref_step_at_the_loop_that_sees_them(staging):
+    """The Servo's ``ref_step`` (module docstring, "Scope trigger"): one per host frame that
+    writes the mode or a reference, at the first loop strobe (``period_start``) that sees the
+    written value ("ff": the one after the commit; "bram": the commit's own), a write of an
+    unchanged value included; none for a frame writing other registers; the scope's trigger is
+    ``ref_step`` a clock later."""
+    top = Top(pwm_hz=PWM, baud=BAUD, regs_staging=staging)
+    bench = _Bench(top, BAUD)
+    regs, servo = top._regs, top._servo
+
+    def probe(ctx):
+        return (ctx.get(top._timer.period_start), ctx.get(servo.ref_step),
+                ctx.get(top._scope.trigger), ctx.get(regs.i_q_ref), ctx.get(regs.speed_ref))
+    host = _TracingHost(bench, probe)
+    frames = []                                 # (first clock, last clock) of each write
+
+    async def write(ctx, name, *words):
+        start = host.clocks
+        await host.write(ctx, _addr(top, name), *words)
+        frames.append((start, host.clocks))
+        for _ in range(3):                      # the commit and the loop strobe after it
+            await host.next_period(ctx, top)
 
     async def testbench(ctx):
         ctx.set(top.hall, HALL_OK)
-        for clock in range(6 * top.pwm_period):
-            if clock % top.pwm_period == top.pwm_period // 2:     # a new reference mid-period
-                ctx.set(_raw(top._regs.i_q_ref), 1000 + clock)
-            if ctx.get(top._servo.ref_step):
-                steps.append(clock)
-            if ctx.get(top._scope.trigger):
-                triggers.append(clock)
-            await ctx.tick()
+        await host.next_period(ctx, top)
+        await write(ctx, "i_q_ref", 1000)                       # a new value
+        await write(ctx, "i_q_ref", 1000)                       # the same value again
+        await write(ctx, "ol_angle", 0x1234, 0x5678)            # not a reference: no step
+        await write(ctx, "speed_ref", 1 << 24)                  # a new value
+        await write(ctx, "i_d_ref", 5, 0xFFFF & -7)             # i_d_ref, i_q_ref: one step
 
-    simulate(top, [testbench], name="test_top_scope_trigger")
-    assert len(steps) >= 4
+    simulate(bench, [testbench], name="test_top_ref_step")
+    trace = host.trace
+    clock = lambda k: trace[k]                                  # noqa: E731
+    steps = [t for t, c in enumerate(trace) if c[1]]
+    triggers = [t for t, c in enumerate(trace) if c[2]]
     assert triggers == [t + 1 for t in steps]
+    assert all(clock(t)[0] for t in steps)                      # at loop strobes only
+    # One step per reference frame, none for the ol_angle frame.
+    per_frame = [[t for t in steps if a <= t < (frames[k + 1][0] if k + 1 < len(frames)
+                                                  else len(trace))]
+                 for k, (a, _) in enumerate(frames)]
+    assert [len(f) for f in per_frame] == [1, 1, 0, 1, 1]
+    # Changed values: the step is the first loop strobe at which the active value is the new one.
+    for k, col, value in ((0, 3, 1000), (3, 4, 1 << 24), (4, 3, -7)):
+        a, _ = frames[k]
+        seen = next(t for t in range(a, len(trace)) if clock(t)[0] and clock(t)[col] == value)
+        assert per_frame[k] == [seen], (k, per_frame[k], seen)
+    # The unchanged value's step is as far from its frame's end as the first write's.
+    assert per_frame[1][0] - frames[1][1] < 2 * top.pwm_period

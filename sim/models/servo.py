@@ -33,7 +33,7 @@ __all__ = ["SpeedLoopModel", "ServoModel", "SERVO_INPUTS"]
 SERVO_INPUTS = ("loop", "mode", "trip", "ol_src", "ol_theta", "ol_freq", "ud_set", "uq_set",
                 "id_set", "iq_set", "theta_meas", "speed_valid", "speed", "speed_ref",
                 "speed_kp", "speed_kx", "iq_lim_lo", "iq_lim_hi", "speed_rate_div",
-                "speed_slew", "iq_ff", "speed_ref_delay", "speed_int_hold")
+                "speed_slew", "iq_ff", "speed_ref_delay", "speed_int_hold", "ref_change")
 
 
 class SpeedLoopModel:
@@ -206,6 +206,8 @@ class ServoModel:
         The registered active mode (before the ``trip`` override).
     acc : int
         Phase accumulator, BinaryAngle(phase_width).
+    step_pending : int
+        The reference-step flag (set by ``ref_change``, cleared by ``loop``).
     speed_loop : SpeedLoopModel
     """
 
@@ -222,7 +224,7 @@ class ServoModel:
         self.phase_width = phase_width
         self.active = Mode.DISABLED.value
         self.acc = 0
-        self.last_refs = (0, 0, 0, 0, 0, 0)
+        self.step_pending = 0
 
     def clock(self, inp):
         """``inp``: dict of :data:`SERVO_INPUTS` (raw integers) for the current clock → dict of
@@ -249,8 +251,6 @@ class ServoModel:
             id_ref = inp["id_set"]
         elif is_speed:
             iq_ref, id_ref = sl_out, inp["id_set"]
-        refs = (inp["mode"], inp["speed_ref"], inp["id_set"], inp["iq_set"], inp["ud_set"],
-                inp["uq_set"])
         out = {
             "enable": int(eff != Mode.DISABLED.value),
             "ol_enable": int(is_ol),
@@ -262,7 +262,7 @@ class ServoModel:
             "current_clear": int(not (is_cur or is_speed)),
             "speed_clear": int(not is_speed),
             "active": eff,
-            "ref_step": int(bool(inp["loop"]) and refs != self.last_refs),
+            "ref_step": int(bool(inp["loop"]) and self.step_pending),
             "speed_sat": sl_sat,
             "speed_valid": sl_valid,
             "speed_ref_int": sl_ref,
@@ -277,6 +277,6 @@ class ServoModel:
             self.active = Mode.DISABLED.value
         elif inp["loop"]:
             self.active = inp["mode"]
-        if inp["loop"]:
-            self.last_refs = refs
+        self.step_pending = int(bool(inp["ref_change"])
+                                or (self.step_pending and not inp["loop"]))
         return out

@@ -186,12 +186,15 @@ def _servo_stimulus(count, rng, model, dut):
         if rng.random() < 1 / (700 * slow):
             pending.update(_profile(rng, sw, delay_max))
 
-        # Register writes.
+        # Register writes (a write of a reference or the mode raises ref_change, as Top's
+        # commit of one does).
+        regs["ref_change"] = 0
         if rng.random() < 1 / (120 * slow):
             what = rng.choice(["mode", "mode", "mode", "speed_ref", "speed_ref", "iq_set",
                                "id_set", "ud_set", "uq_set", "ol_src", "ol_theta", "ol_freq"])
             if what == "mode":
                 regs["mode"] = int(rng.choice([0, 1, 2, 3, 3, 3]))
+                regs["ref_change"] = 1
             elif what == "speed_ref":
                 r = rng.random()
                 ref = pending.get("speed_ref", regs["speed_ref"])
@@ -211,6 +214,7 @@ def _servo_stimulus(count, rng, model, dut):
                 pending["speed_ref"] = ref
             elif what in ("iq_set", "id_set", "ud_set", "uq_set"):
                 regs[what] = int(rng.integers(-32768, 32768))
+                regs["ref_change"] = 1
             elif what == "ol_src":
                 regs["ol_src"] = int(rng.integers(0, 4))
             elif what == "ol_theta":
@@ -225,6 +229,7 @@ def _servo_stimulus(count, rng, model, dut):
         trip_left = max(trip_left - 1, 0)
 
         if pending and not sl.busy:
+            regs["ref_change"] |= "speed_ref" in pending
             regs.update(pending)
             pending = {}
         # Strobes: loop boundary, speed sample (plus rare extra ones, which find the PI busy).
