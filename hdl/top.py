@@ -78,18 +78,22 @@ each M/T result (``mt.o.valid``, after the register commit of the same period st
 ready ``MTSpeed.latency + 1 + LeadAngle.latency`` clocks after ``period_start`` (56 at 50 MHz);
 a sample taken earlier uses the previous period's value. With ``current_loop="engine"`` there is
 no LeadAngle: the engine computes the same ``θ_lead`` in its program from the speed it latches
-at the sample (``cl_speed``, a clock behind M/T) and the register; the same value whenever the
+at the sample (M/T's output register itself) and the register; the same value whenever the
 sample comes more than ``LeadAngle.latency + 2`` clocks after ``mt.o.valid`` (always, unless
 ``pwm_sample_point`` puts it within ``MTSpeed.latency + LeadAngle.latency + 2`` clocks after
-``period_start``); a sample in that window uses the new speed (the pipelined loop: the previous
-period's θ_lead), as its feed-forward does.
+``period_start``); a sample in that window (``mt.o.valid``'s own clock included) uses the new
+speed (the pipelined loop: the previous period's θ_lead), as its feed-forward does.
 
-**The speed's consumers.** M/T's result reaches the current loop and the protection's
-overspeed check through one register (``cl_speed``), LeadAngle as the 16-bit rounded speed
-through another (``lead_n``), and the strobe that starts LeadAngle and samples the overspeed
-verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid`` (ECP5 Fmax:
-M/T's output register fans out across the die; the rounding to 16 bits and the 32-bit
-``|speed| > os_limit`` compare behind it were the whole top's critical paths, docs/AREA.md).
+**The speed's consumers.** With the pipelined loop M/T's result reaches the current loop and
+the protection's overspeed check through one register (``cl_speed``), LeadAngle as the 16-bit
+rounded speed through another (``lead_n``), and the strobe that starts LeadAngle and samples
+the overspeed verdict through a third (``speed_valid_q``): all one clock after ``mt.o.valid``
+(ECP5 Fmax: M/T's output register fans out across the die; the rounding to 16 bits and the
+32-bit ``|speed| > os_limit`` compare behind it were the whole top's critical paths,
+docs/AREA.md). With ``current_loop="engine"`` (the iCE40 top) there is no ``cl_speed``: the
+engine and the overspeed check take M/T's output register (which changes only in the clock of
+``mt.o.valid``, so the overspeed verdict at ``speed_valid_q`` is the same; the engine latches
+the new speed at a sample in ``mt.o.valid``'s own clock, where ``cl_speed`` held the old one).
 The Servo's speed loop, the scope and ``st_speed`` take M/T's output itself.
 
 **References.** The current loop takes the Servo's ``id_ref`` and ``iq_ref`` through a register
@@ -121,6 +125,10 @@ loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and s
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
 link's 16-bit counters (``st_link_*``) count the frames before the one that reads them.
+``st_udc`` (and the scope's ``u_dc``) is the U_dc code the current loop latched with the last
+sample it accepted (its ``udc`` output, the protection's too), a clock after the ADC's
+``o.valid``; a sample the loop drops (an overrun) does not change it (before session 12 the
+ADC held the code of every conversion in a register of its own, 16 FF).
 
 A driver fault (``fault_n`` low) reaches the gates in :attr:`Top.fault_latency` clocks: 2 clocks
 of synchroniser, 1 in :class:`~.protect.Protection` (``present`` register, ``trip`` follows
@@ -497,9 +505,11 @@ class Top(wiring.Component):
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
-        # Only U_dc's code held between samples (st_udc, the scope); the current loop latches
-        # i_a, i_b (and U_dc) with the sample, so theirs are the shift registers (−32 FF).
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=("udc",))
+        # No code held between samples: the current loop latches i_a, i_b and U_dc with the
+        # sample, so the payload is the shift registers (no FF; held=("udc",) until session
+        # 11, all three before that); st_udc and the scope take
+        # the loop's latched U_dc (its `udc` output, module docstring "Status").
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=())
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
@@ -619,10 +629,17 @@ class Top(wiring.Component):
         # to 16 bits in a register of its own beside it (`lead_n`: the same rounding of the
         # same register in LeadAngle and the current loop was shared by yosys, one carry chain
         # driving two latches across the die), with M/T's strobe a clock later too
-        # (`speed_valid_q`; module docstring, "The speed's consumers").
-        cl_speed = Signal.like(speed)
+        # (`speed_valid_q`; module docstring, "The speed's consumers"). The engine (the iCE40
+        # top) takes M/T's register itself, as does the protection then (−32 FF, docs/AREA.md
+        # "Session 12": the register holds from its o.valid clock on, so at speed_valid_q it
+        # is the copy's value).
         speed_valid_q = Signal()
-        m.d.sync += [cl_speed.eq(speed), speed_valid_q.eq(mt.o.valid)]
+        m.d.sync += speed_valid_q.eq(mt.o.valid)
+        if self._current_loop == "pipelined":
+            cl_speed = Signal.like(speed)
+            m.d.sync += cl_speed.eq(speed)
+        else:
+            cl_speed = speed
         if self._lead is not None:
             lead_n = Signal(signed(16))
             m.d.sync += lead_n.eq(saturate(round_shift(speed, SPEED_WIDTH - 16), signed(16)))
@@ -637,7 +654,7 @@ class Top(wiring.Component):
                 cl.theta_lead.eq(lead.theta),
             ]
         else:
-            # The engine: θ_lead from the speed it latches at the sample (cl_speed, below)
+            # The engine: θ_lead from the speed it latches at the sample (M/T's register)
             # and the theta_lead register, in its program (EngineCurrentLoop.lead_k).
             if not hasattr(cl, "config"):                   # (else in its RAM, below)
                 m.d.comb += cl.lead_k.eq(regs.theta_lead)
@@ -824,7 +841,7 @@ class Top(wiring.Component):
             src.speed_ref.eq(regs.speed_ref),
             src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q),
             src.theta.eq(theta_q),
-            src.u_dc.eq(adc.o.payload.udc),
+            src.u_dc.eq(cl.udc.payload),
         ]
         # The loop's status: its ports, or (the engine's status RAM) one read port of it each
         # for the register file and the scope (the scope samples it in the engine's quiet
@@ -879,7 +896,7 @@ class Top(wiring.Component):
             regs.st_position.eq(enc.count),
             regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
-            regs.st_udc.eq(adc.o.payload.udc),
+            regs.st_udc.eq(cl.udc.payload),
             regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
             regs.st_speed_loops.eq(speed_loops),
             regs.st_overruns.eq(overruns),

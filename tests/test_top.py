@@ -280,7 +280,7 @@ def _status_sources(top):
         "st_enc_aligned": enc.aligned, "st_position": enc.count, "st_theta": enc.theta,
         "st_speed": mt.o.payload.speed, "st_i_d": cl.i_d, "st_i_q": cl.i_q,
         "st_i_alpha": cl.i_alpha, "st_i_beta": cl.i_beta, "st_u_d": cl.u_d, "st_u_q": cl.u_q,
-        "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": top._adc.o.payload.udc,
+        "st_u_alpha": cl.u_alpha, "st_u_beta": cl.u_beta, "st_udc": cl.udc.payload,
         "st_current_loops": cl.count[:16], "st_speed_loops": None, "st_overruns": None,
         "st_adc_overruns": None, "st_loop_flags": None, "st_uv_armed": prot.uv_armed,
         "st_enc_config_error": enc.config_error, "st_enc_hall_error": enc.hall_error,
