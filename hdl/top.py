@@ -203,11 +203,9 @@ def _addr_in(addr, addrs):
     """``addr`` is one of the word addresses ``addrs``, as logic: per aligned group of 8 words
     one compare of the bits above the low 3 and one look-up of the low 3 (not a 16-bit compare
     per address)."""
-    hits = []
-    for hi in sorted({a >> 3 for a in addrs}):
-        low = addr[:3]
-        hits.append((addr[3:] == hi)
-                    & Cat(*(low == a & 7 for a in sorted(addrs) if a >> 3 == hi)).any())
+    low = addr[:3]
+    hits = [(addr[3:] == hi) & Cat(*(low == a & 7 for a in sorted(addrs) if a >> 3 == hi)).any()
+            for hi in sorted({a >> 3 for a in addrs})]
     return Cat(*hits).any()
 
 
@@ -507,8 +505,8 @@ class Top(wiring.Component):
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
-        # 11, all three before that); st_udc and the scope take
-        # the loop's latched U_dc (its `udc` output, module docstring "Status").
+        # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
+        # `udc` output, module docstring "Status").
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=())
         self._mul_width = mul_width
         self._current_loop = current_loop

@@ -1272,11 +1272,10 @@ def test_top_reference_writes_strobe_ref_step_at_the_loop_that_sees_them(staging
 
     simulate(bench, [testbench], name="test_top_ref_step")
     trace = host.trace
-    clock = lambda k: trace[k]                                  # noqa: E731
     steps = [t for t, c in enumerate(trace) if c[1]]
     triggers = [t for t, c in enumerate(trace) if c[2]]
     assert triggers == [t + 1 for t in steps]
-    assert all(clock(t)[0] for t in steps)                      # at loop strobes only
+    assert all(trace[t][0] for t in steps)                      # at loop strobes only
     # One step per reference frame, none for the ol_angle frame.
     per_frame = [[t for t in steps if a <= t < (frames[k + 1][0] if k + 1 < len(frames)
                                                   else len(trace))]
@@ -1285,7 +1284,7 @@ def test_top_reference_writes_strobe_ref_step_at_the_loop_that_sees_them(staging
     # Changed values: the step is the first loop strobe at which the active value is the new one.
     for k, col, value in ((0, 3, 1000), (3, 4, 1 << 24), (4, 3, -7)):
         a, _ = frames[k]
-        seen = next(t for t in range(a, len(trace)) if clock(t)[0] and clock(t)[col] == value)
+        seen = next(t for t in range(a, len(trace)) if trace[t][0] and trace[t][col] == value)
         assert per_frame[k] == [seen], (k, per_frame[k], seen)
-    # The unchanged value's step is as far from its frame's end as the first write's.
+    # The unchanged value's step: within two periods of its frame's end (commit, loop strobe).
     assert per_frame[1][0] - frames[1][1] < 2 * top.pwm_period
