@@ -523,7 +523,9 @@ class LinkCore(wiring.Component):
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
                     m.d.sync += framing.eq(1)
-                with m.Elif((crc != 0) | _below(length, 2)):
+                # (length < 2: a carry chain of length's bits; the proof's --broken mutant
+                # edits this line's text.)
+                with m.Elif((crc != 0) | (length < 2)):
                     status(ReplyStatus.BAD_CRC)
                 with m.Elif(_below(length, REQUEST_HEADER + CRC_BYTES)):
                     status(ReplyStatus.BAD_LENGTH)
