@@ -320,7 +320,12 @@ class LinkCore(wiring.Component):
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
-        cobs_left = Signal(8)                   # data bytes left in the current COBS block
+        # Data bytes left in the current COBS block, plus one (1: a code byte is next): loaded
+        # with the code byte itself, no subtractor in front (iCE40: a carry chain fewer).
+        # ``cobs_left``, the count itself, is for the hostlink proof only (unused in a build).
+        cobs_run = Signal(8, init=1)
+        cobs_left = Signal(8)
+        m.d.comb += cobs_left.eq(cobs_run - 1)
         cobs_ff = Signal()                      # the current block's code was 0xFF
         started = Signal()                      # a code byte has been seen in this frame
         bad = Signal()                          # damaged frame (COBS error, UART error)
@@ -483,15 +488,15 @@ class LinkCore(wiring.Component):
                         with m.If(~started & ~bad & ~self.rx_error):
                             reset_frame()                       # empty frame: ignored
                         with m.Else():
-                            with m.If(cobs_left != 0):
+                            with m.If(cobs_run != 1):
                                 m.d.sync += bad.eq(1)           # truncated COBS block
                             m.next = "CHECK"
-                    with m.Elif(cobs_left == 0):                # a code byte
-                        m.d.sync += [cobs_left.eq(byte - 1), cobs_ff.eq(byte == 0xFF),
+                    with m.Elif(cobs_run == 1):                 # a code byte
+                        m.d.sync += [cobs_run.eq(byte), cobs_ff.eq(byte == 0xFF),
                                      started.eq(1)]
                         m.d.comb += [emit.eq(started & ~cobs_ff), dbyte.eq(0)]
                     with m.Else():
-                        m.d.sync += cobs_left.eq(cobs_left - 1)
+                        m.d.sync += cobs_run.eq(cobs_run - 1)
                         m.d.comb += [emit.eq(1), dbyte.eq(byte)]
                 with m.If(emit):
                     m.d.sync += crc.eq(crc_next)
@@ -688,7 +693,7 @@ class LinkCore(wiring.Component):
                     reset_frame()
                     m.next = "RECV"
         with m.If(new_frame):
-            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
+            m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
         m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m
