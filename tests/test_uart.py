@@ -176,8 +176,8 @@ def test_uart_converts_to_verilog():
 
 
 def test_uart_rx_payload_stable_while_valid():
-    """``o.payload`` is the shift register: a held byte is withdrawn (``o.valid`` low) at the
-    next byte's first data bit, never changed under ``o.valid``; that byte then pulses
+    """``o.payload`` is the shift register: a held byte is withdrawn (``o.valid`` low) in the
+    middle of the next byte's start bit, never changed under ``o.valid``; that byte then pulses
     ``overrun`` with its ``o.valid``."""
     per_bit, clk_hz = 16, 50e6
     rx = UartRx(clk_hz=clk_hz, baud=clk_hz / per_bit)
@@ -201,7 +201,7 @@ def test_uart_rx_payload_stable_while_valid():
     assert len(rises) == 2 and len(falls) == 1
     assert {trace[t][1] for t in range(rises[0], falls[0])} == {0x11}
     assert {trace[t][1] for t in range(rises[1], len(trace))} == {0x22}
-    # delivered in the first stop bit's middle, withdrawn at the second byte's first data bit
-    # (the middle of its bit 0): 0.5 + 1 + 0.5 bit times later
-    assert abs(falls[0] - rises[0] - 2 * per_bit) <= 2
+    # delivered in the first stop bit's middle, withdrawn in the middle of the second byte's
+    # start bit: one bit time later
+    assert abs(falls[0] - rises[0] - per_bit) <= 2
     assert [t for t, r in enumerate(trace) if r[2]] == [rises[1]]
