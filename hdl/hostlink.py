@@ -412,9 +412,10 @@ class LinkCore(wiring.Component):
             """Buffer address of reply byte ``value``."""
             return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
-        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3,
-        # j ≤ dend − 2, j = dend − 1: no adder in front), and registers holding those of p
-        # (set with p): no comparison of p with dend.
+        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3;
+        # j + 1 < dend as j's own data flag and j ≠ dend − 1, since the flags follow j from
+        # REPLY on; j = dend − 1: no adder or magnitude comparison in front), and registers
+        # holding those of p (set with p): no comparison of p with dend.
         parts_0 = Const(0b011, 3)
         parts_j1 = Cat(_below(j, REPLY_HEADER - 1), j_dat & (j != dend_m1), j == dend_m1)
         p_flags = Signal(3)
