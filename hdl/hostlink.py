@@ -134,6 +134,27 @@ def address_decode(addr, address_map):
     return Cat(*exists).any(), Cat(*writable).any()
 
 
+def _below(value, limit):
+    """``value < limit`` for a constant ``limit``, decoded from the bits of ``value``: one
+    prefix match per one bit of ``limit`` (``value`` agrees with ``limit`` above it and has a 0
+    there), so LUTs only. yosys maps a magnitude comparison, even with a constant, to a carry
+    chain (iCE40: a logic cell per bit, each a carry alone, and a feed-out cell)."""
+    value = Value.cast(value)
+    width = len(value)
+    if limit <= 0:
+        return Const(0, 1)
+    if limit >= 1 << width:
+        return Const(1, 1)
+    terms = []
+    for b in range(width):
+        if limit >> b & 1:
+            term = ~value[b]
+            if b + 1 < width:
+                term = term & (value[b + 1:] == limit >> (b + 1))
+            terms.append(term)
+    return Cat(*terms).any()
+
+
 def hostlink_params(*, max_words=64, address_map=None, counter_width=16):
     """Validate the parameters shared by :class:`LinkCore`, :class:`HostLink` and the model.
 
@@ -299,7 +320,12 @@ class LinkCore(wiring.Component):
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
-        cobs_left = Signal(8)                   # data bytes left in the current COBS block
+        # Data bytes left in the current COBS block, plus one (1: a code byte is next): loaded
+        # with the code byte itself, no subtractor in front (iCE40: a carry chain fewer).
+        # ``cobs_left``, the count itself, is for the hostlink proof only (unused in a build).
+        cobs_run = Signal(8, init=1)
+        cobs_left = Signal(8)
+        m.d.comb += cobs_left.eq(cobs_run - 1)
         cobs_ff = Signal()                      # the current block's code was 0xFF
         started = Signal()                      # a code byte has been seen in this frame
         bad = Signal()                          # damaged frame (COBS error, UART error)
@@ -386,11 +412,12 @@ class LinkCore(wiring.Component):
             """Buffer address of reply byte ``value``."""
             return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
-        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3,
-        # j ≤ dend − 2, j = dend − 1: no adder in front), and registers holding those of p
-        # (set with p): no comparison of p with dend.
+        # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3;
+        # j + 1 < dend as j's own data flag and j ≠ dend − 1, since the flags follow j from
+        # REPLY on; j = dend − 1: no adder or magnitude comparison in front), and registers
+        # holding those of p (set with p): no comparison of p with dend.
         parts_0 = Const(0b011, 3)
-        parts_j1 = Cat(j < REPLY_HEADER - 1, j <= dend_m2, j == dend_m1)
+        parts_j1 = Cat(_below(j, REPLY_HEADER - 1), j_dat & (j != dend_m1), j == dend_m1)
         p_flags = Signal(3)
 
         def set_j(value, value_parts):
@@ -462,19 +489,19 @@ class LinkCore(wiring.Component):
                         with m.If(~started & ~bad & ~self.rx_error):
                             reset_frame()                       # empty frame: ignored
                         with m.Else():
-                            with m.If(cobs_left != 0):
+                            with m.If(cobs_run != 1):
                                 m.d.sync += bad.eq(1)           # truncated COBS block
                             m.next = "CHECK"
-                    with m.Elif(cobs_left == 0):                # a code byte
-                        m.d.sync += [cobs_left.eq(byte - 1), cobs_ff.eq(byte == 0xFF),
+                    with m.Elif(cobs_run == 1):                 # a code byte
+                        m.d.sync += [cobs_run.eq(byte), cobs_ff.eq(byte == 0xFF),
                                      started.eq(1)]
                         m.d.comb += [emit.eq(started & ~cobs_ff), dbyte.eq(0)]
                     with m.Else():
-                        m.d.sync += cobs_left.eq(cobs_left - 1)
+                        m.d.sync += cobs_run.eq(cobs_run - 1)
                         m.d.comb += [emit.eq(1), dbyte.eq(byte)]
                 with m.If(emit):
                     m.d.sync += crc.eq(crc_next)
-                    with m.If(length <= lmax):
+                    with m.If(_below(length, lmax + 1)):
                         m.d.sync += length.eq(length + 1)
                     with m.Switch(length):
                         for k in range(REQUEST_HEADER):
@@ -482,14 +509,14 @@ class LinkCore(wiring.Component):
                                 m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
                             m.d.sync += bpos.eq(bpos + 1)
-                            with m.If(idx < mw):
+                            with m.If(_below(idx, mw)):
                                 m.d.comb += [wr.data.eq(dbyte.replicate(4)),
                                              wr.en.eq(1 << bpos)]
                                 with m.If(bpos == 3):
                                     m.d.sync += idx.eq(idx + 1)
 
             with m.State("CHECK"):
-                count_ok = (count_in != 0) & (count_in <= mw)
+                count_ok = (count_in != 0) & _below(count_in, mw + 1)
                 m.d.sync += [
                     r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
                     framing.eq(0),
@@ -502,14 +529,16 @@ class LinkCore(wiring.Component):
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
                     m.d.sync += framing.eq(1)
+                # (length < 2: a carry chain of length's bits; the proof's --broken mutant
+                # edits this line's text.)
                 with m.Elif((crc != 0) | (length < 2)):
                     status(ReplyStatus.BAD_CRC)
-                with m.Elif(length < REQUEST_HEADER + CRC_BYTES):
+                with m.Elif(_below(length, REQUEST_HEADER + CRC_BYTES)):
                     status(ReplyStatus.BAD_LENGTH)
                 with m.Elif((cmd_in != Command.PING) & (cmd_in != Command.READ)
                             & (cmd_in != Command.WRITE)):
                     status(ReplyStatus.BAD_COMMAND)
-                with m.Elif(length > lmax):
+                with m.Elif(~_below(length, lmax + 1)):
                     status(ReplyStatus.BAD_LENGTH)
                 with m.Elif(cmd_in == Command.PING):
                     with m.If(length == REQUEST_HEADER + CRC_BYTES):
@@ -539,7 +568,7 @@ class LinkCore(wiring.Component):
                 with m.Elif(is_write & ~a_writable):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
-                with m.Elif(idx == count_in - 1):
+                with m.Elif(idx + 1 == count_in):
                     m.d.sync += [idx.eq(0), a_full.eq(addr_in), bus_lock.eq(1)]
                     m.next = "SETUP"
                 with m.Else():
@@ -564,7 +593,7 @@ class LinkCore(wiring.Component):
                         with m.If(~is_write):
                             m.d.comb += [wr.data.eq(bus.r_data),
                                          wr.en.eq(0b1111)]
-                        with m.If(idx == count_in - 1):
+                        with m.If(idx + 1 == count_in):
                             with m.If(~is_write):
                                 m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + 1),
                                              r_info.eq(count_in)]
@@ -578,9 +607,9 @@ class LinkCore(wiring.Component):
                 # The reply's cmd and seq: 0 for BAD_CRC, and where the request was too short
                 # to hold them (hdr0 / hdr1 then hold CRC bytes, or nothing). Cleared here, from
                 # registers, before the CRC pass reads them.
-                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 3)):
+                with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 3)):
                     m.d.sync += r_cmd.eq(0)
-                with m.If((r_status == ReplyStatus.BAD_CRC) | (length < 4)):
+                with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 4)):
                     m.d.sync += r_seq.eq(0)
                 # One of the four reply counters counts per reply. Each has its own
                 # incrementer: on the iCE40 a counter bit is one logic cell (LUT, carry and
@@ -665,7 +694,7 @@ class LinkCore(wiring.Component):
                     reset_frame()
                     m.next = "RECV"
         with m.If(new_frame):
-            m.d.sync += [length.eq(0), cobs_left.eq(0), cobs_ff.eq(0), started.eq(0),
+            m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
         m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
         return m

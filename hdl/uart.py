@@ -162,13 +162,16 @@ class UartRx(_UartBase):
     rx : In(1, init=1)
         Serial input (asynchronous; synchronised inside).
     o : Out(stream.Signature(8))
-        Received bytes. The receiver cannot stall: ``o.valid`` holds the byte until ``o.ready``;
-        a byte completed while the previous one is still held replaces it and pulses
-        ``overrun``.
+        Received bytes. The receiver cannot stall: ``o.valid`` holds the byte until ``o.ready``
+        or until the middle of the next start bit, where the next byte takes its place in the
+        shift register (``o.payload`` *is* the shift register: no copy of it); a byte withdrawn
+        so is lost, and the next byte that completes pulses ``overrun``. The payload never
+        changes while ``o.valid`` is high.
     error : Out(1)
         One-clock pulse: framing error (stop bit low); the byte is dropped.
     overrun : Out(1)
-        One-clock pulse: a byte was lost because ``o`` was not taken in time.
+        One-clock pulse with the ``o.valid`` of a byte completed after an earlier byte was lost
+        because ``o`` was not taken in time (before the later byte's start bit).
 
     Attributes
     ----------
@@ -206,8 +209,12 @@ class UartRx(_UartBase):
         # flip-flops take that load (iCE40: 23 LUT4 fewer than with the domain's reset on them).
         phase = Signal(PHASE_BITS + 1, reset_less=True)
         carry = phase[-1]
-        shreg = Signal(8)
-        count = Signal(range(9))                # data bits received
+        # The data bits shift in at the top behind a marker bit loaded at the start bit: the
+        # marker at bit 1 is the last data bit's clock (the bits below the marker are 0), at
+        # bit 0 the byte is complete in bits 1 … 8. No bit counter; the payload is these bits.
+        shreg = Signal(9)
+        lost = Signal()                         # a held byte was withdrawn for this one
+        m.d.comb += self.o.payload.eq(shreg[1:])
 
         m.d.sync += [self.error.eq(0), self.overrun.eq(0)]
         with m.If(self.o.ready):
@@ -223,22 +230,23 @@ class UartRx(_UartBase):
             with m.State("START"):
                 m.d.sync += phase.eq(phase[:-1] + self._increment)
                 with m.If(carry):
-                    m.d.sync += count.eq(0)
                     m.next = "IDLE"
                     with m.If(~line):
+                        m.d.sync += shreg.eq(1 << 8)
+                        with m.If(self.o.valid & ~self.o.ready):    # the held byte goes
+                            m.d.sync += [self.o.valid.eq(0), lost.eq(1)]
                         m.next = "DATA"
             with m.State("DATA"):
                 m.d.sync += phase.eq(phase[:-1] + self._increment)
                 with m.If(carry):
-                    m.d.sync += [shreg.eq(Cat(shreg[1:], line)), count.eq(count + 1)]
-                    with m.If(count == 7):
+                    m.d.sync += shreg.eq(Cat(shreg[1:], line))
+                    with m.If(shreg[1]):                # the marker reaches bit 0
                         m.next = "STOP"
             with m.State("STOP"):
                 m.d.sync += phase.eq(phase[:-1] + self._increment)
                 with m.If(carry):
                     with m.If(line):
-                        m.d.sync += [self.o.payload.eq(shreg), self.o.valid.eq(1)]
-                        m.d.sync += self.overrun.eq(self.o.valid & ~self.o.ready)
+                        m.d.sync += [self.o.valid.eq(1), self.overrun.eq(lost), lost.eq(0)]
                         m.next = "IDLE"
                     with m.Else():
                         m.d.sync += self.error.eq(1)

@@ -7,7 +7,7 @@ from amaranth.back import verilog
 from amaranth.hdl import Module, Signal
 from amaranth.lib import wiring
 
-from foc_servo.hdl.hostlink import (HostLink, LinkCore, address_decode, crc16_byte,
+from foc_servo.hdl.hostlink import (HostLink, LinkCore, _below, address_decode, crc16_byte,
                                     normalize_address_map)
 from foc_servo.hdl.regmap import REGMAP
 from foc_servo.hdl.top import regmap_address_map
@@ -92,6 +92,27 @@ def test_address_decode_random_maps(seed):
                                                             for _ in range(3000)}
     assert _decode_mismatches(amap, sorted(x for x in probe if 0 <= x < 1 << 17)) == []
     assert _decode_mismatches(None, [0, 0xFFFF, 0x10000, 0x1FFFF]) == []
+
+
+def test_below_is_the_magnitude_comparison():
+    """``_below(v, k)`` (the link's constant compares without carry chains) is ``v < k`` for
+    every value of 1- to 7-bit ``v`` and every ``k`` from −1 to 2**width + 1."""
+    bad = []
+    for width in range(1, 8):
+        v = Signal(width)
+        limits = range(-1, (1 << width) + 2)
+        outs = [Signal(name=f"lt{k + 1}") for k in limits]
+        m = Module()
+        m.d.comb += [o.eq(_below(v, k)) for o, k in zip(outs, limits)]
+
+        async def bench(ctx, v=v, outs=outs, limits=limits, width=width):
+            for x in range(1 << width):
+                ctx.set(v, x)
+                bad.extend((width, x, k) for o, k in zip(outs, limits)
+                           if ctx.get(o) != (x < k))
+
+        simulate(m, [bench], name="below")
+    assert bad == []
 
 
 def test_crc16_byte_gateware_matches_reference():

@@ -173,3 +173,35 @@ def test_uart_rx_overrun_keeps_newest_byte():
 def test_uart_converts_to_verilog():
     verilog.convert(UartRx(clk_hz=33.333e6, baud=3e6))
     verilog.convert(UartTx(clk_hz=33.333e6, baud=3e6))
+
+
+def test_uart_rx_payload_stable_while_valid():
+    """``o.payload`` is the shift register: a held byte is withdrawn (``o.valid`` low) in the
+    middle of the next byte's start bit, never changed under ``o.valid``; that byte then pulses
+    ``overrun`` with its ``o.valid``."""
+    per_bit, clk_hz = 16, 50e6
+    rx = UartRx(clk_hz=clk_hz, baud=clk_hz / per_bit)
+    ev = [(1, 40)] + _byte_events(0x11) + _byte_events(0x22) + [(1, 32)]
+    trace = []
+
+    async def driver(ctx):
+        for level, n in ev:
+            ctx.set(rx.rx, level)
+            await ctx.tick().repeat(n)
+
+    async def monitor(ctx):
+        ctx.set(rx.o.ready, 0)
+        for _ in range(sum(n for _, n in ev)):
+            _, _, v, p, o = await ctx.tick().sample(rx.o.valid, rx.o.payload, rx.overrun)
+            trace.append((v, p, o))
+
+    simulate(rx, [driver, monitor], clock_hz=clk_hz, name="uart_rx_hold")
+    rises = [t for t in range(1, len(trace)) if trace[t][0] and not trace[t - 1][0]]
+    falls = [t for t in range(1, len(trace)) if not trace[t][0] and trace[t - 1][0]]
+    assert len(rises) == 2 and len(falls) == 1
+    assert {trace[t][1] for t in range(rises[0], falls[0])} == {0x11}
+    assert {trace[t][1] for t in range(rises[1], len(trace))} == {0x22}
+    # delivered in the first stop bit's middle, withdrawn in the middle of the second byte's
+    # start bit: one bit time later
+    assert abs(falls[0] - rises[0] - per_bit) <= 2
+    assert [t for t, r in enumerate(trace) if r[2]] == [rises[1]]
