@@ -211,9 +211,17 @@ class QuadratureDecoder(wiring.Component):
     ``aligned``, clears ``count`` and loads the electrical position with ``z_offset``. Later
     index events only strobe ``index``.
 
-    **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs. A change is
-    taken in by a sequence of two divisions (``busy`` high for ``config_latency − 1`` clocks)
-    and then committed at once. A commit that changes ``lines`` or ``pole_pairs``, or makes
+    **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs, each change
+    announced by a strobe in the first clock of the new value (``lp_changed`` for ``lines`` or
+    ``pole_pairs``, ``z_changed`` for ``z_offset``: the register file's ``changed`` strobes);
+    the decoder keeps no copy of them and reads them during the sequence that takes a change
+    in. A change is taken in by a sequence of two divisions (``busy`` high for
+    ``config_latency − 1`` clocks) and then committed at once. A strobe while busy joins the
+    running sequence if its input is still to be read (``lp_changed`` in the sequence's first
+    busy clock, ``z_changed`` up to its 19th: a register file's copy of the three registers
+    in consecutive clocks is one sequence); otherwise the sequence runs again after the commit
+    (and, for ``lp_changed``, nothing counts from the clock after the strobe and that commit
+    clears the position too). Between strobes the inputs must hold their values. A commit that changes ``lines`` or ``pole_pairs``, or makes
     the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
     from the clock after such a change is taken in until the commit nothing counts: the step
     constants are replaced before the commit); a commit that only changes ``z_offset``
@@ -241,6 +249,10 @@ class QuadratureDecoder(wiring.Component):
     z_offset : In(unsigned(18), init=0)
         Electrical position at the index, in 1/cpr of an electrical turn (0 … cpr − 1): a Z
         offset of ``n`` mechanical counts from the rotor's d axis is ``n·pole_pairs mod cpr``.
+    lp_changed : In(1)
+        Strobe: ``lines`` or ``pole_pairs`` holds a new value from this clock on.
+    z_changed : In(1)
+        Strobe: ``z_offset`` holds a new value from this clock on.
     realign : In(1)
         Strobe: clear ``aligned`` (the next index event realigns).
     count : Out(unsigned(18))
@@ -276,8 +288,8 @@ class QuadratureDecoder(wiring.Component):
     latency : int
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
-        Clocks from a change of the configuration inputs (decoder idle) to the new configuration
-        being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
+        Clocks from a change of the configuration inputs (the clock of its strobe, decoder
+        idle) to the new configuration being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
         change in, two divisions of 16 steps, five clocks of per-configuration constants on
         the divisions' subtractor (the last one the commit).
     """
@@ -291,6 +303,7 @@ class QuadratureDecoder(wiring.Component):
             "lines": In(LINES_WIDTH, init=5000),
             "pole_pairs": In(POLE_PAIRS_WIDTH, init=4),
             "z_offset": In(CPR_WIDTH, init=0),
+            "lp_changed": In(1), "z_changed": In(1),
             "realign": In(1),
             "count": Out(CPR_WIDTH),
             "e": Out(CPR_WIDTH),
@@ -331,18 +344,26 @@ class QuadratureDecoder(wiring.Component):
         n_rz = Signal(CPR_WIDTH, init=(rz0 - cpr0) % (1 << CPR_WIDTH))
         cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
         cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
-        # Pending configuration while the divisions run. When idle the pending values equal the
-        # committed ones (a commit copies them; they start equal), so the inputs are compared
-        # with them alone; whether ``lines`` or ``pole_pairs`` change is noted when the change
-        # is taken in (``lp_changed``): then nothing counts until the commit, which clears the
-        # position (the step constants are replaced before it). For a change of ``z_offset``
-        # alone the step constants are rewritten with the values they hold.
-        lines_p = Signal(LINES_WIDTH, init=lines0)
-        pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
-        z_p = Signal(CPR_WIDTH, init=z0)
-        lp_changed = Signal()
-        pp_ok = Signal()                # pole_pairs < cpr (pending)
-        z_ok = Signal()                 # z_offset < cpr (pending)
+        # The configuration is read from the inputs themselves while the divisions run (no
+        # copies): a change is announced by ``lp_changed`` / ``z_changed`` in the first clock
+        # of the new value and taken in then (idle). Whether ``lines`` or ``pole_pairs``
+        # changed is noted (``lp_run``): then nothing counts until the commit, which clears
+        # the position (the step constants are replaced before it). For a change of
+        # ``z_offset`` alone the step constants are rewritten with the values they hold.
+        # A strobe while busy: taken into the running sequence if its input has not been read
+        # yet (lp: in clock 1, where ``pole_pairs`` is read and the first constant is made
+        # from ``lines``; z: up to t_qp, where ``z_offset`` is read), else noted (``lp_again``,
+        # ``z_again``) and the sequence runs again after the commit; after an ``lp_again``
+        # nothing counts and that commit clears the position too.
+        lines_p = self.lines
+        pp_p = self.pole_pairs
+        z_p = self.z_offset
+        lp_run = Signal()
+        lp_again = Signal()
+        z_again = Signal()
+        pp_c = Signal(POLE_PAIRS_WIDTH, init=pp0)   # pole_pairs of n_pp (for e's step alone)
+        pp_ok = Signal()                # pole_pairs < cpr
+        z_ok = Signal()                 # z_offset < cpr
         cpr_p = Cat(Const(0, 2), lines_p)
 
         # One subtractor, ``t − cpr``, serves the two divisions n·2**16 / cpr (n = pole_pairs,
@@ -381,31 +402,38 @@ class QuadratureDecoder(wiring.Component):
             self.config_error.eq(~valid),
         ]
         commit = Signal()
+        req_lp = self.lp_changed | lp_again
         with m.If(~self.busy):
-            lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
-            with m.If(lp_change | (self.z_offset != z_p)):
-                m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1),
+            with m.If(req_lp | self.z_changed | z_again):
+                m.d.sync += [lp_run.eq(req_lp), lp_again.eq(0), z_again.eq(0), timer.eq(1),
                              wr.eq(0)]
-        with m.Elif(timer == t_commit):
-            m.d.comb += commit.eq(1)
-            m.d.sync += timer.eq(0)
         with m.Else():
-            m.d.sync += timer.eq(timer + 1)
+            with m.If(self.lp_changed):
+                with m.If(timer == 1):
+                    m.d.sync += lp_run.eq(1)
+                with m.Else():
+                    m.d.sync += lp_again.eq(1)
+            with m.If(self.z_changed & (timer > t_qp)):
+                m.d.sync += z_again.eq(1)
+            with m.If(timer == t_commit):
+                m.d.comb += commit.eq(1)
+                m.d.sync += timer.eq(0)
+            with m.Else():
+                m.d.sync += timer.eq(timer + 1)
         with m.If(dividing):
             m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
         with m.Switch(timer):
             with m.Case(1):
                 m.d.sync += [cpr_m1.eq(~diff[:CPR_WIDTH]), wr.eq(pp_p)]
             with m.Case(t_p):
-                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0)]
+                m.d.sync += [n_pp.eq(diff), pp_c.eq(wr), pp_ok.eq(diff < 0)]
             with m.Case(t_qp):
                 m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr), wr.eq(z_p)]
             with m.Case(t_z):
                 m.d.sync += z_ok.eq(diff < 0)
         new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
         restart = Signal()
-        m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
+        m.d.comb += restart.eq(commit & (lp_run | lp_again | ~new_valid))
         with m.If(commit):
             m.d.sync += [
                 z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
@@ -451,12 +479,13 @@ class QuadratureDecoder(wiring.Component):
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        # (pole_pairs from the pending register: the committed value whenever anything counts.)
-        em_next, _ = _step(fwd_c, em, pp_p, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_p)
+        # (pole_pairs from the register made with n_pp, so that e's step constants agree
+        # whatever the input does; the Top uses no e: this goes with em.)
+        em_next, _ = _step(fwd_c, em, pp_c, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_c)
         rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
-        with m.If(valid & ~(self.busy & lp_changed) & (fwd | bwd)):
+        with m.If(valid & ~(self.busy & lp_run) & ~lp_again & (fwd | bwd)):
             m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
                          thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
@@ -796,7 +825,7 @@ class EncoderFrontEnd(wiring.Component):
         Hall pins (asynchronous), bit 0 = H_a, bit 1 = H_b, bit 2 = H_c.
     length : In(range(max_length + 1))
         Glitch filter length for all seven inputs, clocks (0, 1: no filtering).
-    lines, pole_pairs, z_offset, realign
+    lines, pole_pairs, z_offset, lp_changed, z_changed, realign
         See :class:`QuadratureDecoder`.
     hall_offset : In(BinaryAngle(16))
         See :class:`HallSensor` ``offset``.
@@ -853,6 +882,7 @@ class EncoderFrontEnd(wiring.Component):
             "hall_offset": In(ANGLE.shape),
             "hall_tolerance": In(ANGLE.width, init=ANGLE.turn // 8),
             "hall_misses": In(4, init=1),
+            "lp_changed": In(1), "z_changed": In(1),
             "realign": In(1),
             "count": Out(CPR_WIDTH), "e": Out(CPR_WIDTH), "theta": Out(ANGLE.shape),
             "step": Out(1), "up": Out(1), "a_rise": Out(1), "illegal": Out(1), "index": Out(1),
@@ -891,6 +921,7 @@ class EncoderFrontEnd(wiring.Component):
             dec.a.eq(flt.o[0]), dec.b.eq(flt.o[1]), dec.z.eq(flt.o[2]), dec.hold.eq(~self.ready),
             dec.lines.eq(self.lines), dec.pole_pairs.eq(self.pole_pairs),
             dec.z_offset.eq(self.z_offset), dec.realign.eq(self.realign),
+            dec.lp_changed.eq(self.lp_changed), dec.z_changed.eq(self.z_changed),
             hall.h.eq(flt.o[3:6]), hall.offset.eq(self.hall_offset), hall.hold.eq(~self.ready),
         ]
         # The decoder's angle (a sum and a wrap test) and its alignment, registered: θ's source
