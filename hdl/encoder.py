@@ -173,6 +173,17 @@ class GlitchFilter(wiring.Component):
         return m
 
 
+def _ge(a, b):
+    """``a ≥ b`` (unsigned, ``b`` a value or an integer) as a chain of 2-way selects from the
+    low bit up, which the iCE40 maps into a few LUTs: no carry chain, whose carries would each
+    take a logic cell of their own for a compare of a few bits."""
+    b = Const(b, len(a)) if isinstance(b, int) else b
+    ge = Const(1, 1)
+    for i in range(len(a)):
+        ge = Mux(a[i] ^ b[i], a[i], ge)
+    return ge
+
+
 def _add(a, b, cin):
     """``(a + b + cin) mod 2**len(a)`` on one carry chain (the carry-in as a low bit)."""
     return (Cat(cin, a) + Cat(cin, b))[1:len(a) + 1]
@@ -413,7 +424,7 @@ class QuadratureDecoder(wiring.Component):
                     m.d.sync += lp_run.eq(1)
                 with m.Else():
                     m.d.sync += lp_again.eq(1)
-            with m.If(self.z_changed & (timer > t_qp)):
+            with m.If(self.z_changed & _ge(timer, t_qp + 1)):
                 m.d.sync += z_again.eq(1)
             with m.If(timer == t_commit):
                 m.d.comb += commit.eq(1)
@@ -772,7 +783,10 @@ class HallPlausibility(wiring.Component):
         y = x ^ sign.replicate(aw)
         over = Signal()
         m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
-        need = Mux(self.misses == 0, 0, self.misses - 1)    # misses − 1 (0 acts as 1)
+        # count ≥ misses − 1 (0 acts as 1) ⇔ count + 1 ≥ misses: the counter's increment,
+        # one compare in LUTs.
+        inc = Signal(5)
+        m.d.comb += inc.eq(count + 1)
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
@@ -788,13 +802,13 @@ class HallPlausibility(wiring.Component):
         with m.Elif(jump2):
             m.d.sync += ref_ok.eq(0)
         with m.If(miss):
-            m.d.sync += count.eq(Mux(count == 15, 15, count + 1))
+            m.d.sync += count.eq(Mux(count == 15, 15, inc))
         with m.Elif(passed):
             m.d.sync += count.eq(0)
         m.d.sync += [
             self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count >= need)),
+            self.fault.eq(miss & _ge(inc, Cat(self.misses, Const(0, 1)))),
         ]
         return m
 
@@ -909,12 +923,13 @@ class EncoderFrontEnd(wiring.Component):
                                            stages=self.sync_stages)
         m.d.comb += [flt.i.eq(pins), flt.length.eq(self.length)]
 
-        # Clocks since reset minus 3: ready once it reaches length (one comparison, no
-        # length + 4 adder).
+        # Clocks since reset minus 3: ready once it reaches length (one comparison in LUTs,
+        # no length + 4 adder).
         settle = Signal(range(-3, self._max_length + 1), init=-3)
+        lw = len(self.length)
         with m.If(~self.ready):
             m.d.sync += settle.eq(settle + 1)
-            with m.If(settle >= self.length):
+            with m.If(~settle[-1] & _ge(settle[:lw], self.length)):
                 m.d.sync += self.ready.eq(1)
 
         m.d.comb += [
