@@ -207,6 +207,12 @@ def _check_z_gate(owner, z_gate):
     return z_gate
 
 
+def _check_config_init(owner, lines, pole_pairs, z_offset):
+    return (check_param(owner, "lines_init", lines, 0, (1 << LINES_WIDTH) - 1),
+            check_param(owner, "pole_pairs_init", pole_pairs, 0, (1 << POLE_PAIRS_WIDTH) - 1),
+            check_param(owner, "z_offset_init", z_offset, 0, (1 << CPR_WIDTH) - 1))
+
+
 class QuadratureDecoder(wiring.Component):
     """×4 quadrature decoder with Z index, position counter and exact electrical position.
 
@@ -232,11 +238,12 @@ class QuadratureDecoder(wiring.Component):
     busy clock, ``z_changed`` up to its 19th: a register file's copy of the three registers
     in consecutive clocks is one sequence); otherwise the sequence runs again after the commit
     (and, for ``lp_changed``, nothing counts from the clock after the strobe and that commit
-    clears the position too). Between strobes the inputs must hold their values. A commit that changes ``lines`` or ``pole_pairs``, or makes
-    the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
-    from the clock after such a change is taken in until the commit nothing counts: the step
-    constants are replaced before the commit); a commit that only changes ``z_offset``
-    moves ``e`` and ``theta`` to the new offset at once (counting goes on meanwhile). The
+    clears the position too). Between strobes the inputs must hold their values. A commit that
+    changes ``lines`` or ``pole_pairs``, or makes the configuration invalid, clears
+    ``aligned``, ``count`` and the electrical position (and from the clock after such a change
+    is taken in until the commit nothing counts: the step constants are replaced before the
+    commit); a commit that only changes ``z_offset`` moves ``e`` and ``theta`` to the new
+    offset at once (counting goes on meanwhile). The
     configuration is valid when ``lines ≥ 1``, ``1 ≤ pole_pairs < 4·lines`` and ``z_offset <
     4·lines`` (``config_error`` low); while invalid, nothing counts and nothing aligns.
 
@@ -245,6 +252,10 @@ class QuadratureDecoder(wiring.Component):
     z_gate : int or None
         Quadrature state (0 … 3, ``(A << 1) | B``) that gates Z, or ``None`` for the plain rising
         edge of Z.
+    lines_init, pole_pairs_init, z_offset_init : int
+        The configuration after reset (the inputs' ``init``; 5000, 4, 0): its constants are
+        the registers' reset values, so an input that holds it from reset on needs no strobe
+        (the register file's reset values).
 
     Members
     -------
@@ -300,20 +311,22 @@ class QuadratureDecoder(wiring.Component):
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
         Clocks from a change of the configuration inputs (the clock of its strobe, decoder
-        idle) to the new configuration being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
-        change in, two divisions of 16 steps, five clocks of per-configuration constants on
-        the divisions' subtractor (the last one the commit).
+        idle) to the new configuration being visible on the outputs: ``2·DIVISION_STEPS + 6``
+        (38): the clock that takes the change in, two divisions of 16 steps, five clocks of
+        per-configuration constants on the divisions' subtractor (the last one the commit).
     """
 
     latency = 1
 
-    def __init__(self, *, z_gate=None):
+    def __init__(self, *, z_gate=None, lines_init=5000, pole_pairs_init=4, z_offset_init=0):
         self._z_gate = _check_z_gate("QuadratureDecoder", z_gate)
+        init = _check_config_init("QuadratureDecoder", lines_init, pole_pairs_init,
+                                  z_offset_init)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hold": In(1),
-            "lines": In(LINES_WIDTH, init=5000),
-            "pole_pairs": In(POLE_PAIRS_WIDTH, init=4),
-            "z_offset": In(CPR_WIDTH, init=0),
+            "lines": In(LINES_WIDTH, init=init[0]),
+            "pole_pairs": In(POLE_PAIRS_WIDTH, init=init[1]),
+            "z_offset": In(CPR_WIDTH, init=init[2]),
             "lp_changed": In(1), "z_changed": In(1),
             "realign": In(1),
             "count": Out(CPR_WIDTH),
@@ -828,7 +841,7 @@ class EncoderFrontEnd(wiring.Component):
     ----------
     max_length : int
         Largest glitch filter length, clocks (1 … 65535).
-    z_gate : int or None
+    z_gate, lines_init, pole_pairs_init, z_offset_init
         See :class:`QuadratureDecoder`.
 
     Members
@@ -880,19 +893,22 @@ class EncoderFrontEnd(wiring.Component):
     plausibility_latency = latency + HallPlausibility.latency
     sync_stages = 2
 
-    def __init__(self, *, max_length=255, z_gate=None):
+    def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
+                 z_offset_init=0):
         self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
-        self._decoder = QuadratureDecoder(z_gate=z_gate)
+        init = _check_config_init("EncoderFrontEnd", lines_init, pole_pairs_init, z_offset_init)
+        self._decoder = QuadratureDecoder(z_gate=z_gate, lines_init=init[0],
+                                          pole_pairs_init=init[1], z_offset_init=init[2])
         self._filter = GlitchFilter(width=6, max_length=max_length)
         self._hall = HallSensor()
         self._plausibility = HallPlausibility(theta_registered=True)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hall": In(3),
             "length": In(range(max_length + 1)),
-            "lines": In(LINES_WIDTH, init=5000),
-            "pole_pairs": In(POLE_PAIRS_WIDTH, init=4),
-            "z_offset": In(CPR_WIDTH, init=0),
+            "lines": In(LINES_WIDTH, init=init[0]),
+            "pole_pairs": In(POLE_PAIRS_WIDTH, init=init[1]),
+            "z_offset": In(CPR_WIDTH, init=init[2]),
             "hall_offset": In(ANGLE.shape),
             "hall_tolerance": In(ANGLE.width, init=ANGLE.turn // 8),
             "hall_misses": In(4, init=1),

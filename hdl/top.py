@@ -40,10 +40,10 @@ scale, as with ``"ff"``. Differences from ``"ff"``: the Servo's ``loop`` strobe 
 inputs read in every clock (the encoder's configuration, ``dead_time``, the sample point)
 change word by word over the copy, a register group within its few consecutive clocks (the
 encoder's ``enc_lines``, ``enc_pole_pairs`` and ``enc_z_offset`` and their change strobes in
-three consecutive clocks: one configuration sequence of the decoder, as one commit with "ff"); a frame
-whose ``lock`` falls in the copy window (or is high at its start) is applied a period later;
-and the current loop must be idle in the window too (the sample not within ``loop_latency +
-commit_clocks`` clocks of the period end).
+three consecutive clocks: one configuration sequence of the decoder, as one commit with
+"ff"); a frame whose ``lock`` falls in the copy window (or is high at its start) is applied a
+period later; and the current loop must be idle in the window too (the sample not within
+``loop_latency + commit_clocks`` clocks of the period end).
 
 **Engine configuration in RAM** (``current_loop="engine"`` with ``regs_staging="bram"``, the
 iCEBreaker): the register file holds no flip-flops for the current loop's 16 configuration
@@ -488,7 +488,10 @@ class Top(wiring.Component):
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
                                  shift_width=regmap["dtc_band"].width)
-        self._encoder = EncoderFrontEnd()
+        # (the decoder's configuration after reset: the registers', which give no change strobe)
+        self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
+                                        pole_pairs_init=regmap["enc_pole_pairs"].reset,
+                                        z_offset_init=regmap["enc_z_offset"].reset)
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
         k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,

@@ -470,6 +470,43 @@ def test_decoder_strobe_while_busy_joins_or_runs_again(kind, at, runs):
     assert sum(busy) == runs * (dut.config_latency - 1)
 
 
+def test_decoder_reset_configuration_needs_no_strobe():
+    """``lines_init`` … ``z_offset_init``: the inputs hold the reset configuration from reset on
+    without a strobe (a register file's reset values): no sequence, the angle exact at once;
+    an invalid one is a config_error from reset. Parameters checked."""
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd pole_pairs_init must be an integer "
+                                        r"from 0 to 255, not 256$"):
+        EncoderFrontEnd(pole_pairs_init=256)
+    with pytest.raises(TypeError, match=r"^QuadratureDecoder z_offset_init must be an integer "
+                                        r"from 0 to 262143, not 'x'$"):
+        QuadratureDecoder(z_offset_init="x")
+    for cfg in ((997, 7, 3000), (0, 4, 0)):
+        dut = QuadratureDecoder(lines_init=cfg[0], pole_pairs_init=cfg[1], z_offset_init=cfg[2])
+        dec = model.QuadratureDecoderModel(lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2])
+        names = ("theta", "e", "count", "busy", "config_error", "aligned")
+        mism, seen = [], set()
+
+        async def testbench(ctx):
+            pos = 0
+            for t in range(300):
+                pos += 1 if t % 4 else 0
+                a, b = AB[pos % 4]
+                zz = int(t == 30)
+                ctx.set(dut.a, a)
+                ctx.set(dut.b, b)
+                ctx.set(dut.z, zz)
+                await ctx.tick()
+                dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2])
+                got = tuple(ctx.get(getattr(dut, k)) for k in names)
+                seen.add(got[3:6])
+                if got != tuple(int(getattr(dec, k)) for k in names):
+                    mism.append((t, got))
+
+        simulate(dut, [testbench], name="test_encoder_reset_config")
+        assert not mism, mism[:3]
+        assert seen == ({(0, 0, 0), (0, 0, 1)} if cfg[0] else {(0, 1, 0)}), seen
+
+
 def test_decoder_register_copy_in_consecutive_clocks_is_one_sequence():
     """A register file's copy announces lines, pole_pairs and z_offset in three consecutive
     clocks: one sequence (busy for config_latency − 1 clocks), the position cleared, the new

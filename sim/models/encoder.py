@@ -336,11 +336,13 @@ class EncoderFrontEndModel:
 
     SYNC_STAGES = 2
 
-    def __init__(self, *, max_length=255, z_gate=None):
+    def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
+                 z_offset_init=0):
         self.max_length = max_length
         self.sync = [0] * self.SYNC_STAGES
         self.filter = GlitchFilterModel(6)
-        self.decoder = QuadratureDecoderModel(z_gate=z_gate)
+        self.decoder = QuadratureDecoderModel(z_gate=z_gate, lines=lines_init,
+                                              pole_pairs=pole_pairs_init, z_offset=z_offset_init)
         self.hall = HallSensorModel()
         self.plausibility = HallPlausibilityModel()
         self.settle = 0
