@@ -173,6 +173,17 @@ class GlitchFilter(wiring.Component):
         return m
 
 
+def _ge(a, b):
+    """``a ≥ b`` (unsigned, ``b`` a value or an integer) as a chain of 2-way selects from the
+    low bit up, which the iCE40 maps into a few LUTs: no carry chain, whose carries would each
+    take a logic cell of their own for a compare of a few bits."""
+    b = Const(b, len(a)) if isinstance(b, int) else b
+    ge = Const(1, 1)
+    for i in range(len(a)):
+        ge = Mux(a[i] ^ b[i], a[i], ge)
+    return ge
+
+
 def _add(a, b, cin):
     """``(a + b + cin) mod 2**len(a)`` on one carry chain (the carry-in as a low bit)."""
     return (Cat(cin, a) + Cat(cin, b))[1:len(a) + 1]
@@ -196,6 +207,12 @@ def _check_z_gate(owner, z_gate):
     return z_gate
 
 
+def _check_config_init(owner, lines, pole_pairs, z_offset):
+    return (check_param(owner, "lines_init", lines, 0, (1 << LINES_WIDTH) - 1),
+            check_param(owner, "pole_pairs_init", pole_pairs, 0, (1 << POLE_PAIRS_WIDTH) - 1),
+            check_param(owner, "z_offset_init", z_offset, 0, (1 << CPR_WIDTH) - 1))
+
+
 class QuadratureDecoder(wiring.Component):
     """×4 quadrature decoder with Z index, position counter and exact electrical position.
 
@@ -211,13 +228,22 @@ class QuadratureDecoder(wiring.Component):
     ``aligned``, clears ``count`` and loads the electrical position with ``z_offset``. Later
     index events only strobe ``index``.
 
-    **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs. A change is
-    taken in by a sequence of two divisions (``busy`` high for ``config_latency − 1`` clocks)
-    and then committed at once. A commit that changes ``lines`` or ``pole_pairs``, or makes
-    the configuration invalid, clears ``aligned``, ``count`` and the electrical position (and
-    from the clock after such a change is taken in until the commit nothing counts: the step
-    constants are replaced before the commit); a commit that only changes ``z_offset``
-    moves ``e`` and ``theta`` to the new offset at once (counting goes on meanwhile). The
+    **Configuration.** ``lines``, ``pole_pairs`` and ``z_offset`` are run-time inputs, each change
+    announced by a strobe in the first clock of the new value (``lp_changed`` for ``lines`` or
+    ``pole_pairs``, ``z_changed`` for ``z_offset``: the register file's ``changed`` strobes);
+    the decoder keeps no copy of them and reads them during the sequence that takes a change
+    in. A change is taken in by a sequence of two divisions (``busy`` high for
+    ``config_latency − 1`` clocks) and then committed at once. A strobe while busy joins the
+    running sequence if its input is still to be read (``lp_changed`` in the sequence's first
+    busy clock, ``z_changed`` up to its 19th: a register file's copy of the three registers
+    in consecutive clocks is one sequence); otherwise the sequence runs again after the commit
+    (and, for ``lp_changed``, nothing counts from the clock after the strobe and that commit
+    clears the position too). Between strobes the inputs must hold their values. A commit that
+    changes ``lines`` or ``pole_pairs``, or makes the configuration invalid, clears
+    ``aligned``, ``count`` and the electrical position (and from the clock after such a change
+    is taken in until the commit nothing counts: the step constants are replaced before the
+    commit); a commit that only changes ``z_offset`` moves ``e`` and ``theta`` to the new
+    offset at once (counting goes on meanwhile). The
     configuration is valid when ``lines ≥ 1``, ``1 ≤ pole_pairs < 4·lines`` and ``z_offset <
     4·lines`` (``config_error`` low); while invalid, nothing counts and nothing aligns.
 
@@ -226,6 +252,10 @@ class QuadratureDecoder(wiring.Component):
     z_gate : int or None
         Quadrature state (0 … 3, ``(A << 1) | B``) that gates Z, or ``None`` for the plain rising
         edge of Z.
+    lines_init, pole_pairs_init, z_offset_init : int
+        The configuration after reset (the inputs' ``init``; 5000, 4, 0): its constants are
+        the registers' reset values, so an input that holds it from reset on needs no strobe
+        (the register file's reset values).
 
     Members
     -------
@@ -241,6 +271,10 @@ class QuadratureDecoder(wiring.Component):
     z_offset : In(unsigned(18), init=0)
         Electrical position at the index, in 1/cpr of an electrical turn (0 … cpr − 1): a Z
         offset of ``n`` mechanical counts from the rotor's d axis is ``n·pole_pairs mod cpr``.
+    lp_changed : In(1)
+        Strobe: ``lines`` or ``pole_pairs`` holds a new value from this clock on.
+    z_changed : In(1)
+        Strobe: ``z_offset`` holds a new value from this clock on.
     realign : In(1)
         Strobe: clear ``aligned`` (the next index event realigns).
     count : Out(unsigned(18))
@@ -276,21 +310,24 @@ class QuadratureDecoder(wiring.Component):
     latency : int
         Clocks from ``a``/``b``/``z`` to the outputs (1).
     config_latency : int
-        Clocks from a change of the configuration inputs (decoder idle) to the new configuration
-        being visible on the outputs: ``2·DIVISION_STEPS + 6`` (38): the clock that takes the
-        change in, two divisions of 16 steps, five clocks of per-configuration constants on
-        the divisions' subtractor (the last one the commit).
+        Clocks from a change of the configuration inputs (the clock of its strobe, decoder
+        idle) to the new configuration being visible on the outputs: ``2·DIVISION_STEPS + 6``
+        (38): the clock that takes the change in, two divisions of 16 steps, five clocks of
+        per-configuration constants on the divisions' subtractor (the last one the commit).
     """
 
     latency = 1
 
-    def __init__(self, *, z_gate=None):
+    def __init__(self, *, z_gate=None, lines_init=5000, pole_pairs_init=4, z_offset_init=0):
         self._z_gate = _check_z_gate("QuadratureDecoder", z_gate)
+        init = _check_config_init("QuadratureDecoder", lines_init, pole_pairs_init,
+                                  z_offset_init)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hold": In(1),
-            "lines": In(LINES_WIDTH, init=5000),
-            "pole_pairs": In(POLE_PAIRS_WIDTH, init=4),
-            "z_offset": In(CPR_WIDTH, init=0),
+            "lines": In(LINES_WIDTH, init=init[0]),
+            "pole_pairs": In(POLE_PAIRS_WIDTH, init=init[1]),
+            "z_offset": In(CPR_WIDTH, init=init[2]),
+            "lp_changed": In(1), "z_changed": In(1),
             "realign": In(1),
             "count": Out(CPR_WIDTH),
             "e": Out(CPR_WIDTH),
@@ -331,18 +368,26 @@ class QuadratureDecoder(wiring.Component):
         n_rz = Signal(CPR_WIDTH, init=(rz0 - cpr0) % (1 << CPR_WIDTH))
         cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
         cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
-        # Pending configuration while the divisions run. When idle the pending values equal the
-        # committed ones (a commit copies them; they start equal), so the inputs are compared
-        # with them alone; whether ``lines`` or ``pole_pairs`` change is noted when the change
-        # is taken in (``lp_changed``): then nothing counts until the commit, which clears the
-        # position (the step constants are replaced before it). For a change of ``z_offset``
-        # alone the step constants are rewritten with the values they hold.
-        lines_p = Signal(LINES_WIDTH, init=lines0)
-        pp_p = Signal(POLE_PAIRS_WIDTH, init=pp0)
-        z_p = Signal(CPR_WIDTH, init=z0)
-        lp_changed = Signal()
-        pp_ok = Signal()                # pole_pairs < cpr (pending)
-        z_ok = Signal()                 # z_offset < cpr (pending)
+        # The configuration is read from the inputs themselves while the divisions run (no
+        # copies): a change is announced by ``lp_changed`` / ``z_changed`` in the first clock
+        # of the new value and taken in then (idle). Whether ``lines`` or ``pole_pairs``
+        # changed is noted (``lp_run``): then nothing counts until the commit, which clears
+        # the position (the step constants are replaced before it). For a change of
+        # ``z_offset`` alone the step constants are rewritten with the values they hold.
+        # A strobe while busy: taken into the running sequence if its input has not been read
+        # yet (lp: in clock 1, where ``pole_pairs`` is read and the first constant is made
+        # from ``lines``; z: up to t_qp, where ``z_offset`` is read), else noted (``lp_again``,
+        # ``z_again``) and the sequence runs again after the commit; after an ``lp_again``
+        # nothing counts and that commit clears the position too.
+        lines_p = self.lines
+        pp_p = self.pole_pairs
+        z_p = self.z_offset
+        lp_run = Signal()
+        lp_again = Signal()
+        z_again = Signal()
+        pp_c = Signal(POLE_PAIRS_WIDTH, init=pp0)   # pole_pairs of n_pp (for e's step alone)
+        pp_ok = Signal()                # pole_pairs < cpr
+        z_ok = Signal()                 # z_offset < cpr
         cpr_p = Cat(Const(0, 2), lines_p)
 
         # One subtractor, ``t − cpr``, serves the two divisions n·2**16 / cpr (n = pole_pairs,
@@ -381,31 +426,38 @@ class QuadratureDecoder(wiring.Component):
             self.config_error.eq(~valid),
         ]
         commit = Signal()
+        req_lp = self.lp_changed | lp_again
         with m.If(~self.busy):
-            lp_change = (self.lines != lines_p) | (self.pole_pairs != pp_p)
-            with m.If(lp_change | (self.z_offset != z_p)):
-                m.d.sync += [lines_p.eq(self.lines), pp_p.eq(self.pole_pairs),
-                             z_p.eq(self.z_offset), lp_changed.eq(lp_change), timer.eq(1),
+            with m.If(req_lp | self.z_changed | z_again):
+                m.d.sync += [lp_run.eq(req_lp), lp_again.eq(0), z_again.eq(0), timer.eq(1),
                              wr.eq(0)]
-        with m.Elif(timer == t_commit):
-            m.d.comb += commit.eq(1)
-            m.d.sync += timer.eq(0)
         with m.Else():
-            m.d.sync += timer.eq(timer + 1)
+            with m.If(self.lp_changed):
+                with m.If(timer == 1):
+                    m.d.sync += lp_run.eq(1)
+                with m.Else():
+                    m.d.sync += lp_again.eq(1)
+            with m.If(self.z_changed & _ge(timer, t_qp + 1)):
+                m.d.sync += z_again.eq(1)
+            with m.If(timer == t_commit):
+                m.d.comb += commit.eq(1)
+                m.d.sync += timer.eq(0)
+            with m.Else():
+                m.d.sync += timer.eq(timer + 1)
         with m.If(dividing):
             m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
         with m.Switch(timer):
             with m.Case(1):
                 m.d.sync += [cpr_m1.eq(~diff[:CPR_WIDTH]), wr.eq(pp_p)]
             with m.Case(t_p):
-                m.d.sync += [n_pp.eq(diff), pp_ok.eq(diff < 0)]
+                m.d.sync += [n_pp.eq(diff), pp_c.eq(wr), pp_ok.eq(diff < 0)]
             with m.Case(t_qp):
                 m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr), wr.eq(z_p)]
             with m.Case(t_z):
                 m.d.sync += z_ok.eq(diff < 0)
         new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
         restart = Signal()
-        m.d.comb += restart.eq(commit & (lp_changed | ~new_valid))
+        m.d.comb += restart.eq(commit & (lp_run | lp_again | ~new_valid))
         with m.If(commit):
             m.d.sync += [
                 z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
@@ -451,12 +503,13 @@ class QuadratureDecoder(wiring.Component):
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
         count_next = Mux(c_wrap, Mux(fwd_c, 0, cpr_m1),
                          (self.count + Mux(fwd_c, 1, Const(-1, CPR_WIDTH)))[:CPR_WIDTH])
-        # (pole_pairs from the pending register: the committed value whenever anything counts.)
-        em_next, _ = _step(fwd_c, em, pp_p, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_p)
+        # (pole_pairs from the register made with n_pp, so that e's step constants agree
+        # whatever the input does; the Top uses no e: this goes with em.)
+        em_next, _ = _step(fwd_c, em, pp_c, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_c)
         rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
-        with m.If(valid & ~(self.busy & lp_changed) & (fwd | bwd)):
+        with m.If(valid & ~(self.busy & lp_run) & ~lp_again & (fwd | bwd)):
             m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
                          thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
@@ -743,7 +796,10 @@ class HallPlausibility(wiring.Component):
         y = x ^ sign.replicate(aw)
         over = Signal()
         m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
-        need = Mux(self.misses == 0, 0, self.misses - 1)    # misses − 1 (0 acts as 1)
+        # count ≥ misses − 1 (0 acts as 1) ⇔ count + 1 ≥ misses: the counter's increment,
+        # one compare in LUTs.
+        inc = Signal(5)
+        m.d.comb += inc.eq(count + 1)
         abs_miss = aligned2 & over
         rel_check = ~aligned2 & ref_ok & ~jump2 & (fwd2 == dir_q) & adjacent2
         rel_miss = rel_check & over
@@ -759,13 +815,13 @@ class HallPlausibility(wiring.Component):
         with m.Elif(jump2):
             m.d.sync += ref_ok.eq(0)
         with m.If(miss):
-            m.d.sync += count.eq(Mux(count == 15, 15, count + 1))
+            m.d.sync += count.eq(Mux(count == 15, 15, inc))
         with m.Elif(passed):
             m.d.sync += count.eq(0)
         m.d.sync += [
             self.edge.eq(edge2),
             self.miss.eq(miss),
-            self.fault.eq(miss & (count >= need)),
+            self.fault.eq(miss & _ge(inc, Cat(self.misses, Const(0, 1)))),
         ]
         return m
 
@@ -785,7 +841,7 @@ class EncoderFrontEnd(wiring.Component):
     ----------
     max_length : int
         Largest glitch filter length, clocks (1 … 65535).
-    z_gate : int or None
+    z_gate, lines_init, pole_pairs_init, z_offset_init
         See :class:`QuadratureDecoder`.
 
     Members
@@ -796,7 +852,7 @@ class EncoderFrontEnd(wiring.Component):
         Hall pins (asynchronous), bit 0 = H_a, bit 1 = H_b, bit 2 = H_c.
     length : In(range(max_length + 1))
         Glitch filter length for all seven inputs, clocks (0, 1: no filtering).
-    lines, pole_pairs, z_offset, realign
+    lines, pole_pairs, z_offset, lp_changed, z_changed, realign
         See :class:`QuadratureDecoder`.
     hall_offset : In(BinaryAngle(16))
         See :class:`HallSensor` ``offset``.
@@ -837,22 +893,26 @@ class EncoderFrontEnd(wiring.Component):
     plausibility_latency = latency + HallPlausibility.latency
     sync_stages = 2
 
-    def __init__(self, *, max_length=255, z_gate=None):
+    def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
+                 z_offset_init=0):
         self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
-        self._decoder = QuadratureDecoder(z_gate=z_gate)
+        init = _check_config_init("EncoderFrontEnd", lines_init, pole_pairs_init, z_offset_init)
+        self._decoder = QuadratureDecoder(z_gate=z_gate, lines_init=init[0],
+                                          pole_pairs_init=init[1], z_offset_init=init[2])
         self._filter = GlitchFilter(width=6, max_length=max_length)
         self._hall = HallSensor()
         self._plausibility = HallPlausibility(theta_registered=True)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hall": In(3),
             "length": In(range(max_length + 1)),
-            "lines": In(LINES_WIDTH, init=5000),
-            "pole_pairs": In(POLE_PAIRS_WIDTH, init=4),
-            "z_offset": In(CPR_WIDTH, init=0),
+            "lines": In(LINES_WIDTH, init=init[0]),
+            "pole_pairs": In(POLE_PAIRS_WIDTH, init=init[1]),
+            "z_offset": In(CPR_WIDTH, init=init[2]),
             "hall_offset": In(ANGLE.shape),
             "hall_tolerance": In(ANGLE.width, init=ANGLE.turn // 8),
             "hall_misses": In(4, init=1),
+            "lp_changed": In(1), "z_changed": In(1),
             "realign": In(1),
             "count": Out(CPR_WIDTH), "e": Out(CPR_WIDTH), "theta": Out(ANGLE.shape),
             "step": Out(1), "up": Out(1), "a_rise": Out(1), "illegal": Out(1), "index": Out(1),
@@ -879,18 +939,20 @@ class EncoderFrontEnd(wiring.Component):
                                            stages=self.sync_stages)
         m.d.comb += [flt.i.eq(pins), flt.length.eq(self.length)]
 
-        # Clocks since reset minus 3: ready once it reaches length (one comparison, no
-        # length + 4 adder).
+        # Clocks since reset minus 3: ready once it reaches length (one comparison in LUTs,
+        # no length + 4 adder).
         settle = Signal(range(-3, self._max_length + 1), init=-3)
+        lw = len(self.length)
         with m.If(~self.ready):
             m.d.sync += settle.eq(settle + 1)
-            with m.If(settle >= self.length):
+            with m.If(~settle[-1] & _ge(settle[:lw], self.length)):
                 m.d.sync += self.ready.eq(1)
 
         m.d.comb += [
             dec.a.eq(flt.o[0]), dec.b.eq(flt.o[1]), dec.z.eq(flt.o[2]), dec.hold.eq(~self.ready),
             dec.lines.eq(self.lines), dec.pole_pairs.eq(self.pole_pairs),
             dec.z_offset.eq(self.z_offset), dec.realign.eq(self.realign),
+            dec.lp_changed.eq(self.lp_changed), dec.z_changed.eq(self.z_changed),
             hall.h.eq(flt.o[3:6]), hall.offset.eq(self.hall_offset), hall.hold.eq(~self.ready),
         ]
         # The decoder's angle (a sum and a wrap test) and its alignment, registered: θ's source

@@ -227,6 +227,13 @@ class RegisterFile(wiring.Component):
         Read-only registers of one word each, all of one shape, whose values are read from a
         consumer's RAM through the ``status_rd`` port (module docstring), in this order (the
         read address of a register is its position); they have no In member. Default ``()``.
+    changed : tuple of str
+        One-word shadowed ``rw`` registers (not exported) that get a ``<name>_changed`` strobe:
+        high for one clock, the first clock in which the Out member holds a new value that
+        differs from the old one (the clock after the commit, ``"ff"``; after the register's
+        copy clock, ``"bram"``): a consumer need not keep a copy of the register to see it
+        change. A domain reset (the reset values loaded at once) gives no strobe. Default
+        ``()``.
 
     Members
     -------
@@ -257,6 +264,8 @@ class RegisterFile(wiring.Component):
         synchronous read port of the consumer's RAM; ``en`` is always 1).
     <strobe register> : Out(1)
         One-clock pulse in ``t + 1`` after a write with bit 0 set.
+    <register>_changed : Out(1)
+        Only for the registers named in ``changed``: the change strobe (``changed`` above).
     <window>_rd_addr : Out(window.addr_width)
         Word offset of the access into the window (``bus.addr``'s low bits, combinational).
     <window>_rd_data : In(32)
@@ -292,18 +301,20 @@ class RegisterFile(wiring.Component):
     ------
     TypeError
         ``regmap`` is not a :class:`~.regmap.RegMap`; ``staging`` is not a string;
-        ``copy_last``, ``export`` or ``status_ram`` is not a tuple of strings.
+        ``copy_last``, ``export``, ``status_ram`` or ``changed`` is not a tuple of strings.
     ValueError
         ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` or ``export`` names a
         register that is not a shadowed ``rw`` register of ``regmap``, repeats a name, or is
         given with ``staging="ff"``; ``status_ram`` names a register that is not a one-word
-        ``ro`` register, repeats a name, or names registers of different shapes.
+        ``ro`` register, repeats a name, or names registers of different shapes; ``changed``
+        names a register that is not a one-word shadowed ``rw`` register or is exported, or
+        repeats a name.
     """
 
     latency = 2
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(),
-                 status_ram=()):
+                 status_ram=(), changed=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
@@ -314,7 +325,10 @@ class RegisterFile(wiring.Component):
                  "export": (export, "shadowed rw", True,
                             lambda r: r.access is Access.RW and r.shadow is not None),
                  "status_ram": (status_ram, "one-word ro", False,
-                                lambda r: r.access is Access.RO and r.words == 1)}
+                                lambda r: r.access is Access.RO and r.words == 1),
+                 "changed": (changed, "unexported one-word shadowed rw", False,
+                             lambda r: (r.access is Access.RW and r.shadow is not None
+                                        and r.words == 1 and r.name not in export))}
         for param, (names, kind, bram_only, allowed) in rules.items():
             if (not isinstance(names, tuple)
                     or not all(isinstance(n, str) for n in names)):
@@ -333,6 +347,7 @@ class RegisterFile(wiring.Component):
             raise ValueError(f"RegisterFile status_ram must name registers of one shape, "
                              f"not {status_ram!r}")
         self._status_ram = status_ram
+        self._changed = changed
         self._regmap = regmap
         self._staging = staging
         self._copy_last = copy_last
@@ -369,6 +384,8 @@ class RegisterFile(wiring.Component):
                 members[r.name] = In(r.shape)
             elif r.access is Access.STROBE:
                 members[r.name] = Out(1)
+        for name in changed:
+            members[f"{name}_changed"] = Out(1)
         for w in regmap.windows:
             members[f"{w.name}_rd_addr"] = Out(w.addr_width)
             members[f"{w.name}_rd_data"] = In(DATA_WIDTH)
@@ -379,6 +396,7 @@ class RegisterFile(wiring.Component):
     copy_last = property(lambda self: self._copy_last)
     exported = property(lambda self: self._export)
     status_ram = property(lambda self: self._status_ram)
+    changed = property(lambda self: self._changed)
     export_words = property(lambda self: list(self._export_words))
     export_init = property(lambda self: export_init(self._regmap, self._export))
     slots = property(lambda self: len(self._slots))
@@ -435,6 +453,9 @@ class RegisterFile(wiring.Component):
                 held[r.name] = staged
                 with m.If(self.commit & ~bus.lock):
                     m.d.sync += _bits(port).eq(staged)
+                if r.name in self._changed:
+                    m.d.sync += getattr(self, f"{r.name}_changed").eq(
+                        self.commit & ~bus.lock & (staged != _bits(port)))
             elif r.access is Access.RW:
                 held[r.name] = _bits(port)
             elif r.access is Access.RO and r.name in self._status_ram:
@@ -643,9 +664,12 @@ class RegisterFile(wiring.Component):
         for i, (_, r, k) in enumerate(slots[:nc]):
             if r.name in self._export:
                 continue                        # on the export port instead (below)
+            lo, hi = r.word_slice(k)
             with m.If(ld[i]):
-                lo, hi = r.word_slice(k)
                 m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd_data[:hi - lo])
+            if r.name in self._changed:             # (one word: lo, hi = 0, width)
+                m.d.sync += getattr(self, f"{r.name}_changed").eq(
+                    ld[i] & (rd_data[:hi - lo] != _bits(getattr(self, r.name))))
         # The export port: the exported slot's word in its load clock, copy or walk (``load``
         # with ``dst``), its export index and whether it is one looked up from ``cnt`` in the
         # reading clock and registered beside ``dst`` (no decode of ``dst`` behind a register).

@@ -38,10 +38,12 @@ so the timer changes mode one boundary later together with the duties computed f
 scale, as with ``"ff"``. Differences from ``"ff"``: the Servo's ``loop`` strobe at
 ``period_start`` sees the new values (``"ff"``: the old ones, the new from the next period);
 inputs read in every clock (the encoder's configuration, ``dead_time``, the sample point)
-change word by word over the copy, a register group within its few consecutive clocks; a frame
-whose ``lock`` falls in the copy window (or is high at its start) is applied a period later;
-and the current loop must be idle in the window too (the sample not within ``loop_latency +
-commit_clocks`` clocks of the period end).
+change word by word over the copy, a register group within its few consecutive clocks (the
+encoder's ``enc_lines``, ``enc_pole_pairs`` and ``enc_z_offset`` and their change strobes in
+three consecutive clocks: one configuration sequence of the decoder, as one commit with
+"ff"); a frame whose ``lock`` falls in the copy window (or is high at its start) is applied a
+period later; and the current loop must be idle in the window too (the sample not within
+``loop_latency + commit_clocks`` clocks of the period end).
 
 **Engine configuration in RAM** (``current_loop="engine"`` with ``regs_staging="bram"``, the
 iCEBreaker): the register file holds no flip-flops for the current loop's 16 configuration
@@ -496,7 +498,8 @@ class Top(wiring.Component):
                                   export=((ENGINE_CONFIG if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
-                                              if cfg_ram else ()))
+                                              if cfg_ram else ()),
+                                  changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"))
         exported = [r.name for _, r, _ in self._regs.export_words]
         self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
@@ -519,7 +522,10 @@ class Top(wiring.Component):
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
                                  shift_width=regmap["dtc_band"].width)
-        self._encoder = EncoderFrontEnd()
+        # (the decoder's configuration after reset: the registers', which give no change strobe)
+        self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
+                                        pole_pairs_init=regmap["enc_pole_pairs"].reset,
+                                        z_offset_init=regmap["enc_z_offset"].reset)
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
         k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
@@ -767,6 +773,9 @@ class Top(wiring.Component):
             enc.lines.eq(regs.enc_lines),
             enc.pole_pairs.eq(regs.enc_pole_pairs),
             enc.z_offset.eq(regs.enc_z_offset),
+            # (the decoder keeps no copy of them: the register file tells it of a change)
+            enc.lp_changed.eq(regs.enc_lines_changed | regs.enc_pole_pairs_changed),
+            enc.z_changed.eq(regs.enc_z_offset_changed),
             enc.hall_offset.eq(regs.enc_hall_offset),
             enc.length.eq(regs.enc_filter),
             enc.realign.eq(regs.enc_realign),

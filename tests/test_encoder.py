@@ -28,14 +28,21 @@ def run_front_end(dut, pin_words, **config):
     names = model.OUTPUTS
     rec = {k: [] for k in names}
 
+    lp, zc = (int(s[0]) for s in model.change_strobes(
+        config.get("lines", 5000), config.get("pole_pairs", 4), config.get("z_offset", 0)))
+
     async def testbench(ctx):
         for key, value in config.items():
             ctx.set(getattr(dut, key), value)
+        ctx.set(dut.lp_changed, lp)             # the register file's change strobes
+        ctx.set(dut.z_changed, zc)
         for word in list(pin_words) + [pin_words[-1]]:
             for k in names:
                 rec[k].append(ctx.get(getattr(dut, k)))
             ctx.set(Cat(dut.a, dut.b, dut.z, dut.hall), int(word))
             await ctx.tick()
+            ctx.set(dut.lp_changed, 0)
+            ctx.set(dut.z_changed, 0)
 
     simulate(dut, [testbench], name="test_encoder")
     return {k: np.array(v[:len(pin_words) + 1], dtype=np.int64) for k, v in rec.items()}
@@ -271,7 +278,9 @@ def test_index_realign_and_config_change_drop_alignment():
         await tick(6)
         assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 1 and rec[-1]["e"] == 4
         ctx.set(dut.z_offset, 100)
+        ctx.set(dut.z_changed, 1)
         await tick(1)
+        ctx.set(dut.z_changed, 0)
         assert rec[-1]["busy"] == 1
         await tick(dut.config_latency - 2)
         assert rec[-1]["e"] == 4 and rec[-1]["busy"] == 1
@@ -287,10 +296,16 @@ def test_index_realign_and_config_change_drop_alignment():
         await tick(6)
         assert rec[-1]["aligned"] == 1 and rec[-1]["count"] == 0 and rec[-1]["e"] == 100
         ctx.set(dut.lines, 1024)
-        await tick(dut.config_latency)
+        ctx.set(dut.lp_changed, 1)
+        await tick(1)
+        ctx.set(dut.lp_changed, 0)
+        await tick(dut.config_latency - 1)
         assert rec[-1]["aligned"] == 0 and rec[-1]["busy"] == 0 and rec[-1]["count"] == 0
         ctx.set(dut.lines, 1)                   # cpr 4 ≤ pole_pairs: invalid
-        await tick(dut.config_latency)
+        ctx.set(dut.lp_changed, 1)
+        await tick(1)
+        ctx.set(dut.lp_changed, 0)
+        await tick(dut.config_latency - 1)
         assert ctx.get(dut.config_error) == 1
         ctx.set(word, pins(1, 0, 0))
         await tick(4)
@@ -324,11 +339,18 @@ def test_decoder_invalid_configurations_theta_vs_model():
 
     async def testbench(ctx):
         pos = 0
+        prev = (5000, 4, 0)
         for lines, pp, z in configs:
             ctx.set(dut.lines, lines)
             ctx.set(dut.pole_pairs, pp)
             ctx.set(dut.z_offset, z)
+            ctx.set(dut.lp_changed, (lines, pp) != prev[:2])
+            ctx.set(dut.z_changed, z != prev[2])
+            prev = (lines, pp, z)
             for k in range(dut.config_latency + 40):
+                if k == 1:
+                    ctx.set(dut.lp_changed, 0)
+                    ctx.set(dut.z_changed, 0)
                 pos += 1 if k % 3 else -1
                 a, b = AB[pos % 4]
                 zz = int(k == dut.config_latency + 10)
@@ -344,6 +366,180 @@ def test_decoder_invalid_configurations_theta_vs_model():
 
     simulate(dut, [testbench], name="test_encoder_invalid_theta")
     assert not mism, mism[:3]
+
+
+def test_decoder_change_strobes_in_and_out_of_a_sequence_vs_model():
+    """Configuration changes with their strobes at random clocks, many of them while a sequence
+    runs (joined in its first clock / up to its 19th, or run again after its commit), ``lines``
+    changes in the middle of a division included: every output follows the model clock for
+    clock."""
+    rng = np.random.default_rng(21)
+    n = 6000
+    dut = QuadratureDecoder()
+    dec = model.QuadratureDecoderModel()
+    names = ("theta", "e", "count", "busy", "config_error", "aligned", "step", "up", "index")
+    cases = {"idle": 0, "lp_join": 0, "lp_again": 0, "z_join": 0, "z_again": 0, "lp_at_2": 0,
+             "z_at_take_p": 0, "z_after_take_p": 0}
+    mism = []
+    choices = [(5000, 4, 0), (5000, 4, 777), (997, 7, 3000), (1024, 5, 10), (64, 3, 255),
+               (3, 12, 7)]
+
+    async def testbench(ctx):
+        pos = 0
+        cfg = [5000, 4, 0]
+        for t in range(n):
+            lp = zc = 0
+            edge = dec.timer in (1, 2, dec.TAKE_P, dec.TAKE_P + 1)    # the windows' ends
+            if rng.random() < (0.4 if edge else 0.05):
+                new = choices[rng.integers(len(choices))]
+                which = rng.integers(1, 8)              # any non-empty subset of the three
+                for k in range(3):
+                    if which >> k & 1:
+                        cfg[k] = new[k]
+                lp = int((cfg[0], cfg[1]) != (ctx.get(dut.lines), ctx.get(dut.pole_pairs)))
+                zc = int(cfg[2] != ctx.get(dut.z_offset))
+                timer = dec.timer
+                if lp:
+                    cases["idle" if not timer else "lp_join" if timer == 1 else "lp_again"] += 1
+                    cases["lp_at_2"] += timer == 2
+                if zc and timer:
+                    cases["z_join" if timer <= dec.TAKE_P else "z_again"] += 1
+                    cases["z_at_take_p"] += timer == dec.TAKE_P
+                    cases["z_after_take_p"] += timer == dec.TAKE_P + 1
+            if rng.random() < 0.6:
+                pos += 1 if rng.random() < 0.7 else -1
+            a, b = AB[pos % 4]
+            zz = int(pos % 40 == 0)
+            for port, v in ((dut.a, a), (dut.b, b), (dut.z, zz), (dut.lines, cfg[0]),
+                            (dut.pole_pairs, cfg[1]), (dut.z_offset, cfg[2]),
+                            (dut.lp_changed, lp), (dut.z_changed, zc)):
+                ctx.set(port, v)
+            await ctx.tick()
+            dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2],
+                     lp_changed=lp, z_changed=zc)
+            got = tuple(ctx.get(getattr(dut, k)) for k in names)
+            want = tuple(int(getattr(dec, k)) for k in names)
+            if got != want:
+                mism.append((t, got, want))
+
+    simulate(dut, [testbench], name="test_encoder_change_strobes")
+    assert not mism, mism[:3]
+    assert min(cases.values()) >= 3, cases
+
+
+@pytest.mark.parametrize("kind, at, runs", [("lp", 1, 1), ("lp", 2, 2), ("z", 19, 1),
+                                            ("z", 20, 2)])
+def test_decoder_strobe_while_busy_joins_or_runs_again(kind, at, runs):
+    """A z_offset change starts a sequence; a second change arrives ``at`` clocks later (the
+    sequence's timer): joined (one sequence) up to the clock its input is read, else run again
+    after the commit (two); every output as the model's, clock for clock, counting pins."""
+    dut = QuadratureDecoder()
+    dec = model.QuadratureDecoderModel()
+    names = ("theta", "e", "count", "busy", "config_error", "aligned")
+    mism, busy = [], []
+
+    async def testbench(ctx):
+        pos, cfg = 0, [5000, 4, 0]
+        for t in range(3 * dut.config_latency + 40):
+            lp = zc = 0
+            if t == 20:
+                cfg[2], zc = 1234, 1
+            if t == 20 + at:
+                if kind == "lp":
+                    cfg[0], cfg[1], lp = 997, 7, 1
+                else:
+                    cfg[2], zc = 3000, 1
+            pos += 1 if t % 3 else 0
+            a, b = AB[pos % 4]
+            zz = int(t == 5)
+            for port, v in ((dut.a, a), (dut.b, b), (dut.z, zz), (dut.lines, cfg[0]),
+                            (dut.pole_pairs, cfg[1]), (dut.z_offset, cfg[2]),
+                            (dut.lp_changed, lp), (dut.z_changed, zc)):
+                ctx.set(port, v)
+            await ctx.tick()
+            dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2],
+                     lp_changed=lp, z_changed=zc)
+            got = tuple(ctx.get(getattr(dut, k)) for k in names)
+            want = tuple(int(getattr(dec, k)) for k in names)
+            busy.append(got[3])
+            if got != want:
+                mism.append((t, got, want))
+
+    simulate(dut, [testbench], name="test_encoder_strobe_while_busy")
+    assert not mism, mism[:3]
+    assert sum(busy) == runs * (dut.config_latency - 1)
+
+
+def test_decoder_reset_configuration_needs_no_strobe():
+    """``lines_init`` … ``z_offset_init``: the inputs hold the reset configuration from reset on
+    without a strobe (a register file's reset values): no sequence, the angle exact at once;
+    an invalid one is a config_error from reset. Parameters checked."""
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd pole_pairs_init must be an integer "
+                                        r"from 0 to 255, not 256$"):
+        EncoderFrontEnd(pole_pairs_init=256)
+    with pytest.raises(TypeError, match=r"^QuadratureDecoder z_offset_init must be an integer "
+                                        r"from 0 to 262143, not 'x'$"):
+        QuadratureDecoder(z_offset_init="x")
+    for cfg in ((997, 7, 3000), (0, 4, 0)):
+        dut = QuadratureDecoder(lines_init=cfg[0], pole_pairs_init=cfg[1], z_offset_init=cfg[2])
+        dec = model.QuadratureDecoderModel(lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2])
+        names = ("theta", "e", "count", "busy", "config_error", "aligned")
+        mism, seen = [], set()
+
+        async def testbench(ctx):
+            pos = 0
+            for t in range(300):
+                pos += 1 if t % 4 else 0
+                a, b = AB[pos % 4]
+                zz = int(t == 30)
+                ctx.set(dut.a, a)
+                ctx.set(dut.b, b)
+                ctx.set(dut.z, zz)
+                await ctx.tick()
+                dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2])
+                got = tuple(ctx.get(getattr(dut, k)) for k in names)
+                seen.add(got[3:6])
+                if got != tuple(int(getattr(dec, k)) for k in names):
+                    mism.append((t, got))
+
+        simulate(dut, [testbench], name="test_encoder_reset_config")
+        assert not mism, mism[:3]
+        assert seen == ({(0, 0, 0), (0, 0, 1)} if cfg[0] else {(0, 1, 0)}), seen
+
+
+def test_decoder_register_copy_in_consecutive_clocks_is_one_sequence():
+    """A register file's copy announces lines, pole_pairs and z_offset in three consecutive
+    clocks: one sequence (busy for config_latency − 1 clocks), the position cleared, the new
+    angle exact at the next index."""
+    dut = QuadratureDecoder()
+    busy = []
+
+    async def testbench(ctx):
+        await ctx.tick().repeat(4)
+        for port, v, strobe in ((dut.lines, 997, dut.lp_changed),
+                                (dut.pole_pairs, 7, dut.lp_changed),
+                                (dut.z_offset, 3000, dut.z_changed)):
+            ctx.set(port, v)
+            ctx.set(dut.lp_changed, 0)
+            ctx.set(dut.z_changed, 0)
+            ctx.set(strobe, 1)
+            await ctx.tick()
+            busy.append(ctx.get(dut.busy))
+        ctx.set(dut.lp_changed, 0)
+        ctx.set(dut.z_changed, 0)
+        for _ in range(2 * dut.config_latency):
+            await ctx.tick()
+            busy.append(ctx.get(dut.busy))
+        ctx.set(dut.z, 1)                       # align at count 0, then one count forward
+        await ctx.tick().repeat(2)
+        ctx.set(dut.a, 1)
+        await ctx.tick().repeat(2)
+        assert ctx.get(dut.aligned) == 1 and ctx.get(dut.count) == 1
+        e = (7 + 3000) % (4 * 997)
+        assert ctx.get(dut.e) == e and ctx.get(dut.theta) == (e << 16) // (4 * 997)
+
+    simulate(dut, [testbench], name="test_encoder_copy_sequence")
+    assert sum(busy) == dut.config_latency - 1 and busy[:3] == [1, 1, 1]
 
 
 def test_divide_angle_is_divmod_for_every_valid_dividend():

@@ -726,3 +726,77 @@ def test_status_ram_members_and_errors():
                 RegisterFile(REGMAP, status_ram=bad)
         del dut
         gc.collect()
+
+
+# --- change strobes (changed) ------------------------------------------------------------------
+
+CHANGED = ("enc_lines", "enc_pole_pairs", "enc_z_offset")
+
+
+@pytest.mark.parametrize("kwargs, msg", [
+    ({"changed": ("prot_oc_limit",)}, r"^RegisterFile changed must name unexported one-word "
+                                      r"shadowed rw registers, not 'prot_oc_limit'$"),
+    ({"changed": ("st_mode",)}, r"^RegisterFile changed must name unexported one-word "
+                                r"shadowed rw registers, not 'st_mode'$"),
+    ({**BRAM, "export": ("pi_d_kp",), "changed": ("pi_d_kp",)},
+     r"^RegisterFile changed must name unexported one-word shadowed rw registers, "
+     r"not 'pi_d_kp'$"),
+    ({"changed": ("enc_lines", "enc_lines")},
+     r"^RegisterFile changed must not repeat a name, not \('enc_lines', 'enc_lines'\)$"),
+])
+def test_changed_validation(kwargs, msg):
+    with pytest.raises(ValueError, match=msg):
+        RegisterFile(**kwargs)
+    with pytest.raises(TypeError, match=r"^RegisterFile changed must be a tuple of register "
+                                        r"names, not 'enc_lines'$"):
+        RegisterFile(changed="enc_lines")
+
+
+@pytest.mark.parametrize("staging", ["ff", "bram"])
+def test_changed_strobe_marks_every_change_of_the_active_value(staging):
+    """``<name>_changed`` is high exactly in the clocks whose active value differs from the
+    previous clock's (random frames of the named registers and a neighbour, half of them
+    rewriting the active value, with and without lock; commits every 60 clocks)."""
+    import random
+    kw = BRAM if staging == "bram" else {}
+    dut = RegisterFile(**kw, changed=CHANGED)
+    assert set(dut.signature.members) == set(RegisterFile(**kw).signature.members) | {
+        f"{n}_changed" for n in CHANGED}
+    names = CHANGED + ("enc_hall_offset",)
+    rng = random.Random(12)
+    seen = {"strobes": 0, "rewrites": 0, "bad": []}
+    done = []
+
+    async def driver(ctx):
+        await ctx.tick().repeat(dut.reset_clocks + 1)
+        for frame in range(40):
+            # (values read back as the active ones: a frame starts long after a copy)
+            for name in rng.sample(names, rng.randint(1, len(names))):
+                r = REGMAP[name]
+                cur = r.bits(ctx.get(bits(getattr(dut, name))))
+                value = cur if rng.random() < 0.5 else rng.randrange(1 << r.width)
+                seen["rewrites"] += value == cur
+                await access(ctx, dut, r.addr, we=1, data=value, lock=frame % 4 != 0)
+            ctx.set(dut.bus.lock, 0)
+            await ctx.tick().repeat(rng.randint(1, 5))
+            ctx.set(dut.commit, 1)
+            await ctx.tick()
+            ctx.set(dut.commit, 0)
+            await ctx.tick().repeat(60)
+        done.append(1)
+
+    async def checker(ctx):
+        prev = {n: ctx.get(bits(getattr(dut, n))) for n in CHANGED}
+        while not done:
+            await ctx.tick()
+            for n in CHANGED:
+                v = ctx.get(bits(getattr(dut, n)))
+                strobe = ctx.get(getattr(dut, f"{n}_changed"))
+                seen["strobes"] += strobe
+                if strobe != (v != prev[n]):
+                    seen["bad"].append((n, prev[n], v, strobe))
+                prev[n] = v
+
+    simulate(dut, [driver, checker], name=f"regs_changed_{staging}")
+    assert not seen["bad"], seen["bad"][:3]
+    assert seen["strobes"] > 20 and seen["rewrites"] > 10

@@ -16,12 +16,12 @@ skipping the clocks in which nothing can change, and returns the outputs where t
 import numpy as np
 
 from ...hdl.encoder import (ANGLE, CPR_WIDTH, DIVISION_STEPS, HALL_CODES, angle_constants,
-                            divide_angle, hall_boundaries, hall_centres, quadrature_phase)
+                            hall_boundaries, hall_centres, quadrature_phase)
 
 __all__ = [
     "theta_exact", "hall_sector", "hall_code", "GlitchFilterModel", "QuadratureDecoderModel",
     "HallSensorModel", "HallPlausibilityModel", "EncoderFrontEndModel", "front_end",
-    "front_end_changes", "OUTPUTS",
+    "front_end_changes", "change_strobes", "OUTPUTS",
 ]
 
 #: Outputs of :class:`EncoderFrontEndModel` (the gateware member names).
@@ -178,30 +178,43 @@ class HallPlausibilityModel:
 
 class QuadratureDecoderModel:
     """Model of :class:`~foc_servo.hdl.encoder.QuadratureDecoder`, configuration sequencer and
-    division timing included."""
+    division timing included.
+
+    The configuration sequence is modelled register by register (the division's working
+    registers, each constant taken in the clock the gateware takes it, from the inputs of that
+    clock), so the model follows the gateware also when an input changes in the middle of a
+    sequence. ``lp_changed`` / ``z_changed`` (the strobes) default to a compare of the inputs
+    with those of the previous clock (the first: the constructor's values): the register
+    file's ``changed`` strobes."""
 
     IDLE = 0
-    #: Clocks after the take-in at which the step constants are replaced (the first division
-    #: done) and at which the commit happens (the gateware's ``timer``).
+    #: The gateware's ``timer`` values: ``pole_pairs`` read (1), the first constants (2), the
+    #: step constants replaced and ``z_offset`` read (``TAKE_P``), ``z_offset < cpr`` (``TAKE_P
+    #: + 1``), the commit (``COMMIT``).
     TAKE_P = DIVISION_STEPS + 3
     COMMIT = 2 * DIVISION_STEPS + 5
 
     def __init__(self, *, z_gate=None, lines=5000, pole_pairs=4, z_offset=0):
+        m18 = (1 << CPR_WIDTH) - 1
         self.z_gate = z_gate
-        self.lines_q, self.pp_q, self.z_q = lines, pole_pairs, z_offset
-        self.qp, self.rp, self.qz, self.rz, self.valid = angle_constants(lines, pole_pairs,
-                                                                         z_offset)
-        self.cpr = 4 * lines
-        self.lines_p = self.pp_p = self.z_p = 0
-        self.lp_changed = False
-        self.phase = self.IDLE          # clocks since the change was taken in (0: idle)
+        self._in = (lines, pole_pairs, z_offset)
+        qp, rp, qz, rz, self.valid = angle_constants(lines, pole_pairs, z_offset)
+        cpr = 4 * lines
+        self.qp, self.rp, self.qz = qp, rp, qz
+        self.n_rp, self.n_pp, self.n_rz = (rp - cpr) & m18, (pole_pairs - cpr) & m18, \
+            (rz - cpr) & m18
+        self.cpr_z, self.cpr_m1, self.z_q, self.pp_c = cpr - z_offset, (cpr - 1) & m18, \
+            z_offset, pole_pairs
+        self.pp_ok = self.z_ok = 0
+        self.timer = self.wr = self.wq = self.dividing = 0
+        self.lp_run = self.lp_again = self.z_again = False
         self.a_prev = self.b_prev = self.zc_prev = 0
         self.count = self.em = self.thm = self.rm = 0
         self.step = self.up = self.a_rise = self.illegal = self.index = self.aligned = 0
 
     @property
     def busy(self):
-        return int(self.phase != self.IDLE)
+        return int(self.timer != self.IDLE)
 
     @property
     def config_error(self):
@@ -209,33 +222,77 @@ class QuadratureDecoderModel:
 
     @property
     def e(self):
-        s = self.em + self.z_q
-        return (s - self.cpr if s >= self.cpr else s) & ((1 << CPR_WIDTH) - 1)
+        m18 = (1 << CPR_WIDTH) - 1
+        return (self.em - self.cpr_z if self.em >= self.cpr_z else self.em + self.z_q) & m18
 
     @property
     def theta(self):
-        # rm + Rz ≥ cpr, as the carry out of rm + ((Rz − cpr) mod 2**18): the same in a valid
-        # configuration (Rz < cpr); in an invalid one Rz may exceed cpr.
-        mask = (1 << CPR_WIDTH) - 1
-        carry = (self.rm + ((self.rz - self.cpr) & mask)) >> CPR_WIDTH
+        carry = (self.rm + self.n_rz) >> CPR_WIDTH
         return (self.thm + self.qz + carry) % _TURN
 
-    def tick(self, a, b, z, *, hold=0, lines=5000, pole_pairs=4, z_offset=0, realign=0):
-        cpr_mask = (1 << CPR_WIDTH) - 1
-        # Configuration sequencer.
-        commit = take_p = False
-        if self.phase == self.IDLE:
-            if (lines, pole_pairs, z_offset) != (self.lines_q, self.pp_q, self.z_q):
-                self.lp_changed = (lines, pole_pairs) != (self.lines_q, self.pp_q)
-                self.lines_p, self.pp_p, self.z_p = lines, pole_pairs, z_offset
-                next_phase = 1
-            else:
-                next_phase = self.IDLE
+    @staticmethod
+    def _step(up, x, step, n_step, mask):
+        """The gateware's modular step of ``x`` by ``±step`` (``n_step`` = step − cpr): the
+        new value and the carry-in (up: the wrap; down: no wrap)."""
+        wrap = ((x + n_step) >> CPR_WIDTH) & 1 if up else int(x < step)
+        operand = n_step if wrap else step
+        return ((x + operand) if up else (x - operand)) & mask, int(up == wrap)
+
+    def tick(self, a, b, z, *, hold=0, lines=5000, pole_pairs=4, z_offset=0, realign=0,
+             lp_changed=None, z_changed=None):
+        m18, aw = (1 << CPR_WIDTH) - 1, ANGLE.width
+        if lp_changed is None:
+            lp_changed = (lines, pole_pairs) != self._in[:2]
+        if z_changed is None:
+            z_changed = z_offset != self._in[2]
+        self._in = (lines, pole_pairs, z_offset)
+        cpr = (4 * lines) & m18
+        t, busy = self.timer, self.timer != self.IDLE
+
+        # Configuration sequencer (the gateware's registers, from this clock's inputs).
+        commit = busy and t == self.COMMIT
+        lp_run, lp_again, z_again = self.lp_run, self.lp_again, self.z_again
+        timer, wr, wq, dividing = t, self.wr, self.wq, self.dividing
+        if not busy:
+            req_lp = lp_changed or self.lp_again
+            if req_lp or z_changed or self.z_again:
+                lp_run, lp_again, z_again, timer, wr = req_lp, False, False, 1, 0
         else:
-            take_p = self.phase == self.TAKE_P
-            commit = self.phase == self.COMMIT
-            next_phase = self.IDLE if commit else self.phase + 1
-        counting = self.valid and not (self.busy and self.lp_changed)
+            if lp_changed:
+                if t == 1:
+                    lp_run = True
+                else:
+                    lp_again = True
+            if z_changed and t > self.TAKE_P:
+                z_again = True
+            timer = self.IDLE if commit else t + 1
+        if t in (2, self.TAKE_P + 1):
+            dividing = 1
+        elif t in (self.TAKE_P - 1, self.COMMIT - 1):
+            dividing = 0
+        sub_t = self.wr << 1 if self.dividing else self.wr
+        diff = sub_t - cpr
+        fits = int(diff >= 0)
+        if self.dividing:
+            wr = (diff if fits else sub_t) & m18
+            wq = ((self.wq << 1) | fits) & ((1 << aw) - 1)
+        new = {}
+        if t == 1:
+            new.update(cpr_m1=~diff & m18)
+            wr = pole_pairs
+        elif t == 2:
+            new.update(n_pp=diff & m18, pp_c=self.wr & 0xFF, pp_ok=int(diff < 0))
+        elif t == self.TAKE_P:
+            new.update(n_rp=diff & m18, qp=self.wq, rp=self.wr)
+            wr = z_offset
+        elif t == self.TAKE_P + 1:
+            new.update(z_ok=int(diff < 0))
+        new_valid = lines != 0 and pole_pairs != 0 and self.pp_ok and self.z_ok
+        restart = commit and (self.lp_run or self.lp_again or not new_valid)
+        if commit:
+            new.update(z_q=z_offset, qz=self.wq, n_rz=diff & m18, valid=bool(new_valid),
+                       cpr_z=cpr - z_offset)
+        counting = self.valid and not (busy and self.lp_run) and not self.lp_again
 
         # Quadrature decoding (from the registers before this edge).
         delta = (quadrature_phase(a, b) - quadrature_phase(self.a_prev, self.b_prev)) % 4
@@ -247,46 +304,31 @@ class QuadratureDecoderModel:
         illegal = int(not hold and delta == 2)
 
         count, em, thm, rm, aligned = self.count, self.em, self.thm, self.rm, self.aligned
-        cpr = self.cpr
-        if counting and fwd:
-            count = 0 if self.count == cpr - 1 else (self.count + 1) & cpr_mask
-            e_up = self.em + self.pp_q
-            em = (e_up - cpr if e_up >= cpr else e_up) & cpr_mask
-            r_up = self.rm + self.rp
-            carry = int(r_up >= cpr)
-            rm = (r_up - cpr if carry else r_up) & cpr_mask
-            thm = (self.thm + self.qp + carry) % _TURN
-        elif counting and bwd:
-            count = (cpr - 1 if self.count == 0 else self.count - 1) & cpr_mask
-            e_dn = self.em - self.pp_q
-            em = (e_dn + cpr if e_dn < 0 else e_dn) & cpr_mask
-            r_dn = self.rm - self.rp
-            borrow = int(r_dn < 0)
-            rm = (r_dn + cpr if borrow else r_dn) & cpr_mask
-            thm = (self.thm - self.qp - borrow) % _TURN
+        if counting and (fwd or bwd):
+            if fwd:
+                count = 0 if self.count == self.cpr_m1 else (self.count + 1) & m18
+            else:
+                count = self.cpr_m1 if self.count == 0 else (self.count - 1) & m18
+            em, _ = self._step(fwd, self.em, self.pp_c, self.n_pp, m18)
+            rm, cin = self._step(fwd, self.rm, self.rp, self.n_rp, m18)
+            qp = self.qp if fwd else self.qp ^ ((1 << aw) - 1)
+            thm = (self.thm + qp + cin) % _TURN
         if self.valid and index and (not self.aligned or realign):
             aligned, count, em, thm, rm = 1, 0, 0, 0, 0
         elif realign:
             aligned = 0
-        cpr_p = 4 * self.lines_p
-        if take_p:
-            self.qp, self.rp = divide_angle(self.pp_p, cpr_p)
-        if commit:
-            new_valid = (self.lines_p != 0 and self.pp_p != 0 and self.pp_p < cpr_p
-                         and self.z_p < cpr_p)
-            if (self.lines_p != self.lines_q or self.pp_p != self.pp_q or not new_valid):
-                aligned, count, em, thm, rm = 0, 0, 0, 0, 0
-            self.lines_q, self.pp_q, self.z_q, self.cpr = (self.lines_p, self.pp_p, self.z_p,
-                                                           cpr_p & cpr_mask)
-            self.qz, self.rz = divide_angle(self.z_p, cpr_p)
-            self.valid = bool(new_valid)
+        if restart:
+            aligned, count, em, thm, rm = 0, 0, 0, 0, 0
 
+        for k, v in new.items():
+            setattr(self, k, v)
+        self.timer, self.wr, self.wq, self.dividing = timer, wr, wq, dividing
+        self.lp_run, self.lp_again, self.z_again = lp_run, lp_again, z_again
         self.count, self.em, self.thm, self.rm, self.aligned = count, em, thm, rm, aligned
         self.step, self.a_rise, self.illegal, self.index = step, a_rise, illegal, int(index)
         if step:
             self.up = int(fwd)
         self.a_prev, self.b_prev, self.zc_prev = a, b, zc
-        self.phase = next_phase
 
 
 class EncoderFrontEndModel:
@@ -294,11 +336,13 @@ class EncoderFrontEndModel:
 
     SYNC_STAGES = 2
 
-    def __init__(self, *, max_length=255, z_gate=None):
+    def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
+                 z_offset_init=0):
         self.max_length = max_length
         self.sync = [0] * self.SYNC_STAGES
         self.filter = GlitchFilterModel(6)
-        self.decoder = QuadratureDecoderModel(z_gate=z_gate)
+        self.decoder = QuadratureDecoderModel(z_gate=z_gate, lines=lines_init,
+                                              pole_pairs=pole_pairs_init, z_offset=z_offset_init)
         self.hall = HallSensorModel()
         self.plausibility = HallPlausibilityModel()
         self.settle = 0
@@ -306,8 +350,10 @@ class EncoderFrontEndModel:
         self.theta_q = self.aligned_q = 0
 
     def tick(self, pins, *, length=0, lines=5000, pole_pairs=4, z_offset=0, hall_offset=0,
-             realign=0, hall_tolerance=8192, hall_misses=1):
-        """One clock. ``pins`` packs A, B, Z, H_a, H_b, H_c in bits 0 … 5."""
+             realign=0, hall_tolerance=8192, hall_misses=1, lp_changed=None, z_changed=None):
+        """One clock. ``pins`` packs A, B, Z, H_a, H_b, H_c in bits 0 … 5; ``lp_changed`` /
+        ``z_changed`` default to the changes of the inputs (:meth:`QuadratureDecoderModel.tick`).
+        """
         hold = not self.ready
         d, h = self.decoder, self.hall
         self.plausibility.tick(theta=d.theta, aligned=d.aligned,
@@ -317,7 +363,8 @@ class EncoderFrontEndModel:
         self.theta_q, self.aligned_q = d.theta, d.aligned     # registered (theta_latency)
         flt = self.filter.o
         self.decoder.tick(flt & 1, (flt >> 1) & 1, (flt >> 2) & 1, hold=hold, lines=lines,
-                          pole_pairs=pole_pairs, z_offset=z_offset, realign=realign)
+                          pole_pairs=pole_pairs, z_offset=z_offset, realign=realign,
+                          lp_changed=lp_changed, z_changed=z_changed)
         self.hall.tick(flt >> 3, hall_offset, hold=hold)
         self.filter.tick(self.sync[-1], length)
         self.sync = [pins] + self.sync[:-1]
@@ -335,6 +382,17 @@ class EncoderFrontEndModel:
 
     def outputs(self):
         return dict(zip(OUTPUTS, self.values()))
+
+
+def change_strobes(lines, pole_pairs, z_offset, *, init=(5000, 4, 0)):
+    """The decoder's ``lp_changed`` and ``z_changed`` for per-clock configuration arrays (a
+    register file's ``changed`` strobes): high in each clock whose value differs from the
+    previous clock's (clock 0: from ``init``, the gateware's reset values)."""
+    cols = [np.asarray(v, dtype=np.int64) for v in (lines, pole_pairs, z_offset)]
+    n = max(c.size for c in cols)
+    cols = [np.broadcast_to(c, (n,)) if c.ndim == 0 else c for c in cols]
+    ch = [np.diff(c, prepend=i) != 0 for c, i in zip(cols, init)]
+    return (ch[0] | ch[1]).astype(np.int64), ch[2].astype(np.int64)
 
 
 _CONFIG = ("length", "lines", "pole_pairs", "z_offset", "hall_offset", "realign",

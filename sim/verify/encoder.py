@@ -198,6 +198,8 @@ class _RandomBench(wiring.Component):
             dut.pole_pairs.eq(word.pole_pairs), dut.z_offset.eq(word.z_offset),
             dut.hall_offset.eq(word.hall_offset), dut.realign.eq(word.realign & (t < n)),
             dut.hall_tolerance.eq(word.hall_tolerance), dut.hall_misses.eq(word.hall_misses),
+            dut.lp_changed.eq(word.lp_changed & (t < n)),
+            dut.z_changed.eq(word.z_changed & (t < n)),
         ]
         got = Cat(*(getattr(dut, name) for name, _ in self._exp_layout))
         with m.If(t <= n):
@@ -234,7 +236,12 @@ def _compare(vec, *, max_length=255, z_gate=None, name="encoder_random", progres
         "pole_pairs": dut.pole_pairs.shape(), "z_offset": dut.z_offset.shape(),
         "hall_offset": dut.hall_offset.shape(), "realign": 1,
         "hall_tolerance": dut.hall_tolerance.shape(), "hall_misses": dut.hall_misses.shape(),
+        "lp_changed": 1, "z_changed": 1,
     })
+    # The configuration's change strobes (the register file's), as the model derives them.
+    vec = dict(vec)
+    vec["lp_changed"], vec["z_changed"] = model.change_strobes(vec["lines"], vec["pole_pairs"],
+                                                               vec["z_offset"])
     exp_layout = data.StructLayout({k: getattr(dut, k).shape() for k in model.OUTPUTS})
     bench = _RandomBench(dut, pack_words(stim_layout, vec, n), stim_layout,
                          pack_words(exp_layout, exp, n + 1), exp_layout)
@@ -332,6 +339,14 @@ class _DriftBench(wiring.Component):
         cpr = self._cpr
         m.d.comb += [dut.lines.eq(lines), dut.pole_pairs.eq(pole_pairs),
                      dut.z_offset.eq(z_offset)]
+        # The change strobes in the first clock (the configuration differs from the reset's).
+        first = Signal(init=1)
+        m.d.sync += first.eq(0)
+        m.d.comb += [
+            dut.lp_changed.eq(first & int((lines, pole_pairs) != (dut.lines.init,
+                                                                   dut.pole_pairs.init))),
+            dut.z_changed.eq(first & int(z_offset != dut.z_offset.init)),
+        ]
 
         INIT, FWD, BWD, WALK, DONE = range(5)
         n = Signal(range(max(self._counts, self.INIT_CLOCKS) + 1))
