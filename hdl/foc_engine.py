@@ -35,7 +35,8 @@ from .rotator import RotatorParams
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
-           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet"]
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_profile_program",
+           "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -73,6 +74,19 @@ CONDS = ("RUN", "OL", "FF")
 OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q": 16,
         "u_d": 16, "u_q": 16, "u_alpha": 16, "u_beta": 16, "sat_d": 1, "sat_q": 1, "om": 1,
         "da": 16, "db": 16, "dc": 16, "lim": 1}
+
+#: The speed-loop program's special operands (:func:`speed_profile_program`; docs/ENGINE.md
+#: "Speed loop as a program"): the speed sample ``spd`` latched when the run is accepted,
+#: ``speed_ref``, the profile's reference ``ref_int`` (the output register, which the gateware
+#: forces to the tracked value while ``clear``), the slew as ``slh = S >> 1`` and ``sll = S & 1``
+#: (S is UQ1.31: no signed 32-bit operand holds it), ``iq_ff``, the i_q limits and the
+#: fraction of ``ref_delay``.
+SPEED_SPECIALS = ("spd", "sref", "rint", "slh", "sll", "iqff", "ilo", "ihi", "dfr")
+#: Its conditions: first run after ``clear`` (``FRESH``), ``int_hold``, the bits of
+#: ``ref_delay``'s integer part and that part being 0.
+SPEED_CONDS = ("FRESH", "IH", "DB1", "DB2", "DZ")
+#: Its output registers (``ang`` only because every engine has one).
+SPEED_OUTS = {"ang": 16, "ref_int": 32}
 
 
 def _trig(asm, rot, pending=None, filler=None):
@@ -781,3 +795,133 @@ class EngineCurrentLoop(wiring.Component):
                 data_q = Signal(signed(ENGINE_WIDTH), reset_less=True)
                 m.d.comb += [rd.addr.eq(port.addr), port.data.eq(data_q)]
                 m.d.sync += data_q.eq(rd.data)
+
+
+# --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
+
+
+def speed_profile_program(*, schedule=True):
+    """Assemble the first part of a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
+    the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
+    reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
+    ``ref_delay`` interpolation, the integrator hold and the PI's error ``E``; it leaves
+    ``r.plan``, ``r.ff``, ``r.hold`` (0 / 1), ``r.ref``, ``r.fb`` and ``r.e`` in the register
+    file and advances the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three
+    runs before the last). The PI (the 40 … 52-bit values) is not written yet (docs/ENGINE.md).
+
+    Every value stays within the 32-bit ``WORD``: a difference of two 32-bit values (33 bits)
+    is only compared (the ALU's flags are those of its 33-bit sum) or halved; ``D > S`` for
+    ``D = speed_ref − R`` and the UQ1.31 slew ``S`` is decided on ``floor(D/2) − (S >> 1)``
+    (sign, zero) and the low bits ``D − 2·floor(D/2)``, ``S & 1``; ``R ± S`` is formed only on
+    the path where it lies between ``R`` and ``speed_ref``.
+
+    Returns
+    -------
+    Program
+    """
+    A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
+    top = (1 << 23) - 1                             # signed(24): the PI's width
+
+    def to_pi(dst, src):
+        """dst = saturate(round_shift(src, 8), signed(24)) (≥ −2**23 for any 32-bit src)."""
+        A.alu(Op.ADD, dst + "_r", src, 0, sh=8, rnd=True)
+        A.alu(Op.MIN, dst, top, dst + "_r")
+
+    def exceeds(name, x, y):
+        """r.name = 1 if x − y > S else 0 (x, y 32-bit registers; D = x − y has 33 bits)."""
+        r = lambda s: f"r.{name}_{s}"                                     # noqa: E731
+        A.alu(Op.SUB, r("f"), x, y, sh=1)                   # Df = floor(D/2)
+        A.alu(Op.SUB, r("a"), x, r("f"))                    # ceil((x + y)/2)
+        A.alu(Op.ADD, r("b"), y, r("f"))                    # floor((x + y)/2)
+        A.alu(Op.SUB, r("l"), r("a"), r("b"))               # D − 2·Df ∈ {0, 1}
+        A.alu(Op.SUB, r("v"), r("l"), "r.sl")               # V = (D − 2·Df) − (S & 1)
+        # D − S = 2·T + V, T = Df − (S >> 1): > 0 iff T > 0, or T = 0 and V > 0.
+        A.alu(Op.SUB, None, r("f"), "r.sh", setf=True)
+        A.alu(Op.SEL, r("k"), 1, r("v"), cond="Z")
+        A.alu(Op.SEL, r("k"), r("k"), -1, cond="N")
+        A.alu(Op.ADD, None, r("k"), 0, setf=True)
+        A.alu(Op.SEL, f"r.{name}", 1, 0, cond="LE")
+
+    # R[n−1], to_pi(R[n−1]); after clear the history starts at it.
+    A.alu(Op.ADD, "r.R", "s.rint", 0)
+    to_pi("r.tp", "s.rint")
+    for h in ("h0", "h1", "h2"):
+        A.alu(Op.SEL, f"r.{h}", f"r.{h}", "r.tp", cond="FRESH")
+    A.alu(Op.ADD, "r.sref", "s.sref", 0)
+    A.alu(Op.ADD, "r.sh", "s.slh", 0)
+    A.alu(Op.ADD, "r.sl", "s.sll", 0)
+    A.alu(Op.ADD, None, "r.sh", "r.sl", setf=True)                    # Z: S = 0 (no profile)
+    A.alu(Op.SEL, "r.snz", 1, 0, cond="Z")
+    # up: speed_ref − R > S; dn: R − speed_ref > S (S ≠ 0).
+    exceeds("up", "r.sref", "r.R")
+    exceeds("dn", "r.R", "r.sref")
+    A.alu(Op.MIN, "r.up", "r.up", "r.snz")
+    A.alu(Op.MIN, "r.dn", "r.dn", "r.snz")
+    # ff = clamp(±iq_ff, lim_lo, lim_hi) while the profile moves, else 0.
+    A.alu(Op.ADD, "r.f", "s.iqff", 0)
+    A.alu(Op.SUB, "r.nf", 0, "r.f")
+    A.alu(Op.ADD, None, "r.up", 0, setf=True)
+    A.alu(Op.SEL, "r.fv", "r.f", "r.nf", cond="Z")                     # up ? F : −F
+    A.alu(Op.MIN, "r.ft", "s.ihi", "r.fv", setf=True)                 # N: fv > hi
+    A.alu(Op.MAX, "r.fc", "s.ilo", "r.ft", cond="N")                  # clamp(fv, lo, hi)
+    A.alu(Op.MAX, "r.updn", "r.up", "r.dn")
+    A.alu(Op.ADD, None, "r.updn", 0, setf=True)
+    A.alu(Op.SEL, "r.ff", "r.fc", 0, cond="Z")
+    # plan = R + S (up), R − S (dn), else speed_ref: R ± S lies between R and speed_ref there.
+    A.alu(Op.ADD, None, "r.up", 0, setf=True)
+    A.br("!Z", "up")
+    A.nop()
+    A.nop()
+    A.alu(Op.ADD, None, "r.dn", 0, setf=True)
+    A.br("!Z", "dn")
+    A.nop()
+    A.nop()
+    A.alu(Op.ADD, "r.plan", "r.sref", 0)
+    A.br("!F", "plan")
+    A.nop()
+    A.nop()
+    A.label("up")
+    A.alu(Op.ADD, "r.p1", "r.R", "r.sh")
+    A.alu(Op.ADD, "r.p2", "r.p1", "r.sh")
+    A.alu(Op.ADD, "r.plan", "r.p2", "r.sl")
+    A.br("!F", "plan")
+    A.nop()
+    A.nop()
+    A.label("dn")
+    A.alu(Op.SUB, "r.p1", "r.R", "r.sh")
+    A.alu(Op.SUB, "r.p2", "r.p1", "r.sh")
+    A.alu(Op.SUB, "r.plan", "r.p2", "r.sl")
+    A.label("plan")
+    A.alu(Op.ADD, None, "r.plan", 0, out="ref_int")
+    # The PI's reference: to_pi(plan) (d = 0), else a + round_shift(f·(b − a), 3) with
+    # a = tap d − 1, b = tap d of (to_pi(R[n−1]), h0, h1, h2).
+    to_pi("r.tpl", "r.plan")
+    A.alu(Op.SEL, "r.ta1", "r.tp", "r.h1", cond="DB2")
+    A.alu(Op.SEL, "r.ta", "r.ta1", "r.h0", cond="!DB1")
+    A.alu(Op.SEL, "r.tb1", "r.h0", "r.h2", cond="DB2")
+    A.alu(Op.SEL, "r.tb", "r.tb1", "r.h1", cond="!DB1")
+    A.alu(Op.SUB, "r.cb", "r.tb", "r.ta")
+    A.mul("s.dfr", "r.cb")
+    A.post("r.fd", 3)
+    A.alu(Op.ADD, "r.refi", "r.ta", "r.fd")
+    A.alu(Op.SEL, "r.ref", "r.refi", "r.tpl", cond="DZ")
+    # hold = int_hold and S ≠ 0 and (R[n−1] ≠ speed_ref or (d ≥ 1 and ref ≠ to_pi(R[n−1]))).
+    A.alu(Op.SUB, None, "r.R", "r.sref", setf=True)
+    A.alu(Op.SEL, "r.m1", 1, 0, cond="Z")
+    A.alu(Op.SUB, None, "r.ref", "r.tp", setf=True)
+    A.alu(Op.SEL, "r.m2", 1, 0, cond="Z")
+    A.alu(Op.SEL, "r.m3", "r.m2", 0, cond="DZ")
+    A.alu(Op.MAX, "r.mv", "r.m1", "r.m3")
+    A.alu(Op.MIN, "r.mv2", "r.mv", "r.snz")
+    A.alu(Op.SEL, "r.hold", 0, "r.mv2", cond="IH")
+    # fb = to_pi(speed); E = saturate(ref − fb, signed(24)).
+    to_pi("r.fb", "s.spd")
+    A.alu(Op.SUB, "r.e0", "r.ref", "r.fb")
+    A.alu(Op.MIN, "r.e1", top, "r.e0")
+    A.alu(Op.MAX, "r.e", -(1 << 23), "r.e1")
+    # The history moves on: h2 ← h1 ← h0 ← to_pi(R[n−1]).
+    A.alu(Op.ADD, "r.h2", "r.h1", 0)
+    A.alu(Op.ADD, "r.h1", "r.h0", 0)
+    A.alu(Op.ADD, "r.h0", "r.tp", 0)
+    A.end()
+    return A.assemble(schedule=schedule)

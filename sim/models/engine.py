@@ -19,8 +19,8 @@ from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W,
                            P_WORD, WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
-__all__ = ["EngineModel", "EngineLoopModel", "engine_fields", "lead_angle",
-           "loop_model_inputs"]
+__all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedProfileModel", "engine_fields",
+           "lead_angle", "loop_model_inputs"]
 
 ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 
@@ -331,3 +331,50 @@ class EngineLoopModel:
             for name, val in res.items():
                 out[name][k] = val
         return out
+
+
+class EngineSpeedProfileModel:
+    """The first part of a speed-loop run (:func:`foc_servo.hdl.foc_engine.speed_profile_program`)
+    on :class:`EngineModel`, one :meth:`run` per accepted run, with the state the gateware keeps
+    outside the program: the ``ref_int`` output register (forced to the tracked value by
+    :meth:`clear`) and the ``FRESH`` condition (set by :meth:`clear`, cleared by a run).
+
+    Attributes
+    ----------
+    engine : EngineModel
+    ref_int : int
+        The profile's reference ``R`` (signed 32 bits), as ``SpeedLoopModel.ref_int`` after a
+        run or a ``clear``.
+    """
+
+    #: Register-file values :meth:`run` returns.
+    RESULTS = ("plan", "ff", "hold", "ref", "fb", "e")
+
+    def __init__(self, *, program=None):
+        from ...hdl.foc_engine import SPEED_OUTS, speed_profile_program
+        self.program = program if program is not None else speed_profile_program()
+        self.engine = EngineModel(self.program, out_widths=SPEED_OUTS)
+        self.fresh = False
+        self.ref_int = 0
+
+    def clear(self, track):
+        """A clock of ``clear``: ``R`` tracks ``track`` (the speed if the slew is not 0, else
+        ``speed_ref``); the next run starts the history and the PI afresh."""
+        self.fresh = True
+        self.ref_int = int(track)
+
+    def run(self, *, speed, speed_ref, speed_slew, iq_ff, lim_lo, lim_hi, ref_delay, int_hold):
+        """One accepted run (raw integers as :meth:`SpeedLoopModel.clock` takes them) → dict
+        of :data:`RESULTS`."""
+        from ...hdl.servo import DELAY_FRAC
+        d = int(ref_delay) >> DELAY_FRAC
+        spec = {"spd": speed, "sref": speed_ref, "rint": self.ref_int, "slh": speed_slew >> 1,
+                "sll": speed_slew & 1, "iqff": iq_ff, "ilo": lim_lo, "ihi": lim_hi,
+                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1)}
+        conds = {"FRESH": self.fresh, "IH": bool(int_hold), "DB1": bool(d & 1),
+                 "DB2": bool(d & 2), "DZ": d == 0}
+        self.engine.run({k: int(v) for k, v in spec.items()}, conds)
+        self.fresh = False
+        self.ref_int = _signed(self.engine.outs["ref_int"], 32)
+        regs = self.program.regs
+        return {k: self.engine.rf[regs[k]] for k in self.RESULTS}
