@@ -35,7 +35,7 @@ from .rotator import RotatorParams
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
-           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_profile_program",
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
@@ -80,13 +80,16 @@ OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q":
 #: ``speed_ref``, the profile's reference ``ref_int`` (the output register, which the gateware
 #: forces to the tracked value while ``clear``), the slew as ``slh = S >> 1`` and ``sll = S & 1``
 #: (S is UQ1.31: no signed 32-bit operand holds it), ``iq_ff``, the i_q limits and the
-#: fraction of ``ref_delay``.
-SPEED_SPECIALS = ("spd", "sref", "rint", "slh", "sll", "iqff", "ilo", "ihi", "dfr")
+#: fraction of ``ref_delay``; the gains in pieces that fit the multiplier's A operand
+#: (wiring only): ``kph = kp >> 16``, ``kpl = kp & 0xFFFF``, ``kxa = (kx >> 16)·2**10``,
+#: ``kxb = (kx >> 4) & 0xFFF``, ``kxc = kx & 0xF``.
+SPEED_SPECIALS = ("spd", "sref", "rint", "slh", "sll", "iqff", "ilo", "ihi", "dfr", "kph",
+                  "kpl", "kxa", "kxb", "kxc")
 #: Its conditions: first run after ``clear`` (``FRESH``), ``int_hold``, the bits of
 #: ``ref_delay``'s integer part and that part being 0.
 SPEED_CONDS = ("FRESH", "IH", "DB1", "DB2", "DZ")
 #: Its output registers (``ang`` only because every engine has one).
-SPEED_OUTS = {"ang": 16, "ref_int": 32}
+SPEED_OUTS = {"ang": 16, "ref_int": 32, "iq": 16, "sat": 1}
 
 
 def _trig(asm, rot, pending=None, filler=None):
@@ -800,14 +803,16 @@ class EngineCurrentLoop(wiring.Component):
 # --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
 
 
-def speed_profile_program(*, schedule=True):
-    """Assemble the first part of a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
+def speed_loop_program(*, schedule=True):
+    """Assemble a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
     the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
     reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
-    ``ref_delay`` interpolation, the integrator hold and the PI's error ``E``; it leaves
-    ``r.plan``, ``r.ff``, ``r.hold`` (0 / 1), ``r.ref``, ``r.fb`` and ``r.e`` in the register
-    file and advances the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three
-    runs before the last). The PI (the 40 … 52-bit values) is not written yet (docs/ENGINE.md).
+    ``ref_delay`` interpolation, the integrator hold, the PI's error ``E`` (these leave
+    ``r.plan``, ``r.ff``, ``r.hold`` (0 / 1), ``r.ref``, ``r.fb``, ``r.e`` in the register
+    file), the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three runs before
+    the last), and the speed PI with the feed-forward (:func:`_speed_pi`) → the ``iq`` and
+    ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
+    ``int_guard`` 16 (the top's).
 
     Every value stays within the 32-bit ``WORD``: a difference of two 32-bit values (33 bits)
     is only compared (the ALU's flags are those of its 33-bit sum) or halved; ``D > S`` for
@@ -923,5 +928,111 @@ def speed_profile_program(*, schedule=True):
     A.alu(Op.ADD, "r.h2", "r.h1", 0)
     A.alu(Op.ADD, "r.h1", "r.h0", 0)
     A.alu(Op.ADD, "r.h0", "r.tp", 0)
+    _speed_pi(A)
     A.end()
     return A.assemble(schedule=schedule)
+
+
+def _speed_pi(A):
+    """The speed PI (hdl/pi.py's equations, ``width`` 24, ``int_guard`` g = 16, ``kp``
+    UQ(24, 12): ``p = 16·kp·E``, ``kx`` UQ(24, 20): ``dI = round_shift(kx·(E + E[n−1]), 4)``)
+    with the limits ``sat((lim − ff)·2**8)`` and the output ``i_q = sat(round_shift(O +
+    ff·2**8, 8), signed(16))``, on the 32-bit RF and the 45-bit P.
+
+    Widths: the integrator I (40 bits) is kept as ``Ih = I >> 16`` and ``Il = I & 0xFFFF``;
+    ``dI`` (< 2**44) is formed exactly in P from three pieces of ``kx = 2**16·a + 2**4·b + c``
+    (``round_shift(kx·x, 4) = 2**12·a·x + b·x + round_shift(c·x, 4)``: ``c·x`` has the sum's
+    sign; ``2**12·a·x = (2**10·a)·(4·x)`` fits the 19 × 28 multiplier) and enters
+    ``I + dI`` saturated to about ±2**41 (exact below), ``p`` (up to 52 bits) as
+    ``2**16·q' + kpl·16E`` with ``q = kph·16E`` saturated to about ±2**25 (exact below): beyond
+    those ``I + dI`` lies outside the limits·2**16 and ``p + I`` beyond ``±2**41 − 2**39``
+    whatever I (``|I| ≤ 2**39``), so every comparison, clamp and output is that of the exact
+    values (as SpeedLoop's own saturation of P and dI, hdl/servo.py). A value is saturated in
+    P by ``y = sat17(P >> k)``, ``r = sat17(P − 2**k·y)``: exact when ``y`` is, else beyond.
+    ``I + dI`` (< 2**43) is split as ``floor / 2**16`` and the remainder: above ``hi·2**16`` iff
+    its ceiling exceeds ``hi``, below ``lo·2**16`` iff its floor is below ``lo``."""
+    top, bot = (1 << 23) - 1, -(1 << 23)
+    # First run after clear: PI cleared.
+    for reg in ("r.ih", "r.il", "r.ep"):
+        A.alu(Op.SEL, reg, reg, 0, cond="FRESH")
+    # Limits lo_s, hi_s = sat((lim − ff)·2**8, signed(24)).
+    for side in ("lo", "hi"):
+        A.alu(Op.SUB, f"r.{side}d", f"s.i{side}", "r.ff")
+        A.mul(f"r.{side}d", 256)
+        A.post(f"r.{side}s0", 0)
+        A.alu(Op.MIN, f"r.{side}s1", top, f"r.{side}s0")
+        A.alu(Op.MAX, f"r.{side}s", bot, f"r.{side}s1")
+    # x = E + E[n−1] (0 when held: kx = 0); E[n−1] ← E.
+    A.alu(Op.ADD, "r.x0", "r.e", "r.ep")
+    A.alu(Op.ADD, None, "r.hold", 0, setf=True)
+    A.alu(Op.SEL, "r.x", "r.x0", 0, cond="!Z")
+    A.alu(Op.ADD, "r.ep", "r.e", 0)
+    A.mul(4, "r.x")
+    A.post("r.x4", 0)
+    # dI = 2**12·a·x + b·x + round_shift(c·x, 4), exact in P; its sign → r.ds.
+    A.mul("s.kxc", "r.x")
+    A.post("r.rc", 4)
+    A.mul("s.kxa", "r.x4")
+    A.mac("s.kxb", "r.x")
+    A.mac(1, "r.rc")
+    A.post("r.ds", 0, sat=SAT_W1)                   # sign and zero of dI
+    A.post("r.dy", 25, rnd=False, sat=SAT_W1)       # dI saturated: 2**25·dy + 2**9·d9 + d0
+    A.mac("r.dy", -(1 << 25))
+    A.post("r.d9", 9, rnd=False, sat=SAT_W1)
+    A.mac("r.d9", -(1 << 9))
+    A.post("r.d0", 0, sat=SAT_W1)
+    # I + dI → sh16 = floor(/2**16), sl = the remainder; sc = ceiling.
+    A.mul("r.dy", 1 << 25)
+    A.mac("r.d9", 1 << 9)
+    A.mac("r.d0", 1)
+    A.mac(1 << 16, "r.ih")
+    A.mac("r.il", 1)
+    A.post("r.sh16", 16, rnd=False)
+    A.mac(-(1 << 16), "r.sh16")
+    A.post("r.sl", 0)
+    A.alu(Op.ADD, None, "r.sl", 0, setf=True)
+    A.alu(Op.SEL, "r.slnz", 1, 0, cond="Z")
+    A.alu(Op.ADD, "r.sc", "r.sh16", "r.slnz")
+    # I_c = clamp(I + dI, lo_s·2**16, hi_s·2**16) as (ich, icl): above first (clamp's order).
+    A.alu(Op.SUB, None, "r.sh16", "r.los", setf=True)              # N: below
+    A.alu(Op.SEL, "r.ich1", "r.sh16", "r.los", cond="N")
+    A.alu(Op.SEL, "r.icl1", "r.sl", 0, cond="N")
+    A.alu(Op.SUB, None, "r.his", "r.sc", setf=True)                # N: above
+    A.alu(Op.SEL, "r.ich", "r.ich1", "r.his", cond="N")
+    A.alu(Op.SEL, "r.icl", "r.icl1", 0, cond="N")
+    # p = 2**16·q' + kpl·16E, q = kph·16E saturated: 2**9·qy + qr.
+    A.mul(16, "r.e")
+    A.post("r.e16", 0)
+    A.mul("s.kph", "r.e16")
+    A.post("r.qy", 9, rnd=False, sat=SAT_W1)
+    A.mac("r.qy", -(1 << 9))
+    A.post("r.qr", 0, sat=SAT_W1)
+
+    def u_of(dst, ih, il):
+        A.mul("r.qy", 1 << 25)
+        A.mac("r.qr", 1 << 16)
+        A.mac("s.kpl", "r.e16")
+        A.mac(1 << 16, ih)
+        A.mac(il, 1)
+        A.post(dst, 16)                             # round_shift(p + I, 16)
+
+    u_of("r.uc", "r.ich", "r.icl")
+    # hold = (u_c > hi_s and dI > 0) or (u_c < lo_s and dI < 0): I kept, else I_c.
+    A.alu(Op.SUB, None, "r.his", "r.uc", setf=True)                # N: u_c > hi
+    A.alu(Op.SEL, "r.g1", 0, "r.ds", cond="N")                     # > 0: hold
+    A.alu(Op.SUB, None, "r.uc", "r.los", setf=True)                # N: u_c < lo
+    A.alu(Op.SEL, "r.g2", 0, "r.ds", cond="N")                     # < 0: hold
+    A.alu(Op.ADD, None, "r.g1", 0, setf=True)
+    A.alu(Op.SEL, "r.nh1", "r.ich", "r.ih", cond="!LE")
+    A.alu(Op.SEL, "r.nl1", "r.icl", "r.il", cond="!LE")
+    A.alu(Op.ADD, None, "r.g2", 0, setf=True)
+    A.alu(Op.SEL, "r.ih", "r.nh1", "r.ih", cond="N")
+    A.alu(Op.SEL, "r.il", "r.nl1", "r.il", cond="N")
+    u_of("r.u", "r.ih", "r.il")
+    # O = clamp(u, lo_s, hi_s); sat; i_q = sat(round_shift(O + ff·2**8, 8), signed(16)).
+    A.alu(Op.MIN, "r.ot", "r.his", "r.u", setf=True)               # N: u > hi
+    A.alu(Op.MAX, "r.o", "r.los", "r.ot", cond="N")
+    A.alu(Op.SUB, None, "r.o", "r.u", out="sat")                   # sat = O ≠ u
+    A.mul("r.ff", 256)
+    A.post("r.ff8", 0)
+    A.alu(Op.ADD, "r.iq", "r.o", "r.ff8", sh=8, rnd=True, sat=SAT_W, out="iq")

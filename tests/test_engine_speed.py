@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from foc_servo.hdl.fixed import UQ, round_shift_np, saturate_np
-from foc_servo.hdl.foc_engine import speed_profile_program
+from foc_servo.hdl.foc_engine import speed_loop_program
 from foc_servo.hdl.engine import Op
-from foc_servo.sim.models.engine import EngineSpeedProfileModel
+from foc_servo.sim.models.engine import EngineSpeedModel
 from foc_servo.sim.models.servo import SpeedLoopModel
 
 from amaranth.hdl import signed
@@ -38,10 +38,15 @@ def _stimulus(seed, n):
         if rng.random() < 0.6 and lo > hi:
             lo, hi = hi, lo
         iq_ff = pick(S16) if rng.random() < 0.3 else int(rng.integers(-(1 << 15), 1 << 15))
+        if rng.random() < 0.5:          # near the reference: the PI's linear region
+            speed = int(np.clip(sref + int(rng.integers(-(1 << 12), 1 << 12)) *
+                                int(rng.integers(1, 1 << 8)), -(1 << 31), (1 << 31) - 1))
+        gain = lambda: (pick((0, 1, (1 << 24) - 1)) if rng.random() < 0.2 else  # noqa: E731
+                        int(rng.integers(0, 1 << int(rng.integers(1, 25)))))
         runs.append(dict(speed=speed, speed_ref=sref, speed_slew=slew, iq_ff=iq_ff,
                          lim_lo=lo, lim_hi=hi, ref_delay=int(rng.integers(0, 32)),
                          int_hold=int(rng.random() < 0.5),
-                         kp=int(rng.integers(0, 1 << 24)), kx=int(rng.integers(0, 1 << 24)),
+                         kp=gain(), kx=gain(),
                          clear=int(rng.integers(1, 4)) if rng.random() < 0.06 else 0))
     return runs
 
@@ -49,7 +54,7 @@ def _stimulus(seed, n):
 def _compare(runs):
     """Run both; return the number of runs compared. Asserts equality run by run."""
     model = SpeedLoopModel(kx_format=UQ(24, 20))
-    eng = EngineSpeedProfileModel()
+    eng = EngineSpeedModel()
     to_pi = lambda v: int(saturate_np(round_shift_np(v, 8), signed(24)))  # noqa: E731
     compared = 0
     for k, inp in enumerate(runs):
@@ -66,27 +71,32 @@ def _compare(runs):
         assert model.runs == runs_before + 1
         got = eng.run(**{name: inp[name] for name in (
             "speed", "speed_ref", "speed_slew", "iq_ff", "lim_lo", "lim_hi", "ref_delay",
-            "int_hold")})
+            "int_hold", "kp", "kx")})
         want = {"plan": model.plan, "ff": model.ff, "hold": model.hold,
                 "fb": to_pi(inp["speed"]), "e": model.pi.last["e"]}
         for name, value in want.items():
             assert got[name] == value, (f"run {k}: {name} {got[name]} != {value} "
                                         f"(inputs {inp})")
+        strobes = 0
         for _ in range(model.interval - 1):
-            model.clock(valid=0, clear=0, **port)
+            strobes += model.clock(valid=0, clear=0, **port)[0]
+        assert strobes == 1
         assert eng.ref_int == model.ref_int == model.plan
+        assert (got["iq"], got["sat"]) == (model.o_payload, model.sat), (
+            f"run {k}: i_q, sat {got['iq']}, {got['sat']} != {model.o_payload}, {model.sat} "
+            f"(inputs {inp}, PI {model.pi.last})")
         compared += 1
     return compared
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_speed_profile_program_matches_speed_loop_model(seed):
+def test_speed_loop_program_matches_speed_loop_model(seed):
     """plan (ref_int), ff, hold, fb and E of every run, bit for bit, over 400 runs with
     corners (random runs; every 32-bit extreme of speed, speed_ref and the slew; clear)."""
     assert _compare(_stimulus(seed, 400)) == 400
 
 
-def test_speed_profile_program_corners():
+def test_speed_loop_program_corners():
     """Every slew corner against every (speed_ref, R) extreme pair: R set by a clear with
     slew 0 (R = speed_ref), then one run towards the other extreme."""
     runs = []
@@ -100,7 +110,7 @@ def test_speed_profile_program_corners():
     assert _compare(runs) == len(runs)
 
 
-def test_speed_profile_program_exact_compare_is_needed():
+def test_speed_loop_program_exact_compare_is_needed():
     """The test can fail: a program deciding ``D > S`` on the halves alone (V ignored) differs
     from the model on some corner."""
     import foc_servo.hdl.foc_engine as fe
@@ -114,18 +124,18 @@ def test_speed_profile_program_exact_compare_is_needed():
 
     fe.Assembler.alu = broken
     try:
-        program = speed_profile_program()
+        program = speed_loop_program()
     finally:
         fe.Assembler.alu = orig
-    eng = EngineSpeedProfileModel(program=program)
+    eng = EngineSpeedModel(program=program)
     eng.clear(0)
     got = eng.run(speed=0, speed_ref=3, speed_slew=2, iq_ff=0, lim_lo=-5, lim_hi=5,
-                  ref_delay=0, int_hold=0)
+                  ref_delay=0, int_hold=0, kp=0, kx=0)
     assert got["plan"] != 2           # the model: 3 − 0 > 2, so R[n] = 0 + 2
 
 
-def test_speed_profile_program_fits():
+def test_speed_loop_program_fits():
     """The words it needs beside the current loop's 256 (ROM 512: 8 BRAM)."""
-    p = speed_profile_program()
+    p = speed_loop_program()
     assert len(p.words) <= 256
-    assert len(speed_profile_program(schedule=False).words) >= len(p.words)
+    assert len(speed_loop_program(schedule=False).words) >= len(p.words)

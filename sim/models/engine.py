@@ -19,7 +19,7 @@ from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W,
                            P_WORD, WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
-__all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedProfileModel", "engine_fields",
+__all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedModel", "engine_fields",
            "lead_angle", "loop_model_inputs"]
 
 ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
@@ -333,11 +333,13 @@ class EngineLoopModel:
         return out
 
 
-class EngineSpeedProfileModel:
-    """The first part of a speed-loop run (:func:`foc_servo.hdl.foc_engine.speed_profile_program`)
-    on :class:`EngineModel`, one :meth:`run` per accepted run, with the state the gateware keeps
+class EngineSpeedModel:
+    """A speed-loop run (:func:`foc_servo.hdl.foc_engine.speed_loop_program`) on
+    :class:`EngineModel`, one :meth:`run` per accepted run, with the state the gateware keeps
     outside the program: the ``ref_int`` output register (forced to the tracked value by
-    :meth:`clear`) and the ``FRESH`` condition (set by :meth:`clear`, cleared by a run).
+    :meth:`clear`) and the ``FRESH`` condition (set by :meth:`clear`, cleared by a run). The
+    outputs ``iq`` and ``sat`` hold until the next run (the gateware clears them with
+    ``clear``).
 
     Attributes
     ----------
@@ -351,8 +353,8 @@ class EngineSpeedProfileModel:
     RESULTS = ("plan", "ff", "hold", "ref", "fb", "e")
 
     def __init__(self, *, program=None):
-        from ...hdl.foc_engine import SPEED_OUTS, speed_profile_program
-        self.program = program if program is not None else speed_profile_program()
+        from ...hdl.foc_engine import SPEED_OUTS, speed_loop_program
+        self.program = program if program is not None else speed_loop_program()
         self.engine = EngineModel(self.program, out_widths=SPEED_OUTS)
         self.fresh = False
         self.ref_int = 0
@@ -363,18 +365,24 @@ class EngineSpeedProfileModel:
         self.fresh = True
         self.ref_int = int(track)
 
-    def run(self, *, speed, speed_ref, speed_slew, iq_ff, lim_lo, lim_hi, ref_delay, int_hold):
+    def run(self, *, speed, speed_ref, speed_slew, iq_ff, lim_lo, lim_hi, ref_delay, int_hold,
+            kp, kx):
         """One accepted run (raw integers as :meth:`SpeedLoopModel.clock` takes them) → dict
-        of :data:`RESULTS`."""
+        of :data:`RESULTS` (register-file values) and the outputs ``iq`` (signed), ``sat``."""
         from ...hdl.servo import DELAY_FRAC
         d = int(ref_delay) >> DELAY_FRAC
         spec = {"spd": speed, "sref": speed_ref, "rint": self.ref_int, "slh": speed_slew >> 1,
                 "sll": speed_slew & 1, "iqff": iq_ff, "ilo": lim_lo, "ihi": lim_hi,
-                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1)}
+                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1), "kph": kp >> 16,
+                "kpl": kp & 0xFFFF, "kxa": (kx >> 16) << 10, "kxb": (kx >> 4) & 0xFFF,
+                "kxc": kx & 0xF}
         conds = {"FRESH": self.fresh, "IH": bool(int_hold), "DB1": bool(d & 1),
                  "DB2": bool(d & 2), "DZ": d == 0}
         self.engine.run({k: int(v) for k, v in spec.items()}, conds)
         self.fresh = False
         self.ref_int = _signed(self.engine.outs["ref_int"], 32)
         regs = self.program.regs
-        return {k: self.engine.rf[regs[k]] for k in self.RESULTS}
+        out = {k: self.engine.rf[regs[k]] for k in self.RESULTS}
+        out["iq"] = _signed(self.engine.outs["iq"], 16)
+        out["sat"] = self.engine.outs["sat"]
+        return out
