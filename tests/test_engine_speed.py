@@ -73,7 +73,8 @@ def _compare(runs):
             "speed", "speed_ref", "speed_slew", "iq_ff", "lim_lo", "lim_hi", "ref_delay",
             "int_hold", "kp", "kx")})
         want = {"plan": model.plan, "ff": model.ff, "hold": model.hold,
-                "fb": to_pi(inp["speed"]), "e": model.pi.last["e"]}
+                "fb": to_pi(inp["speed"]), "e": model.pi.last["e"],
+                "integrator": model.pi.integrator, "ep": model.pi.e_prev}
         for name, value in want.items():
             assert got[name] == value, (f"run {k}: {name} {got[name]} != {value} "
                                         f"(inputs {inp})")
@@ -107,6 +108,22 @@ def test_speed_loop_program_corners():
             for slew in SLEWS:
                 runs.append(dict(base, speed_ref=r0, speed_slew=0, clear=1))
                 runs.append(dict(base, speed_ref=sref, speed_slew=slew, clear=0))
+    assert _compare(runs) == len(runs)
+
+
+def test_speed_loop_program_integrator_clamp_corners():
+    """I + dI just above / at / just below ``hi·2**16`` and ``lo·2**16`` (the clamp decided on
+    the ceiling and the floor of ``(I + dI) / 2**16``), and the same in the second run from a
+    clamped integrator: kx = 256, E = 2**20 + k (first run after clear: E[n−1] = 0, I = 0),
+    so dI = 2**24 + 16·k against the limit 2**24 (lim_hi 1)."""
+    runs = []
+    base = dict(speed=0, speed_slew=0, iq_ff=0, ref_delay=0, int_hold=0, kp=0, kx=256)
+    for k in (-5, -1, 0, 1, 3, 4095, 4096, 4097):
+        for sign in (1, -1):
+            e = sign * ((1 << 20) + k)
+            lims = dict(lim_lo=-1, lim_hi=1)
+            runs.append(dict(base, speed_ref=e << 8, clear=1, **lims))
+            runs.append(dict(base, speed_ref=e << 8, clear=0, **lims))
     assert _compare(runs) == len(runs)
 
 

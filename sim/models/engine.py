@@ -350,7 +350,7 @@ class EngineSpeedModel:
     """
 
     #: Register-file values :meth:`run` returns.
-    RESULTS = ("plan", "ff", "hold", "ref", "fb", "e")
+    RESULTS = ("plan", "ff", "hold", "ref", "fb", "e", "ih", "il", "ep")
 
     def __init__(self, *, program=None):
         from ...hdl.foc_engine import SPEED_OUTS, speed_loop_program
@@ -385,4 +385,5 @@ class EngineSpeedModel:
         out = {k: self.engine.rf[regs[k]] for k in self.RESULTS}
         out["iq"] = _signed(self.engine.outs["iq"], 16)
         out["sat"] = self.engine.outs["sat"]
+        out["integrator"] = (out["ih"] << 16) + out["il"]
         return out
