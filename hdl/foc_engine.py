@@ -35,7 +35,7 @@ from .rotator import RotatorParams
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
-           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program", "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
@@ -74,6 +74,13 @@ CONDS = ("RUN", "OL", "FF")
 OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q": 16,
         "u_d": 16, "u_q": 16, "u_alpha": 16, "u_beta": 16, "sat_d": 1, "sat_q": 1, "om": 1,
         "da": 16, "db": 16, "dc": 16, "lim": 1}
+
+#: The current-loop program's registers that hold state from one sample to the next (the
+#: PIs' integrators and previous errors, the DC-bus gain); its other registers are
+#: temporaries, free after its END.
+CURRENT_STATE = ("i_d", "ep_d", "i_q", "ep_q", "dcg")
+#: The speed-loop program's registers that hold state from one run to the next.
+SPEED_STATE = ("h0", "h1", "h2", "ih", "il", "ep")
 
 #: The speed-loop program's special operands (:func:`speed_profile_program`; docs/ENGINE.md
 #: "Speed loop as a program"): the speed sample ``spd`` latched when the run is accepted,
@@ -213,10 +220,14 @@ def _lead_lim(A, gain_limit_raw):
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
-                         schedule=True):
+                         schedule=True, speed=False):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
-    straight-line code (:meth:`Assembler.assemble`).
+    straight-line code (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
+    (:func:`speed_loop_program`) follows at the label ``speed`` (its entry), its temporaries in
+    the current loop's registers (:data:`CURRENT_STATE` excepted), its specials, conditions
+    and outputs after the current loop's (whose words are then the same but for the constants'
+    addresses); the plan's step 2 (docs/ENGINE.md).
 
     Returns
     -------
@@ -225,7 +236,12 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     rot = rotator if rotator is not None else RotatorParams(width=width, angle_width=16,
                                                             tag_width=1)
     w = width
-    A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
+    if speed:
+        outs = tuple(OUTS) + tuple(o for o in SPEED_OUTS if o not in OUTS)
+        A = Assembler(specials=SPECIALS + SPEED_SPECIALS, bspecials=BSPECIALS,
+                      conds=CONDS + SPEED_CONDS, outs=outs)
+    else:
+        A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
     A.guard = int_guard
     A.reg("dcg", init=1 << DCBUS_GAIN_FRAC)             # the DC-bus gain, UQ2.16: 1.0 at power-up
     # Clarke constants (sim/models/clarke.py) and SVPWM constants (svpwm.py, width w + 1).
@@ -371,6 +387,11 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.br("!F", "inv")
     A.alu(Op.ADD, "r.ep_d", 0, 0)                 # delay slots: nothing at inv reads these
     A.alu(Op.ADD, "r.ep_q", 0, 0)
+    if speed:
+        pool = [r for r in A._regs if r not in CURRENT_STATE]
+        A.label("speed")
+        _speed_loop(_Renamed(A, pool))
+        A.end()
     return A.assemble(fuse=fuse, schedule=schedule)
 
 
@@ -825,6 +846,52 @@ def speed_loop_program(*, schedule=True):
     Program
     """
     A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
+    _speed_loop(A)
+    A.end()
+    return A.assemble(schedule=schedule)
+
+
+class _Renamed:
+    """The speed loop's emitter on another program's assembler: its temporaries take that
+    program's registers ``pool`` (in order, then new ones), its state registers
+    (:data:`SPEED_STATE`) and labels get the prefix ``spd_``."""
+
+    def __init__(self, asm, pool):
+        self._asm, self._pool, self._map = asm, list(pool), {}
+
+    def _r(self, x):
+        if not isinstance(x, str) or not x.startswith("r."):
+            return x
+        name = x[2:]
+        if name not in self._map:
+            self._map[name] = ("spd_" + name if name in SPEED_STATE or not self._pool
+                               else self._pool.pop(0))
+        return "r." + self._map[name]
+
+    def alu(self, op, dst, a, b="k.0", **kw):
+        return self._asm.alu(op, self._r(dst), self._r(a), self._r(b), **kw)
+
+    def mul(self, a, b, **kw):
+        return self._asm.mul(self._r(a), self._r(b), **kw)
+
+    def mac(self, a, b, **kw):
+        return self._asm.mac(self._r(a), self._r(b), **kw)
+
+    def post(self, dst, sh=0, **kw):
+        return self._asm.post(self._r(dst), sh, **kw)
+
+    def br(self, cond, label):
+        return self._asm.br(cond, "spd_" + label)
+
+    def label(self, name):
+        return self._asm.label("spd_" + name)
+
+    def nop(self):
+        return self._asm.nop()
+
+
+def _speed_loop(A):
+    """Emit a speed-loop run (:func:`speed_loop_program`) without its END."""
     top = (1 << 23) - 1                             # signed(24): the PI's width
 
     def to_pi(dst, src):
@@ -929,8 +996,6 @@ def speed_loop_program(*, schedule=True):
     A.alu(Op.ADD, "r.h1", "r.h0", 0)
     A.alu(Op.ADD, "r.h0", "r.tp", 0)
     _speed_pi(A)
-    A.end()
-    return A.assemble(schedule=schedule)
 
 
 def _speed_pi(A):
