@@ -835,11 +835,11 @@ def speed_loop_program(*, schedule=True):
     ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
     ``int_guard`` 16 (the top's).
 
-    Every value stays within the 32-bit ``WORD``: a difference of two 32-bit values (33 bits)
-    is only compared (the ALU's flags are those of its 33-bit sum) or halved; ``D > S`` for
-    ``D = speed_ref − R`` and the UQ1.31 slew ``S`` is decided on ``floor(D/2) − (S >> 1)``
-    (sign, zero) and the low bits ``D − 2·floor(D/2)``, ``S & 1``; ``R ± S`` is formed only on
-    the path where it lies between ``R`` and ``speed_ref``.
+    In the profile every value stays within the 32-bit ``WORD``: a difference of two 32-bit
+    values (33 bits) is only compared (the ALU's flags are those of its 33-bit sum) or halved;
+    ``D > S`` for ``D = speed_ref − R`` and the UQ1.31 slew ``S`` is decided on
+    ``floor(D/2) − (S >> 1)`` (sign, zero) and the low bits ``D − 2·floor(D/2)``, ``S & 1``;
+    ``R ± S`` is formed only on the path where it lies between ``R`` and ``speed_ref``.
 
     Returns
     -------
