@@ -35,7 +35,8 @@ from .rotator import RotatorParams
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
-           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program", "CURRENT_STATE", "SPEED_STATE",
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
+           "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
