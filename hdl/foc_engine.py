@@ -35,7 +35,9 @@ from .rotator import RotatorParams
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
-           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet"]
+           "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
+           "CURRENT_STATE", "SPEED_STATE",
+           "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -73,6 +75,29 @@ CONDS = ("RUN", "OL", "FF")
 OUTS = {"ang": 16, "pa": 16, "pb": 16, "pc": 16, "i_beta": 16, "i_d": 16, "i_q": 16,
         "u_d": 16, "u_q": 16, "u_alpha": 16, "u_beta": 16, "sat_d": 1, "sat_q": 1, "om": 1,
         "da": 16, "db": 16, "dc": 16, "lim": 1}
+
+#: The current-loop program's registers that hold state from one sample to the next (the
+#: PIs' integrators and previous errors, the DC-bus gain); its other registers are
+#: temporaries, free after its END.
+CURRENT_STATE = ("i_d", "ep_d", "i_q", "ep_q", "dcg")
+#: The speed-loop program's registers that hold state from one run to the next.
+SPEED_STATE = ("h0", "h1", "h2", "ih", "il", "ep")
+
+#: The speed-loop program's special operands (:func:`speed_profile_program`; docs/ENGINE.md
+#: "Speed loop as a program"): the speed sample ``spd`` latched when the run is accepted,
+#: ``speed_ref``, the profile's reference ``ref_int`` (the output register, which the gateware
+#: forces to the tracked value while ``clear``), the slew as ``slh = S >> 1`` and ``sll = S & 1``
+#: (S is UQ1.31: no signed 32-bit operand holds it), ``iq_ff``, the i_q limits and the
+#: fraction of ``ref_delay``; the gains in pieces that fit the multiplier's A operand
+#: (wiring only): ``kph = kp >> 16``, ``kpl = kp & 0xFFFF``, ``kxa = (kx >> 16)·2**10``,
+#: ``kxb = (kx >> 4) & 0xFFF``, ``kxc = kx & 0xF``.
+SPEED_SPECIALS = ("spd", "sref", "rint", "slh", "sll", "iqff", "ilo", "ihi", "dfr", "kph",
+                  "kpl", "kxa", "kxb", "kxc")
+#: Its conditions: first run after ``clear`` (``FRESH``), ``int_hold``, the bits of
+#: ``ref_delay``'s integer part and that part being 0.
+SPEED_CONDS = ("FRESH", "IH", "DB1", "DB2", "DZ")
+#: Its output registers (``ang`` only because every engine has one).
+SPEED_OUTS = {"ang": 16, "ref_int": 32, "iq": 16, "sat": 1}
 
 
 def _trig(asm, rot, pending=None, filler=None):
@@ -196,10 +221,14 @@ def _lead_lim(A, gain_limit_raw):
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
-                         schedule=True):
+                         schedule=True, speed=False):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
-    straight-line code (:meth:`Assembler.assemble`).
+    straight-line code (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
+    (:func:`speed_loop_program`) follows at the label ``speed`` (its entry), its temporaries in
+    the current loop's registers (:data:`CURRENT_STATE` excepted), its specials, conditions
+    and outputs after the current loop's (whose words are then the same but for the constants'
+    addresses); the plan's step 2 (docs/ENGINE.md).
 
     Returns
     -------
@@ -208,7 +237,12 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     rot = rotator if rotator is not None else RotatorParams(width=width, angle_width=16,
                                                             tag_width=1)
     w = width
-    A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
+    if speed:
+        outs = tuple(OUTS) + tuple(o for o in SPEED_OUTS if o not in OUTS)
+        A = Assembler(specials=SPECIALS + SPEED_SPECIALS, bspecials=BSPECIALS,
+                      conds=CONDS + SPEED_CONDS, outs=outs)
+    else:
+        A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
     A.guard = int_guard
     A.reg("dcg", init=1 << DCBUS_GAIN_FRAC)             # the DC-bus gain, UQ2.16: 1.0 at power-up
     # Clarke constants (sim/models/clarke.py) and SVPWM constants (svpwm.py, width w + 1).
@@ -354,6 +388,11 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.br("!F", "inv")
     A.alu(Op.ADD, "r.ep_d", 0, 0)                 # delay slots: nothing at inv reads these
     A.alu(Op.ADD, "r.ep_q", 0, 0)
+    if speed:
+        pool = [r for r in A._regs if r not in CURRENT_STATE]
+        A.label("speed")
+        _speed_loop(_Renamed(A, pool))
+        A.end()
     return A.assemble(fuse=fuse, schedule=schedule)
 
 
@@ -781,3 +820,285 @@ class EngineCurrentLoop(wiring.Component):
                 data_q = Signal(signed(ENGINE_WIDTH), reset_less=True)
                 m.d.comb += [rd.addr.eq(port.addr), port.data.eq(data_q)]
                 m.d.sync += data_q.eq(rd.data)
+
+
+# --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
+
+
+def speed_loop_program(*, schedule=True):
+    """Assemble a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
+    the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
+    reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
+    ``ref_delay`` interpolation, the integrator hold, the PI's error ``E`` (these leave
+    ``r.plan``, ``r.ff``, ``r.hold`` (0 / 1), ``r.ref``, ``r.fb``, ``r.e`` in the register
+    file), the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three runs before
+    the last), and the speed PI with the feed-forward (:func:`_speed_pi`) → the ``iq`` and
+    ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
+    ``int_guard`` 16 (the top's).
+
+    In the profile every value stays within the 32-bit ``WORD``: a difference of two 32-bit
+    values (33 bits) is only compared (the ALU's flags are those of its 33-bit sum) or halved;
+    ``D > S`` for ``D = speed_ref − R`` and the UQ1.31 slew ``S`` is decided on
+    ``floor(D/2) − (S >> 1)`` (sign, zero) and the low bits ``D − 2·floor(D/2)``, ``S & 1``;
+    ``R ± S`` is formed only on the path where it lies between ``R`` and ``speed_ref``.
+
+    Returns
+    -------
+    Program
+    """
+    A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
+    _speed_loop(A)
+    A.end()
+    return A.assemble(schedule=schedule)
+
+
+class _Renamed:
+    """The speed loop's emitter on another program's assembler: its temporaries take that
+    program's registers ``pool`` (in order, then new ones), its state registers
+    (:data:`SPEED_STATE`) and labels get the prefix ``spd_``."""
+
+    def __init__(self, asm, pool):
+        self._asm, self._pool, self._map = asm, list(pool), {}
+
+    def _r(self, x):
+        if not isinstance(x, str) or not x.startswith("r."):
+            return x
+        name = x[2:]
+        if name not in self._map:
+            self._map[name] = ("spd_" + name if name in SPEED_STATE or not self._pool
+                               else self._pool.pop(0))
+        return "r." + self._map[name]
+
+    def alu(self, op, dst, a, b="k.0", **kw):
+        return self._asm.alu(op, self._r(dst), self._r(a), self._r(b), **kw)
+
+    def mul(self, a, b, **kw):
+        return self._asm.mul(self._r(a), self._r(b), **kw)
+
+    def mac(self, a, b, **kw):
+        return self._asm.mac(self._r(a), self._r(b), **kw)
+
+    def post(self, dst, sh=0, **kw):
+        return self._asm.post(self._r(dst), sh, **kw)
+
+    def br(self, cond, label):
+        return self._asm.br(cond, "spd_" + label)
+
+    def label(self, name):
+        return self._asm.label("spd_" + name)
+
+    def nop(self):
+        return self._asm.nop()
+
+
+def _speed_loop(A):
+    """Emit a speed-loop run (:func:`speed_loop_program`) without its END."""
+    top = (1 << 23) - 1                             # signed(24): the PI's width
+
+    def to_pi(dst, src):
+        """dst = saturate(round_shift(src, 8), signed(24)) (≥ −2**23 for any 32-bit src)."""
+        A.alu(Op.ADD, dst + "_r", src, 0, sh=8, rnd=True)
+        A.alu(Op.MIN, dst, top, dst + "_r")
+
+    def exceeds(name, x, y):
+        """r.name = 1 if x − y > S else 0 (x, y 32-bit registers; D = x − y has 33 bits)."""
+        r = lambda s: f"r.{name}_{s}"                                     # noqa: E731
+        A.alu(Op.SUB, r("f"), x, y, sh=1)                   # Df = floor(D/2)
+        A.alu(Op.SUB, r("a"), x, r("f"))                    # ceil((x + y)/2)
+        A.alu(Op.ADD, r("b"), y, r("f"))                    # floor((x + y)/2)
+        A.alu(Op.SUB, r("l"), r("a"), r("b"))               # D − 2·Df ∈ {0, 1}
+        A.alu(Op.SUB, r("v"), r("l"), "r.sl")               # V = (D − 2·Df) − (S & 1)
+        # D − S = 2·T + V, T = Df − (S >> 1): > 0 iff T > 0, or T = 0 and V > 0.
+        A.alu(Op.SUB, None, r("f"), "r.sh", setf=True)
+        A.alu(Op.SEL, r("k"), 1, r("v"), cond="Z")
+        A.alu(Op.SEL, r("k"), r("k"), -1, cond="N")
+        A.alu(Op.ADD, None, r("k"), 0, setf=True)
+        A.alu(Op.SEL, f"r.{name}", 1, 0, cond="LE")
+
+    # R[n−1], to_pi(R[n−1]); after clear the history starts at it.
+    A.alu(Op.ADD, "r.R", "s.rint", 0)
+    to_pi("r.tp", "s.rint")
+    for h in ("h0", "h1", "h2"):
+        A.alu(Op.SEL, f"r.{h}", f"r.{h}", "r.tp", cond="FRESH")
+    A.alu(Op.ADD, "r.sref", "s.sref", 0)
+    A.alu(Op.ADD, "r.sh", "s.slh", 0)
+    A.alu(Op.ADD, "r.sl", "s.sll", 0)
+    A.alu(Op.ADD, None, "r.sh", "r.sl", setf=True)                    # Z: S = 0 (no profile)
+    A.alu(Op.SEL, "r.snz", 1, 0, cond="Z")
+    # up: speed_ref − R > S; dn: R − speed_ref > S (S ≠ 0).
+    exceeds("up", "r.sref", "r.R")
+    exceeds("dn", "r.R", "r.sref")
+    A.alu(Op.MIN, "r.up", "r.up", "r.snz")
+    A.alu(Op.MIN, "r.dn", "r.dn", "r.snz")
+    # ff = clamp(±iq_ff, lim_lo, lim_hi) while the profile moves, else 0.
+    A.alu(Op.ADD, "r.f", "s.iqff", 0)
+    A.alu(Op.SUB, "r.nf", 0, "r.f")
+    A.alu(Op.ADD, None, "r.up", 0, setf=True)
+    A.alu(Op.SEL, "r.fv", "r.f", "r.nf", cond="Z")                     # up ? F : −F
+    A.alu(Op.MIN, "r.ft", "s.ihi", "r.fv", setf=True)                 # N: fv > hi
+    A.alu(Op.MAX, "r.fc", "s.ilo", "r.ft", cond="N")                  # clamp(fv, lo, hi)
+    A.alu(Op.MAX, "r.updn", "r.up", "r.dn")
+    A.alu(Op.ADD, None, "r.updn", 0, setf=True)
+    A.alu(Op.SEL, "r.ff", "r.fc", 0, cond="Z")
+    # plan = R + S (up), R − S (dn), else speed_ref: R ± S lies between R and speed_ref there.
+    A.alu(Op.ADD, None, "r.up", 0, setf=True)
+    A.br("!Z", "up")
+    A.nop()
+    A.nop()
+    A.alu(Op.ADD, None, "r.dn", 0, setf=True)
+    A.br("!Z", "dn")
+    A.nop()
+    A.nop()
+    A.alu(Op.ADD, "r.plan", "r.sref", 0)
+    A.br("!F", "plan")
+    A.nop()
+    A.nop()
+    A.label("up")
+    A.alu(Op.ADD, "r.p1", "r.R", "r.sh")
+    A.alu(Op.ADD, "r.p2", "r.p1", "r.sh")
+    A.alu(Op.ADD, "r.plan", "r.p2", "r.sl")
+    A.br("!F", "plan")
+    A.nop()
+    A.nop()
+    A.label("dn")
+    A.alu(Op.SUB, "r.p1", "r.R", "r.sh")
+    A.alu(Op.SUB, "r.p2", "r.p1", "r.sh")
+    A.alu(Op.SUB, "r.plan", "r.p2", "r.sl")
+    A.label("plan")
+    A.alu(Op.ADD, None, "r.plan", 0, out="ref_int")
+    # The PI's reference: to_pi(plan) (d = 0), else a + round_shift(f·(b − a), 3) with
+    # a = tap d − 1, b = tap d of (to_pi(R[n−1]), h0, h1, h2).
+    to_pi("r.tpl", "r.plan")
+    A.alu(Op.SEL, "r.ta1", "r.tp", "r.h1", cond="DB2")
+    A.alu(Op.SEL, "r.ta", "r.ta1", "r.h0", cond="!DB1")
+    A.alu(Op.SEL, "r.tb1", "r.h0", "r.h2", cond="DB2")
+    A.alu(Op.SEL, "r.tb", "r.tb1", "r.h1", cond="!DB1")
+    A.alu(Op.SUB, "r.cb", "r.tb", "r.ta")
+    A.mul("s.dfr", "r.cb")
+    A.post("r.fd", 3)
+    A.alu(Op.ADD, "r.refi", "r.ta", "r.fd")
+    A.alu(Op.SEL, "r.ref", "r.refi", "r.tpl", cond="DZ")
+    # hold = int_hold and S ≠ 0 and (R[n−1] ≠ speed_ref or (d ≥ 1 and ref ≠ to_pi(R[n−1]))).
+    A.alu(Op.SUB, None, "r.R", "r.sref", setf=True)
+    A.alu(Op.SEL, "r.m1", 1, 0, cond="Z")
+    A.alu(Op.SUB, None, "r.ref", "r.tp", setf=True)
+    A.alu(Op.SEL, "r.m2", 1, 0, cond="Z")
+    A.alu(Op.SEL, "r.m3", "r.m2", 0, cond="DZ")
+    A.alu(Op.MAX, "r.mv", "r.m1", "r.m3")
+    A.alu(Op.MIN, "r.mv2", "r.mv", "r.snz")
+    A.alu(Op.SEL, "r.hold", 0, "r.mv2", cond="IH")
+    # fb = to_pi(speed); E = saturate(ref − fb, signed(24)).
+    to_pi("r.fb", "s.spd")
+    A.alu(Op.SUB, "r.e0", "r.ref", "r.fb")
+    A.alu(Op.MIN, "r.e1", top, "r.e0")
+    A.alu(Op.MAX, "r.e", -(1 << 23), "r.e1")
+    # The history moves on: h2 ← h1 ← h0 ← to_pi(R[n−1]).
+    A.alu(Op.ADD, "r.h2", "r.h1", 0)
+    A.alu(Op.ADD, "r.h1", "r.h0", 0)
+    A.alu(Op.ADD, "r.h0", "r.tp", 0)
+    _speed_pi(A)
+
+
+def _speed_pi(A):
+    """The speed PI (hdl/pi.py's equations, ``width`` 24, ``int_guard`` g = 16, ``kp``
+    UQ(24, 12): ``p = 16·kp·E``, ``kx`` UQ(24, 20): ``dI = round_shift(kx·(E + E[n−1]), 4)``)
+    with the limits ``sat((lim − ff)·2**8)`` and the output ``i_q = sat(round_shift(O +
+    ff·2**8, 8), signed(16))``, on the 32-bit RF and the 45-bit P.
+
+    Widths: the integrator I (40 bits) is kept as ``Ih = I >> 16`` and ``Il = I & 0xFFFF``;
+    ``dI`` (< 2**44) is formed exactly in P from three pieces of ``kx = 2**16·a + 2**4·b + c``
+    (``round_shift(kx·x, 4) = 2**12·a·x + b·x + round_shift(c·x, 4)``: ``c·x`` has the sum's
+    sign; ``2**12·a·x = (2**10·a)·(4·x)`` fits the 19 × 28 multiplier) and enters
+    ``I + dI`` saturated to about ±2**41 (exact below), ``p`` (up to 52 bits) as
+    ``2**16·q' + kpl·16E`` with ``q = kph·16E`` saturated to about ±2**25 (exact below): beyond
+    those ``I + dI`` lies outside the limits·2**16 and ``p + I`` beyond ``±2**41 − 2**39``
+    whatever I (``|I| ≤ 2**39``), so every comparison, clamp and output is that of the exact
+    values (as SpeedLoop's own saturation of P and dI, hdl/servo.py). A value is saturated in
+    P by ``y = sat17(P >> k)``, ``r = sat17(P − 2**k·y)``: exact when ``y`` is, else beyond.
+    ``I + dI`` (< 2**43) is split as ``floor / 2**16`` and the remainder: above ``hi·2**16`` iff
+    its ceiling exceeds ``hi``, below ``lo·2**16`` iff its floor is below ``lo``."""
+    top, bot = (1 << 23) - 1, -(1 << 23)
+    # First run after clear: PI cleared.
+    for reg in ("r.ih", "r.il", "r.ep"):
+        A.alu(Op.SEL, reg, reg, 0, cond="FRESH")
+    # Limits lo_s, hi_s = sat((lim − ff)·2**8, signed(24)).
+    for side in ("lo", "hi"):
+        A.alu(Op.SUB, f"r.{side}d", f"s.i{side}", "r.ff")
+        A.mul(f"r.{side}d", 256)
+        A.post(f"r.{side}s0", 0)
+        A.alu(Op.MIN, f"r.{side}s1", top, f"r.{side}s0")
+        A.alu(Op.MAX, f"r.{side}s", bot, f"r.{side}s1")
+    # x = E + E[n−1] (0 when held: kx = 0); E[n−1] ← E.
+    A.alu(Op.ADD, "r.x0", "r.e", "r.ep")
+    A.alu(Op.ADD, None, "r.hold", 0, setf=True)
+    A.alu(Op.SEL, "r.x", "r.x0", 0, cond="!Z")
+    A.alu(Op.ADD, "r.ep", "r.e", 0)
+    A.mul(4, "r.x")
+    A.post("r.x4", 0)
+    # dI = 2**12·a·x + b·x + round_shift(c·x, 4), exact in P; its sign → r.ds.
+    A.mul("s.kxc", "r.x")
+    A.post("r.rc", 4)
+    A.mul("s.kxa", "r.x4")
+    A.mac("s.kxb", "r.x")
+    A.mac(1, "r.rc")
+    A.post("r.ds", 0, sat=SAT_W1)                   # sign and zero of dI
+    A.post("r.dy", 25, rnd=False, sat=SAT_W1)       # dI saturated: 2**25·dy + 2**9·d9 + d0
+    A.mac("r.dy", -(1 << 25))
+    A.post("r.d9", 9, rnd=False, sat=SAT_W1)
+    A.mac("r.d9", -(1 << 9))
+    A.post("r.d0", 0, sat=SAT_W1)
+    # I + dI → sh16 = floor(/2**16), sl = the remainder; sc = ceiling.
+    A.mul("r.dy", 1 << 25)
+    A.mac("r.d9", 1 << 9)
+    A.mac("r.d0", 1)
+    A.mac(1 << 16, "r.ih")
+    A.mac("r.il", 1)
+    A.post("r.sh16", 16, rnd=False)
+    A.mac(-(1 << 16), "r.sh16")
+    A.post("r.sl", 0)
+    A.alu(Op.ADD, None, "r.sl", 0, setf=True)
+    A.alu(Op.SEL, "r.slnz", 1, 0, cond="Z")
+    A.alu(Op.ADD, "r.sc", "r.sh16", "r.slnz")
+    # I_c = clamp(I + dI, lo_s·2**16, hi_s·2**16) as (ich, icl): above first (clamp's order).
+    A.alu(Op.SUB, None, "r.sh16", "r.los", setf=True)              # N: below
+    A.alu(Op.SEL, "r.ich1", "r.sh16", "r.los", cond="N")
+    A.alu(Op.SEL, "r.icl1", "r.sl", 0, cond="N")
+    A.alu(Op.SUB, None, "r.his", "r.sc", setf=True)                # N: above
+    A.alu(Op.SEL, "r.ich", "r.ich1", "r.his", cond="N")
+    A.alu(Op.SEL, "r.icl", "r.icl1", 0, cond="N")
+    # p = 2**16·q' + kpl·16E, q = kph·16E saturated: 2**9·qy + qr.
+    A.mul(16, "r.e")
+    A.post("r.e16", 0)
+    A.mul("s.kph", "r.e16")
+    A.post("r.qy", 9, rnd=False, sat=SAT_W1)
+    A.mac("r.qy", -(1 << 9))
+    A.post("r.qr", 0, sat=SAT_W1)
+
+    def u_of(dst, ih, il):
+        A.mul("r.qy", 1 << 25)
+        A.mac("r.qr", 1 << 16)
+        A.mac("s.kpl", "r.e16")
+        A.mac(1 << 16, ih)
+        A.mac(il, 1)
+        A.post(dst, 16)                             # round_shift(p + I, 16)
+
+    u_of("r.uc", "r.ich", "r.icl")
+    # hold = (u_c > hi_s and dI > 0) or (u_c < lo_s and dI < 0): I kept, else I_c.
+    A.alu(Op.SUB, None, "r.his", "r.uc", setf=True)                # N: u_c > hi
+    A.alu(Op.SEL, "r.g1", 0, "r.ds", cond="N")                     # > 0: hold
+    A.alu(Op.SUB, None, "r.uc", "r.los", setf=True)                # N: u_c < lo
+    A.alu(Op.SEL, "r.g2", 0, "r.ds", cond="N")                     # < 0: hold
+    A.alu(Op.ADD, None, "r.g1", 0, setf=True)
+    A.alu(Op.SEL, "r.nh1", "r.ich", "r.ih", cond="!LE")
+    A.alu(Op.SEL, "r.nl1", "r.icl", "r.il", cond="!LE")
+    A.alu(Op.ADD, None, "r.g2", 0, setf=True)
+    A.alu(Op.SEL, "r.ih", "r.nh1", "r.ih", cond="N")
+    A.alu(Op.SEL, "r.il", "r.nl1", "r.il", cond="N")
+    u_of("r.u", "r.ih", "r.il")
+    # O = clamp(u, lo_s, hi_s); sat; i_q = sat(round_shift(O + ff·2**8, 8), signed(16)).
+    A.alu(Op.MIN, "r.ot", "r.his", "r.u", setf=True)               # N: u > hi
+    A.alu(Op.MAX, "r.o", "r.los", "r.ot", cond="N")
+    A.alu(Op.SUB, None, "r.o", "r.u", out="sat")                   # sat = O ≠ u
+    A.mul("r.ff", 256)
+    A.post("r.ff8", 0)
+    A.alu(Op.ADD, "r.iq", "r.o", "r.ff8", sh=8, rnd=True, sat=SAT_W, out="iq")

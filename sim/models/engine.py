@@ -19,8 +19,8 @@ from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W,
                            P_WORD, WRITE_DELAY, Op)
 from ...hdl.rotator import RotatorParams
 
-__all__ = ["EngineModel", "EngineLoopModel", "engine_fields", "lead_angle",
-           "loop_model_inputs"]
+__all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedModel", "engine_fields",
+           "lead_angle", "loop_model_inputs"]
 
 ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 
@@ -93,8 +93,8 @@ class EngineModel:
                 self.outs[where] = y & ((1 << self.out_widths[where]) - 1)
 
     # --- one program run -------------------------------------------------------------------------
-    def run(self, specials, conds):
-        """Run the program from address 0 to its END.
+    def run(self, specials, conds, start=0):
+        """Run the program from address ``start`` (0, or an entry label's) to its END.
 
         Parameters
         ----------
@@ -113,8 +113,8 @@ class EngineModel:
         prog = self.program
         q = self.div_bits
         trace = []
-        queue = collections.deque([0, 1, 2])
-        fetch = 3
+        queue = collections.deque([start, start + 1, start + 2])
+        fetch = start + 3
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
         rep = 0                           # repeats of the DIV in R so far
         p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
@@ -221,6 +221,15 @@ class EngineModel:
         return trace
 
 
+def _complete(program, specials, conds):
+    """The special operands and conditions of ``program`` not given (those of the other program
+    in a combined ROM, ``current_loop_program(speed=True)``) as 0."""
+    from ...hdl.engine import BUILTIN_CONDS, BUILTIN_SPECIALS
+    specials = {**{n: 0 for n in program.specials[len(BUILTIN_SPECIALS):]}, **specials}
+    conds = {**{n: False for n in program.conds[len(BUILTIN_CONDS):]}, **conds}
+    return specials, conds
+
+
 def _signed(v, bits):
     v &= (1 << bits) - 1
     return v - (1 << bits) if v >> (bits - 1) else v
@@ -273,11 +282,12 @@ class EngineLoopModel:
     """
 
     def __init__(self, *, gain_limit=2.0, program=None):
-        from ...hdl.foc_engine import OUTS, current_loop_program
+        from ...hdl.foc_engine import OUTS, SPEED_OUTS, current_loop_program
         limit_raw = round(gain_limit * (1 << 16))
         self.program = (program if program is not None
                         else current_loop_program(gain_limit_raw=limit_raw))
-        self.engine = EngineModel(self.program, out_widths=OUTS)
+        self.engine = EngineModel(self.program, out_widths={
+            **OUTS, **{k: v for k, v in SPEED_OUTS.items() if k in self.program.outs}})
         self.traces = []
 
     @property
@@ -315,7 +325,7 @@ class EngineLoopModel:
         out = {k: np.zeros(n, dtype=np.int64) for k in OUTPUT_FIELDS}
         self.traces = []
         for k in range(n):
-            spec, conds = self.specials_of(v, k)
+            spec, conds = _complete(self.program, *self.specials_of(v, k))
             applied = self.dc_gain
             self.traces.append(self.engine.run(spec, conds))
             o = self.engine.outs
@@ -330,4 +340,73 @@ class EngineLoopModel:
                    "udc": int(v["udc"][k])}
             for name, val in res.items():
                 out[name][k] = val
+        return out
+
+
+class EngineSpeedModel:
+    """A speed-loop run (:func:`foc_servo.hdl.foc_engine.speed_loop_program`) on
+    :class:`EngineModel`, one :meth:`run` per accepted run, with the state the gateware keeps
+    outside the program: the ``ref_int`` output register (forced to the tracked value by
+    :meth:`clear`) and the ``FRESH`` condition (set by :meth:`clear`, cleared by a run). The
+    outputs ``iq`` and ``sat`` hold until the next run (the gateware clears them with
+    ``clear``).
+
+    ``program`` may be the combined ROM (``current_loop_program(speed=True)``): the run then
+    starts at its ``speed`` label, and ``engine`` may be an :class:`EngineLoopModel`'s, so that
+    the two programs share the register file as they would in the gateware (only
+    ``ih``, ``il``, ``ep`` of :data:`RESULTS` are returned then: the others are temporaries
+    in the current loop's registers).
+
+    Attributes
+    ----------
+    engine : EngineModel
+    ref_int : int
+        The profile's reference ``R`` (signed 32 bits), as ``SpeedLoopModel.ref_int`` after a
+        run or a ``clear``.
+    """
+
+    #: Register-file values :meth:`run` returns.
+    RESULTS = ("plan", "ff", "hold", "ref", "fb", "e", "ih", "il", "ep")
+
+    def __init__(self, *, program=None, engine=None):
+        from ...hdl.foc_engine import OUTS, SPEED_OUTS, speed_loop_program
+        self.program = program if program is not None else speed_loop_program()
+        self.engine = engine if engine is not None else EngineModel(
+            self.program, out_widths={**OUTS, **SPEED_OUTS})
+        self.start = self.program.labels.get("speed", 0)
+        self.prefix = "spd_" if "speed" in self.program.labels else ""
+        self.fresh = False
+        self.ref_int = 0
+
+    def clear(self, track):
+        """A clock of ``clear``: ``R`` tracks ``track`` (the speed if the slew is not 0, else
+        ``speed_ref``); the next run starts the history and the PI afresh."""
+        self.fresh = True
+        self.ref_int = int(track)
+
+    def run(self, *, speed, speed_ref, speed_slew, iq_ff, lim_lo, lim_hi, ref_delay, int_hold,
+            kp, kx):
+        """One accepted run (raw integers as :meth:`SpeedLoopModel.clock` takes them) → dict
+        of :data:`RESULTS` (register-file values) and the outputs ``iq`` (signed), ``sat``."""
+        from ...hdl.servo import DELAY_FRAC
+        d = int(ref_delay) >> DELAY_FRAC
+        spec = {"spd": speed, "sref": speed_ref, "rint": self.ref_int, "slh": speed_slew >> 1,
+                "sll": speed_slew & 1, "iqff": iq_ff, "ilo": lim_lo, "ihi": lim_hi,
+                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1), "kph": kp >> 16,
+                "kpl": kp & 0xFFFF, "kxa": (kx >> 16) << 10, "kxb": (kx >> 4) & 0xFFF,
+                "kxc": kx & 0xF}
+        conds = {"FRESH": self.fresh, "IH": bool(int_hold), "DB1": bool(d & 1),
+                 "DB2": bool(d & 2), "DZ": d == 0}
+        spec, conds = _complete(self.program, {k: int(v) for k, v in spec.items()}, conds)
+        self.engine.run(spec, conds, start=self.start)
+        self.fresh = False
+        self.ref_int = _signed(self.engine.outs["ref_int"], 32)
+        regs = self.program.regs
+        if self.prefix:     # the combined program: only the state registers keep their names
+            out = {k: self.engine.rf[regs[self.prefix + k]] for k in ("ih", "il", "ep")}
+        else:
+            out = {k: self.engine.rf[regs[k]] for k in self.RESULTS}
+        out["iq"] = _signed(self.engine.outs["iq"], 16)
+        out["sat"] = self.engine.outs["sat"]
+        out["integrator"] = (out["ih"] << 16) + out["il"]
         return out
