@@ -513,6 +513,10 @@ def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None
                                                     xilinx_roms=True)
     else:
         plan = board.platform().prepare(top, name=NAME, **_overrides(board, NAME, seed))
+        if board.family == "ice40":
+            # The RAM read registers' power-up value, emulated in logic, dropped (AREA.md
+            # "Session 12: the iCE40 flow"; :func:`~.area.ram_read_init_free`).
+            plan.files[f"{NAME}.il"] = area.ram_read_init_free(plan.files[f"{NAME}.il"])
     plan.extract(root)
     zip_path = None
     if board.flow == "vendor":
