@@ -523,13 +523,19 @@ def _freed_registers(text):
 
 
 def test_icebreaker_plan_reads_the_ram_registers_without_power_up_value(tmp_path):
-    """The iCEBreaker's build plan carries the RTLIL with those power-up values dropped (the
-    ULX3S's keeps Amaranth's): the seven read registers of the Top's block RAMs."""
+    """The iCEBreaker's build plan carries the RTLIL with those power-up values dropped and
+    synthesises with ``ICE40_SYNTH_OPTS`` (the ULX3S's keeps Amaranth's RTLIL and yosys'
+    defaults)."""
+    from foc_servo.boards.area import ram_read_init_free
+    from foc_servo.boards.build import ICE40_SYNTH_OPTS
     plans = {name: prepare(name, out_dir=tmp_path / name) for name in ("icebreaker", "ulx3s")}
     il = {name: (p["dir"] / f"{NAME}.il").read_text() for name, p in plans.items()}
-    from foc_servo.boards.area import ram_read_init_free
+    ys = {name: (p["dir"] / f"{NAME}.ys").read_text() for name, p in plans.items()}
     assert ram_read_init_free(il["icebreaker"]) == il["icebreaker"]
     assert ram_read_init_free(il["ulx3s"]) != il["ulx3s"]
+    assert f"synth_ice40 {ICE40_SYNTH_OPTS} -top {NAME}" in ys["icebreaker"]
+    assert ICE40_SYNTH_OPTS == "-dsp -dffe_min_ce_use 4"
+    assert re.search(rf"^ *synth_ecp5 +-top {NAME}$", ys["ulx3s"], re.M)
 
 
 #: The registers of the iCEBreaker's Top that :func:`~foc_servo.boards.area.ram_read_init_free`
