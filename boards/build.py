@@ -18,7 +18,10 @@ Flows (:func:`build`):
   icepack or ecppack (``$YOSYS``, ``$NEXTPNR_ICE40``, … override them, as in Amaranth). yosys
   writes ``stat -json`` after synthesis (utilisation); nextpnr writes its ``--report`` JSON (Fmax
   per clock, device utilisation). A tool failure, e.g. a design that does not fit, is reported
-  in the result (``fits`` false, ``error`` = the tool's ``ERROR`` lines), not raised.
+  in the result (``fits`` false, ``error`` = the tool's ``ERROR`` lines), not raised. On the
+  iCE40 the plan's RTLIL leaves out the power-up value of the block-RAM read registers loaded
+  on every clock (:func:`~.area.ram_read_init_free`: yosys would emulate it in logic) and
+  ``synth_ice40`` runs with :data:`ICE40_SYNTH_OPTS`.
 * ``vendor`` (Arty S7 → Vivado, Atlys → ISE): the complete build tree and a zip of it, plus a
   yosys ``synth_xilinx`` estimate run on the tree's own Verilog (so the PLL and I/O primitive
   instances are checked against yosys' cell library too). The tree's Verilog is Verilog-2001,
