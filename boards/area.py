@@ -117,6 +117,99 @@ def mark_xilinx_roms(text):
     return "".join(out) + text[pos:]
 
 
+_CELL = re.compile(r"^[ \t]*cell (?P<type>\S+) \S+\n(?P<body>.*?)^[ \t]*end$", re.M | re.S)
+_WIRE = re.compile(r"^(?P<attrs>(?:[ \t]*attribute .*\n)*)[ \t]*wire (?P<opts>.*?)(?P<name>\S+)$",
+                   re.M)
+
+
+def _whole_wire(sig, widths):
+    """The wire name if RTLIL sigspec ``sig`` is one whole wire (``\\w`` or ``\\w [W-1:0]``)."""
+    m = re.fullmatch(r"(\S+)(?: \[(\d+):0\])?", sig.strip())
+    if not m or m.group(1) not in widths:
+        return None
+    if m.group(2) is not None and int(m.group(2)) != widths[m.group(1)] - 1:
+        return None
+    return m.group(1)
+
+
+def ram_read_init_free(text):
+    """Drop the power-up value of the read-data registers that are loaded on every clock: the
+    iCE40 board flow's step before synthesis (:func:`~.build.prepare`).
+
+    Amaranth's asynchronous read port with a data register (``rd = mem.read_port(domain="comb")``,
+    ``m.d.sync += q.eq(rd.data)``, ``q`` reset-less) gives yosys a ``$memrd_v2`` cell and a plain
+    ``$dff`` whose ``Q`` wire carries ``init`` (Amaranth's ``init``, 0). ``memory_dff`` merges
+    the two into a synchronous read port whose initial value is that ``init``; the iCE40 block
+    RAM has no power-up value for its read data, so ``memory_libmap`` emulates it: one
+    flip-flop (power-up 1, cleared by the first clock) and an AND of its output with every
+    read-data bit (iCEBreaker top, session 11: 194 bits, 92 of the ANDs a LUT4 of their own).
+
+    A ``$dff`` without enable or reset loads the RAM's word on every clock edge, so its
+    power-up value is its output only before the first edge after configuration; from that
+    edge on it is ``RAM[addr]`` whatever it was. The boards hold the ``sync`` domain in reset
+    from configuration until :data:`~.build.POR_DELAY_S` after the PLL's lock (≥ 500 clocks),
+    so nothing after the reset can tell. This removes the ``init`` attribute of each such
+    ``Q`` wire (only where ``D`` is the whole read data of an asynchronous ``$memrd_v2`` of
+    the same module and the flip-flop is a plain ``$dff``): the read port's initial value is
+    then undefined and needs no emulation. Registers with an enable, a reset or any other
+    source keep theirs. Simulations and proofs run the Amaranth design and are unchanged.
+
+    Parameters
+    ----------
+    text : str
+        RTLIL as Amaranth writes it.
+
+    Returns
+    -------
+    str
+        ``text`` without those ``init`` attributes (other text unchanged; idempotent).
+    """
+    out = []
+    pos = 0
+    for module in re.finditer(r"^module \S+$.*?^end$", text, re.M | re.S):
+        body = module.group(0)
+        widths = {}
+        for w in _WIRE.finditer(body):
+            width = re.search(r"\bwidth (\d+)", w.group("opts"))
+            widths[w.group("name")] = int(width.group(1)) if width else 1
+        data = set()
+        for cell in _CELL.finditer(body):
+            if cell.group("type") in ("$memrd", "$memrd_v2") and re.search(
+                    r"^[ \t]*parameter \\CLK_ENABLE (?:1'0|0)$", cell.group("body"), re.M):
+                sig = re.search(r"^[ \t]*connect \\DATA (.*)$", cell.group("body"), re.M)
+                wire = sig and _whole_wire(sig.group(1), widths)
+                if wire:
+                    data.add(wire)
+        free = set()
+        for cell in _CELL.finditer(body):
+            if cell.group("type") != "$dff":
+                continue
+            conn = dict(re.findall(r"^[ \t]*connect \\(\w+) (.*)$", cell.group("body"), re.M))
+            d, q = (_whole_wire(conn.get(p, ""), widths) for p in ("D", "Q"))
+            if d in data and q and widths[q] == widths[d]:
+                free.add(q)
+        # Amaranth drives an output port (or another name) of the register with a ``connect``
+        # and gives that wire the same ``init``: the same net, so its ``init`` goes too.
+        aliases = [(_whole_wire(lhs, widths), _whole_wire(rhs, widths)) for lhs, rhs in
+                   re.findall(r"^[ \t]*connect (\S+(?: \[\d+:0\])?) (\S+(?: \[\d+:0\])?)$",
+                              _CELL.sub("", body), re.M)]
+        grown = True
+        while grown:
+            more = {lhs for lhs, rhs in aliases if rhs in free and lhs and lhs not in free}
+            grown = bool(more)
+            free |= more
+
+        def unset(m):
+            if m.group("name") not in free:
+                return m.group(0)
+            attrs = "".join(line for line in m.group("attrs").splitlines(keepends=True)
+                            if not line.lstrip().startswith("attribute \\init "))
+            return attrs + m.group(0)[len(m.group("attrs")):]
+        out += [text[pos:module.start()], _WIRE.sub(unset, body)]
+        pos = module.end()
+    return "".join(out) + text[pos:]
+
+
 def _yosys_command():
     if os.environ.get("YOSYS"):
         return shlex.split(os.environ["YOSYS"])

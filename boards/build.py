@@ -18,7 +18,10 @@ Flows (:func:`build`):
   icepack or ecppack (``$YOSYS``, ``$NEXTPNR_ICE40``, … override them, as in Amaranth). yosys
   writes ``stat -json`` after synthesis (utilisation); nextpnr writes its ``--report`` JSON (Fmax
   per clock, device utilisation). A tool failure, e.g. a design that does not fit, is reported
-  in the result (``fits`` false, ``error`` = the tool's ``ERROR`` lines), not raised.
+  in the result (``fits`` false, ``error`` = the tool's ``ERROR`` lines), not raised. On the
+  iCE40 the plan's RTLIL leaves out the power-up value of the block-RAM read registers loaded
+  on every clock (:func:`~.area.ram_read_init_free`: yosys would emulate it in logic) and
+  ``synth_ice40`` runs with :data:`ICE40_SYNTH_OPTS`.
 * ``vendor`` (Arty S7 → Vivado, Atlys → ISE): the complete build tree and a zip of it, plus a
   yosys ``synth_xilinx`` estimate run on the tree's own Verilog (so the PLL and I/O primitive
   instances are checked against yosys' cell library too). The tree's Verilog is Verilog-2001,
@@ -57,8 +60,8 @@ from . import area, ice40_cells
 from .area import STRIP_CHECKS
 from .platforms import MOTOR_PORTS, get_board
 
-__all__ = ["PAPER", "CLOCK_RANGE_HZ", "MUL_WIDTH", "PllConfig", "pll_config", "BoardTop",
-           "synthesis_verilog", "prepare", "build", "report_lines"]
+__all__ = ["PAPER", "CLOCK_RANGE_HZ", "MUL_WIDTH", "ICE40_SYNTH_OPTS", "PllConfig", "pll_config",
+           "BoardTop", "synthesis_verilog", "prepare", "build", "report_lines"]
 
 #: The paper's chip (Table 1: Xilinx Spartan-IIE at 33.333 MHz).
 PAPER = {"lut4": 5077, "ff": 3326, "bram_bits": 64 * 1024, "clock_mhz": 33.333}
@@ -79,6 +82,15 @@ POR_DELAY_S = 15e-6
 #: §7.4; Spartan-7 at 50 MHz: onto cascaded ``DSP48E1``, −≈ 90 LUT6 and −2 DSP48E1 against 18,
 #: AREA.md "Session 11: Spartan-7"). Bit- and cycle-identical whatever the width.
 MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
+
+#: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
+#: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
+#: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
+#: an ``SB_DFFE`` pin, so a flip-flop loaded from another flip-flop, a block RAM or a port under
+#: a rare enable shares its logic cell with that LUT instead of taking one alone (iCEBreaker:
+#: −63 logic cells; 2: −49, 8: +10; docs/AREA.md "Session 12: the iCE40 flow"). A mapping
+#: choice of yosys, the logic unchanged.
+ICE40_SYNTH_OPTS = "-dsp -dffe_min_ce_use 4"
 
 
 # --- PLL settings ---------------------------------------------------------------------------------
@@ -431,8 +443,7 @@ def _overrides(board, name, seed=None):
     # The gateware's Assert / Print cells out before synthesis (STRIP_CHECKS; as the vendor
     # flows' synthesis_verilog does).
     if board.family == "ice40":
-        # -dsp: SB_MAC16 multipliers (without it the multipliers swamp the UP5K's LUTs).
-        return {"script_after_read": STRIP_CHECKS, "synth_opts": "-dsp",
+        return {"script_after_read": STRIP_CHECKS, "synth_opts": ICE40_SYNTH_OPTS,
                 "script_after_synth": stat, "nextpnr_opts": pnr}
     if board.family == "ecp5":
         return {"script_after_read": STRIP_CHECKS, "script_after_synth": stat,
@@ -513,6 +524,10 @@ def prepare(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None
                                                     xilinx_roms=True)
     else:
         plan = board.platform().prepare(top, name=NAME, **_overrides(board, NAME, seed))
+        if board.family == "ice40":
+            # The RAM read registers' power-up value, emulated in logic, dropped (AREA.md
+            # "Session 12: the iCE40 flow"; :func:`~.area.ram_read_init_free`).
+            plan.files[f"{NAME}.il"] = area.ram_read_init_free(plan.files[f"{NAME}.il"])
     plan.extract(root)
     zip_path = None
     if board.flow == "vendor":

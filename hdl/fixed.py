@@ -327,17 +327,28 @@ class Quantity:
 def saturate(value, shape):
     """``value`` clamped to the range of ``shape`` and cast to it: never wraps.
 
-    When ``value``'s own range already fits, this is only a cast (no logic).
+    When ``value``'s own range already fits, this is only a cast (no logic). The range tests
+    are bit tests, not compares: ``shape``'s bounds are ``hi = 2**k − 1`` and ``lo = −2**k``
+    (or 0), so with ``m`` the bits of ``value`` below its sign, ``value > hi`` is "not negative
+    and a bit of ``m`` at or above ``k`` set" and ``value < lo`` "negative and not all of those
+    bits set" ("negative" for an unsigned ``shape``): an OR / AND in LUTs, where yosys maps a
+    compare of a signed value with a constant onto a carry chain (iCE40: a logic cell per bit
+    that no LUT shares; signed(33) to signed(16): 47 SB_CARRY and 35 LUT4 → 31 LUT4; xc7: 36 →
+    26 LUT6, docs/AREA.md "Session 12"). The result is the same bit for bit.
     """
     value = Value.cast(value)
     shape = Shape.cast(shape)
     lo, hi = shape_range(shape)
     vlo, vhi = shape_range(value.shape())
-    if vhi > hi:
-        value = Mux(value > hi, hi, value)
-    if vlo < lo:
-        value = Mux(value < lo, lo, value)
-    value = value[:shape.width]
+    k = shape.width - shape.signed                      # hi = 2**k − 1, lo = −2**k or 0
+    n = len(value) - value.shape().signed               # the bits below the sign: m
+    negative = value[-1] if value.shape().signed else Const(0, 1)
+    above = below = Const(0, 1)
+    if vhi > hi:                                        # then n > k
+        above = ~negative & value[k:n].any()
+    if vlo < lo:                                        # value signed; n > k if shape signed
+        below = negative & ~value[k:n].all() if shape.signed else negative
+    value = Mux(above, hi, Mux(below, lo, value))[:shape.width]
     return value.as_signed() if shape.signed else value.as_unsigned()
 
 

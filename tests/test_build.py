@@ -12,6 +12,7 @@ Slow (``-m slow``): the real builds — iCEBreaker and ULX3S bitstreams with YoW
 ``synth_xilinx`` estimates of the vendor trees — cross-checked between yosys and nextpnr.
 """
 
+import difflib
 import gc
 import json
 import os
@@ -442,6 +443,213 @@ def test_hardware_synthesis_drops_the_gateware_checks():
     assert (r["lut4"], r["carry"]) == (1, 0) and "$check" not in r["cells"]
     for name in ("icebreaker", "ulx3s"):
         assert _overrides(get_board(name), NAME)["script_after_read"] == STRIP_CHECKS
+
+
+class _ReadRegisters(wiring.Component):
+    """Four 256 × 8 ROMs (block RAMs), their read data registered four ways: a plain
+    reset-less register on an asynchronous read (``plain``, loaded every clock), one with an
+    enable (``gated``), one with the domain's reset (``reset``), and a synchronous read port
+    (``sync``)."""
+    addr: wiring.In(8)
+    en: wiring.In(1)
+    plain: wiring.Out(8)
+    gated: wiring.Out(8)
+    reset: wiring.Out(8)
+    sync: wiring.Out(8)
+
+    def elaborate(self, platform):
+        from amaranth.lib.memory import Memory
+        m = Module()
+        for k, name in enumerate(("plain", "gated", "reset", "sync")):
+            init = [(i * (37 + 2 * k) + k) % 256 for i in range(256)]
+            m.submodules[f"rom_{name}"] = rom = Memory(shape=8, depth=256, init=init)
+            rd = rom.read_port(domain="sync" if name == "sync" else "comb")
+            m.d.comb += rd.addr.eq(self.addr)
+            if name == "sync":
+                m.d.comb += self.sync.eq(rd.data)
+                continue
+            q = Signal(8, reset_less=name != "reset", name=f"q_{name}")
+            if name == "gated":
+                with m.If(self.en):
+                    m.d.sync += q.eq(rd.data)
+            else:
+                m.d.sync += q.eq(rd.data)
+            m.d.comb += getattr(self, name).eq(q)
+        return m
+
+
+def _init_wires(text):
+    """The wires of an RTLIL text that carry an ``init`` attribute."""
+    return set(re.findall(r"^[ \t]*attribute \\init \S+\n(?:[ \t]*attribute .*\n)*[ \t]*wire "
+                          r".*?(\S+)$", text, re.M))
+
+
+def test_ram_read_init_free_drops_only_every_clock_read_registers():
+    """``ram_read_init_free`` (the iCE40 board flow, before synthesis) drops the power-up value
+    of a reset-less register loaded from an asynchronous read on every clock, and of the port
+    Amaranth drives from it, only: a register with an enable or a reset keeps it. yosys then
+    needs no power-up emulation for that read port (its AND per read bit and its flip-flop);
+    the others keep theirs."""
+    from foc_servo.boards.area import _synth_rtlil, ports, ram_read_init_free
+    block = _ReadRegisters()
+    text = rtlil.convert(block, name="rr", ports=ports(block))
+    free = ram_read_init_free(text)
+    assert _init_wires(text) - _init_wires(free) == {"\\q_plain", "\\plain"}
+    assert ram_read_init_free(free) == free
+    # nothing but those init lines changed
+    diff = [ln for ln in difflib.ndiff(text.splitlines(), free.splitlines())
+            if ln[:1] in "+-"]
+    assert diff == ["-   attribute \\init 8'00000000"] * 2
+    before, after = (_synth_rtlil(t, "ice40", "rr") for t in (text, free))
+    assert (before["bram"], after["bram"]) == (4, 4)
+    # the emulation of each port: a flip-flop and an AND per read bit (here a LUT4 each)
+    assert (before["ff"], before["lut4"]) == (3, 24)
+    assert (after["ff"], after["lut4"]) == (2, 16)          # ``gated``'s and ``reset``'s stay
+
+
+def _freed_registers(text):
+    """``src`` of each ``$dff`` whose ``Q`` wire :func:`ram_read_init_free` frees."""
+    from foc_servo.boards.area import ram_read_init_free
+    module = r"^module \S+$.*?^end$"
+    srcs = set()
+    for before, after in zip(re.findall(module, text, re.M | re.S),
+                             re.findall(module, ram_read_init_free(text), re.M | re.S)):
+        for wire in _init_wires(before) - _init_wires(after):
+            srcs |= set(re.findall(r'attribute \\src "([^"]+)"\n[ \t]*cell \$dff \S+\n'
+                                   r'(?:[ \t]*(?:parameter|connect) .*\n)*?'
+                                   r"[ \t]*connect \\Q " + re.escape(wire) + r"\n",
+                                   before))
+    return srcs
+
+
+def test_icebreaker_plan_reads_the_ram_registers_without_power_up_value(tmp_path):
+    """The iCEBreaker's build plan carries the RTLIL with those power-up values dropped and
+    synthesises with ``ICE40_SYNTH_OPTS`` (the ULX3S's keeps Amaranth's RTLIL and yosys'
+    defaults)."""
+    from foc_servo.boards.area import ram_read_init_free
+    from foc_servo.boards.build import ICE40_SYNTH_OPTS
+    plans = {name: prepare(name, out_dir=tmp_path / name) for name in ("icebreaker", "ulx3s")}
+    il = {name: (p["dir"] / f"{NAME}.il").read_text() for name, p in plans.items()}
+    ys = {name: (p["dir"] / f"{NAME}.ys").read_text() for name, p in plans.items()}
+    assert ram_read_init_free(il["icebreaker"]) == il["icebreaker"]
+    assert ram_read_init_free(il["ulx3s"]) != il["ulx3s"]
+    assert f"synth_ice40 {ICE40_SYNTH_OPTS} -top {NAME}" in ys["icebreaker"]
+    assert ICE40_SYNTH_OPTS == "-dsp -dffe_min_ce_use 4"
+    assert re.search(rf"^ *synth_ecp5 +-top {NAME}$", ys["ulx3s"], re.M)
+
+
+#: The registers of the iCEBreaker's Top that :func:`~foc_servo.boards.area.ram_read_init_free`
+#: frees: (module of ``hdl``, signal name).
+_FREED = {("regs", "rd_data"), ("hostlink", "rd_data"), ("servo", "cfg_q"),
+          ("foc_engine", "data_q"), ("engine", "rf_a_data"), ("engine", "rf_b_data"),
+          ("engine", "rd_data")}
+
+
+def _vcd_after(path, t_cut):
+    """A VCD's values at time ``t_cut`` (fs; after that time's changes) and its real changes
+    after it, as sorted ``(time, signal, value)`` (the order within a time step varies)."""
+    ids, now, t, header, after, snapshot = {}, {}, 0, True, [], None
+    scope = []
+    for line in Path(path).read_text().splitlines():
+        line = line.strip()
+        if header:
+            if line.startswith("$scope"):
+                scope.append(line.split()[2])
+            elif line.startswith("$upscope"):
+                scope.pop()
+            elif line.startswith("$var"):
+                ids.setdefault(line.split()[3], ".".join(scope + [line.split()[4]]))
+            header = not line.startswith("$enddefinitions")
+            continue
+        if not line or line.startswith("$"):
+            continue
+        if line[0] == "#":
+            t = int(line[1:])
+            if t > t_cut and snapshot is None:
+                snapshot = dict(now)
+            continue
+        value, ident = line[1:].split() if line[0] in "bBrRsS" else (line[0], line[1:])
+        if t > t_cut and now.get(ident) != value:
+            after.append((t, ids[ident], value))
+        now[ident] = value
+    snapshot = now if snapshot is None else snapshot
+    return {ids[i]: v for i, v in snapshot.items()}, sorted(after)
+
+
+def test_freed_ram_registers_power_up_value_unseen_after_reset(tmp_path, monkeypatch):
+    """Why dropping those power-up values is safe: the iCEBreaker's Top (engine loop, staging
+    in block RAM; the scope in block RAM for the simulator) simulated with the seven registers
+    powering up all ones instead of 0, the domain reset held for the first clock only (the
+    board holds it ≥ 500), then 1 500 clocks (the export walk, ADC samples, current-loop
+    runs): from the fourth clock edge on every signal is the same as with 0. Before it only
+    the engine's reset-less datapath registers differ, which the test sees (so it can fail)."""
+    from amaranth.hdl import ClockDomain, Elaboratable
+    from amaranth.sim import Simulator
+    from foc_servo.boards.area import ports
+    import foc_servo.hdl.engine as engine
+    import foc_servo.hdl.foc_engine as foc_engine
+    import foc_servo.hdl.hostlink as hostlink
+    import foc_servo.hdl.regs as regs
+    import foc_servo.hdl.servo as servo
+    period_fs = 30_000_000
+
+    class Bench(Elaboratable):
+        def __init__(self):
+            self.top = Top(clk_hz=33.333e6, current_loop="engine", regs_staging="bram")
+            self.cd = ClockDomain("sync")
+
+        def elaborate(self, platform):
+            m = Module()
+            m.domains.sync = self.cd
+            m.submodules.top = self.top
+            return m
+
+    def run(ones):
+        made = []
+        for mod in (engine, foc_engine, hostlink, regs, servo):
+            def signal(*args, src_loc_at=0, _real=Signal, _mod=mod.__name__.rpartition(".")[2],
+                       **kwargs):
+                sig = _real(*args, src_loc_at=src_loc_at + 1, **kwargs)
+                if kwargs.get("reset_less") and (_mod, sig.name) in _FREED:
+                    made.append((_mod, sig.name, "{}:{}".format(*sig.src_loc)))
+                    if ones:
+                        sig = _real(*args, src_loc_at=src_loc_at + 1,
+                                    **{**kwargs, "name": sig.name, "init": -1})
+                return sig
+            signal.like = Signal.like
+            monkeypatch.setattr(mod, "Signal", signal)
+        bench = Bench()
+        sim = Simulator(bench)
+        sim.add_clock(period_fs * 1e-15)
+
+        async def testbench(ctx):
+            ctx.set(bench.cd.rst, 1)
+            await ctx.tick()
+            ctx.set(bench.cd.rst, 0)
+            await ctx.tick().repeat(1500)
+        sim.add_testbench(testbench)
+        vcd = tmp_path / f"{'ones' if ones else 'zero'}.vcd"
+        with sim.write_vcd(str(vcd)):
+            sim.run()
+        monkeypatch.undo()
+        assert sorted(m[:2] for m in made) == sorted(_FREED)
+        if not ones:        # the registers the flow frees in this Top are these seven
+            top = bench.top
+            text = rtlil.convert(top, name="top", ports=ports(top))
+            assert _freed_registers(text) == {m[2] for m in made}
+        return vcd
+    zero, ones = run(False), run(True)
+    # before the first clock edge: the seven registers (and what they drive) differ
+    at0 = _vcd_after(zero, 0)[0], _vcd_after(ones, 0)[0]
+    assert {k.rpartition(".")[2] for k in at0[0] if at0[0][k] != at0[1][k]} >= \
+        {name for _, name in _FREED}
+    # the first three edges: only the engine's datapath registers differ; from the fourth
+    # (105 ns: edges at 15, 45, 75, 105 ns) on nothing does
+    for edge in (1, 2, 3):
+        a, b = _vcd_after(zero, edge * period_fs)[0], _vcd_after(ones, edge * period_fs)[0]
+        differ = {k for k in a if a[k] != b[k]}
+        assert differ and all(".current_loop.engine." in k for k in differ), edge
+    assert _vcd_after(zero, 4 * period_fs) == _vcd_after(ones, 4 * period_fs)
 
 
 def test_build_seed_reaches_nextpnr(tmp_path):

@@ -74,6 +74,34 @@ def test_helpers_match_numpy_models():
         np.testing.assert_array_equal(got[k], expected[k], err_msg=k)
 
 
+def test_saturate_exhaustive_against_numpy():
+    """:func:`fixed.saturate` (bit tests, no compares) is :func:`fixed.saturate_np` for every
+    value of every signed / unsigned input of 1–7 bits into every signed / unsigned shape of
+    1–6 bits: narrower, as wide and wider than the input, each sign combination."""
+    shapes = [sh(w) for w in range(1, 7) for sh in (signed, unsigned)]
+    cases = [(sh(w), out) for w in range(1, 8) for sh in (signed, unsigned) for out in shapes]
+    m = Module()
+    ins = [Signal(src, name=f"v{j}") for j, (src, _) in enumerate(cases)]
+    outs = [Signal(out, name=f"o{j}") for j, (_, out) in enumerate(cases)]
+    m.d.comb += [o.eq(fixed.saturate(v, out)) for v, o, (_, out) in zip(ins, outs, cases)]
+    got = {}
+
+    async def testbench(ctx):
+        for x in range(1 << 7):
+            for v, o, (src, _) in zip(ins, outs, cases):
+                lo, hi = fixed.shape_range(src)
+                if lo <= x - (1 << 6) * src.signed <= hi:
+                    ctx.set(v, x - (1 << 6) * src.signed)
+            for j, (v, o) in enumerate(zip(ins, outs)):
+                got[j, ctx.get(v)] = ctx.get(o)
+
+    simulate(m, [testbench], name="fixed_saturate")
+    for j, (src, out) in enumerate(cases):
+        lo, hi = fixed.shape_range(src)
+        for x in range(lo, hi + 1):
+            assert got[j, x] == fixed.saturate_np(x, out), (src, out, x)
+
+
 def test_round_shift_is_half_away_from_zero():
     v = np.array([-7, -6, -5, -3, -2, -1, 0, 1, 2, 3, 5, 6, 7])
     np.testing.assert_array_equal(fixed.round_shift_np(v, 1),
