@@ -685,7 +685,7 @@ def _register_level_sim_class():
     from ..hdl.regmap import REGMAP
     from ..hdl.regs import RegisterFile
     from ..hdl.scope import Scope
-    from ..hdl.top import regmap_address_map
+    from ..hdl.top import REF_STEP_REGISTERS, _addr_in, regmap_address_map
 
     class RegisterLevelSim(wiring.Component):
         """Simulation-only bus slave for :meth:`Servo.sim`: the register file and the trace
@@ -694,8 +694,10 @@ def _register_level_sim_class():
         Every clock is a loop tick: ``commit`` is held high (shadowed writes apply after their
         frame, as on the drive) and the scope takes a sample per tick (per ``scope_decim``
         ticks). The scope's sources are the active ``speed_ref``, ``i_d_ref`` and ``i_q_ref``
-        registers (their ``*_ref`` sources); every other source is 0. Its external trigger is a
-        change of one of those references (standing in for the mode logic's reference step).
+        registers (their ``*_ref`` sources); every other source is 0. Its external trigger is the
+        drive's reference step (:mod:`~foc_servo.hdl.top`, "Scope trigger"): a host write to the
+        mode or a reference (``REF_STEP_REGISTERS``; an unchanged value too), in the clock after
+        the one that applies it (the frame's end, ``lock`` low).
         ``st_mode`` reads the active ``mode``; every other status register reads 0.
 
         Members
@@ -734,10 +736,11 @@ def _register_level_sim_class():
             for c in range(scope.channels):
                 chan = getattr(regs, f"scope_chan{c}")
                 m.d.comb += scope.sel[c].eq(Mux(chan >= n_src, unused, chan))
-            refs = Cat(regs.speed_ref, regs.i_d_ref, regs.i_q_ref)
-            last = Signal.like(refs)
-            m.d.sync += last.eq(refs)
-            m.d.comb += scope.trigger.eq(last != refs)
+            dirty = Signal()            # a reference write not yet applied
+            write = regs.bus.ack & regs.bus.we & _addr_in(
+                regs.bus.addr, [REGMAP[n].addr for n in REF_STEP_REGISTERS])
+            applied = dirty & ~regs.bus.lock
+            m.d.sync += [dirty.eq(write | (dirty & ~applied)), scope.trigger.eq(applied)]
             return m
 
     return RegisterLevelSim

@@ -160,6 +160,16 @@ def test_scope_capture_step_trigger_arm_and_read(servo):
         servo.scope_capture(["iq"])
 
 
+def test_scope_step_trigger_on_an_unchanged_write(servo):
+    # The drive's reference step is a host write to a reference (hdl.top, "Scope trigger"),
+    # not a change of its value: the simulated drive triggers on an unchanged write too.
+    servo.set_many({"i_q_ref": 2.5, "speed_ref": 0.0})
+    cap = servo.scope_capture(["i_q_ref"], pretrigger=20, trigger="step",
+                              step={"i_q_ref": 2.5}, timeout_s=60)
+    assert np.all(cap["i_q_ref"] == 2.5)
+    assert servo.get("scope_status") == {"done": True, "pre_full": False}
+
+
 def test_tune_dry_run_writes_nothing_then_writes(servo):
     servo.set_many({"pi_d_kp": 0.0, "pi_speed_kx": 0.0, "u_rated": 310.0})
     t = servo.tune(SGMSH_15A, dry_run=True)
