@@ -50,7 +50,9 @@ it). The read multiplexer is left with the read-only status words. The bus timin
 ``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
 never deferred); the RAM reads copied slot ``i`` in clock ``s + i`` and the active register word
 of slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
-register started by the copy, not by a compare of the slot counter), so every active value is the
+register started by the copy, not by a compare of the slot counter; with ``export`` restarted by
+a compare after each run of exported slots, which the reset walk's reads of the reset values pass
+too: its loads write reset values into active words that hold them), so every active value is the
 new one from clock ``s + commit_clocks`` (copied slots + 1). While the RAM is read for the copy
 (clocks ``s`` … ``s + commit_clocks − 2``) no access is taken: an access whose ``stb`` rises then
 (or in ``s``) is taken in ``s + commit_clocks − 1`` and acked two clocks later (the bus allows any
@@ -708,9 +710,24 @@ class RegisterFile(wiring.Component):
         m.d.comb += rd.addr.eq(Mux(pending, ram_addr, Cat(cnt, walk)))   # cnt: log2(base) bits
 
         # Active registers: copied slot i's word from the RAM in the copy's load clock
-        # s + 1 + i, told by a one-hot shift register (no compare of dst per slot).
+        # s + 1 + i, told by bit i of a one-hot shift register (no compare of dst per slot).
+        # With export it has bits only for the slots with flip-flops (not exported): along a
+        # run of them it shifts; the first after exported slots is ``cnt == i`` registered (two
+        # LUT4 with its flip-flop, where a stage per exported slot is a lone flip-flop each).
+        # That compare is also true in the reset walk's reading clock of slot i: the walk's
+        # loads then write the active words from slot i on with their reset values (the walk
+        # reads the RAM's reset half), which they hold already (the walk runs only after a
+        # reset; commits and accesses wait for it). Without export: one chain, copies only.
         ld = Signal(nc, name="copy_ld")
-        m.d.sync += ld.eq(Cat(start, ld[:-1]))
+        for i, (_, r, _) in enumerate(slots[:nc]):
+            if r.name in self._export:
+                continue                        # (stays 0)
+            if i == 0:
+                m.d.sync += ld[i].eq(start)
+            elif slots[i - 1][1].name not in self._export:
+                m.d.sync += ld[i].eq(ld[i - 1])
+            else:
+                m.d.sync += ld[i].eq(cnt == i)
         for i, (_, r, k) in enumerate(slots[:nc]):
             if r.name in self._export:
                 continue                        # on the export port instead (below)

@@ -44,7 +44,9 @@ class RegisterFileModel:
         word). ``staged`` then holds only the immediate registers (whose reads, and the const
         words', come from the RAM); :meth:`staged_value` reads any register's staging value. (The
         gateware's slot is looked up in t + 1 from its word select, not registered; its copy
-        loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
+        loads are enabled by a one-hot shift register rather than ``dst``: the same clocks; with
+        ``export`` its compare after a run of exported slots also fires in the reset walk, whose
+        loads write reset values into active words that hold them, which the model leaves out.)
     exp_on, exp_index
         ``export``: whether ``dst`` is an exported word and its export index, set with ``dst``;
         :meth:`export_port` is the ``export`` port during the clock, :attr:`export_walk` the
