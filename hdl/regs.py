@@ -50,7 +50,9 @@ it). The read multiplexer is left with the read-only status words. The bus timin
 ``bus.lock`` is low, no access is in its ``t + 1`` and no copy or walk runs (else it is ignored,
 never deferred); the RAM reads copied slot ``i`` in clock ``s + i`` and the active register word
 of slot ``i`` changes at the end of clock ``s + 1 + i`` (enabled by bit ``i`` of a one-hot shift
-register started by the copy, not by a compare of the slot counter), so every active value is the
+register started by the copy, not by a compare of the slot counter; with ``export`` restarted by
+a compare after each run of exported slots, which the reset walk's reads of the reset values pass
+too: its loads write reset values into active words that hold them), so every active value is the
 new one from clock ``s + commit_clocks`` (copied slots + 1). While the RAM is read for the copy
 (clocks ``s`` … ``s + commit_clocks − 2``) no access is taken: an access whose ``stb`` rises then
 (or in ``s``) is taken in ``s + commit_clocks − 1`` and acked two clocks later (the bus allows any
@@ -86,6 +88,14 @@ while the walk's words are on the port (from the reset clock to the last one, in
 consumer that must not start a computation the walk's writes would land in (the speed loop,
 :class:`~.top.Top`).
 
+Derived active values (``staging="bram"``, ``derived``; docs/AREA.md, "Session 12: register
+file"). With the staging RAM holding what the host wrote (reads return it), the active flip-flops
+of a register need only hold what its consumer uses: :class:`Derived` gives that as a function of
+the raw value (e.g. the scope's ``decim`` = ``scope_decim`` − 1, 0 for 0; a channel code clamped
+to the scope's 4-bit select), applied where the flip-flops load (the write in ``t`` of an
+immediate register, the copy's load clock of a shadowed one), so they change in the same clocks
+and the consumer sees the same value as with the function behind the raw flip-flops.
+
 Status read from a RAM (``status_ram``; docs/AREA.md, "Session 11: engine status"). The
 read-only registers named in ``status_ram`` have no ``In`` member: their values live in a
 consumer's RAM (e.g. the loop engine's status RAM), read through the ``status_rd`` port, a
@@ -102,9 +112,11 @@ clocks (``ack`` in ``t + 2``). ``addr`` is driven in every clock (a read in a cl
 access is harmless).
 """
 
+import dataclasses
 import itertools
+from collections.abc import Mapping
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, Value, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
@@ -114,11 +126,42 @@ from .bus import DATA_WIDTH, RegBusSignature, Status, WordWriteSignature
 from .fixed import check_choice
 from .regmap import REGMAP, Access, RegMap
 
-__all__ = ["RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
+__all__ = ["Derived", "RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
            "staging_slots", "word_index"]
 
 #: Values of ``RegisterFile(staging=...)``.
 STAGINGS = ("ff", "bram")
+
+
+@dataclasses.dataclass(frozen=True)
+class Derived:
+    """What the active value of a register holds instead of the register's raw value
+    (``RegisterFile(derived=...)``): a function of it that its consumer wants, computed where
+    the value is loaded (the write of an immediate register, the copy of a shadowed one), so the
+    flip-flops hold the consumer's operand (often fewer bits) and the consumer's logic behind
+    them is gone. Reads still return the raw value (from the staging RAM).
+
+    Parameters
+    ----------
+    shape : shape-castable
+        Shape of the Out member.
+    value : callable
+        ``value(raw)``: the Out member's value from the register's raw value ``raw`` (a
+        ``Value`` of the register's ``fmt.shape``), an Amaranth expression.
+    const : callable
+        ``const(bits)``: the same as a Python function of the raw bits (an ``int``, unsigned),
+        for the Out member's reset value (``init``) and the golden model; a test checks that
+        the two agree.
+    """
+    shape: object
+    value: object
+    const: object
+
+    def __post_init__(self):
+        Shape.cast(self.shape)
+        if not callable(self.value) or not callable(self.const):
+            raise TypeError(f"Derived value and const must be callables, not {self.value!r} "
+                            f"and {self.const!r}")
 
 
 def staging_slots(regmap, copy_last=()):
@@ -234,6 +277,12 @@ class RegisterFile(wiring.Component):
         copy clock, ``"bram"``): a consumer need not keep a copy of the register to see it
         change. A domain reset (the reset values loaded at once) gives no strobe. Default
         ``()``.
+    derived : mapping of str to Derived
+        ``staging="bram"`` only: one-word ``rw`` registers (no enum or fields, not exported)
+        whose Out member holds :class:`Derived` ``value(raw)`` (its ``shape``, ``init``
+        ``const(reset)``) instead of the raw value, loaded in the same clocks (the write's
+        ``t`` of an immediate register, the copy's load clock of a shadowed one). Reads return
+        the raw value, as for every register (the staging RAM holds it). Default none.
 
     Members
     -------
@@ -248,7 +297,8 @@ class RegisterFile(wiring.Component):
         :attr:`commit_clocks` clocks before the new values are wanted.
     <rw register> : Out(register.shape, init=reset)
         The active value the control path uses (enum, StructLayout of the fields, or the raw
-        fixed-point shape ``register.fmt.shape``); not for the exported registers.
+        fixed-point shape ``register.fmt.shape``); not for the exported registers; for a
+        ``derived`` one ``Out(derived.shape, init=derived.const(reset))``, its ``value``.
     export : Out(WordWriteSignature(len(export_words)))
         Only with ``export``: the exported active words as RAM writes (``valid``, ``index``,
         ``data``), in the clocks the module docstring gives.
@@ -301,20 +351,23 @@ class RegisterFile(wiring.Component):
     ------
     TypeError
         ``regmap`` is not a :class:`~.regmap.RegMap`; ``staging`` is not a string;
-        ``copy_last``, ``export``, ``status_ram`` or ``changed`` is not a tuple of strings.
+        ``copy_last``, ``export``, ``status_ram`` or ``changed`` is not a tuple of strings;
+        ``derived`` is not a mapping of strings to :class:`Derived`.
     ValueError
         ``staging`` is not one of :data:`STAGINGS`; ``copy_last`` or ``export`` names a
         register that is not a shadowed ``rw`` register of ``regmap``, repeats a name, or is
         given with ``staging="ff"``; ``status_ram`` names a register that is not a one-word
         ``ro`` register, repeats a name, or names registers of different shapes; ``changed``
         names a register that is not a one-word shadowed ``rw`` register or is exported, or
-        repeats a name.
+        repeats a name; ``derived`` names a register that is not a one-word ``rw`` register
+        without enum or fields, or an exported one, or one named in ``changed``, or is given
+        with ``staging="ff"``.
     """
 
     latency = 2
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(),
-                 status_ram=(), changed=()):
+                 status_ram=(), changed=(), derived=None):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
@@ -343,11 +396,27 @@ class RegisterFile(wiring.Component):
                                  f"not staging={staging!r}")
             if len(set(names)) != len(names):
                 raise ValueError(f"RegisterFile {param} must not repeat a name, not {names!r}")
+        derived = {} if derived is None else derived
+        if (not isinstance(derived, Mapping)
+                or not all(isinstance(n, str) and isinstance(d, Derived)
+                           for n, d in derived.items())):
+            raise TypeError(f"RegisterFile derived must be a mapping of register names to "
+                            f"Derived, not {derived!r}")
+        for name in derived:
+            r = regmap[name] if name in regmap else None
+            if (r is None or r.access is not Access.RW or r.words != 1 or r.enum is not None
+                    or r.fields is not None or name in export or name in changed):
+                raise ValueError(f"RegisterFile derived must name one-word rw registers without "
+                                 f"enum or fields, not exported or in changed, not {name!r}")
+        if derived and staging != "bram":
+            raise ValueError(f"RegisterFile derived applies only to staging='bram', "
+                             f"not staging={staging!r}")
         if len({(regmap[n].width, regmap[n].signed) for n in status_ram}) > 1:
             raise ValueError(f"RegisterFile status_ram must name registers of one shape, "
                              f"not {status_ram!r}")
         self._status_ram = status_ram
         self._changed = changed
+        self._derived = dict(derived)
         self._regmap = regmap
         self._staging = staging
         self._copy_last = copy_last
@@ -378,7 +447,10 @@ class RegisterFile(wiring.Component):
                 addr_width=ceil_log2(len(status_ram)), shape=r0.fmt.shape))
         for r in regmap:
             if r.access is Access.RW:
-                if r.name not in export:        # (exported: the consumer's RAM holds it)
+                if r.name in self._derived:     # (the consumer's operand, Derived)
+                    d = self._derived[r.name]
+                    members[r.name] = Out(d.shape, init=d.const(r.bits(r.reset)))
+                elif r.name not in export:      # (exported: the consumer's RAM holds it)
                     members[r.name] = Out(r.shape, init=r.init)
             elif r.access is Access.RO and r.name not in status_ram:
                 members[r.name] = In(r.shape)
@@ -397,6 +469,7 @@ class RegisterFile(wiring.Component):
     exported = property(lambda self: self._export)
     status_ram = property(lambda self: self._status_ram)
     changed = property(lambda self: self._changed)
+    derived = property(lambda self: dict(self._derived))
     export_words = property(lambda self: list(self._export_words))
     export_init = property(lambda self: export_init(self._regmap, self._export))
     slots = property(lambda self: len(self._slots))
@@ -658,16 +731,34 @@ class RegisterFile(wiring.Component):
         m.d.comb += rd.addr.eq(Mux(pending, ram_addr, Cat(cnt, walk)))   # cnt: log2(base) bits
 
         # Active registers: copied slot i's word from the RAM in the copy's load clock
-        # s + 1 + i, told by a one-hot shift register (no compare of dst per slot).
+        # s + 1 + i, told by bit i of a one-hot shift register (no compare of dst per slot).
+        # With export it has bits only for the slots with flip-flops (not exported): along a
+        # run of them it shifts; the first after exported slots is ``cnt == i`` registered (two
+        # LUT4 with its flip-flop, where a stage per exported slot is a lone flip-flop each).
+        # That compare is also true in the reset walk's reading clock of slot i: the walk's
+        # loads then write the active words from slot i on with their reset values (the walk
+        # reads the RAM's reset half), which they hold already (the walk runs only after a
+        # reset; commits and accesses wait for it). Without export: one chain, copies only.
         ld = Signal(nc, name="copy_ld")
-        m.d.sync += ld.eq(Cat(start, ld[:-1]))
+        for i, (_, r, _) in enumerate(slots[:nc]):
+            if r.name in self._export:
+                continue                        # (stays 0)
+            if i == 0:
+                m.d.sync += ld[i].eq(start)
+            elif slots[i - 1][1].name not in self._export:
+                m.d.sync += ld[i].eq(ld[i - 1])
+            else:
+                m.d.sync += ld[i].eq(cnt == i)
         for i, (_, r, k) in enumerate(slots[:nc]):
             if r.name in self._export:
                 continue                        # on the export port instead (below)
             lo, hi = r.word_slice(k)
             with m.If(ld[i]):
-                m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd_data[:hi - lo])
-            if r.name in self._changed:             # (one word: lo, hi = 0, width)
+                if r.name in self._derived:     # (one word: lo, hi = 0, width)
+                    m.d.sync += getattr(self, r.name).eq(self._derive(r, rd_data))
+                else:
+                    m.d.sync += _bits(getattr(self, r.name))[lo:hi].eq(rd_data[:hi - lo])
+            if r.name in self._changed:             # (one word: lo, hi = 0, width; not derived)
                 m.d.sync += getattr(self, f"{r.name}_changed").eq(
                     ld[i] & (rd_data[:hi - lo] != _bits(getattr(self, r.name))))
         # The export port: the exported slot's word in its load clock, copy or walk (``load``
@@ -714,6 +805,12 @@ class RegisterFile(wiring.Component):
         ]
         return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
 
+    def _derive(self, r, word):
+        """The Out member's value of a ``derived`` register ``r`` from ``word`` (its raw value
+        in the low bits)."""
+        raw = word[:r.width]
+        return self._derived[r.name].value(raw.as_signed() if r.signed else raw)
+
     @staticmethod
     def _word_format(r, k):
         """``(width, sign-extended)`` of word ``k`` of register ``r`` as it is read."""
@@ -746,5 +843,7 @@ class RegisterFile(wiring.Component):
         lo, hi = r.word_slice(k)
         if r.access is Access.STROBE:
             m.d.sync += getattr(self, r.name).eq(bus.w_data[0])
+        elif r.name in self._derived:           # (an immediate one: its Out member)
+            m.d.sync += getattr(self, r.name).eq(self._derive(r, bus.w_data))
         else:
             m.d.sync += held[lo:hi].eq(bus.w_data[:hi - lo])

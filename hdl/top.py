@@ -165,7 +165,7 @@ from .protect import FAULTS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
                      build_regmap, mt_k_for)
 from .regs import STAGINGS as REGS_STAGINGS
-from .regs import RegisterFile, staging_slots
+from .regs import Derived, RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
 from .servo import SPEED_CONFIG, Servo
@@ -225,6 +225,42 @@ def _latencies(loop):
 def _is_hz(value):
     return (isinstance(value, numbers.Real) and not isinstance(value, bool)
             and math.isfinite(value) and value > 0)
+
+
+def _operands(scope, regmap):
+    """The blocks' operands that are functions of a register's value: register name →
+    ``(shape, value, const)`` (:class:`~.regs.Derived`'s fields; the port's shape, the function
+    as logic of the raw value and as a Python function of its bits). With ``regs_staging="bram"``
+    the register file's flip-flops hold the operand (``RegisterFile(derived=...)``: the function
+    where they load, fewer bits for the channel codes and the pre-trigger); with ``"ff"`` the
+    function sits between the register and the port."""
+    def minus_one(v):
+        # "every n, 0 acts as 1" (speed_div, scope_decim) → the blocks' "every x + 1".
+        return Mux(v == 0, 0, v - 1)
+
+    pw = len(scope.pretrigger)
+    # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must still
+    # record 0, so out-of-range codes saturate to the first unused code (not truncate, which
+    # would alias them onto real sources). `chan ≥ n_src` against the constant as logic
+    # (fixed.at_least), not on a carry chain (iCE40: 6 logic cells each).
+    n_src = len(scope.source_names)
+    unused = min(n_src, (1 << scope.sel_width) - 1)
+    sw = scope.sel_width
+    ops = {
+        "speed_div": (unsigned(regmap["speed_div"].width), minus_one,
+                      lambda x: max(x, 1) - 1),
+        "scope_decim": (unsigned(regmap["scope_decim"].width), minus_one,
+                        lambda x: max(x, 1) - 1),
+        # scope_pretrig is 16 bits, Scope.pretrigger log2(depth): clamp to depth − 1 (any bit
+        # from log2(depth) up: an OR, not a compare's carry chain).
+        "scope_pretrig": (unsigned(pw), lambda v: Mux(v[pw:].any(), scope.depth - 1, v[:pw]),
+                          lambda x: scope.depth - 1 if x >> pw else x),
+    }
+    for c in range(scope.channels):
+        ops[f"scope_chan{c}"] = (
+            unsigned(sw), lambda v: Mux(v[sw:].any() | at_least(v[:sw], n_src), unused, v[:sw]),
+            lambda x: unused if x >= n_src else x)
+    return ops
 
 
 def regmap_address_map(regmap):
@@ -351,7 +387,9 @@ class Top(wiring.Component):
         The register file's staging registers (:class:`~.regs.RegisterFile` ``staging``):
         ``"ff"`` (default, flip-flops; ``commit`` at ``period_start``) or ``"bram"`` (one block
         RAM; the commit copy runs over the :attr:`commit_clocks` clocks before ``period_start``,
-        module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF).
+        module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF; its flip-flops
+        of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` then hold
+        the blocks' operands, ``RegisterFile(derived=...)``).
 
     Members
     -------
@@ -493,13 +531,19 @@ class Top(wiring.Component):
         # ... and its status in its status RAM, read by the register file and the scope.
         self._status_ram = cfg_ram
         speed_ram = regs_staging == "bram"
+        self._scope = Scope(ram=scope_ram, ram_sources=ENGINE_STATUS if cfg_ram else ())
+        # The operands of the blocks that take a function of a register's value (_operands):
+        # with "bram" staging the register file's active flip-flops hold them (Derived).
+        self._operands = _operands(self._scope, regmap)
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
-                                  changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"))
+                                  changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
+                                  derived=({n: Derived(*op) for n, op in self._operands.items()}
+                                           if regs_staging == "bram" else None))
         exported = [r.name for _, r, _ in self._regs.export_words]
         self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
@@ -537,7 +581,6 @@ class Top(wiring.Component):
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
         self._gates = Gates()
-        self._scope = Scope(ram=scope_ram, ram_sources=ENGINE_STATUS if cfg_ram else ())
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
                              f"after the engine's done, which leaves only "
@@ -725,6 +768,15 @@ class Top(wiring.Component):
         # The current loop's configuration: the register file's active values, or (the engine
         # with "bram" staging) the register file's export port into the engine's RAM.
         exp = regs.export if "export" in regs.signature.members else None
+
+        def operand(name):
+            """A block's operand that is a function of register ``name`` (_operands): the
+            register file's Out member itself if it holds it (Derived), else the function of
+            the raw value."""
+            if name in regs.derived:
+                return getattr(regs, name)
+            return self._operands[name][1](getattr(regs, name))
+
         if hasattr(cl, "config"):
             # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1).
             m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < len(ENGINE_CONFIG))),
@@ -764,8 +816,7 @@ class Top(wiring.Component):
 
             servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
             servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
-            # speed_div: "every n periods, 0 acts as 1"; rate_div: "every rate_div + 1".
-            servo.speed_rate_div.eq(Mux(regs.speed_div == 0, 0, regs.speed_div - 1)),
+            servo.speed_rate_div.eq(operand("speed_div")),
             servo.speed_ref_delay.eq(regs.speed_ref_delay),
             servo.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
@@ -790,12 +841,8 @@ class Top(wiring.Component):
             _raw(prot.mask).eq(_raw(regs.prot_mask)),      # same FAULTS bit order (checked below)
             prot.clear.eq(regs.clear_faults),
 
-            # scope_decim: "every n ticks, 0 acts as 1"; Scope.decim: "every decim + 1".
-            scope.decim.eq(Mux(regs.scope_decim == 0, 0, regs.scope_decim - 1)),
-            # scope_pretrig is 16 bits, Scope.pretrigger log2(depth): clamp to depth − 1 (any
-            # bit from log2(depth) up: an OR, not a compare's carry chain).
-            scope.pretrigger.eq(Mux(regs.scope_pretrig[len(scope.pretrigger):].any(),
-                                    scope.depth - 1, regs.scope_pretrig)),
+            scope.decim.eq(operand("scope_decim")),
+            scope.pretrigger.eq(operand("scope_pretrig")),
             _raw(scope.trig_src).eq(_raw(regs.scope_trig_src)),
             scope.arm.eq(regs.scope_arm),
             scope.force.eq(regs.scope_force),
@@ -812,17 +859,9 @@ class Top(wiring.Component):
                          servo.speed_config.index.eq(exp.index - k),
                          servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
-        # scope_chanN is 8 bits, Scope.sel sel_width bits: a code beyond the source list must
-        # still record 0, so out-of-range codes saturate to the first unused code (not truncate,
-        # which would alias them onto real sources). `chan ≥ n_src` against the constant as
-        # logic (fixed.at_least), not on a carry chain (iCE40: 6 logic cells each).
-        n_src = len(scope.source_names)
-        unused = min(n_src, (1 << scope.sel_width) - 1)
-        sw = scope.sel_width
+        # The scope's channel selects: the codes clamped (_operands).
         for c in range(scope.channels):
-            chan = getattr(regs, f"scope_chan{c}")
-            beyond = chan[sw:].any() | at_least(chan[:sw], n_src)
-            m.d.comb += scope.sel[c].eq(Mux(beyond, unused, chan))
+            m.d.comb += scope.sel[c].eq(operand(f"scope_chan{c}"))
         # Window: 12-bit word offset = channel · 1024 + index; 16-bit samples zero-extended
         # (the host sign-extends the signed sources).
         m.d.comb += [

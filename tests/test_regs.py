@@ -6,13 +6,15 @@ import warnings
 
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Elaboratable, Module, Signal, UnusedElaboratable, signed, unsigned
+from amaranth.hdl import (Elaboratable, Module, Mux, Signal, UnusedElaboratable, signed,
+                          unsigned)
 from amaranth.lib.memory import Memory
 
 from foc_servo.hdl.bus import Status
 from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
 from foc_servo.hdl.bus import WordWriteSignature
-from foc_servo.hdl.regs import RegisterFile, export_init, export_words, staging_slots, word_index
+from foc_servo.hdl.regs import (Derived, RegisterFile, export_init, export_words, staging_slots,
+                                word_index)
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.regs import RegisterFileModel
 from foc_servo.sim.verify import regs as verify_regs
@@ -619,6 +621,78 @@ def test_register_file_bram_100k_random_accesses():
 def test_register_file_100k_random_accesses():
     fig = run(100_000, seed=0)
     assert fig["mismatches"] == 0, fig["first_mismatch"]
+
+
+# --- staging="bram" with derived active values ---------------------------------------------
+
+def _minus_one():
+    return Derived(unsigned(8), lambda v: Mux(v == 0, 0, v - 1), lambda x: max(x, 1) - 1)
+
+
+#: A shadowed register (speed_div, copied), immediate ones (scope_decim, its operand 16 bits;
+#: scope_chan0, narrowed to 4 bits; prot_ov_limit), and a signed shadowed one (i_d_ref, an
+#: arithmetic shift: the value sees the raw value signed, the const its bits).
+DERIVED = {
+    "speed_div": _minus_one(),
+    "scope_decim": Derived(unsigned(16), lambda v: Mux(v == 0, 0, v - 1),
+                           lambda x: max(x, 1) - 1),
+    "scope_chan0": Derived(unsigned(4), lambda v: Mux(v >= 14, 14, v[:4]),
+                           lambda x: min(x, 14)),
+    "prot_ov_limit": Derived(unsigned(3), lambda v: v[13:], lambda x: x >> 13),
+    "i_d_ref": Derived(signed(14), lambda v: v >> 2,
+                       lambda x: ((x - (1 << 16) if x >> 15 else x) >> 2) & 0x3FFF),
+}
+
+
+def test_random_traffic_with_derived_matches_the_model():
+    """Derived active values (shadowed, immediate, signed, beside export) load in the clocks
+    of the raw ones, with the function applied; reads return the raw values. A model whose
+    function differs from the gateware's is caught."""
+    fig = run(2500, seed=11, rst_p=0.002, **BRAM, export=EXPORT, derived=DERIVED)
+    assert fig["mismatches"] == 0 and fig["stuck"] == 0, fig["first_mismatch"]
+    assert fig["copies"] > 10 and fig["writes"] > 500 and fig["resets"] > 0
+    fig = run(1500, seed=11, **BRAM, derived={**DERIVED, "speed_div": Derived(
+        unsigned(8), lambda v: Mux(v == 0, 0, v - 1), lambda x: max(x, 2) - 1)})
+    assert fig["mismatches"] > 0
+
+
+def test_derived_members_and_errors():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        dut = RegisterFile(REGMAP, **BRAM, derived=DERIVED)
+        members = dut.signature.members
+        assert members["scope_chan0"].shape == unsigned(4)
+        assert members["speed_div"].init == REGMAP["speed_div"].reset - 1
+        assert members["i_d_ref"].shape == signed(14)
+        assert set(dut.derived) == set(DERIVED)
+        for kw, exc, msg in (
+                (dict(derived={"speed_div": 1}), TypeError,
+                 r"^RegisterFile derived must be a mapping of register names to Derived, "
+                 r"not \{'speed_div': 1\}$"),
+                (dict(derived=[("speed_div", _minus_one())]), TypeError,
+                 r"^RegisterFile derived must be a mapping of register names to Derived, "),
+                (dict(derived={"mode": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name one-word rw registers without enum or "
+                 r"fields, not exported or in changed, not 'mode'$"),
+                (dict(derived={"mt_k": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name .* not 'mt_k'$"),
+                (dict(derived={"st_udc": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name .* not 'st_udc'$"),
+                (dict(derived={"nope": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name .* not 'nope'$"),
+                (dict(export=("u_rated",), derived={"u_rated": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name .* not 'u_rated'$"),
+                (dict(changed=("enc_lines",), derived={"enc_lines": _minus_one()}), ValueError,
+                 r"^RegisterFile derived must name .* not 'enc_lines'$")):
+            with pytest.raises(exc, match=msg):
+                RegisterFile(REGMAP, **BRAM, **kw)
+        with pytest.raises(ValueError, match=r"^RegisterFile derived applies only to "
+                                             r"staging='bram', not staging='ff'$"):
+            RegisterFile(REGMAP, derived={"speed_div": _minus_one()})
+        with pytest.raises(TypeError, match=r"^Derived value and const must be callables, "):
+            Derived(unsigned(8), 1, lambda x: x)
+        del dut
+        gc.collect()
 
 
 # --- status read from a RAM (status_ram) ---------------------------------------------------------

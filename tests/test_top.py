@@ -12,7 +12,7 @@ import re
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Module, signed
+from amaranth.hdl import Module, Signal, signed
 from amaranth.lib import wiring
 from amaranth.lib.wiring import In
 
@@ -323,6 +323,58 @@ def test_top_every_rw_and_strobe_register_drives_its_block_port():
 
     simulate(top, [testbench], name="test_top_wiring")
     assert not bad
+
+
+def test_top_bram_register_file_holds_the_operands():
+    """regs_staging="bram": the register file's flip-flops hold the blocks' operands
+    (RegisterFile derived, hdl.top._operands), their gateware function equal to the Python
+    one (on every 8-bit code, on the corners and random values of the 16-bit ones) and to the
+    "ff" top's conversions (those of _wiring_table), the blocks' ports wired to them."""
+    top = Top(pwm_hz=PWM, baud=BAUD, regs_staging="bram")
+    ops, regs, scope = top._operands, top._regs, top._scope
+    n_src = len(scope.source_names)
+    conv = {"speed_div": lambda v: max(v, 1) - 1, "scope_decim": lambda v: max(v, 1) - 1,
+            "scope_pretrig": lambda v: min(v, scope.depth - 1),     # as _wiring_table's
+            **{f"scope_chan{c}": lambda v: min(v, n_src) for c in range(scope.channels)}}
+    ports = {"speed_div": top._servo.speed_rate_div, "scope_decim": scope.decim,
+             "scope_pretrig": scope.pretrigger,
+             **{f"scope_chan{c}": scope.sel[c] for c in range(scope.channels)}}
+    assert set(regs.derived) == set(ops) == {"speed_div", "scope_decim", "scope_pretrig",
+                                             *(f"scope_chan{c}" for c in range(4))}
+    assert len(regs.scope_chan0) == top._scope.sel_width and len(regs.scope_pretrig) == 10
+    m = Module()
+    ins = {n: Signal(top.regmap[n].width, name=f"{n}_raw") for n in ops}
+    outs = {n: Signal(op[0], name=f"{n}_op") for n, op in ops.items()}
+    m.d.comb += [outs[n].eq(op[1](ins[n])) for n, op in ops.items()]
+    rng = np.random.default_rng(3)
+    bad = []
+
+    async def functions(ctx):
+        for n, op in ops.items():
+            w = top.regmap[n].width
+            values = (range(1 << w) if w <= 8 else
+                      [0, 1, 2, 1022, 1023, 1024, 1025, (1 << w) - 1,
+                       *(int(v) for v in rng.integers(0, 1 << w, 200))])
+            for v in values:
+                ctx.set(ins[n], v)
+                got, want = ctx.get(outs[n]), op[2](v)
+                if not got == want == conv[n](v):
+                    bad.append((n, v, got, want, conv[n](v)))
+
+    simulate(m, [functions], name="test_top_operands")
+    assert not bad, bad[:5]
+
+    async def wiring_(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await ctx.tick()
+        for n in ops:
+            assert ctx.get(getattr(regs, n)) == ops[n][2](top.regmap[n].reset)   # init
+            for v in (0, 5, (1 << len(getattr(regs, n))) - 1):
+                ctx.set(getattr(regs, n), v)
+                port = ports[n]
+                assert ctx.get(_raw(port).as_unsigned()) == v & ((1 << len(_raw(port))) - 1), n
+
+    simulate(top, [wiring_], name="test_top_bram_operands")
 
 
 # --- simulations ------------------------------------------------------------------------------

@@ -25,7 +25,8 @@ class RegisterFileModel:
     staged : dict
         Staging value of every ``rw`` register (for an immediate one also the active value).
     active : dict
-        Active value (the Out member) of every ``rw`` register but the exported ones.
+        Active value (the Out member) of every ``rw`` register but the exported ones (of a
+        ``derived`` one: ``derived[name].const`` of its raw value).
     strobes : dict
         Strobe outputs during the current clock.
     ack, status, r_data_reg, win_hit
@@ -43,19 +44,23 @@ class RegisterFileModel:
         word). ``staged`` then holds only the immediate registers (whose reads, and the const
         words', come from the RAM); :meth:`staged_value` reads any register's staging value. (The
         gateware's slot is looked up in t + 1 from its word select, not registered; its copy
-        loads are enabled by a one-hot shift register rather than ``dst``: the same clocks.)
+        loads are enabled by a one-hot shift register rather than ``dst``: the same clocks; with
+        ``export`` its compare after a run of exported slots also fires in the reset walk, whose
+        loads write reset values into active words that hold them, which the model leaves out.)
     exp_on, exp_index
         ``export``: whether ``dst`` is an exported word and its export index, set with ``dst``;
         :meth:`export_port` is the ``export`` port during the clock, :attr:`export_walk` the
         ``export_walk`` output.
     """
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(), derived=None):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFileModel regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFileModel", "staging", staging, STAGINGS)
         self.regmap = regmap
         self.staging = staging
+        # derived (RegisterFile's): register name → the active value from the raw bits.
+        self._derive = {n: d.const for n, d in (derived or {}).items()}
         self._words = {addr: (r, k) for addr, r, k in regmap.words()}
         self._rw = [r for r in regmap if r.access is Access.RW]
         self._shadowed = [r.name for r in self._rw if r.shadow is not None]
@@ -89,6 +94,8 @@ class RegisterFileModel:
                        if not (self.bram and n in self._shadowed)}
         for n in self.export:
             del self.active[n]
+        for n, f in self._derive.items():
+            self.active[n] = f(self.active[n])
         self.strobes = {r.name: 0 for r in regmap if r.access is Access.STROBE}
         self.ack = 0
         self.status = Status.OK.value
@@ -204,7 +211,8 @@ class RegisterFileModel:
                     if r.shadow is None or not self.bram:
                         self.staged[r.name] = r.write_word(self.staged[r.name], k, w_data)
                     if r.shadow is None:
-                        self.active[r.name] = self.staged[r.name]
+                        self.active[r.name] = self._derive.get(r.name, int)(
+                            self.staged[r.name])
                 else:
                     self.status_p = Status.READ_ONLY.value
             else:
@@ -235,7 +243,10 @@ class RegisterFileModel:
                 self.mem[self.dst] = self.rd_data
             elif self.dst not in self._export_of:     # a copied slot (exported: on the port)
                 _, r, k = self.slots[self.dst]
-                self.active[r.name] = r.write_word(self.active[r.name], k, self.rd_data)
+                if r.name in self._derive:            # (one word)
+                    self.active[r.name] = self._derive[r.name](r.write_word(0, 0, self.rd_data))
+                else:
+                    self.active[r.name] = r.write_word(self.active[r.name], k, self.rd_data)
         if self.wr_pend:                              # t + 1 of a write: w_data still held
             _, r, k = self.slots[self.slot]
             self.mem[self.slot] = r.read_word(r.write_word(0, k, w_data), k)

@@ -47,9 +47,10 @@ class Bench(Elaboratable):
     RAM keeps its contents, as block RAM does).
     """
 
-    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=()):
+    def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(), derived=None):
         self.regmap = regmap
-        self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last, export=export)
+        self.dut = RegisterFile(regmap, staging=staging, copy_last=copy_last, export=export,
+                                derived=derived)
         exp = ([("export_valid", 1), ("export_index", len(self.dut.export.index)),
                 ("export_data", 32), ("export_walk", 1)] if export else [])
         ro = [r for r in regmap if r.access is Access.RO]
@@ -59,7 +60,8 @@ class Bench(Elaboratable):
         self.out_fields = self._fields([("ack", 1), ("status", 2), ("r_data", 32),
                                         *((r.name, 1) for r in regmap
                                           if r.access is Access.STROBE),
-                                        *((r.name, r.width) for r in regmap
+                                        *((r.name, len(_bits(getattr(self.dut, r.name))))
+                                          for r in regmap
                                           if r.access is Access.RW and r.name not in export),
                                         *exp])
         self.stim = Signal(sum(w for _, _, w in self.stim_fields))
@@ -185,12 +187,12 @@ def _cycles(regmap, accesses, rng, seen, *, commit_p, rst_p):
 
 
 def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", copy_last=(),
-        export=(), commit_p=None, rst_p=0.0):
+        export=(), derived=None, commit_p=None, rst_p=0.0):
     """Simulate the register file on ``count`` random bus accesses (plus a read of every register
     word first) and compare every clock with the model.
 
-    ``staging`` / ``copy_last`` / ``export``: the :class:`~foc_servo.hdl.regs.RegisterFile`
-    parameters (the ``export`` port compared as an output, its ``valid`` clocks counted in
+    ``staging`` / ``copy_last`` / ``export`` / ``derived``: the
+    :class:`~foc_servo.hdl.regs.RegisterFile` parameters (the ``export`` port compared as an output, its ``valid`` clocks counted in
     ``export_writes``);
     ``commit_p``: the probability of ``commit`` in a clock (default 0.15 for ``"ff"``, 0.02 for
     ``"bram"``, whose copy takes ``commit_clocks``); ``rst_p``: of a reset in a clock.
@@ -209,8 +211,9 @@ def run(count=100_000, *, seed=0, progress=False, regmap=REGMAP, staging="ff", c
     if commit_p is None:
         commit_p = 0.02 if staging == "bram" else 0.15
     rng = random.Random(seed)
-    bench = Bench(regmap, staging=staging, copy_last=copy_last, export=export)
-    model = RegisterFileModel(regmap, staging=staging, copy_last=copy_last, export=export)
+    bench = Bench(regmap, staging=staging, copy_last=copy_last, export=export, derived=derived)
+    model = RegisterFileModel(regmap, staging=staging, copy_last=copy_last, export=export,
+                              derived=derived)
     accesses = _accesses(regmap, count, rng)
     ro_regs = [r for r in regmap if r.access is Access.RO]
     windows = regmap.windows
