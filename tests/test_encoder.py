@@ -325,6 +325,22 @@ def test_angle_constants_match_divmod():
     assert angle_constants(0, 1, 0)[:2] == (0xFFFF, 1 << 16)
 
 
+async def _strobed_clock(ctx, dut, dec, names, pins, cfg, lp, zc):
+    """One clock of the decoder ``dut`` and its model ``dec`` with the pins ``(a, b, z)``, the
+    configuration ``cfg`` (lines, pole_pairs, z_offset) and its change strobes: ``names``'
+    outputs of both after it, (gateware, model)."""
+    a, b, zz = pins
+    for port, v in ((dut.a, a), (dut.b, b), (dut.z, zz), (dut.lines, cfg[0]),
+                    (dut.pole_pairs, cfg[1]), (dut.z_offset, cfg[2]),
+                    (dut.lp_changed, lp), (dut.z_changed, zc)):
+        ctx.set(port, v)
+    await ctx.tick()
+    dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2],
+             lp_changed=lp, z_changed=zc)
+    return (tuple(ctx.get(getattr(dut, k)) for k in names),
+            tuple(int(getattr(dec, k)) for k in names))
+
+
 def test_decoder_invalid_configurations_theta_vs_model():
     """Invalid configurations (z_offset or pole_pairs ≥ cpr, lines 0) leave whatever the 16
     division steps give, remainders ≥ cpr included: the decoder's theta, e, count, busy and
@@ -410,15 +426,7 @@ def test_decoder_change_strobes_in_and_out_of_a_sequence_vs_model():
                 pos += 1 if rng.random() < 0.7 else -1
             a, b = AB[pos % 4]
             zz = int(pos % 40 == 0)
-            for port, v in ((dut.a, a), (dut.b, b), (dut.z, zz), (dut.lines, cfg[0]),
-                            (dut.pole_pairs, cfg[1]), (dut.z_offset, cfg[2]),
-                            (dut.lp_changed, lp), (dut.z_changed, zc)):
-                ctx.set(port, v)
-            await ctx.tick()
-            dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2],
-                     lp_changed=lp, z_changed=zc)
-            got = tuple(ctx.get(getattr(dut, k)) for k in names)
-            want = tuple(int(getattr(dec, k)) for k in names)
+            got, want = await _strobed_clock(ctx, dut, dec, names, (a, b, zz), cfg, lp, zc)
             if got != want:
                 mism.append((t, got, want))
 
@@ -452,15 +460,7 @@ def test_decoder_strobe_while_busy_joins_or_runs_again(kind, at, runs):
             pos += 1 if t % 3 else 0
             a, b = AB[pos % 4]
             zz = int(t == 5)
-            for port, v in ((dut.a, a), (dut.b, b), (dut.z, zz), (dut.lines, cfg[0]),
-                            (dut.pole_pairs, cfg[1]), (dut.z_offset, cfg[2]),
-                            (dut.lp_changed, lp), (dut.z_changed, zc)):
-                ctx.set(port, v)
-            await ctx.tick()
-            dec.tick(a, b, zz, lines=cfg[0], pole_pairs=cfg[1], z_offset=cfg[2],
-                     lp_changed=lp, z_changed=zc)
-            got = tuple(ctx.get(getattr(dut, k)) for k in names)
-            want = tuple(int(getattr(dec, k)) for k in names)
+            got, want = await _strobed_clock(ctx, dut, dec, names, (a, b, zz), cfg, lp, zc)
             busy.append(got[3])
             if got != want:
                 mism.append((t, got, want))
