@@ -48,19 +48,40 @@ def _source(cell):
     return m.group(1) if m else None
 
 
-def _sources(cells):
+def _instances(module):
+    """The instance paths of a flattened module (``top.servo.speed_loop``): every prefix of the
+    ``hdlname`` attributes (the hierarchy, space-separated) of its nets and cells."""
+    paths = set()
+    for item in (*module.get("netnames", {}).values(), *module.get("cells", {}).values()):
+        parts = item.get("attributes", {}).get("hdlname", "").split()
+        paths.update(".".join(parts[:i]) for i in range(1, len(parts)))
+    return paths
+
+
+def _sources(cells, instances=None):
     """Each cell's HDL file stem: its ``src`` attribute, or for a cell without one (most LUTs
-    after ABC) the file most cells with a ``src`` in its instance (the cell's name up to the
-    last dot: flattening names a cell after the net it drives) come from, else its parent's."""
+    after ABC) the file most cells with a ``src`` in its instance come from, else its parent
+    instance's. A cell's instance is the longest prefix of its name (flattening names a cell
+    after the net it drives) that is one of ``instances`` (:func:`_instances`; without them,
+    the name up to its last dot): a LUT named after a block RAM's read data,
+    ``top.servo.speed_loop.rf.0.0_RDATA…``, is the speed loop's."""
+    def instance(name):
+        if instances is None:
+            return name.rpartition(".")[0]
+        parts = name.split(".")
+        for i in range(len(parts) - 1, 0, -1):
+            if ".".join(parts[:i]) in instances:
+                return ".".join(parts[:i])
+        return ""
     votes = defaultdict(Counter)
     own = {}
     for name, cell in cells.items():
         own[name] = _source(cell)
         if own[name]:
-            votes[name.rpartition(".")[0]][own[name]] += 1
+            votes[instance(name)][own[name]] += 1
     result = {}
     for name, src in own.items():
-        path = name.rpartition(".")[0]
+        path = instance(name)
         while not src and path:
             if votes.get(path):
                 src = votes[path].most_common(1)[0][0]
@@ -88,7 +109,8 @@ def logic_cells(netlist):
         (most LUTs after ABC) where most cells of its instance come from (:func:`_sources`),
         else as ``"(no source)"``.
     """
-    cells = _top_module(netlist).get("cells", {})
+    module = _top_module(netlist)
+    cells = module.get("cells", {})
     driver = {}
     users = defaultdict(list)
     for name, cell in cells.items():
@@ -112,7 +134,7 @@ def logic_cells(netlist):
         return not (len(us) == 1 and us[0][1] == "D"
                     and cells[us[0][0]]["type"].startswith("SB_DFF"))
 
-    source = _sources(cells)
+    source = _sources(cells, _instances(module) or None)
     groups = defaultdict(Counter)
     lone_carries = []
     for name, cell in cells.items():

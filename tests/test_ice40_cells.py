@@ -10,7 +10,7 @@ from amaranth.lib.wiring import In, Out
 
 from foc_servo.boards.area import STRIP_CHECKS, ports
 from foc_servo.boards.fmax import _tool
-from foc_servo.boards.ice40_cells import logic_cells, report_lines
+from foc_servo.boards.ice40_cells import _instances, _sources, logic_cells, report_lines
 
 
 def _cell(kind, src="", **conn):
@@ -77,6 +77,24 @@ class _Mix(wiring.Component):
         m.d.sync += [self.count.eq(self.count + 1), self.lt.eq(self.a < self.b),
                      self.copy.eq(Cat(*regs))]
         return m
+
+
+def test_cells_without_a_source_go_to_their_instance():
+    """A LUT without ``src`` named after a RAM's read data (``...speed_loop.rf.0.0_RDATA...``)
+    belongs to the instance its name starts with (the hierarchy from ``hdlname``), whose cells
+    vote servo, not to the pseudo-instance ``rf.0`` that one ``fixed`` carry shares its name
+    with (the session-11/12 tables' moving ``fixed`` row; docs/AREA.md "Session 12")."""
+    cells = {"top.servo.speed_loop.rf.0.0_RDATA_SB_LUT4_O": _cell("SB_LUT4"),
+             "top.servo.speed_loop.rf.0.0_RDATA_SB_CARRY_CO": _cell("SB_CARRY",
+                                                                   "hdl/fixed.py:10"),
+             "top.servo.speed_loop.acc_SB_DFF_Q": _cell("SB_DFF", "hdl/servo.py:100"),
+             "top.servo.speed_loop.b_SB_DFF_Q": _cell("SB_DFF", "hdl/servo.py:101")}
+    module = {"cells": cells,
+              "netnames": {"x": {"attributes": {"hdlname": "top servo speed_loop acc"}}}}
+    assert _instances(module) == {"top", "top.servo", "top.servo.speed_loop"}
+    lut = "top.servo.speed_loop.rf.0.0_RDATA_SB_LUT4_O"
+    assert _sources(cells, _instances(module))[lut] == "servo"
+    assert _sources(cells)[lut] == "fixed"         # by the name up to its last dot
 
 
 def test_estimate_agrees_with_nextpnr(tmp_path):
