@@ -66,6 +66,15 @@ _MEM_PORT = re.compile(r"^[ \t]*cell \$mem(?P<kind>rd|wr)(?:_v2)? \S+\n(?P<body>
                        re.M | re.S)
 
 
+_MODULE = re.compile(r"^module \S+$.*?^end$", re.M | re.S)
+
+
+def _rewrite_modules(text, rewrite):
+    """``text`` (RTLIL) with each ``module … end`` block replaced by ``rewrite(block)``; the
+    text between modules unchanged."""
+    return _MODULE.sub(lambda module: rewrite(module.group(0)), text)
+
+
 def mark_xilinx_roms(text):
     """Mark the read-only memories of an RTLIL design that are worth a block RAM on the Xilinx
     parts: ``rom_style = "block"`` (honoured by Vivado, XST and yosys' ``memory_libmap``) on
@@ -89,10 +98,7 @@ def mark_xilinx_roms(text):
     str
         ``text`` with ``attribute \\rom_style "block"`` before each such ``memory``.
     """
-    out = []
-    pos = 0
-    for module in re.finditer(r"^module \S+$.*?^end$", text, re.M | re.S):
-        body = module.group(0)
+    def rewrite(body):
         ports = {}
         for port in _MEM_PORT.finditer(body):
             memid = re.search(r'parameter \\MEMID "\\\\(\S+)"', port.group("body"))
@@ -112,9 +118,8 @@ def mark_xilinx_roms(text):
                     and not any("\\rom_style " in line for line in attrs)):
                 return f'{m.group("indent")}attribute \\rom_style "block"\n{m.group(0)}'
             return m.group(0)
-        out += [text[pos:module.start()], _MEMORY.sub(mark, body)]
-        pos = module.end()
-    return "".join(out) + text[pos:]
+        return _MEMORY.sub(mark, body)
+    return _rewrite_modules(text, rewrite)
 
 
 _CELL = re.compile(r"^[ \t]*cell (?P<type>\S+) \S+\n(?P<body>.*?)^[ \t]*end$", re.M | re.S)
@@ -164,10 +169,7 @@ def ram_read_init_free(text):
     str
         ``text`` without those ``init`` attributes (other text unchanged; idempotent).
     """
-    out = []
-    pos = 0
-    for module in re.finditer(r"^module \S+$.*?^end$", text, re.M | re.S):
-        body = module.group(0)
+    def rewrite(body):
         widths = {}
         for w in _WIRE.finditer(body):
             width = re.search(r"\bwidth (\d+)", w.group("opts"))
@@ -205,9 +207,8 @@ def ram_read_init_free(text):
             attrs = "".join(line for line in m.group("attrs").splitlines(keepends=True)
                             if not line.lstrip().startswith("attribute \\init "))
             return attrs + m.group(0)[len(m.group("attrs")):]
-        out += [text[pos:module.start()], _WIRE.sub(unset, body)]
-        pos = module.end()
-    return "".join(out) + text[pos:]
+        return _WIRE.sub(unset, body)
+    return _rewrite_modules(text, rewrite)
 
 
 def _yosys_command():
