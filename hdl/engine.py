@@ -700,7 +700,10 @@ class Engine(wiring.Component):
     Members
     -------
     start : In(1)
-        Start the program at address 0 (ignored while running).
+        Start the program at ``start_pc`` (ignored while running).
+    start_pc : In(PC_WIDTH)
+        The address ``start`` starts at: 0, or an entry label's (:attr:`Program.labels`, e.g.
+        the ``speed`` run of ``current_loop_program(speed=True)``); 0 when not driven.
     running : Out(1)
         The program runs (from the clock after ``start`` to its END).
     end : Out(1)
@@ -778,6 +781,7 @@ class Engine(wiring.Component):
         self._rot = rotator
         members = {
             "start": In(1),
+            "start_pc": In(PC_WIDTH),
             "running": Out(1),
             "end": Out(1),
             "trace_valid": Out(1),
@@ -1185,7 +1189,7 @@ class Engine(wiring.Component):
         m.d.comb += pc_next.eq(pc)
         with m.If(self.start & ~self.running):
             m.d.sync += [self.running.eq(1), f_valid.eq(1), r_valid.eq(0), x_valid.eq(0)]
-            m.d.comb += pc_next.eq(0)
+            m.d.comb += pc_next.eq(self.start_pc)
         with m.Elif(halt):
             m.d.sync += [self.running.eq(0), f_valid.eq(0), r_valid.eq(0), x_valid.eq(0)]
         with m.Elif(self.running):

@@ -37,7 +37,7 @@ __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_le
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "CURRENT_STATE", "SPEED_STATE",
-           "SPEED_SPECIALS", "SPEED_CONDS", "SPEED_OUTS"]
+           "SPEED_SPECIALS", "SPEED_SHAPES", "SPEED_FLAGS", "SPEED_CONDS", "SPEED_OUTS"]
 
 #: The only configuration the program is written for (validated by EngineCurrentLoop).
 ENGINE_WIDTH = 16
@@ -91,11 +91,25 @@ SPEED_STATE = ("h0", "h1", "h2", "ih", "il", "ep")
 #: fraction of ``ref_delay``; the gains in pieces that fit the multiplier's A operand
 #: (wiring only): ``kph = kp >> 16``, ``kpl = kp & 0xFFFF``, ``kxa = (kx >> 16)·2**10``,
 #: ``kxb = (kx >> 4) & 0xFFF``, ``kxc = kx & 0xF``.
+#: Last the 1-bit flags (:data:`SPEED_FLAGS`) and ``dint``, the integer part of ``ref_delay``
+#: (0 … 3), tested by an ``ADD``/``SUB`` with ``setf`` (then ``Z``, ``N``), not as conditions:
+#: a condition-mux input per flag lengthened the engine's critical path (AREA.md §7.45: 15
+#: conditions, 33.58 → 32.28 MHz on the UP5K); one 2-bit ``dint`` instead of three bits keeps
+#: the program ROM's special-operand key at 5 bits (31 keys; the ROM 64 bits wide, 8 BRAM).
 SPEED_SPECIALS = ("spd", "sref", "rint", "slh", "sll", "iqff", "ilo", "ihi", "dfr", "kph",
-                  "kpl", "kxa", "kxb", "kxc")
-#: Its conditions: first run after ``clear`` (``FRESH``), ``int_hold``, the bits of
-#: ``ref_delay``'s integer part and that part being 0.
-SPEED_CONDS = ("FRESH", "IH", "DB1", "DB2", "DZ")
+                  "kpl", "kxa", "kxb", "kxc", "fresh", "ih", "dint")
+#: Shapes of :data:`SPEED_SPECIALS` as the gateware feeds them (the engine sign- or
+#: zero-extends each to its 32-bit word): the speeds and ``ref_int`` signed(32), the slew's
+#: halves, the currents signed(16), the gains' pieces (``kp``, ``kx`` UQ(24, ·)) unsigned.
+SPEED_SHAPES = {"spd": signed(32), "sref": signed(32), "rint": signed(32), "slh": unsigned(31),
+                "sll": unsigned(1), "iqff": signed(16), "ilo": signed(16), "ihi": signed(16),
+                "dfr": unsigned(3), "kph": unsigned(8), "kpl": unsigned(16),
+                "kxa": unsigned(18), "kxb": unsigned(12), "kxc": unsigned(4),
+                "fresh": unsigned(1), "ih": unsigned(1), "dint": unsigned(2)}
+#: The 1-bit special operands: first run after ``clear`` (``fresh``), ``int_hold``.
+SPEED_FLAGS = ("fresh", "ih")
+#: Its conditions: none of its own (the flags are special operands).
+SPEED_CONDS = ()
 #: Its output registers (``ang`` only because every engine has one).
 SPEED_OUTS = {"ang": 16, "ref_int": 32, "iq": 16, "sat": 1}
 
@@ -915,11 +929,18 @@ def _speed_loop(A):
         A.alu(Op.ADD, None, r("k"), 0, setf=True)
         A.alu(Op.SEL, f"r.{name}", 1, 0, cond="LE")
 
-    # R[n−1], to_pi(R[n−1]); after clear the history starts at it.
+    def flag(name):
+        """Z ← the special ``name`` is 0 (a 1-bit flag set: ``!Z``)."""
+        A.alu(Op.ADD, None, f"s.{name}", 0, setf=True)
+
+    # R[n−1], to_pi(R[n−1]); after clear the history starts at it and the PI is cleared.
     A.alu(Op.ADD, "r.R", "s.rint", 0)
     to_pi("r.tp", "s.rint")
+    flag("fresh")
     for h in ("h0", "h1", "h2"):
-        A.alu(Op.SEL, f"r.{h}", f"r.{h}", "r.tp", cond="FRESH")
+        A.alu(Op.SEL, f"r.{h}", f"r.{h}", "r.tp", cond="!Z")
+    for reg in ("r.ih", "r.il", "r.ep"):
+        A.alu(Op.SEL, reg, reg, 0, cond="!Z")
     A.alu(Op.ADD, "r.sref", "s.sref", 0)
     A.alu(Op.ADD, "r.sh", "s.slh", 0)
     A.alu(Op.ADD, "r.sl", "s.sll", 0)
@@ -969,24 +990,28 @@ def _speed_loop(A):
     # The PI's reference: to_pi(plan) (d = 0), else a + round_shift(f·(b − a), 3) with
     # a = tap d − 1, b = tap d of (to_pi(R[n−1]), h0, h1, h2).
     to_pi("r.tpl", "r.plan")
-    A.alu(Op.SEL, "r.ta1", "r.tp", "r.h1", cond="DB2")
-    A.alu(Op.SEL, "r.ta", "r.ta1", "r.h0", cond="!DB1")
-    A.alu(Op.SEL, "r.tb1", "r.h0", "r.h2", cond="DB2")
-    A.alu(Op.SEL, "r.tb", "r.tb1", "r.h1", cond="!DB1")
+    A.alu(Op.SUB, None, "s.dint", 2, setf=True)            # N: d < 2, Z: d = 2
+    A.alu(Op.SEL, "r.ta1", "r.h1", "r.h0", cond="Z")
+    A.alu(Op.SEL, "r.tb1", "r.h2", "r.h1", cond="Z")
+    A.alu(Op.SEL, "r.ta", "r.ta1", "r.tp", cond="N")
+    A.alu(Op.SEL, "r.tb", "r.tb1", "r.h0", cond="N")
     A.alu(Op.SUB, "r.cb", "r.tb", "r.ta")
     A.mul("s.dfr", "r.cb")
     A.post("r.fd", 3)
     A.alu(Op.ADD, "r.refi", "r.ta", "r.fd")
-    A.alu(Op.SEL, "r.ref", "r.refi", "r.tpl", cond="DZ")
+    flag("dint")                                            # Z: d = 0
+    A.alu(Op.SEL, "r.ref", "r.refi", "r.tpl", cond="Z")
     # hold = int_hold and S ≠ 0 and (R[n−1] ≠ speed_ref or (d ≥ 1 and ref ≠ to_pi(R[n−1]))).
     A.alu(Op.SUB, None, "r.R", "r.sref", setf=True)
     A.alu(Op.SEL, "r.m1", 1, 0, cond="Z")
     A.alu(Op.SUB, None, "r.ref", "r.tp", setf=True)
     A.alu(Op.SEL, "r.m2", 1, 0, cond="Z")
-    A.alu(Op.SEL, "r.m3", "r.m2", 0, cond="DZ")
+    flag("dint")
+    A.alu(Op.SEL, "r.m3", "r.m2", 0, cond="Z")
     A.alu(Op.MAX, "r.mv", "r.m1", "r.m3")
     A.alu(Op.MIN, "r.mv2", "r.mv", "r.snz")
-    A.alu(Op.SEL, "r.hold", 0, "r.mv2", cond="IH")
+    flag("ih")
+    A.alu(Op.SEL, "r.hold", 0, "r.mv2", cond="!Z")
     # fb = to_pi(speed); E = saturate(ref − fb, signed(24)).
     to_pi("r.fb", "s.spd")
     A.alu(Op.SUB, "r.e0", "r.ref", "r.fb")
@@ -1018,9 +1043,7 @@ def _speed_pi(A):
     ``I + dI`` (< 2**43) is split as ``floor / 2**16`` and the remainder: above ``hi·2**16`` iff
     its ceiling exceeds ``hi``, below ``lo·2**16`` iff its floor is below ``lo``."""
     top, bot = (1 << 23) - 1, -(1 << 23)
-    # First run after clear: PI cleared.
-    for reg in ("r.ih", "r.il", "r.ep"):
-        A.alu(Op.SEL, reg, reg, 0, cond="FRESH")
+    # (First run after clear: the PI's state is cleared at the run's start, :func:`_speed_loop`.)
     # Limits lo_s, hi_s = sat((lim − ff)·2**8, signed(24)).
     for side in ("lo", "hi"):
         A.alu(Op.SUB, f"r.{side}d", f"s.i{side}", "r.ff")

@@ -163,7 +163,7 @@ def test_combined_program_runs_both_loops_unchanged():
     temporaries in the current loop's registers, on one register file: current-loop samples
     and speed runs interleaved give exactly what each program gives alone (the current loop's
     outputs and DC-bus gain sample by sample; the speed loop's i_q, sat, ref_int, integrator,
-    E[n−1] run by run), so neither clobbers the other's state. 498 words (ROM 512), 124 RF
+    E[n−1] run by run), so neither clobbers the other's state. 500 words (ROM 512), 124 RF
     words (of 128)."""
     from foc_servo.sim.verify import foc as verify_foc
     combined = current_loop_program(speed=True)
@@ -194,3 +194,105 @@ def test_combined_program_runs_both_loops_unchanged():
         for name in ("iq", "sat", "integrator", "ep"):
             assert ra[name] == rb[name], (k, name)
         assert spd_a.ref_int == spd_b.ref_int
+
+
+# --- the combined program on the gateware engine, cycle by cycle ---------------------------------
+
+def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle():
+    """``current_loop_program(speed=True)`` on :class:`Engine` (``start_pc`` 0: a current-loop
+    sample; the ``speed`` label: a speed run, the five flags as 1-bit special operands)
+    against :class:`EngineModel` on one register file, runs interleaved at random: every
+    executed instruction's write back (pc, P, destination, value) in the same clock, the
+    output registers after each END; the speed run's results also against
+    :class:`EngineSpeedModel` on the speed program alone."""
+    from amaranth.hdl import signed as s_
+
+    from foc_servo.hdl.engine import Engine
+    from foc_servo.hdl.foc_engine import OUTS, SPECIALS, SPEED_OUTS, SPEED_SHAPES
+    from foc_servo.sim.harness import simulate
+    from foc_servo.sim.models.engine import EngineModel, _complete
+    from foc_servo.sim.verify import foc as verify_foc
+
+    prog = current_loop_program(speed=True)
+    outs = {**OUTS, **SPEED_OUTS}
+    shapes = {**{n: s_(20) for n in SPECIALS}, **SPEED_SHAPES}
+    dut = Engine(program=prog, special_shapes=shapes, out_widths=outs)
+    model = EngineModel(prog, out_widths=outs)
+    ref = EngineSpeedModel()                      # the speed program alone
+    shadow = EngineSpeedModel(program=prog, engine=model)   # builds the specials only
+    vec = verify_foc.stimulus(40, seed=3)
+    vec = {k: np.asarray(v) for k, v in vec.items() if k != "theta_lead"} | {
+        "lead_k": np.asarray(vec["theta_lead"]) % (1 << 16)}
+    runs = _stimulus(11, 40)
+    rng = np.random.default_rng(11)
+    order = ["c"] * 40 + ["s"] * 40
+    rng.shuffle(order)
+    jobs, kc, ks = [], 0, 0
+    for kind in order:
+        if kind == "c":
+            jobs.append(("c", EngineLoopModel.specials_of(vec, kc)))
+            kc += 1
+        else:
+            jobs.append(("s", runs[ks]))
+            ks += 1
+    errors, count = [], [0, 0]
+
+    async def testbench(ctx):
+        for k, (kind, job) in enumerate(jobs):
+            if kind == "c":
+                spec, conds = _complete(prog, *job)
+                start = 0
+            else:
+                inp = job
+                if inp["clear"]:
+                    track = inp["speed_ref"] if inp["speed_slew"] == 0 else inp["speed"]
+                    ref.clear(track)
+                    shadow.clear(track)
+                args = {n: inp[n] for n in ("speed", "speed_ref", "speed_slew", "iq_ff",
+                                            "lim_lo", "lim_hi", "ref_delay", "int_hold",
+                                            "kp", "kx")}
+                spec, conds = shadow.specials_of(**args)
+                start = shadow.start
+                got_model = shadow.run(**args)
+                want = ref.run(**args)
+                for name in ("iq", "sat", "integrator", "ep"):
+                    if got_model[name] != want[name]:
+                        errors.append((k, "model", name))
+                trace = shadow.trace
+            if kind == "c":
+                trace = model.run(spec, conds)
+            for name in shapes:
+                ctx.set(getattr(dut, f"s_{name}"), spec[name])
+            for name, val in conds.items():
+                ctx.set(getattr(dut, f"c_{name}"), int(val))
+            ctx.set(dut.start_pc, start)
+            ctx.set(dut.start, 1)
+            await ctx.tick()
+            ctx.set(dut.start, 0)
+            i = cyc = 0
+            while i < len(trace):
+                await ctx.tick()
+                cyc += 1
+                if cyc > 400:
+                    errors.append((k, kind, "no END"))
+                    return
+                if not ctx.get(dut.trace_valid):
+                    continue
+                e = trace[i]
+                got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
+                       "wen": ctx.get(dut.trace_wen)}
+                if e["wen"]:
+                    got.update(dst=ctx.get(dut.trace_dst), y=ctx.get(dut.trace_y))
+                if got != {key: e[key] for key in got}:
+                    errors.append((k, kind, i, e, got))
+                    return
+                i += 1
+            count[kind == "s"] += 1
+            await ctx.tick()
+            for name, ow in outs.items():
+                if ctx.get(getattr(dut, f"o_{name}")) != model.outs[name] % (1 << ow):
+                    errors.append((k, kind, name))
+
+    simulate(dut, [testbench], name="engine_speed")
+    assert errors == []
+    assert count == [40, 40]

@@ -347,7 +347,7 @@ class EngineSpeedModel:
     """A speed-loop run (:func:`foc_servo.hdl.foc_engine.speed_loop_program`) on
     :class:`EngineModel`, one :meth:`run` per accepted run, with the state the gateware keeps
     outside the program: the ``ref_int`` output register (forced to the tracked value by
-    :meth:`clear`) and the ``FRESH`` condition (set by :meth:`clear`, cleared by a run). The
+    :meth:`clear`) and the ``fresh`` flag (a 1-bit special; set by :meth:`clear`, cleared by a run). The
     outputs ``iq`` and ``sat`` hold until the next run (the gateware clears them with
     ``clear``).
 
@@ -363,6 +363,8 @@ class EngineSpeedModel:
     ref_int : int
         The profile's reference ``R`` (signed 32 bits), as ``SpeedLoopModel.ref_int`` after a
         run or a ``clear``.
+    trace : list of dict
+        :meth:`EngineModel.run`'s trace of the last run.
     """
 
     #: Register-file values :meth:`run` returns.
@@ -377,6 +379,7 @@ class EngineSpeedModel:
         self.prefix = "spd_" if "speed" in self.program.labels else ""
         self.fresh = False
         self.ref_int = 0
+        self.trace = []
 
     def clear(self, track):
         """A clock of ``clear``: ``R`` tracks ``track`` (the speed if the slew is not 0, else
@@ -388,17 +391,10 @@ class EngineSpeedModel:
             kp, kx):
         """One accepted run (raw integers as :meth:`SpeedLoopModel.clock` takes them) → dict
         of :data:`RESULTS` (register-file values) and the outputs ``iq`` (signed), ``sat``."""
-        from ...hdl.servo import DELAY_FRAC
-        d = int(ref_delay) >> DELAY_FRAC
-        spec = {"spd": speed, "sref": speed_ref, "rint": self.ref_int, "slh": speed_slew >> 1,
-                "sll": speed_slew & 1, "iqff": iq_ff, "ilo": lim_lo, "ihi": lim_hi,
-                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1), "kph": kp >> 16,
-                "kpl": kp & 0xFFFF, "kxa": (kx >> 16) << 10, "kxb": (kx >> 4) & 0xFFF,
-                "kxc": kx & 0xF}
-        conds = {"FRESH": self.fresh, "IH": bool(int_hold), "DB1": bool(d & 1),
-                 "DB2": bool(d & 2), "DZ": d == 0}
-        spec, conds = _complete(self.program, {k: int(v) for k, v in spec.items()}, conds)
-        self.engine.run(spec, conds, start=self.start)
+        spec, conds = self.specials_of(
+            speed=speed, speed_ref=speed_ref, speed_slew=speed_slew, iq_ff=iq_ff,
+            lim_lo=lim_lo, lim_hi=lim_hi, ref_delay=ref_delay, int_hold=int_hold, kp=kp, kx=kx)
+        self.trace = self.engine.run(spec, conds, start=self.start)
         self.fresh = False
         self.ref_int = _signed(self.engine.outs["ref_int"], 32)
         regs = self.program.regs
@@ -410,3 +406,18 @@ class EngineSpeedModel:
         out["sat"] = self.engine.outs["sat"]
         out["integrator"] = (out["ih"] << 16) + out["il"]
         return out
+
+    def specials_of(self, *, speed, speed_ref, speed_slew, iq_ff, lim_lo, lim_hi, ref_delay,
+                    int_hold, kp, kx):
+        """The engine's special operands and conditions (every one of the program's) for a run
+        with these inputs and the state (``ref_int``, ``fresh``) as it is: ``(specials,
+        conds)``, the values the gateware feeds its ports."""
+        from ...hdl.servo import DELAY_FRAC
+        d = int(ref_delay) >> DELAY_FRAC
+        spec = {"spd": speed, "sref": speed_ref, "rint": self.ref_int, "slh": speed_slew >> 1,
+                "sll": speed_slew & 1, "iqff": iq_ff, "ilo": lim_lo, "ihi": lim_hi,
+                "dfr": ref_delay & ((1 << DELAY_FRAC) - 1), "kph": kp >> 16,
+                "kpl": kp & 0xFFFF, "kxa": (kx >> 16) << 10, "kxb": (kx >> 4) & 0xFFF,
+                "kxc": kx & 0xF, "fresh": int(self.fresh), "ih": int(bool(int_hold)),
+                "dint": d}
+        return _complete(self.program, {k: int(v) for k, v in spec.items()}, {})
