@@ -805,6 +805,22 @@ class Engine(wiring.Component):
             members[f"o_{name}_we"] = Out(1)
         super().__init__(members)
 
+    def _key_of(self, ins):
+        """The (special, asl) pair of an instruction's special A (config specials: one)."""
+        cfg = {self._program.specials.index(name) for name in self._config}
+        return (len(self._program.specials) if ins.a in cfg else ins.a, ins.asl)
+
+    @property
+    def _keys(self):
+        return sorted({self._key_of(ins) for ins in self._program.instrs
+                       if ins.asp and ins.a >= 2})
+
+    @property
+    def rom_width(self):
+        """Bits of a program ROM word: the instruction and its special operand's key (0 for
+        none, ``k + 1`` for the k-th (special, asl) pair)."""
+        return INSTR_WIDTH + max(1, len(self._keys).bit_length())
+
     program = property(lambda self: self._program)
     rotator = property(lambda self: self._rot)
     config = property(lambda self: self._config)
@@ -823,13 +839,8 @@ class Engine(wiring.Component):
         # With ``config``, the config specials share one key (two with asl): CFG stands for
         # the configuration RAM's read data.
         cfg_of = {prog.specials.index(name): j for j, name in enumerate(self._config)}
-        CFG = len(prog.specials)
-
-        def key_of(ins):
-            return (CFG if ins.a in cfg_of else ins.a, ins.asl)
-
-        keys = sorted({key_of(ins) for ins in prog.instrs if ins.asp and ins.a >= 2})
-        key_w = max(1, (len(keys) + 1 - 1).bit_length())
+        key_of, keys = self._key_of, self._keys
+        key_w = self.rom_width - INSTR_WIDTH
         rom_words = [word | ((keys.index(key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
                              << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,

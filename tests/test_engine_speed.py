@@ -296,3 +296,29 @@ def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle()
     simulate(dut, [testbench], name="engine_speed")
     assert errors == []
     assert count == [40, 40]
+
+
+def test_combined_program_rom_is_64_bits_wide():
+    """The combined ROM's word (instruction + special key) with the configuration RAM as the
+    iCEBreaker top has it: 64 bits (500 × 64: 8 block RAMs); the speed flags as conditions or
+    three 1-bit ``ref_delay`` flags would make 32 keys, 65 bits (9 BRAM)."""
+    import gc
+    import warnings
+
+    from amaranth.hdl import UnusedElaboratable, signed as s_
+
+    from foc_servo.hdl.engine import Engine
+    from foc_servo.hdl.foc_engine import CONFIG, OUTS, SPECIALS, SPEED_OUTS, SPEED_SHAPES
+
+    prog = current_loop_program(speed=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        dut = Engine(program=prog, special_shapes={**{n: s_(20) for n in SPECIALS},
+                                                   **SPEED_SHAPES},
+                     out_widths={**OUTS, **SPEED_OUTS}, config=CONFIG)
+        base = Engine(program=current_loop_program(), special_shapes={n: s_(20) for n in SPECIALS},
+                      out_widths=OUTS, config=CONFIG)
+        widths = dut.rom_width, base.rom_width
+        del dut, base
+        gc.collect()                    # (built for their attributes only: no warning)
+    assert widths == (64, 63)
