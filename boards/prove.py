@@ -683,8 +683,8 @@ class HostLinkSpec(Elaboratable):
         m = Module()
         cls = LinkCore
         if self.broken:
-            cls = mutant(LinkCore, ("with m.Elif((crc != 0) | (length < 2)):",
-                                    "with m.Elif(length < 2):"))
+            cls = mutant(LinkCore, ("with m.Elif((crc != 0) | _below(length, 2)):",
+                                    "with m.Elif(_below(length, 2)):"))
         link = cls(max_words=self.max_words, address_map=self.address_map)
         m.submodules.link, internal = elaborate_with_internals(link, platform)
         _drive_inputs(m, link)

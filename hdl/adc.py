@@ -261,7 +261,10 @@ class AdcInterface(wiring.Component):
         bits = part.bits
         names = CHANNELS[:part.lines]
 
-        longest = max(self._n_csl, self._n_fall2, self._n_sclked, h, self._n_recover)
+        # The timer counts down from the longest value it is loaded with (one register bit less
+        # than the longest interval needs where that is the conversion time less the CS pulse).
+        longest = max(self._n_csl - 1, self._n_fall2 - self._n_csl - 1, self._n_sclked - 1,
+                      h - 1, self._n_recover - 1)
         timer = Signal(range(longest + 1))
         nbit = Signal(range(bits + 1))     # SDO bits sampled so far in this frame
         shreg = [Signal(bits, name=f"sh_{n}") for n in names]

@@ -343,7 +343,11 @@ class LinkCore(wiring.Component):
         is_write = Signal()
         # The reply's cmd and seq are the request's header registers (cleared in REPLY where
         # the reply carries 0).
-        r_cmd, r_seq, r_info = cmd_in, seq_in, Signal(8)
+        # info ≤ max_words (count ≤ max_words, an index < count, or max_words itself): no
+        # register bits above it; the reply byte is it zero-extended.
+        r_cmd, r_seq, r_info = cmd_in, seq_in, Signal(range(mw + 1))
+        info8 = Signal(8)
+        m.d.comb += info8.eq(r_info)
         r_status = Signal(8)
         framing = Signal()                      # the BAD_CRC is for a damaged frame
         nwords = Signal(range(mw + 1))          # data words in the reply
@@ -396,7 +400,7 @@ class LinkCore(wiring.Component):
         flags = Cat(j_hdr, j_dat, j_dend)
         flags_next = Signal.like(flags)
         m.d.sync += flags.eq(flags_next)
-        jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, r_info).word_select(j[:2], 8),
+        jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
                  Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
@@ -529,9 +533,8 @@ class LinkCore(wiring.Component):
                 with m.If(bad):
                     status(ReplyStatus.BAD_CRC)
                     m.d.sync += framing.eq(1)
-                # (length < 2: a carry chain of length's bits; the proof's --broken mutant
-                # edits this line's text.)
-                with m.Elif((crc != 0) | (length < 2)):
+                # (The proof's --broken mutant edits this line's text.)
+                with m.Elif((crc != 0) | _below(length, 2)):
                     status(ReplyStatus.BAD_CRC)
                 with m.Elif(_below(length, REQUEST_HEADER + CRC_BYTES)):
                     status(ReplyStatus.BAD_LENGTH)
