@@ -308,7 +308,11 @@ class Scope(wiring.Component):
         # of `phase`: sel[0] is always the code of the channel sampled in this clock (no
         # `sel[phase]` multiplexer in front of the source multiplexer).
         sel = Signal.like(self.sel)
-        decim = Signal.like(self.decim)
+        # Latched at arm and read only while capturing: no reset needed. Its power-up value is
+        # all ones because an iCE40 flip-flop holds `value XOR init`, so the decimation compare
+        # (`dcount >= decim`, which wants `~decim` on the carry inputs) gets the complement
+        # without an inverter LUT per bit (AREA.md §7.50).
+        decim = Signal.like(self.decim, init=(1 << len(self.decim)) - 1, reset_less=True)
         pre = Signal.like(self.pretrigger)
         trig_src = Signal(TriggerSource)
         state = Signal(ScopeState)
