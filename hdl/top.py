@@ -198,6 +198,12 @@ SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew
 #: The registers whose host writes raise the Servo's ``ref_change`` (its ``mode``,
 #: ``speed_ref``, ``id_set``, ``iq_set``, ``ud_set``, ``uq_set``): the scope's reference-step
 #: trigger (module docstring, "Scope trigger"). All shadowed.
+#: Width of M/T's time count TC (at TCLK = the system clock): no encoder edge within
+#: ``2**MT_TC_WIDTH`` clocks reads as stopped — 8.05 s at 33.333 MHz, 2.68 s at 100 MHz, i.e.
+#: below ≈ 0.0004 / 0.0011 r/min at 20 000 counted edges per turn. 28 instead of MTSpeed's
+#: default 32 (129 s) saves 26 iCE40 logic cells (AREA.md §7.51).
+MT_TC_WIDTH = 28
+
 REF_STEP_REGISTERS = ("mode", "speed_ref", "i_d_ref", "i_q_ref", "ol_u_d", "ol_u_q")
 
 
@@ -570,7 +576,7 @@ class Top(wiring.Component):
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
                                         z_offset_init=regmap["enc_z_offset"].reset)
-        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges)
+        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH)
         k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
                             kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width,
