@@ -29,7 +29,9 @@ an ECP5, issue 7); the budget of issue 5 is ≤ 50 clocks.
 
 ``sat`` saturates to ``signed(width)``, nothing wraps except the binary angles. The decoupling
 feed-forward (``ff_enable``) uses one multiplier four times (operands, product and rounding
-each registered) while the PIs run (no extra latency)::
+each registered) while the PIs run (no extra latency); each term is then registered once more,
+saturated to signed(w + 1) (the commands do not change: a PI output in signed(w) plus or minus a
+term beyond ±2**w saturates as with ±2**w), so that the command stage adds w + 1 bits::
 
     n      = sat(round_shift(speed, 32 − w))                  Q1.(w−1) of N_FS (speed: Q1.31)
     ωL     = round_shift(ff_l · n, 14)                        Q3.(w−1), exact in signed(w + 2)
@@ -500,13 +502,27 @@ class CurrentLoop(wiring.Component):
         with m.If(pi_delay[4]):
             m.d.sync += ff_q.eq(round_shift_signed(prod + (emf << (w - 1)), w - 1, prod_neg))
 
+        # The feed-forward terms as the command stage adds them, a clock after each is formed
+        # and before the PI result: 0 unless ``ff_run``, saturated to signed(w + 1). That changes
+        # no command: a PI output p lies in signed(w), so p ∓ f saturates to the same end of
+        # signed(w) for f beyond ±2**w as for f at ±2**w (p − (2**w − 1) ≤ −2**(w−1), p + 2**w ≥
+        # 2**(w−1), and alike for u_q); the command's adder and saturation are w + 2 bits wide
+        # instead of w + 6 (a path to 100 MHz on the ECP5, docs/AREA.md).
+        if pi_d.latency < 6:
+            raise NotImplementedError("CurrentLoop: the feed-forward terms need a PI latency "
+                                      f"of at least 6 clocks, not {pi_d.latency}")
+        ffc_d = Signal(signed(w + 1))
+        ffc_q = Signal(signed(w + 1))
+        with m.If(pi_delay[4]):
+            m.d.sync += ffc_d.eq(Mux(ff_run, saturate_bits(ff_d, signed(w + 1)), 0))
+        with m.If(pi_delay[5]):
+            m.d.sync += ffc_q.eq(Mux(ff_run, saturate_bits(ff_q, signed(w + 1)), 0))
+
         # --- Command stage ------------------------------------------------------------------------
         with m.If(pi_done):
             m.d.sync += [
-                self.u_d.eq(Mux(ol, ol_ud,
-                                saturate_bits(pi_d.o.payload - Mux(ff_run, ff_d, 0), sw))),
-                self.u_q.eq(Mux(ol, ol_uq,
-                                saturate_bits(pi_q.o.payload + Mux(ff_run, ff_q, 0), sw))),
+                self.u_d.eq(Mux(ol, ol_ud, saturate_bits(pi_d.o.payload - ffc_d, sw))),
+                self.u_q.eq(Mux(ol, ol_uq, saturate_bits(pi_q.o.payload + ffc_q, sw))),
             ]
         m.d.sync += cmd_valid.eq(pi_done)
 

@@ -47,8 +47,9 @@ flags (sign, zero of ``acc``) that steer later operations' selections. ``kx·(E 
 shifts that keep the rounding bits): no hard multiplier.
 
 **Register file.** The state and the temporaries are words of one RAM (a block RAM; width
-``max(width + int_guard, speed_width)``, one write and one synchronous read port; no word is
-read in the clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times
+``max(width + int_guard, speed_width)``, one write port and one read port whose data is
+registered: an asynchronous port and a register, ``no_rw_check``, since no word is read in the
+clock it is written): the integrator, ``E[n−1]``, the PI's limits (also times
 ``2**int_guard``), ``ff·2**(width − 16)``, the speed sample (written in the accepting clock), the
 candidates and temporaries, and the reference history, a ring buffer of ``max_delay + 1``
 slots: this run's ``to_pi(R[n−1])`` is written to slot ``slot``, tap ``k`` is read from slot
@@ -632,10 +633,13 @@ class SpeedLoop(wiring.Component):
         # of ``n + 1`` slots (``to_pi(R)`` of this run and the ``n`` before it) at ``h_base``, a
         # multiple of its size; one write port (from ``acc``, or the speed sample in the
         # accepting clock) and one synchronous read port (its address is presented one clock
-        # ahead, from the next control word). The program never reads a word in the clock it is
-        # written (``_program`` checks it), so the read port's transparency changes nothing; a
-        # transparent port costs less on the iCE40 (yosys's bypass for a block RAM that has
-        # neither behaviour: the write data registered, no second register of the read data).
+        # ahead, from the next control word's ROM bits). The program never reads a word in the
+        # clock it is written (``_program`` checks it, an ``Assert`` below), so the port needs no
+        # read-during-write behaviour: it is an asynchronous port with its data registered here
+        # (the engine's form, docs/ENGINE.md "Decisions"), the memory ``no_rw_check``. yosys
+        # merges the register into an iCE40 block RAM's synchronous port without collision
+        # logic; on the ECP5 (distributed RAM, asynchronous read) the RAM's read is in front of
+        # the register, not between a registered address and the adder.
         n_slots = n + 1                 # a power of two
         slot_w = exact_log2(n_slots)
         h_base = -(-(len(_RF_WORDS) + 1) // n_slots) * n_slots
@@ -660,10 +664,13 @@ class SpeedLoop(wiring.Component):
             with m.If(rf_wr_en):
                 m.d.sync += Array(words)[rf_wr_addr].eq(rf_wr_data)
         else:
-            m.submodules.rf = rf = Memory(shape=signed(rfw), depth=rf_depth, init=[])
+            m.submodules.rf = rf = Memory(shape=signed(rfw), depth=rf_depth, init=[],
+                                          attrs={"no_rw_check": 1})
             rf_wr = rf.write_port()
-            rf_rd = rf.read_port(transparent_for=(rf_wr,))
-            m.d.comb += [rf_rd.addr.eq(rf_rd_addr), rf_rd_data.eq(rf_rd.data),
+            rf_rd = rf.read_port(domain="comb")
+            rf_rd_q = Signal(signed(rfw), reset_less=True)
+            m.d.sync += rf_rd_q.eq(rf_rd.data)
+            m.d.comb += [rf_rd.addr.eq(rf_rd_addr), rf_rd_data.eq(rf_rd_q),
                          rf_wr.en.eq(rf_wr_en), rf_wr.addr.eq(rf_wr_addr),
                          rf_wr.data.eq(rf_wr_data)]
 
@@ -996,9 +1003,30 @@ class SpeedLoop(wiring.Component):
         ev_load += [(wr_rf, wr_a != 0),
                     (wr_rf_addr, Mux(wr_a == b_code["TP"], rf_addr_of["TP"], wr_a)),
                     (wr_rf_raw, wr_k == wr_kinds["raw"]), (wr_rf_g, wr_k == wr_kinds["wg"])]
-        rd_v = nv["b"][:ab]
+        # The read address (for the next clock, as ``next_b``) from the ROM word alone, not
+        # from ``accept``, ``first`` or ``clear``: the operations of clocks 0 and 1, which those
+        # select, read no register-file word (``b_rf`` is 0 then and after ``clear``), so the
+        # RAM's read, in front of its data register, is on no path from the Servo's control.
+        # The ROM's constant code gives the address (a fixed word's code is its address; a
+        # history tap's, from ``slot``, ``age`` and ``ref_delay``, constant during a run); a
+        # clock whose register-file word flags or ``ref_delay`` steer ORs in the address of
+        # the word chosen (only fixed words are chosen so), the flags' only logic on the path.
+        if any(not isinstance(terms[c]["b", k], int) or terms[c]["b", k]
+               for c in (0, 1) for k in b_names if k in rf_addr_of):
+            raise RuntimeError("SpeedLoop program: clock 0 or 1 reads the register file")
+        off, fw = layout["b"]
+        rom_b = rom_q[off:off + fw]
+        rd_v = rom_b[:ab]
         for k in ("TP", "TAPA", "TAPB"):
-            rd_v = Mux(nv["b"] == b_code[k], rf_addr_of[k], rd_v)
+            rd_v = Mux(rom_b == b_code[k], rf_addr_of[k], rd_v)
+        for k, c in enumerate(cond_clocks):
+            alts = [(terms[c]["b", name], rf_addr[name]) for name in b_names
+                    if name in rf_addr_of and not isinstance(terms[c]["b", name], int)]
+            if any(name in _ALIAS or name == "TP" for name in b_names
+                   if name in rf_addr_of and not isinstance(terms[c]["b", name], int)):
+                raise NotImplementedError("SpeedLoop: a history tap read under a condition")
+            if alts:
+                rd_v = rd_v | Mux(rom_q[n_f + k], expr(0, alts), 0)
         if ram:
             # The configuration RAM's address for the next clock: a multiplication's gain in the
             # clock that starts it (no operation that starts one reads the slew or the
