@@ -22,6 +22,8 @@ from foc_servo.sim.models.rotator import rotate_ideal
 from foc_servo.sim.models.svpwm import dcbus_gain
 from foc_servo.sim.verify import foc as verify_foc
 
+from engine_trace import follow_trace
+
 
 def _engine_vec(vec):
     """The engine's inputs for a CurrentLoop stimulus: its random 16-bit ``theta_lead`` column
@@ -398,31 +400,12 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
             ctx.set(dut.start, 1)
             await ctx.tick()
             ctx.set(dut.start, 0)
-            i = cyc = 0
-            while True:
-                await ctx.tick()
-                cyc += 1
-                if cyc > 400:
-                    errors.append((k, "no END"))
-                    return
-                if not ctx.get(dut.trace_valid):
-                    continue
-                e = trace[i]
-                got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
-                       "wen": ctx.get(dut.trace_wen)}
-                if e["wen"]:
-                    got.update(dst=ctx.get(dut.trace_dst), y=ctx.get(dut.trace_y))
-                want = {key: e[key] for key in got}
-                if got != want:
-                    errors.append((k, i, want, got))
-                    return
-                i += 1
-                if i == len(trace):
-                    break
+            error, cyc = await follow_trace(ctx, dut, trace)
+            if error is not None:
+                errors.append((k, *error))
+                return
             clocks[0] += cyc
             await ctx.tick()
-            if i != len(trace):
-                errors.append((k, "length", i, len(trace)))
             for name in OUTS:
                 if ctx.get(getattr(dut, f"o_{name}")) != model.outs[name]:
                     errors.append((k, name))

@@ -11,6 +11,8 @@ from foc_servo.hdl.engine import Op
 from foc_servo.sim.models.engine import EngineLoopModel, EngineSpeedModel
 from foc_servo.sim.models.servo import SpeedLoopModel
 
+from engine_trace import follow_trace
+
 from amaranth.hdl import signed
 
 S32 = (-(1 << 31), -(1 << 31) + 1, -(1 << 31) + 2, -1, 0, 1, (1 << 31) - 2, (1 << 31) - 1)
@@ -269,24 +271,10 @@ def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle()
             ctx.set(dut.start, 1)
             await ctx.tick()
             ctx.set(dut.start, 0)
-            i = cyc = 0
-            while i < len(trace):
-                await ctx.tick()
-                cyc += 1
-                if cyc > 400:
-                    errors.append((k, kind, "no END"))
-                    return
-                if not ctx.get(dut.trace_valid):
-                    continue
-                e = trace[i]
-                got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
-                       "wen": ctx.get(dut.trace_wen)}
-                if e["wen"]:
-                    got.update(dst=ctx.get(dut.trace_dst), y=ctx.get(dut.trace_y))
-                if got != {key: e[key] for key in got}:
-                    errors.append((k, kind, i, e, got))
-                    return
-                i += 1
+            error, _ = await follow_trace(ctx, dut, trace)
+            if error is not None:
+                errors.append((k, kind, *error))
+                return
             count[kind == "s"] += 1
             await ctx.tick()
             for name, ow in outs.items():

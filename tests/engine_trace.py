@@ -1,0 +1,27 @@
+"""Shared by the engine tests: follow the gateware Engine's trace port through one program run
+and compare it, entry by entry, with the trace of :class:`~foc_servo.sim.models.engine.EngineModel`."""
+
+
+async def follow_trace(ctx, dut, trace, *, limit=400):
+    """Clock ``dut`` (its ``start`` already pulsed) until its trace port has given
+    ``len(trace)`` entries. Returns ``(error, clocks)``: ``error`` is ``None`` when every entry
+    matched (pc, P, write enable, and destination and value on writes), else ``("no END",)``
+    after ``limit`` clocks or ``(index, want, got)`` for the first entry that differs."""
+    i = cyc = 0
+    while i < len(trace):
+        await ctx.tick()
+        cyc += 1
+        if cyc > limit:
+            return ("no END",), cyc
+        if not ctx.get(dut.trace_valid):
+            continue
+        e = trace[i]
+        got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
+               "wen": ctx.get(dut.trace_wen)}
+        if e["wen"]:
+            got.update(dst=ctx.get(dut.trace_dst), y=ctx.get(dut.trace_y))
+        want = {key: e[key] for key in got}
+        if got != want:
+            return (i, want, got), cyc
+        i += 1
+    return None, cyc
