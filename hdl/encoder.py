@@ -749,7 +749,11 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1, bo1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo"))
+        theta1 = Signal(aw, name="theta1")
+        # Loaded every clock and read only at an edge (edge1, reset 0): its reset value is
+        # never used, so reset_less with init all ones, which the iCE40 stores inverted and
+        # so hands the subtraction below its ~bo1 without an inverter LUT per bit.
+        bo1 = Signal(aw, name="bo1", init=(1 << aw) - 1, reset_less=True)
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
