@@ -793,13 +793,16 @@ class HallPlausibility(wiring.Component):
         # The two checks never apply together: one magnitude comparison serves both. For x
         # read as signed with sign s, |x| > tol ⇔ y > tol (s = 0) or y ≥ tol (s = 1) with
         # y = x ^ (s repeated): |x| = y + s. That is the carry out of y + ~tol + s: one carry
-        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s).
+        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s). Written as
+        # the complement, tol ≥ y + s ⇔ the carry out of tol + ~y + ~s, so that ``tolerance``
+        # (a register, mostly init-0 flip-flops) sits on the carry's non-inverted side and
+        # the inversion folds into the LUTs that form y (iCE40: no inverter LUT per bit).
         # ``tolerance`` and ``misses`` are taken here, in this clock (not pipelined).
         x = x2
         sign = x[aw - 1]
-        y = x ^ sign.replicate(aw)
+        ny = x ^ ~sign.replicate(aw)    # ~y
         over = Signal()
-        m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
+        m.d.comb += over.eq(~(Cat(~sign, self.tolerance) + Cat(Const(1, 1), ny))[aw + 1])
         # count ≥ misses − 1 (0 acts as 1) ⇔ count + 1 ≥ misses: the counter's increment,
         # one compare in LUTs.
         inc = Signal(5)
