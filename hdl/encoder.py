@@ -419,9 +419,14 @@ class QuadratureDecoder(wiring.Component):
                 m.d.sync += dividing.eq(1)
             with m.Case(t_qp - 1, t_commit - 1):
                 m.d.sync += dividing.eq(0)
+        # diff = ~(cpr + ~t) (as −x − 1 = ~x): ``lines`` (a register, mostly init-0
+        # flip-flops) on the carry's non-inverted side and the inversions folded into the
+        # operand's select and the consumers' LUTs (iCE40: no inverter LUT per bit of lines).
+        ndiff = Signal(CPR_WIDTH + 2)
         m.d.comb += [
             sub_t.eq(Mux(dividing, Cat(Const(0, 1), wr), wr)),
-            diff.eq(sub_t - cpr_p),
+            ndiff.eq(cpr_p + ~Cat(sub_t, Const(0, 1))),
+            diff.eq(~ndiff),
             self.busy.eq(timer != 0),
             self.config_error.eq(~valid),
         ]
