@@ -157,7 +157,10 @@ class DeadTimeComp(wiring.Component):
         steps = Signal(range((1 << self._shift_width) + 1))
         pending = Signal()
         turn = Signal(range(3))
-        limit = Signal(unsigned(cw))
+        # Loaded at every phase.valid before any fire reads it (pending, reset 0): its reset
+        # value is never used, so reset_less with init all ones (the iCE40 stores it inverted,
+        # which gives the compare u > limit its ~limit without an inverter LUT per bit).
+        limit = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)
         fire = Signal()                             # this clock loads comp[turn]
         m.d.comb += fire.eq(~self.phase.valid & (steps == 0) & pending)
         with m.If(self.phase.valid):
@@ -199,7 +202,9 @@ class DeadTimeComp(wiring.Component):
         over = pick(high) | (u > limit)
         # Registered between the clamp and the negation (ECP5: the pick, the compare and the
         # negation in one clock made the block's critical path).
-        mc = Signal(unsigned(cw))
+        # Read only when fire_q (reset 0) and loaded every clock: reset value unused, so
+        # reset_less with init all ones (iCE40: −mc's ~mc from the flip-flop, no inverter).
+        mc = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)
         s_q = Signal()
         fire_q = Signal()
         turn_q = Signal(range(3))

@@ -419,9 +419,14 @@ class QuadratureDecoder(wiring.Component):
                 m.d.sync += dividing.eq(1)
             with m.Case(t_qp - 1, t_commit - 1):
                 m.d.sync += dividing.eq(0)
+        # diff = ~(cpr + ~t) (as −x − 1 = ~x): ``lines`` (a register, mostly init-0
+        # flip-flops) on the carry's non-inverted side and the inversions folded into the
+        # operand's select and the consumers' LUTs (iCE40: no inverter LUT per bit of lines).
+        ndiff = Signal(CPR_WIDTH + 2)
         m.d.comb += [
             sub_t.eq(Mux(dividing, Cat(Const(0, 1), wr), wr)),
-            diff.eq(sub_t - cpr_p),
+            ndiff.eq(cpr_p + ~Cat(sub_t, Const(0, 1))),
+            diff.eq(~ndiff),
             self.busy.eq(timer != 0),
             self.config_error.eq(~valid),
         ]
@@ -749,7 +754,11 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1, bo1 = (Signal(aw, name=f"{n}1") for n in ("theta", "bo"))
+        theta1 = Signal(aw, name="theta1")
+        # Loaded every clock and read only at an edge (edge1, reset 0): its reset value is
+        # never used, so reset_less with init all ones, which the iCE40 stores inverted and
+        # so hands the subtraction below its ~bo1 without an inverter LUT per bit.
+        bo1 = Signal(aw, name="bo1", init=(1 << aw) - 1, reset_less=True)
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
@@ -789,13 +798,16 @@ class HallPlausibility(wiring.Component):
         # The two checks never apply together: one magnitude comparison serves both. For x
         # read as signed with sign s, |x| > tol ⇔ y > tol (s = 0) or y ≥ tol (s = 1) with
         # y = x ^ (s repeated): |x| = y + s. That is the carry out of y + ~tol + s: one carry
-        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s).
+        # chain, no negation (never true for tol ≥ 2**(aw−1), where y < tol + s). Written as
+        # the complement, tol ≥ y + s ⇔ the carry out of tol + ~y + ~s, so that ``tolerance``
+        # (a register, mostly init-0 flip-flops) sits on the carry's non-inverted side and
+        # the inversion folds into the LUTs that form y (iCE40: no inverter LUT per bit).
         # ``tolerance`` and ``misses`` are taken here, in this clock (not pipelined).
         x = x2
         sign = x[aw - 1]
-        y = x ^ sign.replicate(aw)
+        ny = x ^ ~sign.replicate(aw)    # ~y
         over = Signal()
-        m.d.comb += over.eq((Cat(sign, y) + Cat(Const(1, 1), ~self.tolerance))[aw + 1])
+        m.d.comb += over.eq(~(Cat(~sign, self.tolerance) + Cat(Const(1, 1), ny))[aw + 1])
         # count ≥ misses − 1 (0 acts as 1) ⇔ count + 1 ≥ misses: the counter's increment,
         # one compare in LUTs.
         inc = Signal(5)

@@ -106,7 +106,7 @@ from amaranth.lib.wiring import In, Out
 
 from .bus import DATA_WIDTH, WordWriteSignature
 from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
-from .fixed import is_int, UQ, BinaryAngle, check_choice, clamp
+from .fixed import is_int, UQ, BinaryAngle, check_choice
 from .mt_speed import output_layout as mt_output_layout
 from .pi import pi_widths
 
@@ -1425,9 +1425,16 @@ class Servo(wiring.Component):
                     m.d.comb += self.theta.eq(self.theta_meas)
                 with m.Default():
                     m.d.comb += self.theta.eq(self.ol_theta)
+        # clamp(iq_set, lo, hi) with both compares written as lim ± ~iq_set (iq_set > hi ⇔
+        # hi − iq_set < 0; iq_set < lo ⇔ lo + ~iq_set ≥ 0): the limits (registers, mostly
+        # init-0 flip-flops on lo's side and init-1 on hi's, which a compare against them
+        # would invert bit by bit) on the carries' non-inverted side, one ~iq_set for both.
+        iq_over = (self.iq_lim_hi - self.iq_set)[-1]
+        iq_under = ~(self.iq_lim_lo + ~self.iq_set)[-1]
         with m.If(is_cur):
             m.d.comb += [
-                self.iq_ref.eq(clamp(self.iq_set, self.iq_lim_lo, self.iq_lim_hi)),
+                self.iq_ref.eq(Mux(iq_over, self.iq_lim_hi,
+                                   Mux(iq_under, self.iq_lim_lo, self.iq_set))),
                 self.id_ref.eq(self.id_set),
             ]
         with m.If(is_speed):

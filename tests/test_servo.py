@@ -2,11 +2,12 @@
 # Ref: paper eq. (7)–(9) (speed PI); SPEC.md §2.5, §4 (operating modes)
 import math
 
+import numpy as np
 import pytest
 from amaranth.back import verilog
 from amaranth.hdl import Const, Value
 
-from foc_servo.hdl.fixed import Q, UQ, shape_range
+from foc_servo.hdl.fixed import Q, UQ, clamp_np, shape_range
 from foc_servo.hdl.servo import SPEED_CONFIG, AngleSource, Mode, Servo, SpeedLoop
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel, SpeedLoopModel
@@ -570,6 +571,19 @@ def test_servo_current_mode_clamps_iq_to_the_current_limit():
            for v in (0, 5000, -5000, 1999, -1001, 32767)]
     got = servo_clocks(seq)
     assert [g["iq_ref"] for g in got[1:]] == [2000, -1000, 1999, -1000, 2000]
+
+
+def test_servo_current_mode_clamp_extremes_and_random_vs_model():
+    # Full-range operands (the compares' 17-bit differences overflow 16 bits), lo > hi, ties.
+    rng = np.random.default_rng(13)
+    ext = (-32768, -32767, -1, 0, 1, 32766, 32767)
+    triples = [(v, lo, hi) for v in ext for lo in ext for hi in ext if (v + lo + hi) % 3 == 0]
+    triples += [tuple(int(x) for x in rng.integers(-32768, 32768, 3)) for _ in range(60)]
+    seq = [base_inputs(mode=CURRENT, loop=1, iq_set=v, iq_lim_lo=lo, iq_lim_hi=hi)
+           for v, lo, hi in triples]
+    got = servo_clocks(seq)
+    want = [clamp_np(v, lo, hi) for v, lo, hi in triples]
+    assert [g["iq_ref"] for g in got[1:]] == want[1:]
 
 
 def test_servo_open_loop_angle_sources():
