@@ -1109,7 +1109,13 @@ class Engine(wiring.Component):
         m_neg = Signal()
         m.d.comb += [ma.eq(a2[:MUL_A]), mb.eq(b2[:MUL_B])]
         m.d.sync += m_neg.eq(ir.neg ^ c)
-        prod = Signal(signed(MUL_A + MUL_B), reset_less=True)
+        # ``init`` ones on the bits above the SB_MAC16's 16 outputs: an iCE40 flip-flop stores
+        # ``value XOR init``, so those bits hold ``~prod`` and DIV's ``− prod`` gets its carry
+        # operand without an inverter LUT (the inversion at D folds into the adder's sum LUT;
+        # bits 0–15 come straight from a DSP, where it would cost the LUT back). Loaded every
+        # clock and read only in X3: the power-up value is never used (docs/AREA.md §7.NN).
+        prod = Signal(signed(MUL_A + MUL_B), reset_less=True,
+                      init=((1 << MUL_B) - 1) & ~0xFFFF)
         m_neg3 = Signal(reset_less=True)
         m.d.sync += [prod.eq(ma * mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(P_WORD + 1))

@@ -807,3 +807,37 @@ def _check_status_ram_ports_and_errors():
                                          r"ang, not \('ang',\)$"):
         Engine(program=ram.program, special_shapes={n: signed(16) for n in SPECIALS},
                out_widths=OUTS, strobe_outs=("ang",))
+
+
+def test_round_shift_plain_equals_round_shift():
+    """The speed latch's rounding (:func:`~foc_servo.hdl.foc_engine.round_shift_plain`, one
+    carry chain) equals :func:`round_shift` bit for bit: ties both ways, the extremes, random."""
+    from amaranth.hdl import Signal
+    from amaranth.sim import Simulator
+    from foc_servo.hdl.fixed import round_shift_np
+    from foc_servo.hdl.foc_engine import round_shift_plain
+    k = 16
+    rng = np.random.default_rng(13)
+    vals = [-(1 << 31), (1 << 31) - 1, 0, 1, -1]
+    vals += [a * (1 << k) + b for a in (-32768, -2, -1, 0, 1, 32767)
+             for b in (-(1 << (k - 1)) - 1, -(1 << (k - 1)), -(1 << (k - 1)) + 1, -1, 0, 1,
+                       (1 << (k - 1)) - 1, 1 << (k - 1), (1 << (k - 1)) + 1)]
+    vals += [int(v) for v in rng.integers(-(1 << 31), 1 << 31, 300)]
+    vals = [v for v in vals if -(1 << 31) <= v < (1 << 31)]
+    v = Signal(signed(32))
+    y = Signal(signed(18))
+    m = Module()
+    m.d.comb += y.eq(round_shift_plain(v, k))
+    got = []
+
+    async def bench(ctx):
+        for x in vals:
+            ctx.set(v, x)
+            got.append(ctx.get(y))
+
+    sim = Simulator(m)
+    sim.add_testbench(bench)
+    sim.run()
+    assert got == [round_shift_np(x, k) for x in vals]
+    with pytest.raises(ValueError, match="shift >= 1"):
+        round_shift_plain(v, 0)
