@@ -28,7 +28,7 @@ from amaranth.lib.wiring import In, Out
 from .bus import WordWriteSignature
 from .dsp import saturate_bits
 from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
-from .fixed import Q, UQ, check_choice, round_shift
+from .fixed import Q, UQ, check_choice
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
