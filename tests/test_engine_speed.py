@@ -160,6 +160,17 @@ def test_speed_loop_program_fits():
     assert len(speed_loop_program(schedule=False).words) >= len(p.words)
 
 
+def _run_args(inp, *models):
+    """One stimulus run: its ``clear`` applied to every speed model (tracking the reference,
+    or the speed when slewing), and its arguments for ``run``/``specials_of``."""
+    if inp["clear"]:
+        track = inp["speed_ref"] if inp["speed_slew"] == 0 else inp["speed"]
+        for model in models:
+            model.clear(track)
+    return {name: inp[name] for name in ("speed", "speed_ref", "speed_slew", "iq_ff", "lim_lo",
+                                         "lim_hi", "ref_delay", "int_hold", "kp", "kx")}
+
+
 def test_combined_program_runs_both_loops_unchanged():
     """``current_loop_program(speed=True)``: the speed run at the ``speed`` label, its
     temporaries in the current loop's registers, on one register file: current-loop samples
@@ -184,14 +195,7 @@ def test_combined_program_runs_both_loops_unchanged():
         for name in a:
             assert np.array_equal(a[name], b[name]), (k, name)
         assert loop_a.dc_gain == loop_b.dc_gain
-        inp = runs[k]
-        if inp["clear"]:
-            track = inp["speed_ref"] if inp["speed_slew"] == 0 else inp["speed"]
-            spd_a.clear(track)
-            spd_b.clear(track)
-        args = {name: inp[name] for name in ("speed", "speed_ref", "speed_slew", "iq_ff",
-                                             "lim_lo", "lim_hi", "ref_delay", "int_hold",
-                                             "kp", "kx")}
+        args = _run_args(runs[k], spd_a, spd_b)
         ra, rb = spd_a.run(**args), spd_b.run(**args)
         for name in ("iq", "sat", "integrator", "ep"):
             assert ra[name] == rb[name], (k, name)
@@ -245,14 +249,7 @@ def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle()
                 spec, conds = _complete(prog, *job)
                 start = 0
             else:
-                inp = job
-                if inp["clear"]:
-                    track = inp["speed_ref"] if inp["speed_slew"] == 0 else inp["speed"]
-                    ref.clear(track)
-                    shadow.clear(track)
-                args = {n: inp[n] for n in ("speed", "speed_ref", "speed_slew", "iq_ff",
-                                            "lim_lo", "lim_hi", "ref_delay", "int_hold",
-                                            "kp", "kx")}
+                args = _run_args(job, ref, shadow)
                 spec, conds = shadow.specials_of(**args)
                 start = shadow.start
                 got_model = shadow.run(**args)
