@@ -38,7 +38,7 @@ from amaranth.hdl import Cat, Const, Mux, Shape, Value, signed, unsigned
 
 __all__ = [
     "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
-    "saturate", "clamp", "round_shift", "sat_add", "sat_sub", "mul_round",
+    "saturate", "clamp", "round_shift", "round_shift_plain", "sat_add", "sat_sub", "mul_round",
     "saturate_np", "clamp_np", "round_shift_np", "mul_round_np", "shape_range",
     "is_int", "check_param", "at_least",
 ]
@@ -371,6 +371,19 @@ def round_shift(value, shift):
         return (value + (1 << (shift - 1))) >> shift
     # Add half, minus one for negative values, then floor: ties go away from zero.
     return (value + Const(1 << (shift - 1)) - value[-1]) >> shift
+
+
+def round_shift_plain(value, shift):
+    """:func:`round_shift` (ties away from zero, same value and width + 1) as one carry
+    chain with ``value`` on its plain side: ``(2·value + ~sign + 2**shift − 1) >> (shift + 1)``
+    ``= (value + 2**(shift−1) − sign) >> shift`` (the low bit carries ``~sign`` in). round_shift's
+    ``− sign`` puts an inverter LUT in front of the chain on most bits when ``value`` is a
+    flip-flop (iCE40: the speed register, 16 cells; docs/AREA.md §7.55). ``shift`` ≥ 1."""
+    value = Value.cast(value)
+    if not value.shape().signed or shift < 1:
+        raise ValueError(f"round_shift_plain needs a signed value and shift >= 1, not "
+                         f"{value.shape()!r} and {shift!r}")
+    return (Cat(~value[-1], value).as_signed() + ((1 << shift) - 1)) >> (shift + 1)
 
 
 def sat_add(a, b, shape):

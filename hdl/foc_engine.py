@@ -20,7 +20,7 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Cat, Module, Signal, Value, signed, unsigned
+from amaranth.hdl import Cat, Module, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
@@ -28,7 +28,7 @@ from amaranth.lib.wiring import In, Out
 from .bus import WordWriteSignature
 from .dsp import saturate_bits
 from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
-from .fixed import Q, UQ, check_choice
+from .fixed import Q, UQ, check_choice, round_shift_plain
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
@@ -835,19 +835,6 @@ class EngineCurrentLoop(wiring.Component):
                 data_q = Signal(signed(ENGINE_WIDTH), reset_less=True)
                 m.d.comb += [rd.addr.eq(port.addr), port.data.eq(data_q)]
                 m.d.sync += data_q.eq(rd.data)
-
-
-def round_shift_plain(value, shift):
-    """:func:`~.fixed.round_shift` (ties away from zero, same value and width + 1) as one carry
-    chain with ``value`` on its plain side: ``(2·value + ~sign + 2**shift − 1) >> (shift + 1)``
-    ``= (value + 2**(shift−1) − sign) >> shift`` (the low bit carries ``~sign`` in). round_shift's
-    ``− sign`` puts an inverter LUT in front of the chain on most bits when ``value`` is a
-    flip-flop (iCE40: the speed register, 16 cells; docs/AREA.md §7.NN). ``shift`` ≥ 1."""
-    value = Value.cast(value)
-    if not value.shape().signed or shift < 1:
-        raise ValueError(f"round_shift_plain needs a signed value and shift >= 1, not "
-                         f"{value.shape()!r} and {shift!r}")
-    return (Cat(~value[-1], value).as_signed() + ((1 << shift) - 1)) >> (shift + 1)
 
 
 # --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------

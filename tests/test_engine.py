@@ -810,12 +810,12 @@ def _check_status_ram_ports_and_errors():
 
 
 def test_round_shift_plain_equals_round_shift():
-    """The speed latch's rounding (:func:`~foc_servo.hdl.foc_engine.round_shift_plain`, one
+    """The speed latch's rounding (:func:`~foc_servo.hdl.fixed.round_shift_plain`, one
     carry chain) equals :func:`round_shift` bit for bit: ties both ways, the extremes, random."""
     from amaranth.hdl import Signal
     from amaranth.sim import Simulator
     from foc_servo.hdl.fixed import round_shift_np
-    from foc_servo.hdl.foc_engine import round_shift_plain
+    from foc_servo.hdl.fixed import round_shift_plain
     k = 16
     rng = np.random.default_rng(13)
     vals = [-(1 << 31), (1 << 31) - 1, 0, 1, -1]
