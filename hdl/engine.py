@@ -773,6 +773,11 @@ class Engine(wiring.Component):
                                   for n in config), default=0)
         self._config_init = [int(v) for v in config_init]
         self._program = program
+        # The (special, asl) pairs the ROM's key field names, computed once (rom_width and the
+        # ROM's words use them): the configuration specials share one key.
+        self._cfg_specials = {program.specials.index(name) for name in config}
+        self._keys = sorted({self._key_of(ins) for ins in program.instrs
+                             if ins.asp and ins.a >= 2})
         self._special_shapes = dict(special_shapes)
         self._out_widths = dict(out_widths)
         self._width = width
@@ -807,13 +812,7 @@ class Engine(wiring.Component):
 
     def _key_of(self, ins):
         """The (special, asl) pair of an instruction's special A (config specials: one)."""
-        cfg = {self._program.specials.index(name) for name in self._config}
-        return (len(self._program.specials) if ins.a in cfg else ins.a, ins.asl)
-
-    @property
-    def _keys(self):
-        return sorted({self._key_of(ins) for ins in self._program.instrs
-                       if ins.asp and ins.a >= 2})
+        return (len(self._program.specials) if ins.a in self._cfg_specials else ins.a, ins.asl)
 
     @property
     def rom_width(self):
