@@ -237,14 +237,21 @@ class ServoModel:
     step_pending : int
         The reference-step flag (set by ``ref_change``, cleared by ``loop``).
     speed_loop : SpeedLoopModel
+
+    ``speed_engine_timing``: the speed loop on the loop engine (``Servo(speed_loop="engine")``
+    with ``EngineCurrentLoop(speed=True)``; its :attr:`speed_timing`): a run starts in a clock
+    whose input ``speed_start`` is 1 (default 1: the engine free, as at M/T's strobe in the
+    top), see :meth:`SpeedLoopModel.clock`.
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5, phase_width=32):
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32,
+                 speed_engine_timing=None):
         self.speed_loop = SpeedLoopModel(speed_width=speed_width, width=width,
                                          kp_format=kp_format, kx_format=kx_format,
                                          int_guard=int_guard, div_width=div_width,
-                                         delay_width=delay_width)
+                                         delay_width=delay_width,
+                                         engine_timing=speed_engine_timing)
         if (not isinstance(phase_width, int) or isinstance(phase_width, bool)
                 or not 16 <= phase_width <= 48):
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
@@ -265,7 +272,7 @@ class ServoModel:
             inp["speed_valid"], inp["speed"], inp["speed_ref"], inp["speed_kp"],
             inp["speed_kx"], inp["iq_lim_lo"], inp["iq_lim_hi"], inp["speed_rate_div"],
             not is_speed, inp["speed_slew"], inp["iq_ff"], inp["speed_ref_delay"],
-            inp["speed_int_hold"])
+            inp["speed_int_hold"], start=inp.get("speed_start", 1))
 
         theta = inp["theta_meas"]
         if is_ol:
