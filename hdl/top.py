@@ -71,6 +71,28 @@ Servo's speed strobe): after a reset the first M/T result (~40 clocks later) is 
 speed loop runs from the next one (only visible when ``mode``'s reset value is SPEED; the
 default, DISABLED, runs no loop).
 
+**Speed loop on the engine** (``speed_loop="engine"``, only with ``current_loop="engine"`` and
+``regs_staging="bram"``: the iCEBreaker): no :class:`~.servo.SpeedLoop`; the loop engine runs
+the speed loop as a second program (``EngineCurrentLoop(speed=True)``), bit for bit the same
+results. The speed words go into the engine's configuration RAM after its 16 (one export
+port, all 20 words); M/T's strobe (held off in the reset walk, as above), the speed
+reference, the i_q limits, ``speed_div``, ``speed_ref_delay``, ``speed_int_hold`` and the
+Servo's ``speed_clear`` go to the engine, whose i_q reference, ``sat`` and ``ref_int`` come
+back into the Servo (``Servo(speed_loop="engine")``). The run starts at M/T's strobe if the
+engine is idle and gives its i_q reference 227 … 233 clocks later (``speed_timing``; the
+SpeedLoop: 120), so a centred sample still sees this period's reference while half a period
+exceeds ``MTSpeed.latency + 1 + speed_latency`` (checked: ``ValueError``; 10 kHz at 33 MHz is
+1 666 clocks a period). **Sample-point limit:** a current-loop sample that arrives during a
+speed run waits for it (and a speed run for a current-loop sample): a ``pwm_sample_point``
+(``pwm_sample_custom``) that puts the sample (+ ``AdcInterface.latency``) within ≈ 233
+clocks after M/T's strobe, i.e. within ≈ ``MTSpeed.latency + 233`` clocks after
+``period_start``, delays its duties by up to the speed run's 228 instructions (they may then
+load a period late) and takes the previous period's i_q reference; the M/T strobe must
+likewise not fall in a current-loop run, i.e. the sample must come more than
+``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period end (the limit
+of ``loop_latency`` above, a little longer). Not checked in gateware (the registers are
+run-time values); the default centred sample is far from both.
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
