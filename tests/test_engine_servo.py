@@ -183,3 +183,45 @@ def test_engine_speed_loop_matches_speed_loop_model_cycle_by_cycle():
     assert errors == []
     assert stats["starts"] >= 40 and stats["waited"] >= 3 and stats["cur_waited"] >= 2
     assert stats["aborted"] >= 5 and stats["valid"] >= 30
+
+
+def test_engine_speed_parameters_are_checked():
+    """Clear errors: ``speed`` not a bool, ``speed=True`` without the configuration RAM, a
+    ``config_init`` not of the 20 words; an ``Engine`` slice of a word not in ``config`` or
+    wider than its special."""
+    import gc
+    import warnings
+
+    import pytest
+    from amaranth.hdl import UnusedElaboratable, signed
+
+    from foc_servo.hdl.engine import Engine
+    from foc_servo.hdl.foc_engine import (SPECIALS, SPEED_SHAPES, SPEED_SLICES,
+                                          current_loop_program)
+
+    with pytest.raises(TypeError, match=r"^EngineCurrentLoop speed must be a bool, not 1$"):
+        EngineCurrentLoop(config="ram", speed=1)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop speed=True needs config='ram' "):
+        EngineCurrentLoop(speed=True)
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 20 "
+                                         r"integers, not \[0, 0\]$"):
+        EngineCurrentLoop(config="ram", speed=True, config_init=[0, 0])
+    prog = current_loop_program(speed=True)
+    shapes = {**{n: signed(20) for n in SPECIALS}, **SPEED_SHAPES}
+    outs = {**OUTS, **SPEED_OUTS}
+    words = CONFIG + SPEED_CONFIG_WORDS
+    with pytest.raises(ValueError, match=r"^Engine config_slices\['kph'\] must be \(word of "
+                                         r"config, lo, bits >= 1, shift\) "):
+        Engine(program=prog, special_shapes=shapes, out_widths=outs, config=CONFIG,
+               config_slices=SPEED_SLICES)
+    with pytest.raises(ValueError, match=r"^Engine config_slices\['kxc'\] must be "):
+        Engine(program=prog, special_shapes=shapes, out_widths=outs, config=words,
+               config_slices={**SPEED_SLICES, "kxc": ("kx", 0, 5, 0)})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        eng = Engine(program=prog, special_shapes=shapes, out_widths=outs, config=words,
+                     config_init=[0] * len(words), config_slices=SPEED_SLICES)
+        assert eng.config_width == 32 and eng.rom_width == 64
+        assert not any(hasattr(eng, f"s_{n}") for n in SPEED_SLICES)
+        del eng
+        gc.collect()                    # (built for its attributes only: no warning)
