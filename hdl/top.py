@@ -79,14 +79,14 @@ port, all 20 words); M/T's strobe (held off in the reset walk, as above), the sp
 reference, the i_q limits, ``speed_div``, ``speed_ref_delay``, ``speed_int_hold`` and the
 Servo's ``speed_clear`` go to the engine, whose i_q reference, ``sat`` and ``ref_int`` come
 back into the Servo (``Servo(speed_loop="engine")``). The run starts at M/T's strobe if the
-engine is idle and gives its i_q reference 227 … 233 clocks later (``speed_timing``; the
+engine is idle and gives its i_q reference 228 … 233 clocks later (``speed_timing``; the
 SpeedLoop: 120), so a centred sample still sees this period's reference while half a period
-exceeds ``MTSpeed.latency + 1 + speed_latency`` (checked: ``ValueError``; 10 kHz at 33 MHz is
-1 666 clocks a period). **Sample-point limit:** a current-loop sample that arrives during a
-speed run waits for it (and a speed run for a current-loop sample): a ``pwm_sample_point``
-(``pwm_sample_custom``) that puts the sample (+ ``AdcInterface.latency``) within ≈ 233
-clocks after M/T's strobe, i.e. within ≈ ``MTSpeed.latency + 233`` clocks after
-``period_start``, delays its duties by up to the speed run's 228 instructions (they may then
+exceeds ``MTSpeed.latency + 1 + speed_latency`` (checked: ``ValueError``; at 10 kHz and 33 MHz
+half a period is ≈ 1 650 clocks, against 38 + 1 + 233). **Sample-point limit:** a
+current-loop sample that arrives during a speed run waits for it (and a speed run for a
+current-loop sample): a ``pwm_sample_point`` (``pwm_sample_custom``) that puts the sample
+(+ ``AdcInterface.latency``) within ≈ 233 clocks after M/T's strobe, i.e. within
+≈ ``MTSpeed.latency + 233`` clocks after ``period_start``, delays its duties by up to the speed run's 228 instructions (they may then
 load a period late) and takes the previous period's i_q reference; the M/T strobe must
 likewise not fall in a current-loop run, i.e. the sample must come more than
 ``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period end (the limit
