@@ -1424,11 +1424,11 @@ class Servo(wiring.Component):
         is_speed = eff == Mode.SPEED
 
         # Speed loop.
-        m.d.comb += self.speed_clear.eq(~is_speed)
         if engine:
             # The engine's speed run (cleared by ``speed_clear``): its results.
             sl_iq = self.sl_iq.payload
-            m.d.comb += [self.speed_sat.eq(self.sl_sat), self.speed_valid.eq(self.sl_iq.valid),
+            m.d.comb += [self.speed_clear.eq(~is_speed),
+                         self.speed_sat.eq(self.sl_sat), self.speed_valid.eq(self.sl_iq.valid),
                          self.speed_ref_int.eq(self.sl_ref_int)]
         else:
             sl_iq = sl.o.payload
@@ -1446,6 +1446,7 @@ class Servo(wiring.Component):
                 sl.ref_delay.eq(self.speed_ref_delay),
                 sl.int_hold.eq(self.speed_int_hold),
                 sl.clear.eq(~is_speed),
+                self.speed_clear.eq(~is_speed),
                 self.speed_sat.eq(sl.sat),
                 self.speed_valid.eq(sl.o.valid),
                 self.speed_ref_int.eq(sl.ref_int),

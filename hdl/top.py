@@ -735,6 +735,8 @@ class Top(wiring.Component):
         # is the copy's value).
         speed_valid_q = Signal()
         m.d.sync += speed_valid_q.eq(mt.o.valid)
+        engine_speed = self._speed_loop == "engine"
+        speed_valid = mt.o.valid if regs.staging == "ff" else mt.o.valid & ~regs.export_walk
         if self._current_loop == "pipelined":
             cl_speed = Signal.like(speed)
             m.d.sync += cl_speed.eq(speed)
@@ -771,7 +773,10 @@ class Top(wiring.Component):
             mt.edge.step.eq(enc.step if mt.edge_mode == "x4" else enc.a_rise),
             mt.edge.neg.eq(~enc.up),
             # ("bram": no speed-loop run starts in the register file's reset walk, which
-            # writes the loop's configuration words: module docstring.)
+            # writes the loop's configuration words: module docstring.) The SpeedLoop's, or
+            # (speed_loop="engine") the engine's speed run's.
+            *([cl.speed_valid.eq(speed_valid)] if engine_speed else [
+                servo.speed.valid.eq(speed_valid), servo.speed.payload.eq(mt.o.payload)]),
             servo.theta_meas.eq(enc.theta),
             servo.trip.eq(trip_q),
 
@@ -846,36 +851,20 @@ class Top(wiring.Component):
                 cl.ff_psi.eq(regs.decouple_psi),
                 cl.u_rated.eq(regs.u_rated),
             ]
-        # The speed loop's inputs: the Servo's SpeedLoop, or (speed_loop="engine") the
-        # engine's speed run, whose results go back into the Servo. ("bram": no speed-loop
-        # run starts in the register file's reset walk, which writes the loop's configuration
-        # words: module docstring.)
-        speed_valid = mt.o.valid if regs.staging == "ff" else mt.o.valid & ~regs.export_walk
-        if self._speed_loop == "engine":
-            sl_in = dict(valid=cl.speed_valid, ref=cl.speed_ref, div=cl.speed_rate_div,
-                         delay=cl.speed_ref_delay, hold=cl.speed_int_hold)
+        # The speed loop's inputs go to the Servo's SpeedLoop or (speed_loop="engine") to the
+        # engine's speed run (below, in the places the SpeedLoop's take), whose results go
+        # back into the Servo.
+        if engine_speed:
             m.d.comb += [cl.speed_clear.eq(servo.speed_clear),
                          servo.sl_iq.valid.eq(cl.speed_o.valid),
                          servo.sl_iq.payload.eq(cl.speed_o.payload),
                          servo.sl_sat.eq(cl.speed_sat), servo.sl_ref_int.eq(cl.speed_ref_int),
                          cl.iq_lim_lo.eq(regs.pi_speed_lim_lo),
                          cl.iq_lim_hi.eq(regs.pi_speed_lim_hi)]
-        else:
-            sl_in = dict(valid=servo.speed.valid, ref=servo.speed_ref,
-                         div=servo.speed_rate_div, delay=servo.speed_ref_delay,
-                         hold=servo.speed_int_hold)
-            m.d.comb += servo.speed.payload.eq(mt.o.payload)
-        m.d.comb += [
-            servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),       # (the current mode's clamp too)
-            servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
-            sl_in["valid"].eq(speed_valid),
-            sl_in["ref"].eq(regs.speed_ref),
-            sl_in["div"].eq(operand("speed_div")),
-            sl_in["delay"].eq(regs.speed_ref_delay),
-            sl_in["hold"].eq(regs.speed_int_hold),
-        ]
+        sl = cl if engine_speed else servo
         m.d.comb += [
             _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
+            sl.speed_ref.eq(regs.speed_ref),
             servo.id_set.eq(regs.i_d_ref),
             servo.iq_set.eq(regs.i_q_ref),
             _raw(servo.ol_src).eq(_raw(regs.ol_angle_mode)),  # AngleMode ≡ AngleSource
@@ -894,6 +883,11 @@ class Top(wiring.Component):
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
 
+            servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
+            servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
+            sl.speed_rate_div.eq(operand("speed_div")),
+            sl.speed_ref_delay.eq(regs.speed_ref_delay),
+            sl.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
 
             enc.lines.eq(regs.enc_lines),
