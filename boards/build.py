@@ -313,9 +313,14 @@ class BoardTop(Elaboratable):
                              f"not {clk_hz!r} Hz")
         _, f_in = self._board.clock
         self._pll = pll_config(self._board.family, f_in, clk_hz)
+        # The board's speed loop on the engine only where the engine runs the current loop
+        # with its configuration RAM (Top's condition), else the SpeedLoop.
+        speed_loop = (self._board.speed_loop
+                      if (current_loop, self._board.regs_staging) == ("engine", "bram")
+                      else "sequential")
         self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
                         current_loop=current_loop, scope_ram=self._board.scope_ram,
-                        regs_staging=self._board.regs_staging)
+                        regs_staging=self._board.regs_staging, speed_loop=speed_loop)
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)
@@ -783,8 +788,8 @@ def build(board, *, out_dir="build", clk_hz=None, current_loop=None, seed=None, 
         "fmax_mhz": res["fmax_mhz"], "fmax": res["fmax"], "timing_met": res.get("timing_met"),
         "clock_mhz": round(top.clk_hz / 1e6, 6),
         "clock_requested_mhz": round(top.pll.f_req_hz / 1e6, 6), "seed": seed,
-        "current_loop": top.current_loop, "scope_ram": top.top.scope_ram,
-        "regs_staging": top.top.regs_staging,
+        "current_loop": top.current_loop, "speed_loop": top.top.speed_loop,
+        "scope_ram": top.top.scope_ram, "regs_staging": top.top.regs_staging,
         "pll": top.pll.describe(), "pll_divs": top.pll.divs,
         "paper": dict(PAPER), "fits": res["fits"], "error": res["error"],
         "utilisation": {k: res[k] for k in util_keys},
@@ -818,7 +823,8 @@ def report_lines(result):
         f"  clock     {result['pll']} (asked {result['clock_requested_mhz']:g} MHz)",
         f"  gateware  Top(current_loop={result.get('current_loop', 'pipelined')!r}, "
         f"scope_ram={result.get('scope_ram', 'bram')!r}, "
-        f"regs_staging={result.get('regs_staging', 'ff')!r})",
+        f"regs_staging={result.get('regs_staging', 'ff')!r}, "
+        f"speed_loop={result.get('speed_loop', 'sequential')!r})",
         f"  {'':<10}{'this build (' + source + ')':>28}   {'paper Table 1':>14}",
         f"  {result['lut_kind'] or 'LUT':<10}{fmt(result['lut']):>28}   {fmt(p['lut4']):>14}",
         f"  {'FF':<10}{fmt(result['ff']):>28}   {fmt(p['ff']):>14}",

@@ -107,12 +107,16 @@ class Harness(wiring.Component):
 def fmax_catalog():
     """Blocks this measures: :data:`~foc_servo.hdl.catalog.BLOCKS` plus the UART halves and the
     loop engine's current loop (``foc_engine``, with its configuration and status as ports:
-    the iCEBreaker's top builds it with ``config="ram"``, ``status="ram"``)."""
+    the iCEBreaker's top builds it with ``config="ram"``, ``status="ram"``), and the
+    iCEBreaker's engine as the top has it (``foc_engine_speed``: ``config="ram"``,
+    ``status="ram"``, the speed run, ``speed=True``)."""
     from ..hdl.catalog import BLOCKS
     from ..hdl.foc_engine import EngineCurrentLoop
     from ..hdl.uart import UartRx, UartTx
     return {**BLOCKS, "uart_rx": lambda: UartRx(), "uart_tx": lambda: UartTx(),
-            "foc_engine": lambda: EngineCurrentLoop()}
+            "foc_engine": lambda: EngineCurrentLoop(),
+            "foc_engine_speed": lambda: EngineCurrentLoop(config="ram", status="ram",
+                                                          speed=True)}
 
 
 def _run(argv, cwd, log):

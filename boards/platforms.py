@@ -110,6 +110,11 @@ class Board:
         The default ``Top(current_loop=…)`` of ``foc-servo build`` for this board (``--current-loop``
         overrides it): ``"engine"`` where LUTs and multipliers are short (iCE40 UP5K: the loop
         engine, 5 SB_MAC16 in the whole top instead of 25), else ``"pipelined"``.
+    speed_loop : str
+        ``Top(speed_loop=…)`` when the build's current loop is the engine (with block-RAM
+        staging): ``"engine"`` where logic is short (iCE40 UP5K: the speed loop as a run of the
+        loop engine, no :class:`~foc_servo.hdl.servo.SpeedLoop`; docs/AREA.md §7.57), else
+        ``"sequential"`` (the SpeedLoop; also whenever the build runs the pipelined loop).
     clk_hz : float
         The system clock ``foc-servo build`` asks the PLL for when ``--clk-mhz`` is not given,
         Hz: 50 MHz, the paper's 33.333 MHz on the iCE40 UP5K (its logic does not reach 50).
@@ -127,6 +132,7 @@ class Board:
     scope_ram: str = "bram"
     regs_staging: str = "ff"
     current_loop: str = "pipelined"
+    speed_loop: str = "sequential"
     clk_hz: float = 50e6
 
     def platform(self, *, file_templates=None):
@@ -168,6 +174,7 @@ ICEBREAKER = Board(
     scope_ram="ice40_spram",
     regs_staging="bram",
     current_loop="engine",
+    speed_loop="engine",
     clk_hz=33.333e6,
     connectors={"pmod1a": ("pmod", 0), "pmod1b": ("pmod", 1), "pmod2": ("pmod", 2)},
     motor=_motor({

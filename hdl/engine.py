@@ -683,6 +683,13 @@ class Engine(wiring.Component):
     config_init : list of int
         The configuration RAM's initial words (default all 0), as ``cfg.data`` carries them
         (e.g. :attr:`~.regs.RegisterFile.export_init`: the registers' reset values).
+    config_slices : dict of str to tuple
+        User specials that are slices of a configuration RAM word: ``name: (word, lo, bits,
+        shift)`` reads ``(word[lo:lo + bits]) << shift`` (zero-extended) from the word named
+        ``word`` of ``config`` (a word read only through slices need not be a special; it is
+        then ``lo + bits`` bits wide at most). Each slice is one more line of R's special
+        AND-OR (its own key), fed by the same RAM read: e.g. the speed loop's gain pieces
+        ``kph = kp >> 16`` … of the ``kp``, ``kx`` words. Default none.
     strobe_outs : tuple of str
         Outputs (of ``out_widths``, not ``ang``, not 1-bit) with no register: only their write
         strobe ``o_<name>_we`` and the write data ``o_data``, for a consumer that keeps them
@@ -729,7 +736,8 @@ class Engine(wiring.Component):
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
-                 rotator=None, config=(), config_init=None, strobe_outs=()):
+                 rotator=None, config=(), config_init=None, config_slices=None,
+                 strobe_outs=()):
         if not isinstance(program, Program):
             raise TypeError(f"Engine program must be a Program, not {program!r}")
         user_specials = program.specials[len(BUILTIN_SPECIALS):]
@@ -747,10 +755,23 @@ class Engine(wiring.Component):
             check_param("Engine", name, value, lo, hi)
         if rotator is None:
             rotator = RotatorParams(width=16, angle_width=16)
-        if (not isinstance(config, tuple) or not all(n in user_specials for n in config)
-                or len(set(config)) != len(config)):
+        config_slices = dict(config_slices or {})
+        for name, spec in config_slices.items():
+            if (name not in user_specials or name in config or not isinstance(spec, tuple)
+                    or len(spec) != 4 or spec[0] not in config
+                    or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                               for v in spec[1:]) or spec[2] < 1
+                    or Shape.cast(special_shapes[name]).signed
+                    or Shape.cast(special_shapes[name]).width < spec[2] + spec[3]):
+                raise ValueError(f"Engine config_slices[{name!r}] must be (word of config, lo, "
+                                 f"bits >= 1, shift) for an unsigned user special not in "
+                                 f"config that holds bits + shift bits, not {spec!r}")
+        sliced = {spec[0] for spec in config_slices.values()}
+        if (not isinstance(config, tuple) or len(set(config)) != len(config)
+                or not all(n in user_specials or n in sliced for n in config)):
             raise ValueError(f"Engine config must be a tuple of distinct user specials "
-                             f"{user_specials}, not {config!r}")
+                             f"{user_specials} (or words read through config_slices), "
+                             f"not {config!r}")
         for name in config:
             if name in program.bspecials:
                 raise ValueError(f"Engine config special {name!r} is a B special: config "
@@ -768,14 +789,20 @@ class Engine(wiring.Component):
                              f"out_widths, wider than 1 bit, not ang, not {strobe_outs!r}")
         self._strobe_outs = strobe_outs
         self._config = config
-        self._config_width = max((Shape.cast(special_shapes[n]).width
+        self._config_slices = config_slices
+        self._config_width = max([Shape.cast(special_shapes[n]).width
                                   + (0 if Shape.cast(special_shapes[n]).signed else 1)
-                                  for n in config), default=0)
+                                  for n in config if n in user_specials]
+                                 + [lo + bits for _, lo, bits, _ in config_slices.values()],
+                                 default=0)
         self._config_init = [int(v) for v in config_init]
         self._program = program
         # The (special, asl) pairs the ROM's key field names, computed once (rom_width and the
         # ROM's words use them): the configuration specials share one key.
-        self._cfg_specials = {program.specials.index(name) for name in config}
+        self._cfg_specials = {program.specials.index(name) for name in config
+                              if name in user_specials}
+        self._slice_specials = {program.specials.index(name): j
+                                for j, name in enumerate(config_slices)}
         self._keys = sorted({self._key_of(ins) for ins in program.instrs
                              if ins.asp and ins.a >= 2})
         self._special_shapes = dict(special_shapes)
@@ -798,7 +825,7 @@ class Engine(wiring.Component):
             "o_data": Out(signed(WORD)),
         }
         for name, shape in self._special_shapes.items():
-            if name not in config:
+            if name not in config and name not in config_slices:
                 members[f"s_{name}"] = In(shape)
         if config:
             members["cfg"] = In(WordWriteSignature(len(config)))
@@ -811,8 +838,14 @@ class Engine(wiring.Component):
         super().__init__(members)
 
     def _key_of(self, ins):
-        """The (special, asl) pair of an instruction's special A (config specials: one)."""
-        return (len(self._program.specials) if ins.a in self._cfg_specials else ins.a, ins.asl)
+        """The (special, asl) pair of an instruction's special A (config specials: one;
+        a config slice: one per slice)."""
+        n = len(self._program.specials)
+        if ins.a in self._cfg_specials:
+            return (n, ins.asl)
+        if ins.a in self._slice_specials:
+            return (n + 1 + self._slice_specials[ins.a], ins.asl)
+        return (ins.a, ins.asl)
 
     @property
     def rom_width(self):
@@ -824,6 +857,7 @@ class Engine(wiring.Component):
     rotator = property(lambda self: self._rot)
     config = property(lambda self: self._config)
     config_width = property(lambda self: self._config_width)
+    config_slices = property(lambda self: dict(self._config_slices))
     strobe_outs = property(lambda self: self._strobe_outs)
 
     def elaborate(self, platform):
@@ -837,7 +871,10 @@ class Engine(wiring.Component):
         # spare bits of the ROM's block RAM), decoded in R to the special's one-hot select.
         # With ``config``, the config specials share one key (two with asl): CFG stands for
         # the configuration RAM's read data.
-        cfg_of = {prog.specials.index(name): j for j, name in enumerate(self._config)}
+        cfg_of = {prog.specials.index(name): j for j, name in enumerate(self._config)
+                  if name in prog.specials}
+        cfg_of.update({prog.specials.index(name): self._config.index(spec[0])
+                       for name, spec in self._config_slices.items()})
         key_of, keys = self._key_of, self._keys
         key_w = self.rom_width - INSTR_WIDTH
         rom_words = [word | ((keys.index(key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
@@ -904,10 +941,14 @@ class Engine(wiring.Component):
         p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
         specials = [Const(0), Const(0), ts, tc, kd] + [
-            Const(0) if name in self._config else getattr(self, f"s_{name}")
-            for name in self._special_shapes]
+            Const(0) if name in self._config or name in self._config_slices
+            else getattr(self, f"s_{name}") for name in self._special_shapes]
         if self._config:
-            specials.append(self._config_ram(m, prog, cfg_of, pc_next))
+            cfg_value = self._config_ram(m, prog, cfg_of, pc_next)
+            specials.append(cfg_value)
+            # The slices: wirings of the same read (zero-extended), one AND-OR line each.
+            specials += [Cat(Const(0, shift), cfg_value.as_unsigned()[lo:lo + bits])
+                         for _, lo, bits, shift in self._config_slices.values()]
         # The special operands are selected in R (registered with the RF read) by an AND-OR
         # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
         # value shifted by the guard; a special A only), decoded from the key the ROM holds

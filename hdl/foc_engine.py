@@ -20,7 +20,7 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Cat, Module, Signal, signed, unsigned
+from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
@@ -36,6 +36,7 @@ __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_le
            "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
+           "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
            "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_SHAPES", "SPEED_FLAGS", "SPEED_CONDS", "SPEED_OUTS"]
 
@@ -112,6 +113,20 @@ SPEED_FLAGS = ("fresh", "ih")
 SPEED_CONDS = ()
 #: Its output registers (``ang`` only because every engine has one).
 SPEED_OUTS = {"ang": 16, "ref_int": 32, "iq": 16, "sat": 1}
+#: ``EngineCurrentLoop(speed=True)``: the configuration RAM's words after :data:`CONFIG`, the
+#: speed loop's (:data:`~.servo.SPEED_CONFIG` order: ``kp``, ``kx``, ``speed_slew``,
+#: ``iq_ff``; the register file's export words in that order). ``iqff`` is read as a word,
+#: the others through :data:`SPEED_SLICES`.
+SPEED_CONFIG_WORDS = ("kp", "kx", "slew", "iqff")
+#: The speed specials that are slices of a configuration word (``Engine(config_slices=)``:
+#: ``name: (word, lo, bits, shift)``), as :data:`SPEED_SPECIALS` defines them.
+SPEED_SLICES = {"kph": ("kp", 16, 8, 0), "kpl": ("kp", 0, 16, 0), "kxa": ("kx", 16, 8, 10),
+                "kxb": ("kx", 4, 12, 0), "kxc": ("kx", 0, 4, 0), "slh": ("slew", 1, 31, 0),
+                "sll": ("slew", 0, 1, 0)}
+#: The speed-loop parameters the program is written for (:class:`~.servo.SpeedLoop`'s, the
+#: iCEBreaker top's): ``EngineCurrentLoop(speed=True)`` / ``Servo(speed_loop="engine")``.
+SPEED_PARAMS = {"speed_width": 32, "width": 24, "kp_format": UQ(24, 12),
+                "kx_format": UQ(24, 20), "int_guard": 16, "delay_width": 5}
 
 
 def _trig(asm, rot, pending=None, filler=None):
@@ -410,9 +425,9 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     return A.assemble(fuse=fuse, schedule=schedule)
 
 
-def _paths(program):
-    """Every path through ``program`` (it has no loops; each branch taken or not, delay slots
-    counted): the executed addresses, in order, one list per path."""
+def _paths(program, start=0):
+    """Every path through ``program`` from ``start`` (it has no loops; each branch taken or
+    not, delay slots counted): the executed addresses, in order, one list per path."""
     instrs = program.instrs
     paths = []
 
@@ -434,7 +449,7 @@ def _paths(program):
                     return
             queue.append(nxt)
 
-    walk([0, 1, 2], [])
+    walk([start, start + 1, start + 2], [])
     return paths
 
 
@@ -517,6 +532,37 @@ def status_quiet(program):
             return START_CLOCKS + k + WRITE_DELAY
         k += _clocks(ins)
     raise ValueError("engine program: no status output written before the first branch")
+
+
+def speed_run_timing(program):
+    """The speed run's timing (``current_loop_program(speed=True)`` from its ``speed`` label,
+    or :func:`speed_loop_program`), per profile path (``"up"``, ``"dn"``: the profile moves
+    by the slew; ``"none"``: it steps to ``speed_ref``): a dict of path → dict with
+    ``ref_latency`` (clocks from the run's start to the new ``ref_int``, ``ref_int``'s write +
+    :data:`DUTY_CLOCKS`, the output registered as ``o.valid`` is), ``latency`` (to the i_q
+    reference and ``o.valid``, the write of ``iq`` likewise) and ``length`` (executed
+    instructions: the engine takes the next start ``START_CLOCKS + length`` clocks after
+    this one's). ``sat`` is written before ``iq`` on every path (checked)."""
+    start = program.labels.get("speed", 0)
+    prefix = "spd_" if "speed" in program.labels else ""
+    up, dn = program.labels[prefix + "up"], program.labels[prefix + "dn"]
+    outs = program.outs
+    timing = {}
+    for path in _paths(program, start):
+        kind = "up" if up in path else "dn" if dn in path else "none"
+        k, at = 0, {}
+        for pc in path:
+            ins = program.instrs[pc]
+            if ins.out and outs[ins.out] in ("ref_int", "iq", "sat"):
+                at[outs[ins.out]] = k
+            k += _clocks(ins)
+        if not at.get("sat", k) < at.get("iq", -1) or "ref_int" not in at:
+            raise ValueError("speed program: sat must be written before iq, and ref_int")
+        t = {"ref_latency": at["ref_int"] + 1 + DUTY_CLOCKS,
+             "latency": at["iq"] + 1 + DUTY_CLOCKS, "length": k}
+        if timing.setdefault(kind, t) != t:
+            raise ValueError(f"speed program: two {kind} paths of different timing")
+    return timing
 
 
 class EngineCurrentLoop(wiring.Component):
@@ -615,7 +661,7 @@ class EngineCurrentLoop(wiring.Component):
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
                  kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
-                 config="ports", config_init=None, status="ports"):
+                 config="ports", config_init=None, status="ports", speed=False):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -637,21 +683,31 @@ class EngineCurrentLoop(wiring.Component):
                              f"not {gain_limit!r}")
         self._gain_limit_raw = limit_raw
         check_choice("EngineCurrentLoop", "config", config, CONFIGS)
+        if not isinstance(speed, bool):
+            raise TypeError(f"EngineCurrentLoop speed must be a bool, not {speed!r}")
+        if speed and config != "ram":
+            raise ValueError(f"EngineCurrentLoop speed=True needs config='ram' (the speed "
+                             f"loop's gains and slew are slices of its words), not "
+                             f"config={config!r}")
+        self._speed = speed
+        n_config = len(CONFIG) + (len(SPEED_CONFIG_WORDS) if speed else 0)
         if config_init is not None and config != "ram":
             raise ValueError(f"EngineCurrentLoop config_init applies only to config='ram', "
                              f"not config={config!r}")
         if config_init is not None and (not isinstance(config_init, (list, tuple))
-                                        or len(config_init) != len(CONFIG)
+                                        or len(config_init) != n_config
                                         or not all(isinstance(v, int) for v in config_init)):
-            raise ValueError(f"EngineCurrentLoop config_init must be a list of {len(CONFIG)} "
+            raise ValueError(f"EngineCurrentLoop config_init must be a list of {n_config} "
                              f"integers, not {config_init!r}")
         check_choice("EngineCurrentLoop", "status", status, STATUSES)
         self._status = status
         self._status_mems = {}                  # status="ram": made by elaborate()
         self._config = config
-        self._config_init = list(config_init) if config_init is not None else [0] * len(CONFIG)
+        self._config_init = list(config_init) if config_init is not None else [0] * n_config
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
-        self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw)
+        self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw,
+                                             speed=speed)
+        self._speed_timing = speed_run_timing(self._program) if speed else None
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
@@ -674,8 +730,20 @@ class EngineCurrentLoop(wiring.Component):
         # (The members in the order they had before lead_k and u_rated were configuration.)
         first, last = {"lead_k": lead_k}, {"u_rated": u_rated}
         if config == "ram":
-            ports = {"config": In(WordWriteSignature(len(CONFIG)))}
+            ports = {"config": In(WordWriteSignature(n_config))}
             first, last = {}, {}
+        speed_ports = {}
+        if speed:
+            sp = SPEED_PARAMS
+            speed_ports = {
+                "speed_valid": In(1), "speed_ref": In(signed(sp["speed_width"])),
+                "iq_lim_lo": In(sw), "iq_lim_hi": In(sw),
+                "speed_rate_div": In(unsigned(8)),
+                "speed_ref_delay": In(unsigned(sp["delay_width"])), "speed_int_hold": In(1),
+                "speed_clear": In(1),
+                "speed_o": Out(stream.Signature(sw, always_ready=True)),
+                "speed_sat": Out(1), "speed_ref_int": Out(signed(sp["speed_width"])),
+            }
         if status == "ram":
             rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
             status_ports = {"status_rd": Out(rd), "status_probe": Out(rd)}
@@ -698,6 +766,7 @@ class EngineCurrentLoop(wiring.Component):
             **status_ports,
             "sat_d": Out(1), "sat_q": Out(1), "dc_limited": Out(1), "busy": Out(1),
             "overrun": Out(1), "overruns": Out(16), "count": Out(32), "done": Out(1),
+            **speed_ports,
         })
 
     program = property(lambda self: self._program)
@@ -713,6 +782,14 @@ class EngineCurrentLoop(wiring.Component):
     phase_latency = property(lambda self: self._phase_latency)
     status_quiet = property(lambda self: self._status_quiet)
     status_mode = property(lambda self: self._status)
+    speed_mode = property(lambda self: self._speed)
+    #: ``speed=True``: :func:`speed_run_timing` of the program (per profile path); else None.
+    speed_timing = property(lambda self: None if self._speed_timing is None
+                            else {k: dict(v) for k, v in self._speed_timing.items()})
+    #: ``speed=True``: clocks from a speed run's request to its i_q reference when the engine
+    #: is idle, worst case (a current-loop run in flight delays it; class docstring).
+    speed_latency = property(lambda self: None if self._speed_timing is None
+                             else max(t["latency"] for t in self._speed_timing.values()))
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
@@ -729,14 +806,23 @@ class EngineCurrentLoop(wiring.Component):
         }
         shapes = {name: shapes[name] for name in SPECIALS}
         ram = self._config == "ram"
+        spd = self._speed
+        outs = dict(OUTS)
+        strobe_outs = (tuple(STATUS_OUTS[n] for n in STATUS if STATUS_OUTS[n] != "pa")
+                       if self._status == "ram" else ())
+        config = CONFIG
+        if spd:
+            shapes.update(SPEED_SHAPES)
+            outs.update({k: v for k, v in SPEED_OUTS.items() if k not in OUTS})
+            strobe_outs += ("ref_int", "iq")
+            config = CONFIG + SPEED_CONFIG_WORDS
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
-                                           out_widths=OUTS, width=w, guard=8,
+                                           out_widths=outs, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
-                                           config=CONFIG if ram else (),
+                                           config=config if ram else (),
                                            config_init=self._config_init if ram else None,
-                                           strobe_outs=(tuple(STATUS_OUTS[n] for n in STATUS
-                                                              if STATUS_OUTS[n] != "pa")
-                                                        if self._status == "ram" else ()))
+                                           config_slices=SPEED_SLICES if spd else None,
+                                           strobe_outs=strobe_outs)
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program
@@ -783,7 +869,11 @@ class EngineCurrentLoop(wiring.Component):
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),
-                     eng.start.eq(accept | pending), self.dc_limited.eq(eng.o_lim)]
+                     self.dc_limited.eq(eng.o_lim)]
+        if spd:
+            self._speed_run(m, eng, accept | pending)
+        else:
+            m.d.comb += eng.start.eq(accept | pending)
 
         # --- Outputs --------------------------------------------------------------------------------
         m.d.comb += [
@@ -800,6 +890,82 @@ class EngineCurrentLoop(wiring.Component):
             self._status_ram(m, eng)
         m.d.sync += self.phase.valid.eq(eng.o_pc_we)
         return m
+
+    def _speed_run(self, m, eng, cur_go):
+        """``speed=True``: the speed run beside the current loop's samples (class docstring,
+        *Speed loop*): request, decimation, start arbitration, the state the program keeps
+        outside the engine (``ref_int``, ``fresh``), the abort of a run in flight at
+        ``clear``, and the outputs."""
+        sp = SPEED_PARAMS
+        clear = self.speed_clear
+        # ``speed_slew ≠ 0`` (the tracking choice while ``clear``, read every clock) as a
+        # flip-flop loaded with the slew's configuration word (as SpeedLoop(config="ram")).
+        j_slew = len(CONFIG) + SPEED_CONFIG_WORDS.index("slew")
+        slew_nz = Signal(init=int(self._config_init[j_slew] != 0))
+        with m.If(self.config.valid & (self.config.index == j_slew)):
+            m.d.sync += slew_nz.eq(self.config.data != 0)
+        # Decimation (as SpeedLoop): every rate_div + 1-th strobe requests a run; a strobe
+        # that finds a run requested or in flight is dropped (SpeedLoop drops it while busy).
+        count = Signal(unsigned(8))
+        with m.If(clear):
+            m.d.sync += count.eq(0)
+        with m.Elif(self.speed_valid):
+            m.d.sync += count.eq(Mux(count >= self.speed_rate_div, 0, count + 1))
+        req = Signal()          # a run requested (waits while the engine is busy)
+        fl = Signal()           # a run started, its iq not yet written, not aborted
+        abort = Signal(2)       # aborted runs whose iq is still to come (their writes gated)
+        new = Signal()
+        go = Signal()
+        m.d.comb += [new.eq(self.speed_valid & (count == 0) & ~clear & ~req & ~fl),
+                     go.eq((new | req) & ~cur_go & ~eng.running & ~clear)]
+        # The current loop's sample has priority (its duties are due at the period boundary).
+        m.d.comb += [eng.start.eq(cur_go | go),
+                     eng.start_pc.eq(Mux(go, self._program.labels["speed"], 0))]
+        with m.If(clear | go):
+            m.d.sync += req.eq(0)
+        with m.Elif(new):
+            m.d.sync += req.eq(1)
+        # The speed latched at the request; ``fresh`` (set by clear) latched at the start.
+        l_spd = Signal(signed(sp["speed_width"]), name="l_spd")
+        with m.If(new):
+            m.d.sync += l_spd.eq(self.speed)
+        fresh = Signal(init=1)
+        l_fresh = Signal()
+        with m.If(clear):
+            m.d.sync += fresh.eq(1)
+        with m.Elif(go):
+            m.d.sync += [fresh.eq(0), l_fresh.eq(fresh)]
+        # In flight / aborted: the iq write is the last output write of every run.
+        iq_we = eng.o_iq_we
+        ok = Signal()
+        m.d.comb += ok.eq((abort == 0) & ~clear)
+        with m.If(clear & fl):
+            m.d.sync += [fl.eq(0), abort.eq(abort + 1)]
+        with m.Else():
+            with m.If(go):
+                m.d.sync += fl.eq(1)
+            with m.Elif(iq_we & (abort == 0)):
+                m.d.sync += fl.eq(0)
+            with m.If(iq_we & (abort != 0)):
+                m.d.sync += abort.eq(abort - 1)
+        # ref_int: forced to the tracked value while clear, else the program's write.
+        ref_int = self.speed_ref_int
+        with m.If(clear):
+            m.d.sync += ref_int.eq(Mux(slew_nz, self.speed, self.speed_ref))
+        with m.Elif(eng.o_ref_int_we & ok):
+            m.d.sync += ref_int.eq(eng.o_data[:sp["speed_width"]])
+        # The i_q reference, sat (written just before iq by the program) and o.valid.
+        m.d.sync += self.speed_o.valid.eq(iq_we & ok)
+        with m.If(clear):
+            m.d.sync += [self.speed_o.payload.eq(0), self.speed_sat.eq(0)]
+        with m.Elif(iq_we & ok):
+            m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
+                         self.speed_sat.eq(eng.o_sat)]
+        d = self.speed_ref_delay
+        m.d.comb += [eng.s_spd.eq(l_spd), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
+                     eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi),
+                     eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
+                     eng.s_ih.eq(self.speed_int_hold)]
 
     def _status_ram(self, m, eng):
         """The status RAM (class docstring): written at the engine's writes of the status

@@ -111,7 +111,7 @@ from .mt_speed import output_layout as mt_output_layout
 from .pi import pi_widths
 
 __all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
-           "CONFIGS", "SPEED_CONFIG", "check_speed_loop", "check_speed_config",
+           "CONFIGS", "SPEED_LOOPS", "SPEED_CONFIG", "check_speed_loop", "check_speed_config",
            "speed_loop_timing"]
 
 #: Width of the current references and modulation indices, Q1.15 (docs/ARCHITECTURE.md).
@@ -124,6 +124,14 @@ _SERVO_CONFIG = ("speed_kp", "speed_kx", "speed_slew", "iq_ff")
 DELAY_FRAC = 3
 #: Values of ``SpeedLoop(config=...)`` / ``Servo(config=...)``.
 CONFIGS = ("ports", "ram")
+#: Values of ``Servo(speed_loop=...)``: :class:`SpeedLoop` inside the Servo (``"sequential"``,
+#: its own datapath) or the loop engine's speed run (``"engine"``,
+#: ``EngineCurrentLoop(speed=True)`` beside the Servo; its results come in on ``sl_*``).
+SPEED_LOOPS = ("sequential", "engine")
+#: ``Servo(speed_loop="engine")``: the members that go (the speed loop's inputs; the top feeds
+#: them to the engine), and the results that come in instead.
+_ENGINE_GONE = ("speed", "speed_ref", "speed_kp", "speed_kx", "speed_rate_div", "speed_slew",
+                "iq_ff", "speed_ref_delay", "speed_int_hold")
 #: ``config="ram"``: the :class:`SpeedLoop` inputs held in its configuration RAM instead of
 #: ports, in the order of the words of its ``config`` port (``config.index`` = position here).
 SPEED_CONFIG = ("kp", "kx", "speed_slew", "iq_ff")
@@ -1227,6 +1235,16 @@ class Servo(wiring.Component):
     config, config_init
         Of the :class:`SpeedLoop`: ``config="ram"`` replaces ``speed_kp``, ``speed_kx``,
         ``speed_slew`` and ``iq_ff`` by ``speed_config``.
+    speed_loop : str
+        ``"sequential"`` (default): the :class:`SpeedLoop` inside. ``"engine"``: no speed loop
+        here: the loop engine runs it (``EngineCurrentLoop(speed=True)``, beside the Servo,
+        fed by the caller with the speed-loop inputs and ``speed_clear``); its results come in
+        on ``sl_iq`` (``valid``, ``payload``), ``sl_sat``, ``sl_ref_int`` and leave as
+        ``iq_ref`` (SPEED mode), ``speed_sat``, ``speed_valid``, ``speed_ref_int`` as they
+        would from the SpeedLoop. The members ``speed``, ``speed_ref``, ``speed_kp``,
+        ``speed_kx``, ``speed_rate_div``, ``speed_slew``, ``iq_ff``, ``speed_ref_delay``,
+        ``speed_int_hold`` (and ``speed_config``) are then absent; the speed-loop parameters
+        must be the program's (:data:`~.foc_engine.SPEED_PARAMS`), ``config`` is not given.
 
     Members
     -------
@@ -1289,9 +1307,26 @@ class Servo(wiring.Component):
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
                  int_guard=16, div_width=8, delay_width=5, phase_width=32, mul_width=MUL_WIDTH,
-                 config="ports", config_init=None):
+                 config="ports", config_init=None, speed_loop="sequential"):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
+        check_choice("Servo", "speed_loop", speed_loop, SPEED_LOOPS)
+        if speed_loop == "engine":
+            from .foc_engine import SPEED_PARAMS
+            given = dict(speed_width=speed_width, width=width, kp_format=kp_format,
+                         kx_format=kx_format, int_guard=int_guard, delay_width=delay_width)
+            for name, value in given.items():
+                if value != SPEED_PARAMS[name]:
+                    raise ValueError(f"Servo speed_loop='engine' needs {name} "
+                                     f"{SPEED_PARAMS[name]!r} (the engine's speed program is "
+                                     f"written for it), not {value!r}")
+            if div_width != 8:
+                raise ValueError(f"Servo speed_loop='engine' needs div_width 8 (the engine's "
+                                 f"rate_div), not {div_width!r}")
+            if config != "ports" or config_init is not None:
+                raise ValueError("Servo speed_loop='engine' takes no config or config_init "
+                                 "(the configuration words are the engine's)")
+        self._speed_loop = speed_loop
         mul_width = check_mul_width("Servo", mul_width)
         if not is_int(phase_width) or not 16 <= phase_width <= 48:
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
@@ -1350,18 +1385,26 @@ class Servo(wiring.Component):
             for name in _SERVO_CONFIG:
                 del members[name]
             members["speed_config"] = In(WordWriteSignature(len(SPEED_CONFIG)))
+        if speed_loop == "engine":      # the engine's speed run: its results come in
+            for name in _ENGINE_GONE:
+                del members[name]
+            members.update({"sl_iq": In(stream.Signature(q, always_ready=True)),
+                            "sl_sat": In(1), "sl_ref_int": In(signed(speed_width))})
         super().__init__(members)
 
     loop_params = property(lambda self: dict(self._loop_params))
     config_mode = property(lambda self: self._loop_params["config"])
     phase_width = property(lambda self: self._phase_width)
     speed_loop_latency = property(lambda self: self._speed_loop_timing["latency"])
+    speed_loop = property(lambda self: self._speed_loop)
 
     def elaborate(self, platform):
         m = Module()
         pw = self._phase_width
-        m.submodules.speed_loop = sl = SpeedLoop(**self._loop_params)
-        wiring.connect(m, speed=wiring.flipped(self.speed), speed_loop=sl.i)
+        engine = self._speed_loop == "engine"
+        if not engine:
+            m.submodules.speed_loop = sl = SpeedLoop(**self._loop_params)
+            wiring.connect(m, speed=wiring.flipped(self.speed), speed_loop=sl.i)
 
         # Active mode: copied at loop boundaries, forced to DISABLED by a trip.
         active = Signal(Mode)
@@ -1381,25 +1424,33 @@ class Servo(wiring.Component):
         is_speed = eff == Mode.SPEED
 
         # Speed loop.
-        if self.config_mode == "ram":
-            wiring.connect(m, speed_config=wiring.flipped(self.speed_config),
-                           speed_loop=sl.config)
+        if engine:
+            # The engine's speed run (cleared by ``speed_clear``): its results.
+            sl_iq = self.sl_iq.payload
+            m.d.comb += [self.speed_clear.eq(~is_speed),
+                         self.speed_sat.eq(self.sl_sat), self.speed_valid.eq(self.sl_iq.valid),
+                         self.speed_ref_int.eq(self.sl_ref_int)]
         else:
-            m.d.comb += [getattr(sl, name).eq(getattr(self, port))
-                         for name, port in zip(SPEED_CONFIG, _SERVO_CONFIG)]
-        m.d.comb += [
-            sl.speed_ref.eq(self.speed_ref),
-            sl.lim_lo.eq(self.iq_lim_lo),
-            sl.lim_hi.eq(self.iq_lim_hi),
-            sl.rate_div.eq(self.speed_rate_div),
-            sl.ref_delay.eq(self.speed_ref_delay),
-            sl.int_hold.eq(self.speed_int_hold),
-            sl.clear.eq(~is_speed),
-            self.speed_clear.eq(~is_speed),
-            self.speed_sat.eq(sl.sat),
-            self.speed_valid.eq(sl.o.valid),
-            self.speed_ref_int.eq(sl.ref_int),
-        ]
+            sl_iq = sl.o.payload
+            if self.config_mode == "ram":
+                wiring.connect(m, speed_config=wiring.flipped(self.speed_config),
+                               speed_loop=sl.config)
+            else:
+                m.d.comb += [getattr(sl, name).eq(getattr(self, port))
+                             for name, port in zip(SPEED_CONFIG, _SERVO_CONFIG)]
+            m.d.comb += [
+                sl.speed_ref.eq(self.speed_ref),
+                sl.lim_lo.eq(self.iq_lim_lo),
+                sl.lim_hi.eq(self.iq_lim_hi),
+                sl.rate_div.eq(self.speed_rate_div),
+                sl.ref_delay.eq(self.speed_ref_delay),
+                sl.int_hold.eq(self.speed_int_hold),
+                sl.clear.eq(~is_speed),
+                self.speed_clear.eq(~is_speed),
+                self.speed_sat.eq(sl.sat),
+                self.speed_valid.eq(sl.o.valid),
+                self.speed_ref_int.eq(sl.ref_int),
+            ]
 
         # Open-loop phase accumulator.
         acc = Signal(unsigned(pw))
@@ -1438,7 +1489,7 @@ class Servo(wiring.Component):
                 self.id_ref.eq(self.id_set),
             ]
         with m.If(is_speed):
-            m.d.comb += [self.iq_ref.eq(sl.o.payload), self.id_ref.eq(self.id_set)]
+            m.d.comb += [self.iq_ref.eq(sl_iq), self.id_ref.eq(self.id_set)]
 
         # Reference step: a flag set by ref_change, strobed out and cleared at loop boundaries
         # (a change in the strobe's own clock is seen at the next one).

@@ -71,6 +71,28 @@ Servo's speed strobe): after a reset the first M/T result (~40 clocks later) is 
 speed loop runs from the next one (only visible when ``mode``'s reset value is SPEED; the
 default, DISABLED, runs no loop).
 
+**Speed loop on the engine** (``speed_loop="engine"``, only with ``current_loop="engine"`` and
+``regs_staging="bram"``: the iCEBreaker): no :class:`~.servo.SpeedLoop`; the loop engine runs
+the speed loop as a second program (``EngineCurrentLoop(speed=True)``), bit for bit the same
+results. The speed words go into the engine's configuration RAM after its 16 (one export
+port, all 20 words); M/T's strobe (held off in the reset walk, as above), the speed
+reference, the i_q limits, ``speed_div``, ``speed_ref_delay``, ``speed_int_hold`` and the
+Servo's ``speed_clear`` go to the engine, whose i_q reference, ``sat`` and ``ref_int`` come
+back into the Servo (``Servo(speed_loop="engine")``). The run starts at M/T's strobe if the
+engine is idle and gives its i_q reference 228 … 233 clocks later (``speed_timing``; the
+SpeedLoop: 120), so a centred sample still sees this period's reference while half a period
+exceeds ``MTSpeed.latency + 1 + speed_latency`` (checked: ``ValueError``; at 10 kHz and 33 MHz
+half a period is ≈ 1 650 clocks, against 38 + 1 + 233). **Sample-point limit:** a
+current-loop sample that arrives during a speed run waits for it (and a speed run for a
+current-loop sample): a ``pwm_sample_point`` (``pwm_sample_custom``) that puts the sample
+(+ ``AdcInterface.latency``) within ≈ 233 clocks after M/T's strobe, i.e. within
+≈ ``MTSpeed.latency + 233`` clocks after ``period_start``, delays its duties by up to the speed run's 228 instructions (they may then
+load a period late) and takes the previous period's i_q reference; the M/T strobe must
+likewise not fall in a current-loop run, i.e. the sample must come more than
+``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period end (the limit
+of ``loop_latency`` above, a little longer). Not checked in gateware (the registers are
+run-time values); the default centred sample is far from both.
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -168,7 +190,7 @@ from .regs import STAGINGS as REGS_STAGINGS
 from .regs import Derived, RegisterFile, staging_slots
 from .scope import RAMS as SCOPE_RAMS
 from .scope import Scope
-from .servo import SPEED_CONFIG, Servo
+from .servo import SPEED_CONFIG, SPEED_LOOPS, Servo
 from .svpwm import PWMTimer, pwm_half_period
 
 __all__ = ["Top", "LeadAngle", "regmap_address_map"]
@@ -458,7 +480,7 @@ class Top(wiring.Component):
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
-                 regs_staging="ff"):
+                 regs_staging="ff", speed_loop="sequential"):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -508,6 +530,12 @@ class Top(wiring.Component):
         check_choice("Top", "current_loop", current_loop, CURRENT_LOOPS)
         check_choice("Top", "scope_ram", scope_ram, SCOPE_RAMS)
         check_choice("Top", "regs_staging", regs_staging, REGS_STAGINGS)
+        check_choice("Top", "speed_loop", speed_loop, SPEED_LOOPS)
+        if speed_loop == "engine" and (current_loop, regs_staging) != ("engine", "bram"):
+            raise ValueError(f"Top speed_loop='engine' needs current_loop='engine' and "
+                             f"regs_staging='bram' (the speed run shares the engine and its "
+                             f"configuration RAM), not current_loop={current_loop!r}, "
+                             f"regs_staging={regs_staging!r}")
         if resets is not None:
             if not isinstance(resets, Mapping):
                 raise TypeError(f"Top resets must be a mapping of register names to raw values "
@@ -551,7 +579,10 @@ class Top(wiring.Component):
                                   derived=({n: Derived(*op) for n, op in self._operands.items()}
                                            if regs_staging == "bram" else None))
         exported = [r.name for _, r, _ in self._regs.export_words]
-        self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
+        # (speed_loop="engine": the speed words go into the engine's RAM with its own.)
+        self._speed_export = (exported.index(SPEED_LOOP_CONFIG[0])
+                              if speed_ram and speed_loop != "engine" else None)
+        self._speed_loop = speed_loop
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width)
@@ -566,8 +597,12 @@ class Top(wiring.Component):
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init[:len(ENGINE_CONFIG)],
-                                        status="ram") if cfg_ram else
+                                        config_init=self._regs.export_init[
+                                            :len(ENGINE_CONFIG) + (len(SPEED_LOOP_CONFIG)
+                                                                   if speed_loop == "engine"
+                                                                   else 0)],
+                                        status="ram", speed=speed_loop == "engine")
+                      if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
@@ -580,9 +615,20 @@ class Top(wiring.Component):
         k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
                             kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width,
+                            speed_loop=speed_loop,
                             **({} if k is None else dict(
                                 config="ram",
                                 config_init=self._regs.export_init[k:k + len(SPEED_CONFIG)])))
+        if speed_loop == "engine":
+            # The speed run starts at M/T's strobe (≈ MTSpeed.latency after period_start);
+            # a centred sample must come after its i_q reference (module docstring,
+            # "Speed loop on the engine").
+            due = self._mt.latency + 1 + self._loop.speed_latency
+            if self._timer.period // 2 <= due:
+                raise ValueError(f"Top speed_loop='engine' needs half a PWM period longer "
+                                 f"than M/T's latency + the speed run ({due} clocks), not "
+                                 f"{self._timer.period // 2} clocks (pwm_hz {pwm_hz!r} at "
+                                 f"clk_hz {clk_hz:g})")
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32)
@@ -619,6 +665,7 @@ class Top(wiring.Component):
     loop_latency = property(lambda self: self._adc.latency + self._loop.latency)
     mul_width = property(lambda self: self._mul_width)
     current_loop = property(lambda self: self._current_loop)
+    speed_loop = property(lambda self: self._speed_loop)
     scope_ram = property(lambda self: self._scope.ram)
     regs_staging = property(lambda self: self._regs.staging)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
@@ -688,6 +735,8 @@ class Top(wiring.Component):
         # is the copy's value).
         speed_valid_q = Signal()
         m.d.sync += speed_valid_q.eq(mt.o.valid)
+        engine_speed = self._speed_loop == "engine"
+        speed_valid = mt.o.valid if regs.staging == "ff" else mt.o.valid & ~regs.export_walk
         if self._current_loop == "pipelined":
             cl_speed = Signal.like(speed)
             m.d.sync += cl_speed.eq(speed)
@@ -724,10 +773,10 @@ class Top(wiring.Component):
             mt.edge.step.eq(enc.step if mt.edge_mode == "x4" else enc.a_rise),
             mt.edge.neg.eq(~enc.up),
             # ("bram": no speed-loop run starts in the register file's reset walk, which
-            # writes the loop's configuration words: module docstring.)
-            servo.speed.valid.eq(mt.o.valid if self._speed_export is None else
-                                 mt.o.valid & ~regs.export_walk),
-            servo.speed.payload.eq(mt.o.payload),
+            # writes the loop's configuration words: module docstring.) The SpeedLoop's, or
+            # (speed_loop="engine") the engine's speed run's.
+            *([cl.speed_valid.eq(speed_valid)] if engine_speed else [
+                servo.speed.valid.eq(speed_valid), servo.speed.payload.eq(mt.o.payload)]),
             servo.theta_meas.eq(enc.theta),
             servo.trip.eq(trip_q),
 
@@ -784,8 +833,11 @@ class Top(wiring.Component):
             return self._operands[name][1](getattr(regs, name))
 
         if hasattr(cl, "config"):
-            # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1).
-            m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < len(ENGINE_CONFIG))),
+            # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1; with the
+            # engine's speed run the speed loop's words after them too: all of them).
+            n_cfg = len(ENGINE_CONFIG) + (len(SPEED_LOOP_CONFIG)
+                                          if self._speed_loop == "engine" else 0)
+            m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < n_cfg)),
                          cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
             m.d.comb += [
@@ -799,9 +851,20 @@ class Top(wiring.Component):
                 cl.ff_psi.eq(regs.decouple_psi),
                 cl.u_rated.eq(regs.u_rated),
             ]
+        # The speed loop's inputs go to the Servo's SpeedLoop or (speed_loop="engine") to the
+        # engine's speed run (below, in the places the SpeedLoop's take), whose results go
+        # back into the Servo.
+        if engine_speed:
+            m.d.comb += [cl.speed_clear.eq(servo.speed_clear),
+                         servo.sl_iq.valid.eq(cl.speed_o.valid),
+                         servo.sl_iq.payload.eq(cl.speed_o.payload),
+                         servo.sl_sat.eq(cl.speed_sat), servo.sl_ref_int.eq(cl.speed_ref_int),
+                         cl.iq_lim_lo.eq(regs.pi_speed_lim_lo),
+                         cl.iq_lim_hi.eq(regs.pi_speed_lim_hi)]
+        sl = cl if engine_speed else servo
         m.d.comb += [
             _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
-            servo.speed_ref.eq(regs.speed_ref),
+            sl.speed_ref.eq(regs.speed_ref),
             servo.id_set.eq(regs.i_d_ref),
             servo.iq_set.eq(regs.i_q_ref),
             _raw(servo.ol_src).eq(_raw(regs.ol_angle_mode)),  # AngleMode ≡ AngleSource
@@ -822,9 +885,9 @@ class Top(wiring.Component):
 
             servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
             servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
-            servo.speed_rate_div.eq(operand("speed_div")),
-            servo.speed_ref_delay.eq(regs.speed_ref_delay),
-            servo.speed_int_hold.eq(regs.speed_int_hold),
+            sl.speed_rate_div.eq(operand("speed_div")),
+            sl.speed_ref_delay.eq(regs.speed_ref_delay),
+            sl.speed_int_hold.eq(regs.speed_int_hold),
             mt.k.eq(regs.mt_k),
 
             enc.lines.eq(regs.enc_lines),
@@ -856,7 +919,9 @@ class Top(wiring.Component):
         # The speed loop's gains, slew and feed-forward: the register file's active values, or
         # ("bram") its export port's words from index ``_speed_export`` on into the speed
         # loop's RAM.
-        if self._speed_export is None:
+        if self._speed_loop == "engine":
+            pass                        # (in the engine's configuration RAM, above)
+        elif self._speed_export is None:
             m.d.comb += [servo.speed_kp.eq(regs.pi_speed_kp), servo.speed_kx.eq(regs.pi_speed_kx),
                          servo.speed_slew.eq(regs.speed_slew), servo.iq_ff.eq(regs.speed_ff_iq)]
         else:

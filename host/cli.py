@@ -254,7 +254,8 @@ def build_parser():
                                     "(yosys + nextpnr, ports registered): Fmax, critical path "
                                     "and utilisation")
     p.add_argument("--block", action="append",
-                   help="catalogue block, uart_rx / uart_tx or foc_engine (repeatable; default: "
+                   help="catalogue block, uart_rx / uart_tx, foc_engine or foc_engine_speed "
+                        "(repeatable; default: "
                         "every block but the top)")
     from ..boards.fmax import FAMILIES
     p.add_argument("--family", choices=list(FAMILIES), default="ecp5",

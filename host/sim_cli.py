@@ -39,6 +39,13 @@ def _common(p):
                    help="current-loop gateware: pipelined (CurrentLoop, 46-48 clocks) or engine "
                         "(EngineCurrentLoop, same results, 134-232 clocks, a third of the area) "
                         "(default: %(default)s)")
+    p.add_argument("--speed-loop", choices=["sequential", "engine"], default="sequential",
+                   help="speed-loop gateware: sequential (SpeedLoop) or engine (a run of the "
+                        "loop engine, the iCEBreaker's; needs --current-loop engine and the "
+                        "block-RAM register staging, which it selects) (default: %(default)s)")
+    p.add_argument("--regs-staging", choices=["ff", "bram"], default=None,
+                   help="register-file staging (Top regs_staging; default: ff, bram with "
+                        "--speed-loop engine)")
     p.add_argument("--pwm-khz", type=_number("kHz", 1, 100), default=10.0,
                    help="PWM (switching and current-loop sampling) frequency, kHz "
                         "(default: %(default)s)")
@@ -131,6 +138,12 @@ def _scenario_kwargs(args):
         # Passed only when not the default: the default top's compiled-model source key
         # (sim/engines/compiled.py, over the Top kwargs) stays the one already cached.
         kw["current_loop"] = args.current_loop
+    # (Likewise passed only when not the default.)
+    if args.speed_loop != "sequential":
+        kw["speed_loop"] = args.speed_loop
+    staging = args.regs_staging or ("bram" if args.speed_loop == "engine" else "ff")
+    if staging != "ff":
+        kw["regs_staging"] = staging
     if args.vcd:
         kw["record_pins"] = True
     return kw

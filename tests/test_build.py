@@ -298,9 +298,10 @@ def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
         r = build("ulx3s", out_dir=tmp_path / loop, current_loop=loop, json=True)
         out = capsys.readouterr().out.strip().splitlines()
         assert json.loads(out[-1])["current_loop"] == r["current_loop"] == loop
-        assert (f"  gateware  Top(current_loop={loop!r}, scope_ram='bram', regs_staging='ff')"
-                in out)
+        assert (f"  gateware  Top(current_loop={loop!r}, scope_ram='bram', regs_staging='ff', "
+                f"speed_loop='sequential')" in out)
         assert r["scope_ram"] == "bram" and r["regs_staging"] == "ff"
+        assert r["speed_loop"] == "sequential"
         saved = json.loads((tmp_path / loop / "ulx3s" / "report.json").read_text())
         assert saved["current_loop"] == loop
         il = (tmp_path / loop / "ulx3s" / f"{NAME}.il").read_text()
@@ -315,8 +316,31 @@ def test_build_reports_the_current_loop(tmp_path, monkeypatch, capsys):
     assert {"board", "title", "flow", "lut", "lut_kind", "ff", "bram_bits", "dsp", "fmax_mhz",
             "fmax", "timing_met", "clock_mhz", "clock_requested_mhz", "pll", "pll_divs", "paper",
             "fits", "error", "utilisation", "wall_s", "stages", "artifacts",
-            "current_loop", "scope_ram", "regs_staging", "seed"} == keys
+            "current_loop", "speed_loop", "scope_ram", "regs_staging", "seed"} == keys
     assert r["seed"] is None
+
+
+def test_board_top_speed_loop_is_the_boards_with_the_engine_only():
+    """The iCEBreaker runs the speed loop on the loop engine (``Board.speed_loop``), but only
+    with the engine current loop (``--current-loop pipelined`` gives the SpeedLoop); the other
+    boards keep the SpeedLoop, the Arty also with ``--current-loop engine``."""
+    import gc
+    import warnings
+
+    from amaranth.hdl import UnusedElaboratable
+
+    from foc_servo.boards.build import BoardTop
+    from foc_servo.boards.platforms import get_board
+    assert get_board("icebreaker").speed_loop == "engine"
+    assert get_board("ulx3s").speed_loop == get_board("arty_s7").speed_loop == "sequential"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        got = {(b, loop): BoardTop(b, current_loop=loop).top.speed_loop
+               for b, loop in (("icebreaker", None), ("icebreaker", "pipelined"),
+                               ("arty_s7", "engine"), ("ulx3s", None))}
+        gc.collect()
+    assert got == {("icebreaker", None): "engine", ("icebreaker", "pipelined"): "sequential",
+                   ("arty_s7", "engine"): "sequential", ("ulx3s", None): "sequential"}
 
 
 # --- vendor build trees ---------------------------------------------------------------------------

@@ -822,3 +822,55 @@ def test_speed_loop_product_rounding_shows_without_guard_bits():
     got, model = speed_loop_clocks(seq, **params)
     outs = [g for g in got if g[0]]
     assert len(outs) == 60 and sum(o[2] for o in outs) < 10       # mostly unsaturated
+
+
+@pytest.mark.parametrize("kwargs, exc, msg", [
+    (dict(speed_loop=1), TypeError, r"^Servo speed_loop must be a string, one of .*, not 1$"),
+    (dict(speed_loop="dsp"), ValueError,
+     r"^Servo speed_loop must be one of 'sequential', 'engine', not 'dsp'$"),
+    (dict(speed_loop="engine"), ValueError,
+     r"^Servo speed_loop='engine' needs kx_format UQ\(24, 20\) \(the engine's speed program is "
+     r"written for it\), not UQ\(24, 24\)$"),
+    (dict(speed_loop="engine", kx_format=UQ(24, 20), width=20), ValueError,
+     r"^Servo speed_loop='engine' needs width 24 "),
+    (dict(speed_loop="engine", kx_format=UQ(24, 20), div_width=4), ValueError,
+     r"^Servo speed_loop='engine' needs div_width 8 "),
+    (dict(speed_loop="engine", kx_format=UQ(24, 20), config="ram"), ValueError,
+     r"^Servo speed_loop='engine' takes no config or config_init "),
+])
+def test_servo_speed_loop_validation(kwargs, exc, msg):
+    with pytest.raises(exc, match=msg):
+        Servo(**kwargs)
+
+
+def test_servo_engine_speed_loop_ports():
+    """``Servo(speed_loop="engine")``: no SpeedLoop and none of its inputs; the engine's
+    results come in on ``sl_iq``, ``sl_sat``, ``sl_ref_int`` and leave as the SpeedLoop's
+    would (``iq_ref`` in SPEED mode, ``speed_valid``, ``speed_sat``, ``speed_ref_int``)."""
+    dut = Servo(speed_loop="engine", kx_format=UQ(24, 20))
+    members = set(dut.signature.members)
+    assert not members & {"speed", "speed_ref", "speed_kp", "speed_kx", "speed_rate_div",
+                          "speed_slew", "iq_ff", "speed_ref_delay", "speed_int_hold",
+                          "speed_config"}
+    assert {"sl_iq", "sl_sat", "sl_ref_int", "speed_clear"} <= members
+    seen = []
+
+    async def testbench(ctx):
+        ctx.set(dut.mode, Mode.SPEED)
+        ctx.set(dut.loop, 1)
+        await ctx.tick()
+        ctx.set(dut.loop, 0)
+        for k, (valid, iq, sat, ref) in enumerate([(1, -1234, 1, -5), (0, 77, 0, 1 << 30)]):
+            ctx.set(dut.sl_iq.valid, valid)
+            ctx.set(dut.sl_iq.payload, iq)
+            ctx.set(dut.sl_sat, sat)
+            ctx.set(dut.sl_ref_int, ref)
+            seen.append((ctx.get(dut.iq_ref), ctx.get(dut.speed_valid), ctx.get(dut.speed_sat),
+                         ctx.get(dut.speed_ref_int), ctx.get(dut.speed_clear)))
+        ctx.set(dut.mode, Mode.CURRENT)
+        ctx.set(dut.loop, 1)
+        await ctx.tick()
+        seen.append((ctx.get(dut.iq_ref), ctx.get(dut.speed_clear)))
+
+    simulate(dut, [testbench], name="servo_engine_ports")
+    assert seen == [(-1234, 1, 1, -5, 0), (77, 0, 0, 1 << 30, 0), (0, 1)]

@@ -159,6 +159,17 @@ def _signed(word, bits=32):
     ({"regs_staging": 1}, TypeError, r"^Top regs_staging must be a string, one of .*, not 1$"),
     ({"regs_staging": "spram"}, ValueError, r"^Top regs_staging must be one of 'ff', 'bram', "
                                             r"not 'spram'$"),
+    ({"speed_loop": 1}, TypeError, r"^Top speed_loop must be a string, one of .*, not 1$"),
+    ({"speed_loop": "pi"}, ValueError, r"^Top speed_loop must be one of 'sequential', "
+                                       r"'engine', not 'pi'$"),
+    ({"speed_loop": "engine"}, ValueError,
+     r"^Top speed_loop='engine' needs current_loop='engine' and regs_staging='bram' \(the "
+     r"speed run shares the engine and its configuration RAM\), not current_loop='pipelined', "
+     r"regs_staging='ff'$"),
+    ({"speed_loop": "engine", "current_loop": "engine", "regs_staging": "bram",
+      "pwm_hz": 100e3}, ValueError,
+     r"^Top speed_loop='engine' needs half a PWM period longer than M/T's latency \+ the "
+     r"speed run \(\d+ clocks\), not 250 clocks \(pwm_hz 100000.0 at clk_hz 5e\+07\)$"),
     ({"regs_staging": "bram", "pwm_hz": 1.25e6}, ValueError,
      r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
      r"not 40 clocks$"),
@@ -1197,8 +1208,11 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
             assert not matches(replay(moved)), (j, d)
 
 
-@pytest.mark.parametrize("current_loop", ["engine", "pipelined"])
-def test_top_bram_speed_loop_configuration_written_through_the_register_file(current_loop):
+@pytest.mark.parametrize("current_loop, speed_loop", [("engine", "sequential"),
+                                                      ("pipelined", "sequential"),
+                                                      ("engine", "engine")])
+def test_top_bram_speed_loop_configuration_written_through_the_register_file(current_loop,
+                                                                              speed_loop):
     """``regs_staging="bram"``: the speed loop's gains, slew and feed-forward
     (:data:`SPEED_LOOP_CONFIG`) have no flip-flops in the register file; its export port writes them into the speed loop's
     configuration RAM (``Servo(config="ram")``, the export's words after the engine's), from the
@@ -1206,26 +1220,38 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
     ``pi_speed_kp``, ``pi_speed_kx``, ``speed_slew`` and ``speed_ff_iq`` reach the loop at a
     period start, and
     the Servo's outputs are the model's clock by clock, the model taking what the export port
-    wrote; read-back returns the written values."""
+    wrote; read-back returns the written values. ``speed_loop="engine"`` (the iCEBreaker's):
+    the words go into the loop engine's configuration RAM after its own, the speed run's inputs
+    are the engine's ports, and the model is :class:`ServoModel` with the engine's timing."""
     from foc_servo.hdl.servo import SPEED_CONFIG
     from foc_servo.hdl.top import ENGINE_CONFIG, SPEED_LOOP_CONFIG
     from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel
     REF = (1 << 30) + (1 << 26)         # the encoder's 6000 r/min = 2^30 of N_FS, + 375 r/min
-    top = Top(pwm_hz=PWM, baud=BAUD, current_loop=current_loop, regs_staging="bram", resets={
-        "mode": Mode.SPEED.value, "speed_ref": REF, "pi_speed_kp": 1 << 12,
-        "pi_speed_lim_lo": -9000, "pi_speed_lim_hi": 9000, "prot_mask": 0})
-    regs, servo, rm = top._regs, top._servo, top.regmap
+    eng = speed_loop == "engine"
+    top = Top(pwm_hz=PWM if not eng else PWM / 2, baud=BAUD, current_loop=current_loop,
+              regs_staging="bram", speed_loop=speed_loop, resets={
+                  "mode": Mode.SPEED.value, "speed_ref": REF, "pi_speed_kp": 1 << 12,
+                  "pi_speed_lim_lo": -9000, "pi_speed_lim_hi": 9000, "prot_mask": 0})
+    regs, servo, rm, cl = top._regs, top._servo, top.regmap, top._loop
     names = [r.name for _, r, _ in regs.export_words]
     engine = ENGINE_CONFIG if current_loop == "engine" else ()
     assert names == list(engine + SPEED_LOOP_CONFIG)
-    assert servo.config_mode == "ram" and not any(hasattr(regs, n) for n in SPEED_LOOP_CONFIG)
+    assert not any(hasattr(regs, n) for n in SPEED_LOOP_CONFIG)
+    assert servo.config_mode == ("ports" if eng else "ram") and servo.speed_loop == speed_loop
     config = dict(zip(SPEED_CONFIG, ("speed_kp", "speed_kx", "speed_slew", "iq_ff")))
-    ins = {n: servo.speed.valid if n == "speed_valid" else
+    at_engine = {"speed_valid": "speed_valid", "speed": "speed", "speed_ref": "speed_ref",
+                 "speed_rate_div": "speed_rate_div", "speed_ref_delay": "speed_ref_delay",
+                 "speed_int_hold": "speed_int_hold"}
+    ins = {n: getattr(cl, at_engine[n]) if eng and n in at_engine else
+           servo.speed.valid if n == "speed_valid" else
            servo.speed.payload.speed if n == "speed" else getattr(servo, n)
            for n in SERVO_INPUTS if n not in config.values()}
-    cfg = servo.speed_config
+    cfg = cl.config if eng else servo.speed_config
+    off_cfg = len(ENGINE_CONFIG) if eng else 0     # the speed words' first index there
     params = {k: v for k, v in servo.loop_params.items()
               if k not in ("mul_width", "config", "config_init")}
+    if eng:
+        params["speed_engine_timing"] = cl.speed_timing
     model = ServoModel(**params)
     outs = list(model.clock({**{n: 0 for n in SERVO_INPUTS}}))      # (a throw-away model)
     model = ServoModel(**params)
@@ -1252,7 +1278,7 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
             await host.next_period(ctx, top)
 
     simulate(bench, [testbench], [_encoder_process(top, 25)],
-             name=f"test_top_speed_config_{current_loop}")
+             name=f"test_top_speed_config_{current_loop}_{speed_loop}")
     assert seen["read"] == list(new.values())
     ram = [rm[n].reset for n in SPEED_LOOP_CONFIG]
     runs, mismatches, writes = [], [], []
@@ -1262,9 +1288,9 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
             mismatches.append((t, got, want))
         if got["speed_valid"]:
             runs.append((t, dict(zip(SPEED_CONFIG, ram)), got["iq_ref"], got["speed_ref_int"]))
-        if valid:
-            writes.append((t, index, data))
-            ram[index] = data
+        if valid and index >= off_cfg:
+            writes.append((t, index - off_cfg, data))
+            ram[index - off_cfg] = data
     assert not mismatches, mismatches[0]
     # The reset walk's words first (no run in it), then every period's copy; the new values
     # from the period after the writes.
@@ -1284,8 +1310,8 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
     model, ram, off = ServoModel(**params), [rm[n].reset for n in SPEED_LOOP_CONFIG], 0
     for i, (valid, index, data), got in host.trace:
         off += model.clock({**i, **dict(zip(config.values(), ram)), "iq_ff": 0}) != got
-        if valid:
-            ram[index] = data
+        if valid and index >= off_cfg:
+            ram[index - off_cfg] = data
     assert off > 0
 
 

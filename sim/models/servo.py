@@ -72,13 +72,18 @@ class SpeedLoopModel:
               "lim_lo", "lim_hi")
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5):
+                 int_guard=16, div_width=8, delay_width=5, engine_timing=None):
         check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
                          delay_width)
         timing = speed_loop_timing(speed_width, width, kp_format, kx_format, int_guard,
                                    delay_width)
         self.latency, self.interval = timing["latency"], timing["interval"]
         self.ref_latency = timing["ref_latency"]
+        # The speed loop on the loop engine (EngineCurrentLoop(speed=True)): per profile path
+        # (speed_run_timing), counted from the run's start, which waits for the engine.
+        self.engine_timing = engine_timing
+        self.waiting = None                 # engine: the accepted run not yet started
+        self.started = None                 # engine: (path, clocks waited) of a start now
         self.speed_width, self.width = speed_width, width
         self.pi = PIModel(width=width, kp_format=kp_format, kx_format=kx_format,
                           int_guard=int_guard)
@@ -101,7 +106,7 @@ class SpeedLoopModel:
     @property
     def busy(self):
         """A run is in flight (no run can be accepted) in the current clock."""
-        return self.t < self.run_end
+        return self.t < self.run_end or self.waiting is not None
 
     def _to_pi(self, value):
         return saturate_np(round_shift_np(value, self._shift_in), signed(self.width))
@@ -116,10 +121,17 @@ class SpeedLoopModel:
         return v
 
     def clock(self, valid, speed, speed_ref, kp, kx, lim_lo, lim_hi, rate_div, clear,
-              speed_slew=0, iq_ff=0, ref_delay=0, int_hold=0):
+              speed_slew=0, iq_ff=0, ref_delay=0, int_hold=0, start=0):
         """Inputs of the current clock → ``(o_valid, o_payload, sat, ref_int)`` seen in it;
-        advance one clock."""
+        advance one clock.
+
+        With ``engine_timing``, an accepted run waits until a clock with ``start`` (the
+        engine takes it: the caller models the engine's arbitration; it may be the accepting
+        clock) and its results follow that clock by the path's ``ref_latency`` and
+        ``latency``; the next run can be accepted from its ``o.valid`` on. ``clear`` drops a
+        waiting run."""
         out = (self.o_valid, self.o_payload, self.sat, self.ref_int)
+        self.started = None
         s = self._shift_out
         d_int, d_frac = ref_delay >> DELAY_FRAC, ref_delay & ((1 << DELAY_FRAC) - 1)
         now = dict(speed=speed, speed_ref=speed_ref, speed_slew=speed_slew, iq_ff=iq_ff,
@@ -127,7 +139,7 @@ class SpeedLoopModel:
                    lim_hi=lim_hi)
         self.o_valid = 0
         if clear:
-            self.pending = self.pending_ref = self.run_inputs = None
+            self.pending = self.pending_ref = self.run_inputs = self.waiting = None
             self.run_end = 0
             self.pi.clear()
             self.count = 0
@@ -163,8 +175,20 @@ class SpeedLoopModel:
                     else:
                         self._run(now, d_int, d_frac)
                 self.count = 0 if self.count >= rate_div else self.count + 1
+            if start and self.waiting is not None:
+                self._start()
         self.t += 1
         return out
+
+    def _start(self):
+        """The engine starts the waiting run in this clock (``engine_timing``)."""
+        path, pi_out, pi_sat, lo, hi, ff, plan, accepted = self.waiting
+        self.waiting = None
+        self.started = (path, self.t - accepted)
+        tm = self.engine_timing[path]
+        self.pending = (self.t + tm["latency"] - 1, pi_out, pi_sat, lo, hi, ff)
+        self.pending_ref = (self.t + tm["ref_latency"] - 1, plan)
+        self.run_end = self.t + tm["latency"]
 
     def _run(self, inp, d_int, d_frac):
         """Compute an accepted run (clock ``self.t``) and schedule its results."""
@@ -186,9 +210,13 @@ class SpeedLoopModel:
                       for lim in (lim_lo, lim_hi))
         pi_out, pi_sat = self.pi.step(ref, self._to_pi(inp["speed"]), inp["kp"],
                                       0 if hold else inp["kx"], lo_s, hi_s)
-        self.pending = (self.t + self.latency - 1, pi_out, pi_sat, lim_lo, lim_hi, ff)
-        self.pending_ref = (self.t + self.ref_latency - 1, plan)
-        self.run_end = self.t + self.interval
+        if self.engine_timing is not None:
+            self.waiting = ("up" if up else "dn" if dn else "none", pi_out, pi_sat, lim_lo,
+                            lim_hi, ff, plan, self.t)
+        else:
+            self.pending = (self.t + self.latency - 1, pi_out, pi_sat, lim_lo, lim_hi, ff)
+            self.pending_ref = (self.t + self.ref_latency - 1, plan)
+            self.run_end = self.t + self.interval
         self.run_inputs = dict(inp)
         self.runs += 1
         self.plan = plan
@@ -209,14 +237,21 @@ class ServoModel:
     step_pending : int
         The reference-step flag (set by ``ref_change``, cleared by ``loop``).
     speed_loop : SpeedLoopModel
+
+    ``speed_engine_timing``: the speed loop on the loop engine (``Servo(speed_loop="engine")``
+    with ``EngineCurrentLoop(speed=True)``; its :attr:`speed_timing`): a run starts in a clock
+    whose input ``speed_start`` is 1 (default 1: the engine free, as at M/T's strobe in the
+    top), see :meth:`SpeedLoopModel.clock`.
     """
 
     def __init__(self, *, speed_width=32, width=24, kp_format=UQ(24, 12), kx_format=UQ(24, 24),
-                 int_guard=16, div_width=8, delay_width=5, phase_width=32):
+                 int_guard=16, div_width=8, delay_width=5, phase_width=32,
+                 speed_engine_timing=None):
         self.speed_loop = SpeedLoopModel(speed_width=speed_width, width=width,
                                          kp_format=kp_format, kx_format=kx_format,
                                          int_guard=int_guard, div_width=div_width,
-                                         delay_width=delay_width)
+                                         delay_width=delay_width,
+                                         engine_timing=speed_engine_timing)
         if (not isinstance(phase_width, int) or isinstance(phase_width, bool)
                 or not 16 <= phase_width <= 48):
             raise TypeError(f"Servo phase_width must be an integer from 16 to 48, "
@@ -237,7 +272,7 @@ class ServoModel:
             inp["speed_valid"], inp["speed"], inp["speed_ref"], inp["speed_kp"],
             inp["speed_kx"], inp["iq_lim_lo"], inp["iq_lim_hi"], inp["speed_rate_div"],
             not is_speed, inp["speed_slew"], inp["iq_ff"], inp["speed_ref_delay"],
-            inp["speed_int_hold"])
+            inp["speed_int_hold"], start=inp.get("speed_start", 1))
 
         theta = inp["theta_meas"]
         if is_ol:
