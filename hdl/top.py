@@ -126,7 +126,10 @@ the last pre-trigger sample and the next one the trigger sample.
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
-link's 16-bit counters (``st_link_*``) count the frames before the one that reads them.
+link's 16-bit counters (``st_link_*``) count the frames before the one that reads them; with
+``regs_staging="bram"`` the four reply counters are words of the register file's staging RAM,
+counted from the link's strobes (``RegisterFile(counters=...)``, docs/AREA.md §7.59), which
+reads the same values in the same clocks (the link counts after its frame's last access).
 ``st_udc`` (and the scope's ``u_dc``) is the U_dc code the current loop latched with the last
 sample it accepted (its ``udc`` output, the protection's too), a clock after the ADC's
 ``o.valid``; a sample the loop drops (an overrun) does not change it (before session 12 the
@@ -159,7 +162,7 @@ from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
-from .hostlink import COUNTERS, HostLink
+from .hostlink import COUNTERS, REPLY_COUNTERS, HostLink
 from .mt_speed import MTSpeed
 from .protect import FAULTS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
@@ -541,7 +544,12 @@ class Top(wiring.Component):
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
         self._operands = _operands(self._scope, regmap)
+        # With "bram" staging the link's four reply counters are counted in the staging RAM
+        # (RegisterFile(counters=...), from the link's count strobes): no 16-bit counter and
+        # no read multiplexer term each (docs/AREA.md §7.59).
+        self._ram_counters = REPLY_COUNTERS if regs_staging == "bram" else ()
         self._regs = RegisterFile(regmap, staging=regs_staging,
+                                  counters=tuple(f"st_link_{n}" for n in self._ram_counters),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
@@ -550,11 +558,20 @@ class Top(wiring.Component):
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
                                   derived=({n: Derived(*op) for n, op in self._operands.items()}
                                            if regs_staging == "bram" else None))
+        # The RAM counters lose no count if commits (one per PWM period) and the link's reply
+        # strobes (a reply is at least 8 wire bytes of 10 bit times) come count_interval
+        # clocks apart.
+        gap = min(clk_hz / pwm_hz, 80 * clk_hz / baud)
+        if self._ram_counters and gap < self._regs.count_interval:
+            raise ValueError(f"Top: the link counters in the register file's RAM need the PWM "
+                             f"period and 8 UART bytes to last at least "
+                             f"{self._regs.count_interval} clocks, not {gap:g}")
         exported = [r.name for _, r, _ in self._regs.export_words]
         self._speed_export = exported.index(SPEED_LOOP_CONFIG[0]) if speed_ram else None
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
-                              counter_width=regmap["st_link_frames_ok"].width)
+                              counter_width=regmap["st_link_frames_ok"].width,
+                              strobed=self._ram_counters)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
@@ -937,7 +954,11 @@ class Top(wiring.Component):
         m.d.sync += flags.eq(Mux(regs.clear_faults, 0, flags) | Cat(*seen.values()))
         assert COUNTERS == LINK_COUNTERS
         for name in COUNTERS:
-            m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
+            if name in self._ram_counters:
+                m.d.comb += getattr(regs, f"st_link_{name}_inc").eq(
+                    getattr(link, f"{name}_strobe"))
+            else:
+                m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
         m.d.comb += [
             _raw(regs.st_mode).eq(_raw(servo.active)),
             regs.st_trip.eq(trip_q),
