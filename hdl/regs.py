@@ -777,14 +777,13 @@ class RegisterFile(wiring.Component):
             inc_rd = Signal()
             inc_wr = Signal()
             inc_sel = Signal(range(ncnt))       # the lowest pending counter
-            inc_dst = Signal(range(ncnt))       # the one written in inc_wr
             for j in reversed(range(ncnt)):
                 with m.If(inc_pend[j]):
                     m.d.comb += inc_sel.eq(j)
             m.d.comb += inc_rd.eq(inc_pend.any() & ~start & ~run & ~pending & ~inc_wr
                                   & ~load_walk)
             m.d.sync += [inc_pend.eq((inc_pend & ~Mux(inc_rd, 1 << inc_sel, 0)) | incs),
-                         inc_wr.eq(inc_rd), inc_dst.eq(inc_sel)]
+                         inc_wr.eq(inc_rd)]
             inc_hold = inc_pend.any() | incs.any()
         m.d.comb += [
             start.eq(self.commit & ~bus.lock & ~run & ~pending),
@@ -806,6 +805,9 @@ class RegisterFile(wiring.Component):
                 m.d.sync += [cnt.eq(cnt + 1), run.eq(1)]
         with m.Else():
             m.d.sync += [load.eq(0), load_walk.eq(0)]
+        if ncnt:                                # (the counter written in inc_wr: in dst too)
+            with m.If(inc_rd):
+                m.d.sync += dst.eq(n + inc_sel)
         walk_addr = Cat(cnt, walk)              # cnt: log2(base) bits
         if ncnt:
             walk_addr = Mux(inc_rd, n + inc_sel, walk_addr)
@@ -882,7 +884,7 @@ class RegisterFile(wiring.Component):
         if ncnt:
             # (never both: inc_rd waits for the walk's last load)
             m.d.comb += [
-                wr.addr.eq(Mux(load_walk, dst, Mux(inc_wr, n + inc_dst, ram_addr))),
+                wr.addr.eq(Mux(load_walk | inc_wr, dst, ram_addr)),
                 wr.data.eq(Mux(load_walk | inc_wr,
                                Cat((rd_data[:cw] + inc_wr)[:cw], rd_data[cw:]), w_fmt)),
                 wr.en.eq((load & load_walk) | wr_pend | inc_wr),

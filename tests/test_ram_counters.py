@@ -14,7 +14,7 @@ from foc_servo.hdl.hostlink import COUNTERS, REPLY_COUNTERS, HostLink, LinkCore
 from foc_servo.hdl.regmap import REGMAP
 from foc_servo.hdl.regs import RegisterFile
 from foc_servo.hdl.top import regmap_address_map
-from foc_servo.host.protocol import Command, encode_request, frame
+from foc_servo.host.protocol import Command, ReplyStatus, encode_request, frame
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.verify import link as verify
 
@@ -114,27 +114,30 @@ def test_ram_counters_read_every_strobe_up_to_the_access_clock():
 
 
 def test_ram_counter_wraps_modulo_its_width():
-    """2**16 + 3 strobes of one counter, every third clock (it alone: never pending twice),
-    read back as 3."""
+    """One counter strobed every third clock (it alone: never pending twice), read after
+    2**16 − 1, 2**16 and 2**16 + 3 strobes: 65535, 0, 3."""
     dut = RegisterFile(REGMAP, staging="bram", counters=NAMES)
     got = []
 
     async def tb(ctx):
         await ctx.tick().repeat(dut.reset_clocks)
         inc = getattr(dut, f"{NAMES[1]}_inc")
-        for _ in range((1 << 16) + 3):
-            ctx.set(inc, 1)
+        for strobes in ((1 << 16) - 1, 1, 3):
+            for _ in range(strobes):
+                ctx.set(inc, 1)
+                await ctx.tick()
+                ctx.set(inc, 0)
+                await ctx.tick().repeat(2)
+            ctx.set(dut.bus.addr, REGMAP[NAMES[1]].addr)
+            ctx.set(dut.bus.stb, 1)
+            while not ctx.get(dut.bus.ack):
+                await ctx.tick()
+            got.append(ctx.get(dut.bus.r_data))
             await ctx.tick()
-            ctx.set(inc, 0)
-            await ctx.tick().repeat(2)
-        ctx.set(dut.bus.addr, REGMAP[NAMES[1]].addr)
-        ctx.set(dut.bus.stb, 1)
-        while not ctx.get(dut.bus.ack):
-            await ctx.tick()
-        got.append(ctx.get(dut.bus.r_data))
+            ctx.set(dut.bus.stb, 0)
 
     simulate(dut, [tb], name="regs_ram_counter_wrap")
-    assert got == [3]
+    assert got == [(1 << 16) - 1, 0, 3]
 
 
 @pytest.mark.parametrize("kwargs, msg", [
@@ -279,3 +282,63 @@ def test_top_uses_ram_counters_with_bram_staging_and_checks_their_interval():
                                          r"need the PWM period and 8 UART bytes to last at "
                                          r"least 124 clocks, not 100$"):
         Top(pwm_hz=500e3, baud=50e6 / 8, regs_staging="bram")
+
+
+def test_top_bram_link_counters_read_over_the_uart():
+    """The Top with ``regs_staging="bram"`` (the four reply counters in the staging RAM, wired
+    from the link's strobes): a bad-CRC frame, a damaged (framing) frame, a bad-address read,
+    a PING, then a read of the five ``st_link_*`` words over the UART: one count each where
+    it belongs (frames_ok 1, crc_errors 1, framing_errors 1, rejected 1, dropped 0); a second
+    read after it counts the first read's OK reply."""
+    from foc_servo.hdl.top import Top
+    from foc_servo.host.protocol import cobs_decode, cobs_encode, crc16, decode_reply
+    from test_top import BAUD, CLK, _Bench, _bitbang
+    per_bit = round(CLK / BAUD)
+    top = Top(pwm_hz=100e3, baud=BAUD, regs_staging="bram")
+    bench = _Bench(top, BAUD)
+    addr = REGMAP["st_link_frames_ok"].addr
+    wire = bytearray()
+    seen = []
+
+    async def monitor(ctx):
+        while True:
+            *_, byte = await ctx.posedge(bench.host_rx.o.valid).sample(bench.host_rx.o.payload)
+            wire.append(byte)
+
+    def replies():
+        return [decode_reply(cobs_decode(bytes(r))[:-2]) for r in wire.split(b"\x00")[:-1]]
+
+    async def send(ctx, data, bad_stop=None):
+        for k, byte in enumerate(data):
+            bits = _bitbang(byte, stop=0 if k == bad_stop else 1) + ([1] if k == bad_stop else [])
+            for level in bits:
+                ctx.set(bench.inject, level)
+                await ctx.tick().repeat(per_bit)
+
+    async def reply(ctx, n):
+        for _ in range(400):
+            if len(replies()) >= n:
+                return replies()[n - 1]
+            await ctx.tick().repeat(20)
+        raise AssertionError(f"no reply {n}")
+
+    async def testbench(ctx):
+        await ctx.tick().repeat(200)
+        payload = encode_request(Command.READ, 1, addr, 1)
+        bad_crc = (crc16(payload) ^ 0x0100).to_bytes(2, "big")
+        await send(ctx, b"\x00" + cobs_encode(payload + bad_crc) + b"\x00")
+        await reply(ctx, 1)
+        await send(ctx, frame(encode_request(Command.PING, 2)), bad_stop=3)
+        await reply(ctx, 2)
+        await send(ctx, frame(encode_request(Command.READ, 3, 0x0FFF, 1)))
+        await reply(ctx, 3)
+        await send(ctx, frame(encode_request(Command.PING, 4)))
+        await reply(ctx, 4)
+        for n in (5, 6):
+            await send(ctx, frame(encode_request(Command.READ, n, addr, 5)))
+            seen.append(await reply(ctx, n))
+
+    simulate(bench, [testbench], [monitor], name="top_bram_link_counters")
+    assert [r.status for r in seen] == [ReplyStatus.OK] * 2
+    assert list(seen[0].data) == [1, 1, 1, 1, 0]        # frames_ok, crc, framing, rejected, dropped
+    assert list(seen[1].data) == [2, 1, 1, 1, 0]
