@@ -206,16 +206,15 @@ def crc16_byte(crc, byte):
 COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")
 
 
-#: The counters that count once per reply (in the REPLY state, after the frame's accesses),
-#: which ``strobed`` may name.
+#: The counters that count once per reply (in the REPLY state, after the frame's accesses).
 REPLY_COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected")
 
 
 def _check_strobed(owner, strobed):
     if (not isinstance(strobed, tuple) or len(set(strobed)) != len(strobed)
-            or not all(name in REPLY_COUNTERS for name in strobed)):
+            or not all(name in COUNTERS for name in strobed)):
         raise ValueError(f"{owner} strobed must be a tuple of distinct names from "
-                         f"{REPLY_COUNTERS!r}, not {strobed!r}")
+                         f"{COUNTERS!r}, not {strobed!r}")
     return strobed
 
 
@@ -247,11 +246,12 @@ class LinkCore(wiring.Component):
     counter_width : int
         Width of the status counters (they wrap).
     strobed : tuple of str
-        Reply counters (of ``frames_ok``, ``crc_errors``, ``framing_errors``, ``rejected``)
-        not counted here: each has a ``<name>_strobe`` instead, high for one clock, the clock
-        in which the counter would first hold its new value (the one after the REPLY state's),
+        Counters (of :data:`COUNTERS`) not counted here: each has a ``<name>_strobe`` instead,
         for a counter elsewhere (the Top's: in the register file's staging RAM,
-        ``RegisterFile(counters=...)``). Default ``()``.
+        ``RegisterFile(counters=...)``). A reply counter's strobe is high for one clock, the
+        clock in which the counter would first hold its new value (the one after the REPLY
+        state's, a register); ``dropped``'s is combinational, high in the clock in which the
+        counter would count (the loss). Default ``()``.
 
     Members
     -------
@@ -495,11 +495,15 @@ class LinkCore(wiring.Component):
             m.d.sync += sig.eq(sig + 1)
 
         for name in self._strobed:              # (high only in the clock after REPLY's)
-            m.d.sync += getattr(self, f"{name}_strobe").eq(0)
+            if name in REPLY_COUNTERS:
+                m.d.sync += getattr(self, f"{name}_strobe").eq(0)
 
         with m.If((self.rx_lost | self.rx_error) & ~self.i.ready & ~skip):
             m.d.sync += skip.eq(1)
-            counter(self.dropped)
+            if "dropped" in self._strobed:      # (combinational: the clock it would count)
+                m.d.comb += self.dropped_strobe.eq(1)
+            else:
+                counter(self.dropped)
 
         # The buffer address the FSM gives (rd_addr), except in DATA with o.ready high: byte
         # j + 1, selected last, after the state decode (o.ready comes from the transmitter's

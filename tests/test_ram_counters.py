@@ -160,7 +160,7 @@ def test_ram_counters_members_and_ram_size():
     assert all(f"{n}_inc" in names and n not in names for n in NAMES)
     assert dut.reset_clocks == ref.reset_clocks + len(NAMES)
     assert dut.commit_clocks == ref.commit_clocks and dut.slots == ref.slots
-    for bad in (("dropped",), ("frames_ok", "frames_ok"), ["frames_ok"]):
+    for bad in (("lost",), ("frames_ok", "frames_ok"), ["frames_ok"]):
         with pytest.raises(ValueError, match=r"strobed must be a tuple of distinct names"):
             LinkCore(strobed=bad)
     for link in (LinkCore(strobed=REPLY_COUNTERS), HostLink(strobed=REPLY_COUNTERS)):
@@ -177,14 +177,16 @@ OUT_EVERY = -(-GAP // 8)
 
 class _LinkPair(Elaboratable):
     """The link and the register file twice: ``a`` with the link's flip-flop counters on the
-    register file's status inputs, ``b`` with the reply counters in the staging RAM."""
+    register file's status inputs, ``b`` with the counters ``strobed`` in the staging RAM."""
 
-    def __init__(self):
+    def __init__(self, strobed):
         amap = regmap_address_map(REGMAP)
+        self.strobed = strobed
         self.a_link = LinkCore(max_words=16, address_map=amap)
         self.a_regs = RegisterFile(REGMAP, staging="bram")
-        self.b_link = LinkCore(max_words=16, address_map=amap, strobed=REPLY_COUNTERS)
-        self.b_regs = RegisterFile(REGMAP, staging="bram", counters=NAMES)
+        self.b_link = LinkCore(max_words=16, address_map=amap, strobed=strobed)
+        self.b_regs = RegisterFile(REGMAP, staging="bram",
+                                   counters=tuple(f"st_link_{n}" for n in strobed))
         self.commit = Signal()
 
     def elaborate(self, platform):
@@ -196,7 +198,7 @@ class _LinkPair(Elaboratable):
         m.d.comb += [self.a_regs.commit.eq(self.commit), self.b_regs.commit.eq(self.commit)]
         for name in COUNTERS:
             m.d.comb += getattr(self.a_regs, f"st_link_{name}").eq(getattr(self.a_link, name))
-            if name in REPLY_COUNTERS:
+            if name in self.strobed:
                 m.d.comb += getattr(self.b_regs, f"st_link_{name}_inc").eq(
                     getattr(self.b_link, f"{name}_strobe"))
             else:
@@ -205,16 +207,23 @@ class _LinkPair(Elaboratable):
         return m
 
 
-def test_link_with_ram_counters_is_clock_for_clock_the_flip_flop_pair():
+@pytest.mark.parametrize("strobed", [REPLY_COUNTERS, COUNTERS])
+def test_link_with_ram_counters_is_clock_for_clock_the_flip_flop_pair(strobed):
     """Random frames (reads of the link's counters among other words, writes, malformed frames
     of every kind, pings), bytes one per clock or with gaps, bytes arriving while the link is
     busy (lost: ``dropped``), commits: both links' wire output, ``i.ready`` and bus are equal in
     every clock, and the counters read back are not all 0. As in the Top, the output takes a
     byte at most every ``OUT_EVERY`` clocks (the UART: ≥ 80 clocks a byte) and commits come at
     least ``count_interval`` clocks apart (the Top: one per PWM period), so a reply's counts
-    are in the RAM before the next frame's first access (a reply is at least 8 wire bytes)."""
+    are in the RAM before the next frame's first access (a reply is at least 8 wire bytes).
+    With ``dropped`` in the RAM too (``COUNTERS``), a byte lost while the link is busy with
+    its accesses holds the next access off for two clocks or so: then the wire bytes, the bus
+    accesses and every read's data are the same in the same order, only later (bytes are
+    offered only while both links are ready, lost ones while both are busy)."""
     rng = random.Random(7)
-    pair = _LinkPair()
+    pair = _LinkPair(strobed)
+    exact = "dropped" not in strobed
+    seq = ([], [])                          # per side: wire bytes out, (addr, r_data) at acks
     links = (pair.a_link, pair.b_link)
     counter_addr = REGMAP["st_link_frames_ok"].addr
     fig = {"clocks": 0, "out": 0, "lost": 0, "bad": None, "nonzero": 0}
@@ -242,7 +251,10 @@ def test_link_with_ram_counters_is_clock_for_clock_the_flip_flop_pair():
                 ctx.set(link.o.ready, clock % OUT_EVERY == 0)
             # mostly only while the link is ready; now and then a byte while it is busy
             ready = ctx.get(pair.a_link.i.ready)
-            send = pos < len(wire) and rng.random() < (0.8 if ready else 0.003)
+            if not exact and ready != ctx.get(pair.b_link.i.ready):
+                send = False
+            else:
+                send = pos < len(wire) and rng.random() < (0.8 if ready else 0.003)
             for link in links:
                 ctx.set(link.i.valid, send)
                 ctx.set(link.i.payload, wire[pos] if send else 0)
@@ -261,7 +273,13 @@ def test_link_with_ram_counters_is_clock_for_clock_the_flip_flop_pair():
                     ctx.get(link.bus.stb), ctx.get(link.bus.addr), ctx.get(link.bus.ack),
                     ctx.get(link.bus.r_data) if ctx.get(link.bus.ack) else 0)
                    for link in links]
-            if got[0] != got[1] and fig["bad"] is None:
+            for side, g in zip(seq, got):
+                if g[1] and clock % OUT_EVERY == 0:
+                    side.append(("out", g[2]))
+                if g[5]:
+                    side.append(("ack", g[4], g[6]))
+            fig["delayed"] = fig.get("delayed", 0) + (got[0][5] != got[1][5])
+            if exact and got[0] != got[1] and fig["bad"] is None:
                 fig["bad"] = (pos, got)
             if got[0][5] and got[0][4] in range(counter_addr, counter_addr + 5):
                 fig["nonzero"] += got[0][6] != 0
@@ -270,17 +288,21 @@ def test_link_with_ram_counters_is_clock_for_clock_the_flip_flop_pair():
 
     simulate(pair, [tb], name="link_ram_counters_pair")
     assert fig["bad"] is None, fig["bad"]
+    assert seq[0] == seq[1]
+    assert (fig["delayed"] == 0) == exact
     assert fig["out"] > 800 and fig["nonzero"] > 100 and fig["lost"] > 10
 
 
 def test_top_uses_ram_counters_with_bram_staging_and_checks_their_interval():
     from foc_servo.hdl.top import Top
     top = Top(pwm_hz=100e3, baud=50e6 / 8, regs_staging="bram")
-    assert top._regs.counters == NAMES and top._link.strobed == REPLY_COUNTERS
+    assert top._regs.counters == (tuple(f"st_link_{n}" for n in COUNTERS)
+                                  + ("st_speed_loops", "st_overruns", "st_adc_overruns"))
+    assert top._link.strobed == COUNTERS
     assert Top(pwm_hz=100e3, baud=50e6 / 8)._link.strobed == ()
-    with pytest.raises(ValueError, match=r"^Top: the link counters in the register file's RAM "
-                                         r"need the PWM period and 8 UART bytes to last at "
-                                         r"least 124 clocks, not 100$"):
+    with pytest.raises(ValueError, match=r"^Top: the counters in the register file's RAM "
+                                         r"need the PWM period and 2 UART bytes to last at "
+                                         r"least 136 clocks, not 100$"):
         Top(pwm_hz=500e3, baud=50e6 / 8, regs_staging="bram")
 
 
@@ -342,3 +364,56 @@ def test_top_bram_link_counters_read_over_the_uart():
     assert [r.status for r in seen] == [ReplyStatus.OK] * 2
     assert list(seen[0].data) == [1, 1, 1, 1, 0]        # frames_ok, crc, framing, rejected, dropped
     assert list(seen[1].data) == [2, 1, 1, 1, 0]
+
+
+def test_top_bram_own_counters_read_the_events_over_the_uart():
+    """The Top with ``regs_staging="bram"`` in speed mode: ``st_speed_loops``,
+    ``st_overruns``, ``st_adc_overruns`` (0x0419 …, counted in the staging RAM from
+    ``servo.speed_valid``, the loop's ``overrun``, the ADC's ``overrun``) read over the UART
+    lie between the events counted at those signals before the request and at the reply; the
+    speed loop has run."""
+    from foc_servo.hdl.regmap import Mode
+    from foc_servo.hdl.top import Top
+    from foc_servo.host.protocol import cobs_decode, decode_reply
+    from test_top import BAUD, CLK, HALL_OK, _Bench, _bitbang, _encoder_process
+    per_bit = round(CLK / BAUD)
+    top = Top(pwm_hz=100e3, baud=BAUD, regs_staging="bram",
+              resets={"mode": Mode.SPEED.value, "prot_mask": 0})
+    bench = _Bench(top, BAUD)
+    events = {"speed": 0, "overrun": 0, "adc": 0}
+    wire = bytearray()
+    seen = []
+
+    async def monitor(ctx):
+        while True:
+            *_, byte = await ctx.posedge(bench.host_rx.o.valid).sample(bench.host_rx.o.payload)
+            wire.append(byte)
+
+    async def count(ctx):
+        async for _, _, s, o, a in ctx.tick().sample(top._servo.speed_valid, top._loop.overrun,
+                                                    top._adc.overrun):
+            events["speed"] += s
+            events["overrun"] += o
+            events["adc"] += a
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await ctx.tick().repeat(8000)
+        for n in (1, 2):
+            before = dict(events)
+            for byte in frame(encode_request(Command.READ, n, 0x0419, 3)):
+                for level in _bitbang(byte):
+                    ctx.set(bench.inject, level)
+                    await ctx.tick().repeat(per_bit)
+            while len(wire.split(b"\x00")) <= n:
+                await ctx.tick().repeat(20)
+            r = decode_reply(cobs_decode(bytes(wire.split(b"\x00")[n - 1]))[:-2])
+            seen.append((before, list(r.data), dict(events)))
+            await ctx.tick().repeat(3000)
+
+    simulate(bench, [testbench], [monitor, count, _encoder_process(top, 25)],
+             name="top_bram_own_counters")
+    for before, data, after in seen:
+        for value, name in zip(data, ("speed", "overrun", "adc")):
+            assert before[name] <= value <= after[name], (name, before, data, after)
+    assert seen[-1][1][0] >= 10 and seen[-1][1][0] > seen[0][1][0]
