@@ -108,8 +108,9 @@ a counter is pending or strobed no access is taken (held off like a copy's), so 
 sampled in ``t + 1`` would; only ``ack`` may come later. A strobe of a counter that is still
 pending is lost: strobes of one counter, and commits, must come at least
 :attr:`~RegisterFile.count_interval` clocks apart (a walk, a copy and every counter's
-read-modify-write); the Top's counters count once per host-link reply (the link's
-``strobed``), commits once per PWM period. Reads return the word as stored (zero-extended).
+read-modify-write); the Top's counters count at most once per PWM period or host-link frame,
+its commits once per PWM period (checked in ``Top``). Reads return the word as stored
+(zero-extended).
 
 Status read from a RAM (``status_ram``; docs/AREA.md, "Session 11: engine status"). The
 read-only registers named in ``status_ram`` have no ``In`` member: their values live in a

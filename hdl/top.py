@@ -126,10 +126,15 @@ the last pre-trigger sample and the next one the trigger sample.
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
-link's 16-bit counters (``st_link_*``) count the frames before the one that reads them; with
-``regs_staging="bram"`` the four reply counters are words of the register file's staging RAM,
-counted from the link's strobes (``RegisterFile(counters=...)``, docs/AREA.md §7.59), which
-reads the same values in the same clocks (the link counts after its frame's last access).
+link's 16-bit counters (``st_link_*``) count the frames before the one that reads them. With
+``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) are words
+of the register file's staging RAM, counted from strobes (``RegisterFile(counters=...)``,
+docs/AREA.md §7.59): a read returns the same value as from flip-flops, but a register access
+taken in the clock of a count (or while one is pending) waits until the count is written (two
+clocks a count, more behind a commit copy), so a link frame whose accesses meet a speed-loop
+run, an overrun or a dropped byte is answered that much later. The link's four reply counters
+count after the frame's last access (never delayed); the Top checks that the PWM period and two
+UART bytes last at least ``count_interval`` clocks (no count is lost).
 ``st_udc`` (and the scope's ``u_dc``) is the U_dc code the current loop latched with the last
 sample it accepted (its ``udc`` output, the protection's too), a clock after the ADC's
 ``o.valid``; a sample the loop drops (an overrun) does not change it (before session 12 the
