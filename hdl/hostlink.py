@@ -206,9 +206,23 @@ def crc16_byte(crc, byte):
 COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped")
 
 
-def _counter_members(width):
-    """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink."""
-    return {name: Out(width) for name in COUNTERS}
+#: The counters that count once per reply (in the REPLY state, after the frame's accesses).
+REPLY_COUNTERS = ("frames_ok", "crc_errors", "framing_errors", "rejected")
+
+
+def _check_strobed(owner, strobed):
+    if (not isinstance(strobed, tuple) or len(set(strobed)) != len(strobed)
+            or not all(name in COUNTERS for name in strobed)):
+        raise ValueError(f"{owner} strobed must be a tuple of distinct names from "
+                         f"{COUNTERS!r}, not {strobed!r}")
+    return strobed
+
+
+def _counter_members(width, strobed=()):
+    """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink;
+    a ``<name>_strobe`` for those in ``strobed``."""
+    return {(f"{name}_strobe" if name in strobed else name): Out(1 if name in strobed else width)
+            for name in COUNTERS}
 
 class LinkCore(wiring.Component):
     """Protocol engine of the host link on wire-byte streams (no UART).
@@ -231,6 +245,13 @@ class LinkCore(wiring.Component):
         may be cut short after some writes: give the map).
     counter_width : int
         Width of the status counters (they wrap).
+    strobed : tuple of str
+        Counters (of :data:`COUNTERS`) not counted here: each has a ``<name>_strobe`` instead,
+        for a counter elsewhere (the Top's: in the register file's staging RAM,
+        ``RegisterFile(counters=...)``). A reply counter's strobe is high for one clock, the
+        clock in which the counter would first hold its new value (the one after the REPLY
+        state's, a register); ``dropped``'s is combinational, high in the clock in which the
+        counter would count (the loss). Default ``()``.
 
     Members
     -------
@@ -253,6 +274,9 @@ class LinkCore(wiring.Component):
         Frames answered OK; BAD_CRC for a CRC mismatch; BAD_CRC for a damaged frame (COBS
         error, UART framing error); frames answered with BAD_LENGTH, BAD_COMMAND, BAD_ADDRESS or
         READ_ONLY; frames skipped because bytes were lost. Wrap modulo ``2**counter_width``.
+        (Not those named in ``strobed``.)
+    <name>_strobe : Out(1)
+        Only for the counters named in ``strobed``: its count strobe.
 
     Attributes
     ----------
@@ -268,9 +292,10 @@ class LinkCore(wiring.Component):
     output never stalls (CRC pass, COBS scan, emission, one byte per clock each).
     """
 
-    def __init__(self, *, max_words=64, address_map=None, counter_width=16):
+    def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=()):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
+        self._strobed = _check_strobed("LinkCore", strobed)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -281,9 +306,10 @@ class LinkCore(wiring.Component):
             "rx_error": In(1),
             "o": Out(stream.Signature(8)),
             "bus": Out(RegBusSignature()),
-            **_counter_members(cw),
+            **_counter_members(cw, self._strobed),
         })
 
+    strobed = property(lambda self: self._strobed)
     max_words = property(lambda self: self._max_words)
     address_map = property(lambda self: self._address_map)
     counter_width = property(lambda self: self._counter_width)
@@ -468,9 +494,16 @@ class LinkCore(wiring.Component):
         def counter(sig):
             m.d.sync += sig.eq(sig + 1)
 
+        for name in self._strobed:              # (high only in the clock after REPLY's)
+            if name in REPLY_COUNTERS:
+                m.d.sync += getattr(self, f"{name}_strobe").eq(0)
+
         with m.If((self.rx_lost | self.rx_error) & ~self.i.ready & ~skip):
             m.d.sync += skip.eq(1)
-            counter(self.dropped)
+            if "dropped" in self._strobed:      # (combinational: the clock it would count)
+                m.d.comb += self.dropped_strobe.eq(1)
+            else:
+                counter(self.dropped)
 
         # The buffer address the FSM gives (rd_addr), except in DATA with o.ready high: byte
         # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
@@ -619,10 +652,13 @@ class LinkCore(wiring.Component):
                 # flip-flop together), less than a shared incrementer's select in front.
                 is_ok, is_crc = r_status == ReplyStatus.OK, r_status == ReplyStatus.BAD_CRC
                 which = Cat(is_ok, is_crc & framing, is_crc & ~framing, ~is_ok & ~is_crc)
-                counted = (self.frames_ok, self.framing_errors, self.crc_errors, self.rejected)
-                for w, c in zip(which, counted):
+                counted = ("frames_ok", "framing_errors", "crc_errors", "rejected")
+                for w, name in zip(which, counted):
                     with m.If(w):
-                        counter(c)
+                        if name in self._strobed:
+                            m.d.sync += getattr(self, f"{name}_strobe").eq(1)
+                        else:
+                            counter(getattr(self, name))
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 next_j(0, parts_0)
                 m.next = "CRC"
@@ -712,7 +748,7 @@ class HostLink(wiring.Component):
         Clock frequency, Hz.
     baud : float
         UART bit rate, bit/s; at most ``clk_hz / 8``.
-    max_words, address_map, counter_width
+    max_words, address_map, counter_width, strobed
         See :class:`LinkCore`.
 
     Members
@@ -726,6 +762,8 @@ class HostLink(wiring.Component):
     frames_ok, crc_errors, framing_errors, rejected, dropped : Out(counter_width)
         See :class:`LinkCore`; UART framing errors count in ``framing_errors`` (through the
         frame's BAD_CRC reply), bytes lost while the link is busy in ``dropped``.
+    <name>_strobe : Out(1)
+        Only for the counters named in ``strobed``: see :class:`LinkCore`.
 
     Attributes
     ----------
@@ -735,20 +773,22 @@ class HostLink(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
-                 counter_width=16):
+                 counter_width=16, strobed=()):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
+        _check_strobed("HostLink", strobed)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
-                              counter_width=counter_width)
+                              counter_width=counter_width, strobed=strobed)
         self._clk_hz, self._baud = clk_hz, baud
         cw = self._core.counter_width
         super().__init__({
             "rx": In(1, init=1),
             "tx": Out(1, init=1),
             "bus": Out(RegBusSignature()),
-            **_counter_members(cw),
+            **_counter_members(cw, strobed),
         })
 
+    strobed = property(lambda self: self._core.strobed)
     clk_hz = property(lambda self: self._clk_hz)
     baud = property(lambda self: self._baud)
     core = property(lambda self: self._core)
@@ -772,6 +812,7 @@ class HostLink(wiring.Component):
         ]
         wiring.connect(m, core=core.o, uart_tx=utx.i)
         wiring.connect(m, core=core.bus, link=wiring.flipped(self.bus))
-        for name in ("frames_ok", "crc_errors", "framing_errors", "rejected", "dropped"):
+        for name in COUNTERS:
+            name = f"{name}_strobe" if name in self._core.strobed else name
             m.d.comb += getattr(self, name).eq(getattr(core, name))
         return m

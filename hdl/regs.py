@@ -96,6 +96,22 @@ to the scope's 4-bit select), applied where the flip-flops load (the write in ``
 immediate register, the copy's load clock of a shadowed one), so they change in the same clocks
 and the consumer sees the same value as with the function behind the raw flip-flops.
 
+Counters in the staging RAM (``staging="bram"``, ``counters``; docs/AREA.md §7.59). The
+read-only registers named in ``counters`` (e.g. the host link's reply counters) are words of
+the staging RAM after the slots, wrapping modulo ``2**width``, reset to 0 by the reset walk
+(which therefore takes ``len(counters)`` clocks more), counted from a ``<name>_inc`` strobe
+each: a strobe marks its counter pending; the lowest pending counter is read in a clock where
+the RAM's read port is free (no access in its ``t + 1``, no copy or walk reading, no walk load
+writing; a commit that starts a copy goes first) and written back plus one in the next. While
+a counter is pending or strobed no access is taken (held off like a copy's), so a read taken in
+``t`` returns every strobe of the clocks up to ``t``, as a counter flip-flop (status input)
+sampled in ``t + 1`` would; only ``ack`` may come later. A strobe of a counter that is still
+pending is lost: strobes of one counter, and commits, must come at least
+:attr:`~RegisterFile.count_interval` clocks apart (a walk, a copy and every counter's
+read-modify-write); the Top's counters count at most once per PWM period or host-link frame,
+its commits once per PWM period (checked in ``Top``). Reads return the word as stored
+(zero-extended).
+
 Status read from a RAM (``status_ram``; docs/AREA.md, "Session 11: engine status"). The
 read-only registers named in ``status_ram`` have no ``In`` member: their values live in a
 consumer's RAM (e.g. the loop engine's status RAM), read through the ``status_rd`` port, a
@@ -270,6 +286,10 @@ class RegisterFile(wiring.Component):
         Read-only registers of one word each, all of one shape, whose values are read from a
         consumer's RAM through the ``status_rd`` port (module docstring), in this order (the
         read address of a register is its position); they have no In member. Default ``()``.
+    counters : tuple of str
+        ``staging="bram"`` only: one-word unsigned ``ro`` registers of one width (not in
+        ``status_ram``) that are counters in the staging RAM, counted from a ``<name>_inc``
+        strobe each (module docstring, "Counters"); they have no In member. Default ``()``.
     changed : tuple of str
         One-word shadowed ``rw`` registers (not exported) that get a ``<name>_changed`` strobe:
         high for one clock, the first clock in which the Out member holds a new value that
@@ -307,7 +327,10 @@ class RegisterFile(wiring.Component):
         the reset walk puts its last word on the port: the exported words are being rewritten;
         a consumer that must not see them change under a computation waits.
     <ro register> : In(register.shape)
-        Status from the control path (not those of ``status_ram``).
+        Status from the control path (not those of ``status_ram`` or ``counters``).
+    <counter>_inc : In(1)
+        Only for the registers named in ``counters``: the count strobe (one count per clock
+        high; module docstring, "Counters").
     status_rd : In(ReadPort.Signature(addr_width=ceil_log2(len(status_ram)), shape=...))
         Only with ``status_ram``: ``addr`` (out; the position in ``status_ram``) in clock
         ``t``, the register's value in ``t + 1`` on ``data`` (in) in ``t + 1`` (a transparent
@@ -339,7 +362,10 @@ class RegisterFile(wiring.Component):
         The same as :attr:`commit_clocks` (kept for the existing callers).
     reset_clocks : int
         ``"bram"``: clocks after a reset during which accesses are held off while the reset
-        values are written back into every staging slot (``slots``); ``"ff"``: 0.
+        values are written back into every staging slot and counter (``slots`` +
+        ``len(counters)``); ``"ff"``: 0.
+    count_interval : int
+        See the property.
     exported : tuple of str
         The ``export`` parameter (``export`` is the port).
     export_words : list
@@ -367,7 +393,7 @@ class RegisterFile(wiring.Component):
     latency = 2
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(),
-                 status_ram=(), changed=(), derived=None):
+                 status_ram=(), changed=(), derived=None, counters=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
@@ -381,7 +407,11 @@ class RegisterFile(wiring.Component):
                                 lambda r: r.access is Access.RO and r.words == 1),
                  "changed": (changed, "unexported one-word shadowed rw", False,
                              lambda r: (r.access is Access.RW and r.shadow is not None
-                                        and r.words == 1 and r.name not in export))}
+                                        and r.words == 1 and r.name not in export)),
+                 "counters": (counters, "one-word unsigned ro (not in status_ram)", True,
+                              lambda r: (r.access is Access.RO and r.words == 1
+                                         and not r.signed and r.enum is None
+                                         and r.fields is None and r.name not in status_ram))}
         for param, (names, kind, bram_only, allowed) in rules.items():
             if (not isinstance(names, tuple)
                     or not all(isinstance(n, str) for n in names)):
@@ -414,7 +444,11 @@ class RegisterFile(wiring.Component):
         if len({(regmap[n].width, regmap[n].signed) for n in status_ram}) > 1:
             raise ValueError(f"RegisterFile status_ram must name registers of one shape, "
                              f"not {status_ram!r}")
+        if len({regmap[n].width for n in counters}) > 1:
+            raise ValueError(f"RegisterFile counters must name registers of one width, "
+                             f"not {counters!r}")
         self._status_ram = status_ram
+        self._counters = counters
         self._changed = changed
         self._derived = dict(derived)
         self._regmap = regmap
@@ -434,9 +468,15 @@ class RegisterFile(wiring.Component):
             self._slots = ram_slots(regmap, copy_last)
             self._consts = [(a, r, k) for a, r, k in regmap.words() if r.access is Access.CONST]
         self._slot_of = {a: i for i, (a, _, _) in enumerate(self._slots)}
-        base = 1 << ceil_log2(len(self._slots)) if self._slots else 0
-        self._ram_addr = {**self._slot_of, **{a: base + len(self._slots) + j
-                                               for j, (a, _, _) in enumerate(self._consts)}}
+        # "bram" with counters: one RAM word per counter after the slots (reset to 0 by the
+        # walk like a slot, never copied, written only by its count).
+        self._counter_words = [(regmap[n].addr, regmap[n], 0) for n in counters]
+        walked = len(self._slots) + len(self._counter_words)
+        base = 1 << ceil_log2(walked) if self._slots else 0
+        self._ram_addr = {**self._slot_of,
+                          **{a: len(self._slots) + j
+                             for j, (a, _, _) in enumerate(self._counter_words)},
+                          **{a: base + walked + j for j, (a, _, _) in enumerate(self._consts)}}
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
@@ -452,6 +492,8 @@ class RegisterFile(wiring.Component):
                     members[r.name] = Out(d.shape, init=d.const(r.bits(r.reset)))
                 elif r.name not in export:      # (exported: the consumer's RAM holds it)
                     members[r.name] = Out(r.shape, init=r.init)
+            elif r.access is Access.RO and r.name in counters:
+                members[f"{r.name}_inc"] = In(1)
             elif r.access is Access.RO and r.name not in status_ram:
                 members[r.name] = In(r.shape)
             elif r.access is Access.STROBE:
@@ -468,6 +510,7 @@ class RegisterFile(wiring.Component):
     copy_last = property(lambda self: self._copy_last)
     exported = property(lambda self: self._export)
     status_ram = property(lambda self: self._status_ram)
+    counters = property(lambda self: self._counters)
     changed = property(lambda self: self._changed)
     derived = property(lambda self: dict(self._derived))
     export_words = property(lambda self: list(self._export_words))
@@ -475,7 +518,17 @@ class RegisterFile(wiring.Component):
     slots = property(lambda self: len(self._slots))
     commit_clocks = property(lambda self: self._copied + 1)
     commit_latency = commit_clocks
-    reset_clocks = property(lambda self: len(self._slots))
+    reset_clocks = property(lambda self: len(self._slots) + len(self._counter_words))
+
+    @property
+    def count_interval(self):
+        """``counters``: the fewest clocks between two strobes of one counter, and between two
+        commits, for which no count is lost (module docstring): a walk, a copy and every
+        counter's read-modify-write (``reset_clocks + commit_clocks + 2·len(counters)``); 0
+        without counters."""
+        if not self._counter_words:
+            return 0
+        return self.reset_clocks + self.commit_clocks + 2 * len(self._counter_words)
 
     def elaborate(self, platform):
         m = Module()
@@ -533,6 +586,8 @@ class RegisterFile(wiring.Component):
                 held[r.name] = _bits(port)
             elif r.access is Access.RO and r.name in self._status_ram:
                 held[r.name] = None             # in the consumer's RAM (status_rd)
+            elif r.access is Access.RO and r.name in self._counters:
+                held[r.name] = None             # in the staging RAM (counted there)
             elif r.access is Access.RO:
                 held[r.name] = _bits(port)
             elif r.access is Access.CONST:
@@ -672,18 +727,20 @@ class RegisterFile(wiring.Component):
         slots = self._slots
         n = len(slots)                          # staging slots: copied, then immediate
         nc = self._copied
-        base = 1 << ceil_log2(n)                # the reset values' half: slot i at base + i
+        ncnt = len(self._counter_words)         # the counters' words after the slots
+        nw = n + ncnt                           # the words the reset walk rewrites
+        base = 1 << ceil_log2(nw)               # the reset values' half: word i at base + i
         # One word per slot in its read format (``Register.read_word``: the top word of a
         # signed register sign-extended), so that a read returns the RAM's data as it is; the
-        # const words after the reset values.
-        resets = [r.read_word(r.bits(r.reset), k) for _, r, k in slots]
+        # counters (0 after a reset); the const words after the reset values.
+        resets = [r.read_word(r.bits(r.reset), k) for _, r, k in slots] + [0] * ncnt
         consts = [r.read_word(r.bits(r.reset), k) for _, r, k in self._consts]
         # The read port is asynchronous with a register behind it, which yosys merges into a
         # synchronous block RAM port; ``no_rw_check`` lets it leave a read of the word being
         # written undefined (no read-first emulation: no read's data is used in a clock that
         # writes its word, see below), which an Amaranth synchronous read port cannot say.
-        m.submodules.staging = mem = Memory(shape=DATA_WIDTH, depth=base + n + len(consts),
-                                            init=resets + [0] * (base - n) + resets + consts,
+        m.submodules.staging = mem = Memory(shape=DATA_WIDTH, depth=base + nw + len(consts),
+                                            init=resets + [0] * (base - nw) + resets + consts,
                                             attrs={"no_rw_check": 1})
         rd = mem.read_port(domain="comb")
         rd_data = Signal(DATA_WIDTH, reset_less=True)     # the RAM's read data
@@ -694,11 +751,11 @@ class RegisterFile(wiring.Component):
         start = Signal()                        # a copy starts (reads slot 0 in this clock)
         run = Signal(init=1)                    # a copy or the walk reads slot cnt next
         walk = Signal(init=1)                   # the reading is the reset walk
-        cnt = Signal(range(n))
+        cnt = Signal(range(nw))
         last = Signal()                         # cnt is the copy's / the walk's last slot
         load = Signal()                         # rd.data holds slot dst: load it
         load_walk = Signal()                    # a load of the walk: into the RAM's slot dst
-        dst = Signal(range(n))
+        dst = Signal(range(nw))
         ram_addr = Signal(range(len(mem.init))) # the access's RAM word (in t + 1)
         formats = self._formats()
         fmt = Signal(range(max(1, len(formats))))       # its word format (index in formats)
@@ -708,18 +765,39 @@ class RegisterFile(wiring.Component):
         pend = Signal(name="stage_pend")        # t + 1 of a read of a RAM word
         hit = Signal(name="stage_hit")          # t + 2 of it: bus.r_data from the RAM
 
+        # The counters: a count strobe marks its counter pending; the lowest pending one is
+        # read (inc_rd) in a clock where the read port is free (no access in t + 1, no copy or
+        # walk reading, no walk load writing) and written back + 1 in the next (inc_wr). While
+        # one is pending or strobed no access is taken (hold), so a read taken in t returns
+        # every count strobed up to t, as a counter flip-flop sampled in t + 1 would.
+        inc_hold = Const(0, 1)
+        if ncnt:
+            cw = self._counter_words[0][1].width
+            incs = Cat(*(getattr(self, f"{r.name}_inc") for _, r, _ in self._counter_words))
+            inc_pend = Signal(ncnt)
+            inc_rd = Signal()
+            inc_wr = Signal()
+            inc_sel = Signal(range(ncnt))       # the lowest pending counter
+            for j in reversed(range(ncnt)):
+                with m.If(inc_pend[j]):
+                    m.d.comb += inc_sel.eq(j)
+            m.d.comb += inc_rd.eq(inc_pend.any() & ~start & ~run & ~pending & ~inc_wr
+                                  & ~load_walk)
+            m.d.sync += [inc_pend.eq((inc_pend & ~Mux(inc_rd, 1 << inc_sel, 0)) | incs),
+                         inc_wr.eq(inc_rd)]
+            inc_hold = inc_pend.any() | incs.any()
         m.d.comb += [
             start.eq(self.commit & ~bus.lock & ~run & ~pending),
-            hold.eq(start | run),
+            hold.eq(start | run | inc_hold),
         ]
         # The copy / walk: read slot cnt (base + cnt in the walk) in one clock, load it in the
         # next. The copy reads the copied slots (0 … nc − 1), the walk every slot. The bus read
         # of a RAM word uses the read port in t + 1 (pending), which never coincides with a
         # reading clock (start needs pending low; accesses are held off while reading).
-        if nc == n:
-            m.d.comb += last.eq(cnt == n - 1)
+        if nc == nw:
+            m.d.comb += last.eq(cnt == nw - 1)
         else:
-            m.d.comb += last.eq(Mux(walk, cnt == n - 1, cnt == nc - 1))
+            m.d.comb += last.eq(Mux(walk, cnt == nw - 1, cnt == nc - 1))
         with m.If(start | run):
             m.d.sync += [load.eq(1), load_walk.eq(walk), dst.eq(cnt)]
             with m.If(last):
@@ -728,7 +806,13 @@ class RegisterFile(wiring.Component):
                 m.d.sync += [cnt.eq(cnt + 1), run.eq(1)]
         with m.Else():
             m.d.sync += [load.eq(0), load_walk.eq(0)]
-        m.d.comb += rd.addr.eq(Mux(pending, ram_addr, Cat(cnt, walk)))   # cnt: log2(base) bits
+        if ncnt:                                # (the counter written in inc_wr: in dst too)
+            with m.If(inc_rd):
+                m.d.sync += dst.eq(n + inc_sel)
+        walk_addr = Cat(cnt, walk)              # cnt: log2(base) bits
+        if ncnt:
+            walk_addr = Mux(inc_rd, n + inc_sel, walk_addr)
+        m.d.comb += rd.addr.eq(Mux(pending, ram_addr, walk_addr))
 
         # Active registers: copied slot i's word from the RAM in the copy's load clock
         # s + 1 + i, told by bit i of a one-hot shift register (no compare of dst per slot).
@@ -798,11 +882,20 @@ class RegisterFile(wiring.Component):
                 with m.Case(j):
                     word = bus.w_data[:width]
                     m.d.comb += w_fmt.eq(word.as_signed() if signed else word)
-        m.d.comb += [
-            wr.addr.eq(Mux(load_walk, dst, ram_addr)),
-            wr.data.eq(Mux(load_walk, rd_data, w_fmt)),
-            wr.en.eq((load & load_walk) | wr_pend),
-        ]
+        if ncnt:
+            # (never both: inc_rd waits for the walk's last load)
+            m.d.comb += [
+                wr.addr.eq(Mux(load_walk | inc_wr, dst, ram_addr)),
+                wr.data.eq(Mux(load_walk | inc_wr,
+                               Cat((rd_data[:cw] + inc_wr)[:cw], rd_data[cw:]), w_fmt)),
+                wr.en.eq((load & load_walk) | wr_pend | inc_wr),
+            ]
+        else:
+            m.d.comb += [
+                wr.addr.eq(Mux(load_walk, dst, ram_addr)),
+                wr.data.eq(Mux(load_walk, rd_data, w_fmt)),
+                wr.en.eq((load & load_walk) | wr_pend),
+            ]
         return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
 
     def _derive(self, r, word):

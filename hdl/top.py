@@ -148,7 +148,15 @@ the last pre-trigger sample and the next one the trigger sample.
 loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and speed-loop runs,
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
-link's 16-bit counters (``st_link_*``) count the frames before the one that reads them.
+link's 16-bit counters (``st_link_*``) count the frames before the one that reads them. With
+``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) are words
+of the register file's staging RAM, counted from strobes (``RegisterFile(counters=...)``,
+docs/AREA.md §7.59): a read returns the same value as from flip-flops, but a register access
+taken in the clock of a count (or while one is pending) waits until the count is written (two
+clocks a count, more behind a commit copy), so a link frame whose accesses meet a speed-loop
+run, an overrun or a dropped byte is answered that much later. The link's four reply counters
+count after the frame's last access (never delayed); the Top checks that the PWM period and two
+UART bytes last at least ``count_interval`` clocks (no count is lost).
 ``st_udc`` (and the scope's ``u_dc``) is the U_dc code the current loop latched with the last
 sample it accepted (its ``udc`` output, the protection's too), a clock after the ADC's
 ``o.valid``; a sample the loop drops (an overrun) does not change it (before session 12 the
@@ -225,6 +233,10 @@ SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew
 #: below ≈ 0.0004 / 0.0011 r/min at 20 000 counted edges per turn. 28 instead of MTSpeed's
 #: default 32 (129 s) saves 26 iCE40 logic cells (AREA.md §7.51).
 MT_TC_WIDTH = 28
+
+#: The top's own wrapping 16-bit status counters (speed-loop runs, current-loop overruns,
+#: dropped ADC strobes), at most one count per PWM period each.
+TOP_COUNTERS = ("st_speed_loops", "st_overruns", "st_adc_overruns")
 
 REF_STEP_REGISTERS = ("mode", "speed_ref", "i_d_ref", "i_q_ref", "ol_u_d", "ol_u_q")
 
@@ -569,7 +581,13 @@ class Top(wiring.Component):
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
         self._operands = _operands(self._scope, regmap)
+        # With "bram" staging the link's counters and the top's own (TOP_COUNTERS) are
+        # counted in the staging RAM (RegisterFile(counters=...), from count strobes): no
+        # 16-bit counter and no read multiplexer term each (docs/AREA.md §7.59).
+        self._ram_counters = COUNTERS if regs_staging == "bram" else ()
         self._regs = RegisterFile(regmap, staging=regs_staging,
+                                  counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
+                                            + (TOP_COUNTERS if self._ram_counters else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
@@ -578,6 +596,15 @@ class Top(wiring.Component):
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
                                   derived=({n: Derived(*op) for n, op in self._operands.items()}
                                            if regs_staging == "bram" else None))
+        # The RAM counters lose no count if commits and the top's counts (one per PWM period
+        # at most) and the link's (one per reply, at least 8 wire bytes of 10 bit times; one
+        # per dropped frame, at least two bytes: the loss, a 0x00, the next loss) come
+        # count_interval clocks apart.
+        gap = min(clk_hz / pwm_hz, 20 * clk_hz / baud)
+        if self._ram_counters and gap < self._regs.count_interval:
+            raise ValueError(f"Top: the counters in the register file's RAM need the PWM "
+                             f"period and 2 UART bytes to last at least "
+                             f"{self._regs.count_interval} clocks, not {gap:g}")
         exported = [r.name for _, r, _ in self._regs.export_words]
         # (speed_loop="engine": the speed words go into the engine's RAM with its own.)
         self._speed_export = (exported.index(SPEED_LOOP_CONFIG[0])
@@ -585,7 +612,8 @@ class Top(wiring.Component):
         self._speed_loop = speed_loop
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
-                              counter_width=regmap["st_link_frames_ok"].width)
+                              counter_width=regmap["st_link_frames_ok"].width,
+                              strobed=self._ram_counters)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
@@ -971,15 +999,18 @@ class Top(wiring.Component):
             m.d.comb += [getattr(regs, f"st_{n}").eq(getattr(cl, n)) for n in ENGINE_STATUS]
 
         # --- status registers ---------------------------------------------------------------
-        speed_loops = Signal(16)
-        overruns = Signal(16)
-        adc_overruns = Signal(16)
-        with m.If(servo.speed_valid):
-            m.d.sync += speed_loops.eq(speed_loops + 1)     # wraps, as documented
-        with m.If(cl.overrun):
-            m.d.sync += overruns.eq(overruns + 1)           # wraps (CurrentLoop's saturates)
-        with m.If(adc.overrun):
-            m.d.sync += adc_overruns.eq(adc_overruns + 1)   # wraps
+        # (with the counters in the register file's RAM: its count strobes, the same events)
+        counted = {"st_speed_loops": servo.speed_valid, "st_overruns": cl.overrun,
+                   "st_adc_overruns": adc.overrun}
+        assert tuple(counted) == TOP_COUNTERS
+        for name, event in counted.items():
+            if self._ram_counters:
+                m.d.comb += getattr(regs, f"{name}_inc").eq(event)
+            else:
+                count = Signal(16, name=name[3:])
+                with m.If(event):
+                    m.d.sync += count.eq(count + 1)         # wraps, as documented
+                m.d.comb += getattr(regs, name).eq(count)
         # Sticky loop flags, sampled when they are final: the current loop's one clock after its
         # duty transfer (overmod is registered then), the speed PI's one clock after its result.
         # clear_faults clears them all (a flag still true is set again by the next loop; one
@@ -1002,7 +1033,11 @@ class Top(wiring.Component):
         m.d.sync += flags.eq(Mux(regs.clear_faults, 0, flags) | Cat(*seen.values()))
         assert COUNTERS == LINK_COUNTERS
         for name in COUNTERS:
-            m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
+            if name in self._ram_counters:
+                m.d.comb += getattr(regs, f"st_link_{name}_inc").eq(
+                    getattr(link, f"{name}_strobe"))
+            else:
+                m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
         m.d.comb += [
             _raw(regs.st_mode).eq(_raw(servo.active)),
             regs.st_trip.eq(trip_q),
@@ -1015,9 +1050,6 @@ class Top(wiring.Component):
             regs.st_speed.eq(speed),
             regs.st_udc.eq(cl.udc.payload),
             regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
-            regs.st_speed_loops.eq(speed_loops),
-            regs.st_overruns.eq(overruns),
-            regs.st_adc_overruns.eq(adc_overruns),
             _raw(regs.st_loop_flags).eq(flags),
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),
