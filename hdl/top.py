@@ -36,7 +36,11 @@ current loop from the sample on, and the PWM timer's mode, latched in the period
 ``pwm_symmetric`` is the copy's last word (changed at the end of that clock, after the latch),
 so the timer changes mode one boundary later together with the duties computed for the new
 scale, as with ``"ff"``. Differences from ``"ff"``: the Servo's ``loop`` strobe at
-``period_start`` sees the new values (``"ff"``: the old ones, the new from the next period);
+``period_start`` sees the new values (``"ff"``: the old ones, the new from the next period), so
+a ``mode`` write takes effect one PWM period earlier (the gates, the current loop and the speed
+loop start, or stop, at that boundary, not the next; references the blocks read after
+``period_start``, e.g. ``speed_ref`` in the speed loop's run, act in the same period with
+both; docs/AREA.md §7.60: why ``sim step``'s ss_err_pct differs between the two);
 inputs read in every clock (the encoder's configuration, ``dead_time``, the sample point)
 change word by word over the copy, a register group within its few consecutive clocks (the
 encoder's ``enc_lines``, ``enc_pole_pairs`` and ``enc_z_offset`` and their change strobes in

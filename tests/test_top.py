@@ -1318,6 +1318,43 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
 
 
 @pytest.mark.parametrize("staging", ["ff", "bram"])
+def test_top_mode_write_reaches_the_servo_one_period_earlier_with_bram_staging(staging):
+    """A host frame writing ``mode`` whose ``lock`` falls before the copy window of the next
+    period boundary ``p``: with ``"ff"`` the commit is in ``p`` and the Servo's loop strobe in
+    ``p`` still sees the old mode, so its active mode (the gates, the current and speed loops)
+    changes at the strobe one period later, ``p + 2N``; with ``"bram"`` the copy ends in ``p``
+    and the strobe in ``p`` takes the new mode: the same write acts one PWM period earlier
+    (module docstring, "Register commit with regs_staging="bram""; docs/AREA.md §7.60: the
+    reason ``sim step``'s ss_err_pct differs between the two)."""
+    top = Top(pwm_hz=PWM, baud=BAUD, regs_staging=staging)
+    bench = _Bench(top, BAUD)
+    regs, servo, timer = top._regs, top._servo, top._timer
+
+    def probe(ctx):
+        return (ctx.get(timer.period_start), ctx.get(regs.bus.lock),
+                ctx.get(servo.active).value)
+    host = _TracingHost(bench, probe)
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        await host.next_period(ctx, top)
+        await host.write(ctx, _addr(top, "mode"), Mode.OPEN_LOOP.value)
+        for _ in range(3):
+            await host.next_period(ctx, top)
+
+    simulate(bench, [testbench], name=f"test_top_mode_write_{staging}")
+    trace = host.trace
+    n2 = top.pwm_period
+    last_lock = max(t for t, c in enumerate(trace) if c[1])
+    p = next(t for t, c in enumerate(trace) if c[0] and t > last_lock)
+    assert p - top.commit_clocks > last_lock + 1        # the copy window after the frame
+    changed = next(t for t, c in enumerate(trace) if c[2] == Mode.OPEN_LOOP.value)
+    assert all(c[2] == Mode.DISABLED.value for c in trace[:changed])
+    # (trace[t] is sampled after clock t's edge: the strobe in p loads the mode seen in p + 1.)
+    assert changed == (p + 1 if staging == "bram" else p + n2 + 1), (staging, changed - p)
+
+
+@pytest.mark.parametrize("staging", ["ff", "bram"])
 def test_top_reference_writes_strobe_ref_step_at_the_loop_that_sees_them(staging):
     """The Servo's ``ref_step`` (module docstring, "Scope trigger"): one per host frame that
     writes the mode or a reference, at the first loop strobe (``period_start``) that sees the
