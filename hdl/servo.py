@@ -623,9 +623,7 @@ class SpeedLoop(wiring.Component):
         running = Signal()
         step = Signal(range(clocks + 1))
         accept = Signal()
-        sample = Signal()               # accept without ~clear (the RF's write select, below)
-        m.d.comb += [sample.eq(self.i.valid & (count == 0) & ~running),
-                     accept.eq(sample & ~clear)]
+        m.d.comb += accept.eq(self.i.valid & (count == 0) & ~clear & ~running)
         with m.If(clear):
             m.d.sync += count.eq(0)
         with m.Elif(self.i.valid):
@@ -1115,7 +1113,9 @@ class SpeedLoop(wiring.Component):
         # ``clear`` nothing is written, otherwise the two are equal; so the Servo's trip and
         # mode (``clear``) reach the RAM's write enable only, not its data (ECP5 Fmax, docs/
         # AREA.md §7.58).
+        sample = Signal()
         m.d.comb += [
+            sample.eq(self.i.valid & (count == 0) & ~running),
             rf_wr_en.eq((wr_rf & ~clear) | accept),
             rf_wr_addr.eq(Mux(sample, rf_addr["SPD"], wr_rf_addr)),
             rf_wr_data.eq(Mux(sample, self.i.payload.speed,
