@@ -83,6 +83,12 @@ POR_DELAY_S = 15e-6
 #: AREA.md "Session 11: Spartan-7"). Bit- and cycle-identical whatever the width.
 MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
 
+#: ``Top(uv_arm_chain=…)`` per FPGA family: the protection's under-voltage arming compare on a
+#: carry chain of its own on the ECP5 (its 17-input AND behind the shared chain was a 100 MHz
+#: critical path, docs/AREA.md §7.53, §7.58); two chains elsewhere (the iCE40's cells, §7.30).
+#: The same verdicts either way.
+UV_ARM_CHAIN = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
+
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
 #: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
@@ -320,7 +326,8 @@ class BoardTop(Elaboratable):
                       else "sequential")
         self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
                         current_loop=current_loop, scope_ram=self._board.scope_ram,
-                        regs_staging=self._board.regs_staging, speed_loop=speed_loop)
+                        regs_staging=self._board.regs_staging, speed_loop=speed_loop,
+                        uv_arm_chain=UV_ARM_CHAIN[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

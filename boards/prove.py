@@ -323,8 +323,9 @@ class AbsCompareSpec(Elaboratable):
     at the widths :class:`FaultSpec` uses: :func:`~foc_servo.hdl.fixed.abs_exceeds` (``|v| >
     limit`` on one carry chain without forming ``|v|``, the over-current and over-speed verdicts)
     against ``Mux(v < 0, −v, v) > limit`` formed two bits wider, at 16 and 32 bits; and
-    :func:`~foc_servo.hdl.protect.udc_compares` (the bus-voltage verdicts on two chains) against
-    ``udc > ov_limit``, ``udc < uv_limit``, ``udc > uv_limit`` at ``signed(16)``.
+    :func:`~foc_servo.hdl.protect.udc_compares` (the bus-voltage verdicts on two chains, and on
+    three with ``arm_chain``) against ``udc > ov_limit``, ``udc < uv_limit``, ``udc > uv_limit``
+    at ``signed(16)``.
     :class:`FaultSpec` states its causes with these functions; this proof makes that the
     documented definition.
 
@@ -351,13 +352,15 @@ class AbsCompareSpec(Elaboratable):
                          Cover(got & v[-1] & (mag == limit + 1))]
         udc, ov, uv = (Signal(signed(16), name=n) for n in ("udc", "ov_limit", "uv_limit"))
         m.d.comb += [x.eq(AnySeq(signed(16))) for x in (udc, ov, uv)]
-        over, below, above = udc_compares(m, udc, ov, uv)
-        if self.broken:
-            above = ~below
-        m.d.comb += [Assert(over == (udc > ov), "abs_compare: udc > ov_limit"),
-                     Assert(below == (udc < uv), "abs_compare: udc < uv_limit"),
-                     Assert(above == (udc > uv), "abs_compare: udc > uv_limit"),
-                     Cover(above & (udc == uv + 1))]
+        for arm_chain in (False, True):
+            over, below, above = udc_compares(m, udc, ov, uv, arm_chain=arm_chain)
+            if self.broken:
+                above = ~below
+            form = " (arm_chain)" if arm_chain else ""
+            m.d.comb += [Assert(over == (udc > ov), f"abs_compare: udc > ov_limit{form}"),
+                         Assert(below == (udc < uv), f"abs_compare: udc < uv_limit{form}"),
+                         Assert(above == (udc > uv), f"abs_compare: udc > uv_limit{form}"),
+                         Cover(above & (udc == uv + 1))]
         return m
 
 

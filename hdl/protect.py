@@ -51,9 +51,10 @@ def _ordered(x):
     return Cat(x[:-1], ~x[-1]) if x.shape().signed else x.as_unsigned()
 
 
-def udc_compares(m, udc, ov_limit, uv_limit):
+def udc_compares(m, udc, ov_limit, uv_limit, *, arm_chain=False):
     """``(udc > ov_limit, udc < uv_limit, udc > uv_limit)``, the bus-voltage verdicts, on two
-    carry chains sharing one inverted ``udc`` (signed or unsigned, all three of one shape).
+    carry chains sharing one inverted ``udc`` (signed or unsigned, all three of one shape), or
+    three with ``arm_chain``.
 
     The codes are compared in offset binary (the sign bit flipped: unsigned chains then order
     signed values). ``ov_limit + ~udc + 1`` carries unless ``udc > ov_limit``;
@@ -63,6 +64,12 @@ def udc_compares(m, udc, ov_limit, uv_limit):
     proof shows them equal; :class:`~foc_servo.boards.prove.FaultSpec` states the causes with
     this function (as with :func:`~.fixed.abs_exceeds`). ``m`` takes the shared inverted
     ``udc`` (one signal, so that both chains read the same LUTs).
+
+    ``arm_chain``: the arming's ``udc > uv_limit`` on a third chain of its own, the carry out of
+    ``uv_limit + ~udc + 1`` (no carry iff ``udc > uv_limit``), as the over-voltage verdict, in
+    place of the second chain's 17-input AND (three LUT levels behind the carry chain): the
+    same verdicts, one carry chain more and the AND tree fewer (ECP5 Fmax: the arming was the
+    critical path, docs/AREA.md §7.53, §7.58; the iCE40 pays cells for the chain, §7.30).
     """
     w = len(Value.cast(udc))
     udc_n = Signal(w, name="udc_n")
@@ -70,6 +77,9 @@ def udc_compares(m, udc, ov_limit, uv_limit):
     ov_ok = (Cat(Const(1, 1), _ordered(ov_limit)) + Cat(Const(1, 1), udc_n))[w + 1]
     uv_diff = _ordered(uv_limit) + udc_n
     below = uv_diff[w]
+    if arm_chain:
+        uv_ok = (Cat(Const(1, 1), _ordered(uv_limit)) + Cat(Const(1, 1), udc_n))[w + 1]
+        return ~ov_ok, below, ~uv_ok
     return ~ov_ok, below, ~below & ~uv_diff[:w].all()
 
 
@@ -85,6 +95,11 @@ class Protection(wiring.Component):
         Shape of the U_dc code from the ADC (``signed(16)`` for the AD7380-4), 2 … 32 bits.
     speed_width : int
         Width of the signed speed (Q1.(w−1) of N_M), 4 … 32.
+    uv_arm_chain : bool
+        The under-voltage arming's ``udc > uv_limit`` on a carry chain of its own
+        (:func:`udc_compares`' ``arm_chain``; the same verdicts: the ECP5's form, where the
+        shared chain's AND tree was the critical path); ``False``: two chains (fewer iCE40
+        cells).
 
     Members
     -------
@@ -140,9 +155,13 @@ class Protection(wiring.Component):
 
     latency = 1
 
-    def __init__(self, *, current_width=16, udc_shape=signed(16), speed_width=16):
+    def __init__(self, *, current_width=16, udc_shape=signed(16), speed_width=16,
+                 uv_arm_chain=False):
         for name, value in (("current_width", current_width), ("speed_width", speed_width)):
             check_param("Protection", name, value, 4, 32)
+        if not isinstance(uv_arm_chain, bool):
+            raise TypeError(f"Protection uv_arm_chain must be a bool, not {uv_arm_chain!r}")
+        self._uv_arm_chain = uv_arm_chain
         if not isinstance(udc_shape, Shape) or not 2 <= udc_shape.width <= 32:
             raise TypeError(f"Protection udc_shape must be a Shape of 2 to 32 bits such as "
                             f"signed(16), not {udc_shape!r}")
@@ -177,6 +196,7 @@ class Protection(wiring.Component):
     current_width = property(lambda self: self._current_width)
     udc_shape = property(lambda self: self._udc_shape)
     speed_width = property(lambda self: self._speed_width)
+    uv_arm_chain = property(lambda self: self._uv_arm_chain)
 
     def elaborate(self, platform):
         m = Module()
@@ -191,7 +211,8 @@ class Protection(wiring.Component):
 
         i = self.i.payload
         udc_over, udc_below, udc_above = udc_compares(m, self.udc.payload, self.ov_limit,
-                                                      self.uv_limit)
+                                                      self.uv_limit,
+                                                      arm_chain=self._uv_arm_chain)
         armed = Signal()
         with m.If(~self.uv_enable):
             m.d.sync += armed.eq(0)

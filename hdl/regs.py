@@ -597,6 +597,19 @@ class RegisterFile(wiring.Component):
                 m.d.sync += port.eq(0)
 
         # t: the writes (address compared in full); the index, block and window hits registered.
+        # With flip-flop staging ``sel`` is read only in t + 1 of an access (``pending``), and
+        # the master holds ``addr`` from t to the ack: it is loaded in every clock, without
+        # ``access`` (the bus handshake) in front of its flip-flops' enable (ECP5 Fmax,
+        # docs/AREA.md §7.58); the RAM staging also reads it between accesses.
+        def load_sel():
+            with m.Switch(index):
+                for i, (addr, r, k) in enumerate(words):
+                    with m.Case(_index_of(addr, block_bits, picked)):
+                        m.d.sync += sel.eq(i + 1)
+                with m.Default():
+                    m.d.sync += sel.eq(0)
+        if not bram:
+            load_sel()
         with m.If(access):
             m.d.sync += [we.eq(bus.we), blk_ok.eq(0), win_wr.eq(0),
                          *(hit.eq(0) for hit in win_pend.values())]
@@ -604,12 +617,8 @@ class RegisterFile(wiring.Component):
                 for blk in blocks:
                     with m.Case(blk):
                         m.d.sync += blk_ok.eq(1)
-            with m.Switch(index):
-                for i, (addr, r, k) in enumerate(words):
-                    with m.Case(_index_of(addr, block_bits, picked)):
-                        m.d.sync += sel.eq(i + 1)
-                with m.Default():
-                    m.d.sync += sel.eq(0)
+            if bram:
+                load_sel()
             # The write enables: the address's block (one 16 − block_bits bit compare per block
             # with writable words) and its offset in the block (one compare per offset), each
             # decoded once and shared by the words, then ANDed per word.
@@ -634,7 +643,10 @@ class RegisterFile(wiring.Component):
         # AND-OR over those words only) ORed into bits w … 31 after the multiplexer, rather
         # than the sign bit in every upper bit of the multiplexer. The multiplexer is an AND-OR
         # on a one-hot word select registered in t (``hot``, one bit per word of the
-        # multiplexer, looked up from the index like ``sel``), not on a decode of ``sel``.
+        # multiplexer, looked up from the index like ``sel``), not on a decode of ``sel``. The
+        # hot bits are read only in t + 1 (``pending``) and the master holds ``addr`` from t to
+        # the ack, so they are loaded in every clock, not under ``access`` (ECP5 Fmax: the bus
+        # handshake was on the critical path into ``hot``'s enable, docs/AREA.md §7.58).
         muxed = [(i, r, k, held[r.name]) for i, (addr, r, k) in enumerate(words)
                  if held[r.name] is not None and addr not in self._ram_addr
                  and (not isinstance(held[r.name], int) or r.read_word(held[r.name], k))]
@@ -662,12 +674,11 @@ class RegisterFile(wiring.Component):
         terms, sign_terms = [], {}
         if muxed:
             hot = Signal(len(muxed), name="hot")
-            with m.If(access):
-                m.d.sync += hot.eq(0)
-                with m.Switch(index):
-                    for j, (i, r, k, _) in enumerate(muxed):
-                        with m.Case(_index_of(words[i][0], block_bits, picked)):
-                            m.d.sync += hot.eq(1 << j)
+            m.d.sync += hot.eq(0)
+            with m.Switch(index):
+                for j, (i, r, k, _) in enumerate(muxed):
+                    with m.Case(_index_of(words[i][0], block_bits, picked)):
+                        m.d.sync += hot.eq(1 << j)
             for j, (i, r, k, held_r) in enumerate(muxed):
                 value, sx = part(r, k, held_r)
                 value = Value.cast(value)
@@ -684,12 +695,11 @@ class RegisterFile(wiring.Component):
                 for j, name in enumerate(self._status_ram):
                     with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
                         m.d.comb += rd.addr.eq(j)
-            with m.If(access):
-                m.d.sync += st_hot.eq(0)
-                with m.Switch(index):
-                    for name in self._status_ram:
-                        with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
-                            m.d.sync += st_hot.eq(1)
+            m.d.sync += st_hot.eq(0)
+            with m.Switch(index):
+                for name in self._status_ram:
+                    with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
+                        m.d.sync += st_hot.eq(1)
             value, sx = part(r0, 0, Value.cast(rd.data))
             value = Value.cast(value)
             terms.append(value & st_hot.replicate(len(value)))

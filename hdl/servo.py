@@ -1117,10 +1117,16 @@ class SpeedLoop(wiring.Component):
         kinds = {"raw": acc, "q16": sat(acc, IQ_WIDTH)}
         # Register-file writes: raw (truncated: exact, proved), sat(acc, w), or that times 2**g;
         # the speed sample in the accepting clock (no run writes then).
+        # The address and data select on ``accept`` without its ``~clear`` (``sample``): while
+        # ``clear`` nothing is written, otherwise the two are equal; so the Servo's trip and
+        # mode (``clear``) reach the RAM's write enable only, not its data (ECP5 Fmax, docs/
+        # AREA.md §7.58).
+        sample = Signal()
         m.d.comb += [
+            sample.eq(self.i.valid & (count == 0) & ~running),
             rf_wr_en.eq((wr_rf & ~clear) | accept),
-            rf_wr_addr.eq(Mux(accept, rf_addr["SPD"], wr_rf_addr)),
-            rf_wr_data.eq(Mux(accept, self.i.payload.speed,
+            rf_wr_addr.eq(Mux(sample, rf_addr["SPD"], wr_rf_addr)),
+            rf_wr_data.eq(Mux(sample, self.i.payload.speed,
                               Mux(wr_rf_raw, acc, Mux(wr_rf_g, acc_w << g, acc_w)))),
             Assert(~(accept & wr_rf), "SpeedLoop: a run's write in the accepting clock"),
         ]

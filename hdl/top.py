@@ -434,6 +434,10 @@ class Top(wiring.Component):
         module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF; its flip-flops
         of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` then hold
         the blocks' operands, ``RegisterFile(derived=...)``).
+    uv_arm_chain : bool
+        :class:`~.protect.Protection` ``uv_arm_chain``: the under-voltage arming's compare on a
+        carry chain of its own (the same verdicts; the ECP5 board's choice, for its Fmax;
+        default ``False``, two chains, fewer iCE40 cells).
 
     Members
     -------
@@ -479,6 +483,8 @@ class Top(wiring.Component):
         The parameter.
     current_loop, scope_ram, regs_staging : str
         The parameters.
+    uv_arm_chain : bool
+        The parameter.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
         ``period_start`` and the new values are all in place in the ``period_start`` clock
@@ -496,7 +502,7 @@ class Top(wiring.Component):
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
-                 regs_staging="ff", speed_loop="sequential"):
+                 regs_staging="ff", speed_loop="sequential", uv_arm_chain=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -663,7 +669,7 @@ class Top(wiring.Component):
                                  f"clk_hz {clk_hz:g})")
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
-        self._protect = Protection(speed_width=32)
+        self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain)
         self._gates = Gates()
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
@@ -700,6 +706,7 @@ class Top(wiring.Component):
     speed_loop = property(lambda self: self._speed_loop)
     scope_ram = property(lambda self: self._scope.ram)
     regs_staging = property(lambda self: self._regs.staging)
+    uv_arm_chain = property(lambda self: self._protect.uv_arm_chain)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
     def elaborate(self, platform):

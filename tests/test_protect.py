@@ -74,6 +74,7 @@ def flags(*names):
                         r"signed\(16\), not 16$"),
     ({"udc_shape": unsigned(40)}, r"^Protection udc_shape must be a Shape of 2 to 32 bits "
                                   r"such as signed\(16\), not unsigned\(40\)$"),
+    ({"uv_arm_chain": 1}, r"^Protection uv_arm_chain must be a bool, not 1$"),
 ])
 def test_protect_parameter_validation(kwargs, message):
     with pytest.raises(TypeError, match=message):
@@ -238,12 +239,15 @@ def _run_against_model(dut, cols):
     return exp
 
 
+@pytest.mark.parametrize("uv_arm_chain", [False, True])
 @pytest.mark.parametrize("udc_shape", [signed(4), unsigned(3)])
-def test_protect_udc_compares_exhaustive_small_width(udc_shape):
+def test_protect_udc_compares_exhaustive_small_width(udc_shape, uv_arm_chain):
     """Over-voltage ``udc > ov_limit``, under-voltage ``udc < uv_limit`` and the arming's
     ``udc > uv_limit`` share one inverted U_dc on two carry chains (the third verdict is the
-    second chain's sum all ones): every code against every limit (both at once), with the
-    check disarmed every seventh clock (in order, then shuffled) so that the arming is seen anew, against the model."""
+    second chain's sum all ones), or the arming has a third chain (``uv_arm_chain``, the
+    ECP5's form): every code against every limit (both at once), with the check disarmed every
+    seventh clock (in order, then shuffled) so that the arming is seen anew, against the
+    model."""
     lo, hi = shape_range(udc_shape)
     pairs = [(u, lim) for u in range(lo, hi + 1) for lim in range(lo, hi + 1)]
     pairs = pairs + [pairs[k] for k in np.random.default_rng(7).permutation(len(pairs))]
@@ -252,7 +256,7 @@ def test_protect_udc_compares_exhaustive_small_width(udc_shape):
         steps.append({"udc_valid": 1, "udc": u, "ov_limit": lim, "uv_limit": lim,
                       "uv_enable": int(k % 7 != 0), "clear": 1})
     cols = {k: np.array([s.get(k, DEFAULTS[k]) for s in steps], dtype=np.int64) for k in INPUTS}
-    exp = _run_against_model(Protection(udc_shape=udc_shape), cols)
+    exp = _run_against_model(Protection(udc_shape=udc_shape, uv_arm_chain=uv_arm_chain), cols)
     bits = exp["present"]
     assert ((bits & flags("overvoltage")) != 0).sum() > 20
     assert ((bits & flags("undervoltage")) != 0).sum() > 5
