@@ -609,7 +609,15 @@ class RegisterFile(wiring.Component):
                 with m.Default():
                     m.d.sync += sel.eq(0)
         if not bram:
-            load_sel()
+            # Flip-flop staging reads the word select only as ``known`` and ``read_only``
+            # (below): those two bits are registered from the index directly.
+            known_q, ro_q = Signal(name="known"), Signal(name="read_only")
+            ro_codes = {_index_of(addr, block_bits, picked) for addr, r, k in words
+                        if r.access in (Access.RO, Access.CONST)}
+            codes = [_index_of(addr, block_bits, picked) for addr, r, k in words]
+            assert len(set(codes)) == len(codes)        # (word_index: one index per word)
+            m.d.sync += [known_q.eq(Cat(index == c for c in codes).any()),
+                         ro_q.eq(Cat(index == c for c in sorted(ro_codes)).any())]
         with m.If(access):
             m.d.sync += [we.eq(bus.we), blk_ok.eq(0), win_wr.eq(0),
                          *(hit.eq(0) for hit in win_pend.values())]
@@ -652,13 +660,16 @@ class RegisterFile(wiring.Component):
                  and (not isinstance(held[r.name], int) or r.read_word(held[r.name], k))]
         word = Signal(DATA_WIDTH)
         sign = {}
-        known = Signal()                        # sel is a word (blk_ok: the address is)
-        read_only = Signal()                    # ... a read-only one (ro, const)
-        with m.Switch(sel):
-            for i, (addr, r, k) in enumerate(words):
-                with m.Case(i + 1):
-                    m.d.comb += [known.eq(1),
-                                 read_only.eq(r.access in (Access.RO, Access.CONST))]
+        if bram:
+            known = Signal()                    # sel is a word (blk_ok: the address is)
+            read_only = Signal()                # ... a read-only one (ro, const)
+            with m.Switch(sel):
+                for i, (addr, r, k) in enumerate(words):
+                    with m.Case(i + 1):
+                        m.d.comb += [known.eq(1),
+                                     read_only.eq(r.access in (Access.RO, Access.CONST))]
+        else:
+            known, read_only = known_q, ro_q
 
         def part(r, k, held_r):
             """The word's value (zero-extended) and its sign bit if it is sign-extended, else
@@ -674,11 +685,10 @@ class RegisterFile(wiring.Component):
         terms, sign_terms = [], {}
         if muxed:
             hot = Signal(len(muxed), name="hot")
-            m.d.sync += hot.eq(0)
-            with m.Switch(index):
-                for j, (i, r, k, _) in enumerate(muxed):
-                    with m.Case(_index_of(words[i][0], block_bits, picked)):
-                        m.d.sync += hot.eq(1 << j)
+            codes = [_index_of(words[i][0], block_bits, picked) for (i, r, k, _) in muxed]
+            assert len(set(codes)) == len(codes)        # (one hot bit per index)
+            # One compare per bit (no shared multiplexer tree, no reset term).
+            m.d.sync += hot.eq(Cat(index == c for c in codes))
             for j, (i, r, k, held_r) in enumerate(muxed):
                 value, sx = part(r, k, held_r)
                 value = Value.cast(value)
