@@ -313,8 +313,8 @@ def test_top_bram_link_counters_read_over_the_uart():
     it belongs (frames_ok 1, crc_errors 1, framing_errors 1, rejected 1, dropped 0); a second
     read after it counts the first read's OK reply."""
     from foc_servo.hdl.top import Top
-    from foc_servo.host.protocol import cobs_decode, cobs_encode, crc16, decode_reply
-    from test_top import BAUD, CLK, _Bench, _bitbang
+    from foc_servo.host.protocol import cobs_encode, crc16
+    from test_top import BAUD, CLK, _Bench, _uart_host
     per_bit = round(CLK / BAUD)
     top = Top(pwm_hz=100e3, baud=BAUD, regs_staging="bram")
     bench = _Bench(top, BAUD)
@@ -327,22 +327,7 @@ def test_top_bram_link_counters_read_over_the_uart():
             *_, byte = await ctx.posedge(bench.host_rx.o.valid).sample(bench.host_rx.o.payload)
             wire.append(byte)
 
-    def replies():
-        return [decode_reply(cobs_decode(bytes(r))[:-2]) for r in wire.split(b"\x00")[:-1]]
-
-    async def send(ctx, data, bad_stop=None):
-        for k, byte in enumerate(data):
-            bits = _bitbang(byte, stop=0 if k == bad_stop else 1) + ([1] if k == bad_stop else [])
-            for level in bits:
-                ctx.set(bench.inject, level)
-                await ctx.tick().repeat(per_bit)
-
-    async def reply(ctx, n):
-        for _ in range(400):
-            if len(replies()) >= n:
-                return replies()[n - 1]
-            await ctx.tick().repeat(20)
-        raise AssertionError(f"no reply {n}")
+    replies, send, reply = _uart_host(bench, wire, per_bit)
 
     async def testbench(ctx):
         await ctx.tick().repeat(200)

@@ -994,6 +994,30 @@ def _bitbang(byte, stop=1):
     return [0] + [(byte >> k) & 1 for k in range(8)] + [stop]
 
 
+def _uart_host(bench, wire, per_bit):
+    """A host on ``bench``'s UART: ``replies()`` decodes the frames in ``wire`` (the bytes a
+    monitor collected), ``send(ctx, data, bad_stop=None)`` bit-bangs bytes (byte ``bad_stop``
+    with a framing error), ``reply(ctx, n)`` waits up to 8000 clocks for the n-th reply."""
+    def replies():
+        return [decode_reply(cobs_decode(bytes(r))[:-2]) for r in wire.split(b"\x00")[:-1]]
+
+    async def send(ctx, data, bad_stop=None):
+        for k, byte in enumerate(data):
+            bits = _bitbang(byte, stop=0 if k == bad_stop else 1) + ([1] if k == bad_stop else [])
+            for level in bits:
+                ctx.set(bench.inject, level)
+                await ctx.tick().repeat(per_bit)
+
+    async def reply(ctx, n):
+        for _ in range(400):                    # up to 8000 clocks: 100 reply bytes
+            if len(replies()) >= n:
+                return replies()[n - 1]
+            await ctx.tick().repeat(20)
+        raise AssertionError(f"no reply {n}")
+
+    return replies, send, reply
+
+
 def test_top_status_registers_read_provoked_values():
     """Every status register the top adds reads a provoked value. At reset (``resets``): current
     mode, references of I_FS/2 against 0 A measured and K_p ≈ 256 (both PIs saturate at their
@@ -1031,22 +1055,7 @@ def test_top_status_registers_read_provoked_values():
             count["cs_falls"] += 1
             count["conversions"] = (count["cs_falls"] + 1) // 2
 
-    def replies():
-        return [decode_reply(cobs_decode(bytes(r))[:-2]) for r in wire.split(b"\x00")[:-1]]
-
-    async def send(ctx, data, bad_stop=None):
-        for k, byte in enumerate(data):
-            bits = _bitbang(byte, stop=0 if k == bad_stop else 1) + ([1] if k == bad_stop else [])
-            for level in bits:
-                ctx.set(bench.inject, level)
-                await ctx.tick().repeat(per_bit)
-
-    async def reply(ctx, n):
-        for _ in range(400):                    # up to 8000 clocks: 100 reply bytes
-            if len(replies()) >= n:
-                return replies()[n - 1]
-            await ctx.tick().repeat(20)
-        raise AssertionError(f"no reply {n}")
+    replies, send, reply = _uart_host(bench, wire, per_bit)
 
     async def testbench(ctx):
         ctx.set(top.hall, HALL_OK)
