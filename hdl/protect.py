@@ -74,13 +74,16 @@ def udc_compares(m, udc, ov_limit, uv_limit, *, arm_chain=False):
     w = len(Value.cast(udc))
     udc_n = Signal(w, name="udc_n")
     m.d.comb += udc_n.eq(~_ordered(udc))
-    ov_ok = (Cat(Const(1, 1), _ordered(ov_limit)) + Cat(Const(1, 1), udc_n))[w + 1]
+
+    def above(limit):
+        """``udc > limit``: ``limit + ~udc + 1`` does not carry."""
+        return ~(Cat(Const(1, 1), _ordered(limit)) + Cat(Const(1, 1), udc_n))[w + 1]
+
     uv_diff = _ordered(uv_limit) + udc_n
     below = uv_diff[w]
     if arm_chain:
-        uv_ok = (Cat(Const(1, 1), _ordered(uv_limit)) + Cat(Const(1, 1), udc_n))[w + 1]
-        return ~ov_ok, below, ~uv_ok
-    return ~ov_ok, below, ~below & ~uv_diff[:w].all()
+        return above(ov_limit), below, above(uv_limit)
+    return above(ov_limit), below, ~below & ~uv_diff[:w].all()
 
 
 class Protection(wiring.Component):
