@@ -1153,7 +1153,7 @@ class Engine(wiring.Component):
         # ``value XOR init``, so those bits hold ``~prod`` and DIV's ``− prod`` gets its carry
         # operand without an inverter LUT (the inversion at D folds into the adder's sum LUT;
         # bits 0–15 come straight from a DSP, where it would cost the LUT back). Loaded every
-        # clock and read only in X3: the power-up value is never used (docs/AREA.md §7.NN).
+        # clock and read only in X3: the power-up value is never used (docs/AREA.md §7.55).
         prod = Signal(signed(MUL_A + MUL_B), reset_less=True,
                       init=((1 << MUL_B) - 1) & ~0xFFFF)
         m_neg3 = Signal(reset_less=True)
