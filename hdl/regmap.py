@@ -88,7 +88,7 @@ class Access(enum.Enum):
 
 
 class Mode(enum.Enum, shape=2):
-    """Operating mode (``mode`` register)."""
+    """Operating mode (``mode`` register; the Servo's ``mode`` input)."""
     DISABLED = 0    # gates off, regulators cleared
     OPEN_LOOP = 1   # u_d, u_q from ol_u_d, ol_u_q at the angle ol_angle_mode selects
     CURRENT = 2     # i_d, i_q references from i_d_ref, i_q_ref (torque control)
@@ -96,20 +96,22 @@ class Mode(enum.Enum, shape=2):
 
 
 class AngleMode(enum.Enum, shape=2):
-    """Angle used in the open-loop mode (``ol_angle_mode`` register)."""
+    """Angle used in the open-loop mode (``ol_angle_mode`` register; the Servo's ``ol_src``
+    input). The unused code 3 acts as ``FIXED``."""
     FIXED = 0       # ol_angle
-    ROTATING = 1    # phase accumulator advanced by ol_freq every clock
-    MEASURED = 2    # the measured θ_e (encoder / Hall check)
+    ROTATING = 1    # phase accumulator: starts at ol_angle, advances ol_freq per loop tick
+    MEASURED = 2    # the measured θ_e (encoder / Hall check with a voltage vector)
 
 
 class TriggerSource(enum.Enum, shape=1):
-    """Scope trigger (``scope_trig_src`` register), besides the host's ``scope_force``."""
+    """Scope trigger (``scope_trig_src`` register; the Scope's ``trig_src`` input), besides the
+    host's ``scope_force``."""
     HOST = 0        # the scope_force strobe only
     EXTERNAL = 1    # the scope's trigger input (a reference step detected by the mode logic)
 
 
 class ScopeState(enum.Enum, shape=2):
-    """Scope capture state (``scope_state`` register)."""
+    """Scope capture state (``scope_state`` register; the Scope's ``state`` output)."""
     IDLE = 0        # not capturing (scope_status.done tells whether the buffer holds a capture)
     PRE = 1         # armed, filling the pre-trigger part / waiting for the trigger
     POST = 2        # triggered, taking the post-trigger samples

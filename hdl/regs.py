@@ -791,12 +791,15 @@ class RegisterFile(wiring.Component):
         # one is pending or strobed no access is taken (hold), so a read taken in t returns
         # every count strobed up to t, as a counter flip-flop sampled in t + 1 would.
         inc_hold = Const(0, 1)
+        inc_wr = Const(0, 1)                    # (a counter written back: none without counters)
+        walk_data = rd_data                     # the RAM's write data of a walk's load / inc_wr
         if ncnt:
             cw = self._counter_words[0][1].width
             incs = Cat(*(getattr(self, f"{r.name}_inc") for _, r, _ in self._counter_words))
             inc_pend = Signal(ncnt)
             inc_rd = Signal()
             inc_wr = Signal()
+            walk_data = Cat((rd_data[:cw] + inc_wr)[:cw], rd_data[cw:])
             inc_sel = Signal(range(ncnt))       # the lowest pending counter
             for j in reversed(range(ncnt)):
                 with m.If(inc_pend[j]):
@@ -902,20 +905,12 @@ class RegisterFile(wiring.Component):
                 with m.Case(j):
                     word = bus.w_data[:width]
                     m.d.comb += w_fmt.eq(word.as_signed() if signed else word)
-        if ncnt:
-            # (never both: inc_rd waits for the walk's last load)
-            m.d.comb += [
-                wr.addr.eq(Mux(load_walk | inc_wr, dst, ram_addr)),
-                wr.data.eq(Mux(load_walk | inc_wr,
-                               Cat((rd_data[:cw] + inc_wr)[:cw], rd_data[cw:]), w_fmt)),
-                wr.en.eq((load & load_walk) | wr_pend | inc_wr),
-            ]
-        else:
-            m.d.comb += [
-                wr.addr.eq(Mux(load_walk, dst, ram_addr)),
-                wr.data.eq(Mux(load_walk, rd_data, w_fmt)),
-                wr.en.eq((load & load_walk) | wr_pend),
-            ]
+        # (never both: inc_rd waits for the walk's last load)
+        m.d.comb += [
+            wr.addr.eq(Mux(load_walk | inc_wr, dst, ram_addr)),
+            wr.data.eq(Mux(load_walk | inc_wr, walk_data, w_fmt)),
+            wr.en.eq((load & load_walk) | wr_pend | inc_wr),
+        ]
         return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
 
     def _derive(self, r, word):

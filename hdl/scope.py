@@ -74,12 +74,13 @@ from collections.abc import Mapping
 
 from amaranth.hdl import (C, Cat, ClockSignal, Instance, Module, Mux, Shape, Signal, Value,
                           signed, unsigned)
-from amaranth.lib import data, enum, wiring
+from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
 from .fixed import check_choice, is_int
+from .regmap import ScopeState, TriggerSource
 
 __all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES", "RAMS"]
 
@@ -107,19 +108,6 @@ DEFAULT_SOURCES = {
     "theta": unsigned(16),      # BinaryAngle(16)
     "u_dc": signed(16),         # ADC code
 }
-
-
-class ScopeState(enum.Enum, shape=2):
-    """Capture state."""
-    IDLE = 0        # not capturing (``done`` tells whether the ring holds a capture)
-    PRE = 1         # armed, filling the pre-trigger part / waiting for a trigger
-    POST = 2        # triggered, taking the post-trigger samples
-
-
-class TriggerSource(enum.Enum, shape=1):
-    """What triggers a capture besides the host's ``force`` strobe."""
-    HOST = 0        # ``force`` only
-    EXTERNAL = 1    # the ``trigger`` input (e.g. the Servo's reference step) or ``force``
 
 
 def check_scope(sources, channels, depth, width, decim_width, ram="bram"):

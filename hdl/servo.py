@@ -99,7 +99,7 @@ accumulator) and the speed loop, and produces the current loop's inputs (the ``I
 """
 
 from amaranth.hdl import Array, Assert, C, Cat, Module, Mux, Signal, Value, signed, unsigned
-from amaranth.lib import enum, stream, wiring
+from amaranth.lib import stream, wiring
 from amaranth.utils import ceil_log2, exact_log2
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -109,8 +109,9 @@ from .dsp import MUL_WIDTH, check_mul_width, saturate_bits
 from .fixed import is_int, UQ, BinaryAngle, check_choice
 from .mt_speed import output_layout as mt_output_layout
 from .pi import pi_widths
+from .regmap import AngleMode, Mode
 
-__all__ = ["SpeedLoop", "Servo", "Mode", "AngleSource", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
+__all__ = ["SpeedLoop", "Servo", "Mode", "AngleMode", "IQ_WIDTH", "ANGLE", "DELAY_FRAC",
            "CONFIGS", "SPEED_LOOPS", "SPEED_CONFIG", "check_speed_loop", "check_speed_config",
            "speed_loop_timing"]
 
@@ -135,22 +136,6 @@ _ENGINE_GONE = ("speed", "speed_ref", "speed_kp", "speed_kx", "speed_rate_div", 
 #: ``config="ram"``: the :class:`SpeedLoop` inputs held in its configuration RAM instead of
 #: ports, in the order of the words of its ``config`` port (``config.index`` = position here).
 SPEED_CONFIG = ("kp", "kx", "speed_slew", "iq_ff")
-
-
-class Mode(enum.Enum, shape=2):
-    """Operating mode (the ``mode`` register)."""
-    DISABLED = 0    # gates off, current and speed PIs cleared
-    OPEN_LOOP = 1   # u_d, u_q from registers at a fixed, rotating or measured angle
-    CURRENT = 2     # i_d, i_q references from registers (torque control)
-    SPEED = 3       # i_q reference from the speed PI, i_d reference from its register
-
-
-class AngleSource(enum.Enum, shape=2):
-    """Angle used in :attr:`Mode.OPEN_LOOP` (the ``ol_src`` register). The unused code 3 acts as
-    ``FIXED``."""
-    FIXED = 0       # ol_theta
-    ROTATING = 1    # phase accumulator: starts at ol_theta, advances ol_freq per loop strobe
-    MEASURED = 2    # the measured θ_e (encoder / Hall check with a voltage vector)
 
 
 def check_speed_loop(speed_width, width, kp_format, kx_format, int_guard, div_width,
@@ -1259,7 +1244,7 @@ class Servo(wiring.Component):
     mode : In(Mode)
     trip : In(1)
         Protection trip (level).
-    ol_src : In(AngleSource)
+    ol_src : In(AngleMode)
     ol_theta : In(16)
         Fixed (or start) open-loop angle, BinaryAngle(16).
     ol_freq : In(signed(phase_width))
@@ -1352,7 +1337,7 @@ class Servo(wiring.Component):
             "loop": In(1),
             "mode": In(Mode),
             "trip": In(1),
-            "ol_src": In(AngleSource),
+            "ol_src": In(AngleMode),
             "ol_theta": In(a),
             "ol_freq": In(signed(phase_width)),
             "ud_set": In(q),
@@ -1460,7 +1445,7 @@ class Servo(wiring.Component):
 
         # Open-loop phase accumulator.
         acc = Signal(unsigned(pw))
-        rotating = is_ol & (self.ol_src == AngleSource.ROTATING)
+        rotating = is_ol & (self.ol_src == AngleMode.ROTATING)
         with m.If(~rotating):
             m.d.sync += acc.eq(self.ol_theta << (pw - ANGLE.width))
         with m.Elif(self.loop):
@@ -1476,9 +1461,9 @@ class Servo(wiring.Component):
         with m.If(is_ol):
             m.d.comb += [self.ol_ud.eq(self.ud_set), self.ol_uq.eq(self.uq_set)]
             with m.Switch(self.ol_src):
-                with m.Case(AngleSource.ROTATING):
+                with m.Case(AngleMode.ROTATING):
                     m.d.comb += self.theta.eq(acc[pw - ANGLE.width:])
-                with m.Case(AngleSource.MEASURED):
+                with m.Case(AngleMode.MEASURED):
                     m.d.comb += self.theta.eq(self.theta_meas)
                 with m.Default():
                     m.d.comb += self.theta.eq(self.ol_theta)

@@ -902,11 +902,11 @@ class Top(wiring.Component):
                          cl.iq_lim_hi.eq(regs.pi_speed_lim_hi)]
         sl = cl if engine_speed else servo
         m.d.comb += [
-            _raw(servo.mode).eq(_raw(regs.mode)),           # regmap.Mode ≡ servo.Mode (codes)
+            servo.mode.eq(regs.mode),
             sl.speed_ref.eq(regs.speed_ref),
             servo.id_set.eq(regs.i_d_ref),
             servo.iq_set.eq(regs.i_q_ref),
-            _raw(servo.ol_src).eq(_raw(regs.ol_angle_mode)),  # AngleMode ≡ AngleSource
+            servo.ol_src.eq(regs.ol_angle_mode),
             servo.ud_set.eq(regs.ol_u_d),
             servo.uq_set.eq(regs.ol_u_q),
             servo.ol_theta.eq(regs.ol_angle),
@@ -951,23 +951,24 @@ class Top(wiring.Component):
 
             scope.decim.eq(operand("scope_decim")),
             scope.pretrigger.eq(operand("scope_pretrig")),
-            _raw(scope.trig_src).eq(_raw(regs.scope_trig_src)),
+            scope.trig_src.eq(regs.scope_trig_src),
             scope.arm.eq(regs.scope_arm),
             scope.force.eq(regs.scope_force),
         ]
         # The speed loop's gains, slew and feed-forward: the register file's active values, or
         # ("bram") its export port's words from index ``_speed_export`` on into the speed
-        # loop's RAM.
-        if self._speed_loop == "engine":
-            pass                        # (in the engine's configuration RAM, above)
-        elif self._speed_export is None:
-            m.d.comb += [servo.speed_kp.eq(regs.pi_speed_kp), servo.speed_kx.eq(regs.pi_speed_kx),
-                         servo.speed_slew.eq(regs.speed_slew), servo.iq_ff.eq(regs.speed_ff_iq)]
-        else:
-            k = self._speed_export
-            m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k)),
-                         servo.speed_config.index.eq(exp.index - k),
-                         servo.speed_config.data.eq(exp.data)]
+        # loop's RAM; with the speed loop on the engine, in its configuration RAM (above).
+        if self._speed_loop != "engine":
+            if self._speed_export is None:
+                m.d.comb += [servo.speed_kp.eq(regs.pi_speed_kp),
+                             servo.speed_kx.eq(regs.pi_speed_kx),
+                             servo.speed_slew.eq(regs.speed_slew),
+                             servo.iq_ff.eq(regs.speed_ff_iq)]
+            else:
+                k = self._speed_export
+                m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k)),
+                             servo.speed_config.index.eq(exp.index - k),
+                             servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
         # The scope's channel selects: the codes clamped (_operands).
         for c in range(scope.channels):
@@ -1050,7 +1051,7 @@ class Top(wiring.Component):
             else:
                 m.d.comb += getattr(regs, f"st_link_{name}").eq(getattr(link, name))
         m.d.comb += [
-            _raw(regs.st_mode).eq(_raw(servo.active)),
+            regs.st_mode.eq(servo.active),
             regs.st_trip.eq(trip_q),
             _raw(regs.st_fault_present).eq(_raw(prot.present)),
             _raw(regs.st_fault_first).eq(_raw(prot.first)),
@@ -1065,7 +1066,7 @@ class Top(wiring.Component):
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),
             regs.st_enc_hall_error.eq(enc.hall_error),
-            _raw(regs.scope_state).eq(_raw(scope.state)),
+            regs.scope_state.eq(scope.state),
             _raw(regs.scope_status).eq(Cat(scope.done, scope.pre_full)),
         ]
         return m

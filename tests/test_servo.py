@@ -8,7 +8,7 @@ from amaranth.back import verilog
 from amaranth.hdl import Const, Value
 
 from foc_servo.hdl.fixed import Q, UQ, clamp_np, shape_range
-from foc_servo.hdl.servo import SPEED_CONFIG, AngleSource, Mode, Servo, SpeedLoop
+from foc_servo.hdl.servo import SPEED_CONFIG, AngleMode, Mode, Servo, SpeedLoop
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel, SpeedLoopModel
 from foc_servo.sim.verify.servo import Packed, run, run_servo
@@ -589,11 +589,11 @@ def test_servo_current_mode_clamp_extremes_and_random_vs_model():
 def test_servo_open_loop_angle_sources():
     freq = 0x0123_4567
     seq = [base_inputs(mode=OPEN_LOOP, ud_set=3000, uq_set=-4000, ol_theta=0x4000,
-                       theta_meas=0x1234, ol_src=AngleSource.FIXED.value, loop=1)
+                       theta_meas=0x1234, ol_src=AngleMode.FIXED.value, loop=1)
            for _ in range(3)]
-    seq += [dict(seq[0], ol_src=AngleSource.ROTATING.value, ol_freq=freq, loop=int(t % 3 == 0))
+    seq += [dict(seq[0], ol_src=AngleMode.ROTATING.value, ol_freq=freq, loop=int(t % 3 == 0))
             for t in range(30)]
-    seq += [dict(seq[0], ol_src=AngleSource.MEASURED.value) for _ in range(3)]
+    seq += [dict(seq[0], ol_src=AngleMode.MEASURED.value) for _ in range(3)]
     seq += [dict(seq[0], ol_src=3) for _ in range(2)]
     got = servo_clocks(seq)
     assert all(g["ol_enable"] and (g["ol_ud"], g["ol_uq"]) == (3000, -4000) for g in got[1:])

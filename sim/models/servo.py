@@ -22,7 +22,7 @@ reference in ``t + latency`` (124), and the next run can be accepted in ``t + in
 from amaranth.hdl import signed
 
 from ...hdl.fixed import UQ, clamp_np, round_shift_np, saturate_np
-from ...hdl.servo import (ANGLE, DELAY_FRAC, IQ_WIDTH, AngleSource, Mode, check_speed_loop,
+from ...hdl.servo import (ANGLE, DELAY_FRAC, IQ_WIDTH, AngleMode, Mode, check_speed_loop,
                           speed_loop_timing)
 from .pi import PIModel
 
@@ -276,9 +276,9 @@ class ServoModel:
 
         theta = inp["theta_meas"]
         if is_ol:
-            if inp["ol_src"] == AngleSource.ROTATING.value:
+            if inp["ol_src"] == AngleMode.ROTATING.value:
                 theta = self.acc >> (pw - aw)
-            elif inp["ol_src"] != AngleSource.MEASURED.value:
+            elif inp["ol_src"] != AngleMode.MEASURED.value:
                 theta = inp["ol_theta"]
         iq_ref = id_ref = 0
         if is_cur:
@@ -304,7 +304,7 @@ class ServoModel:
         }
 
         # Next state.
-        if not (is_ol and inp["ol_src"] == AngleSource.ROTATING.value):
+        if not (is_ol and inp["ol_src"] == AngleMode.ROTATING.value):
             self.acc = inp["ol_theta"] << (pw - aw)
         elif inp["loop"]:
             self.acc = (self.acc + inp["ol_freq"]) % (1 << pw)

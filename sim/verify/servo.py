@@ -32,7 +32,7 @@ from amaranth.lib.wiring import In, Out
 
 from ...hdl.fixed import shape_range
 from ...hdl.scope import Scope, ScopeState
-from ...hdl.servo import DELAY_FRAC, AngleSource, Mode, Servo
+from ...hdl.servo import DELAY_FRAC, AngleMode, Mode, Servo
 from ..harness import Progress, simulate
 from ..models.scope import ScopeModel
 from ..models.servo import SERVO_INPUTS, ServoModel
@@ -281,7 +281,7 @@ def _servo_stimulus(count, rng, model, dut):
         prev_active = out["active"]
         figures["ref_steps"] += out["ref_step"]
         figures["rotating_clocks"] += (out["active"] == Mode.OPEN_LOOP.value and
-                                       regs["ol_src"] == AngleSource.ROTATING.value)
+                                       regs["ol_src"] == AngleMode.ROTATING.value)
     return inputs, outputs, figures
 
 
