@@ -78,6 +78,75 @@ def check_latency_cycle_by_cycle(dut, rotate):
     assert [c for c, v in seen if v] == [dut.latency]
 
 
+# --- golden-model checks (``rotate``, ``rotate_ideal``: a block's model functions) -----------
+
+def model_error_one_million_vectors(rotate, rotate_ideal, corner_cases):
+    """The model against float on a million random vectors and the named corners: the shared
+    targets (max ≤ 2 LSB, rms ≤ 0.7 LSB, no bias); returns the errors for tighter bounds."""
+    x, y, theta = random_vectors(1_000_000, seed=11)
+    cx, cy, ct = corner_cases()
+    x, y, theta = (np.concatenate(a) for a in ((x, cx), (y, cy), (theta, ct)))
+    gx, gy = rotate(x, y, theta)
+    ix, iy = rotate_ideal(x, y, theta)
+    err = np.concatenate([gx - ix, gy - iy])
+    assert np.max(np.abs(err)) <= 2.0            # target
+    assert math.sqrt(np.mean(err ** 2)) <= 0.7   # target
+    assert abs(np.mean(err)) < 0.01              # no bias from the rounding
+    return err
+
+
+def check_corners_saturate_never_wrap(rotate):
+    """Full-scale corners saturate instead of wrapping (16-bit data and angles)."""
+    turn = 1 << 16
+    # (32767, 32767) by +45° → (0, 46341): y saturates to +32767.
+    ox, oy = rotate([FS - 1, -FS, -FS], [FS - 1, -FS, FS - 1], [turn // 8, turn // 8, 0])
+    assert abs(ox[0]) <= 1 and oy[0] == FS - 1
+    # (−32768, −32768) by +45° → (0, −46341): saturates to −32768.
+    assert abs(ox[1]) <= 1 and oy[1] == -FS
+    # θ = 0 of (−32768, 32767) passes through.
+    assert (ox[2], oy[2]) == (-FS, FS - 1)
+    # θ = −π (raw 0x8000) negates; −(−32768) saturates to +32767.
+    ox, oy = rotate([-FS, 12345], [FS - 1, -FS], [turn // 2, turn // 2])
+    assert (ox[0], oy[0]) == (FS - 1, -(FS - 1))
+    assert (ox[1], oy[1]) == (-12345, FS - 1)
+
+
+def check_quarter_turns_and_small_angles(rotate, rotate_ideal, raws=(1, (1 << 16) - 1,
+                                                                      (1 << 15) - 1)):
+    """±π/2 and 0 exact on one vector; the angles ``raws`` within one LSB of the ideal."""
+    turn = 1 << 16
+    x, y = 20000, -7000
+    assert tuple(int(v[0]) for v in rotate([x], [y], [turn // 4])) == (-y, x)        # +π/2
+    assert tuple(int(v[0]) for v in rotate([x], [y], [3 * turn // 4])) == (y, -x)    # −π/2
+    assert tuple(int(v[0]) for v in rotate([x], [y], [0])) == (x, y)
+    for raw in raws:
+        gx, gy = rotate([x], [y], [raw])
+        ix, iy = rotate_ideal([x], [y], [raw])
+        assert abs(gx[0] - ix[0]) <= 1 and abs(gy[0] - iy[0]) <= 1
+
+
+def check_zero_vector_stays_zero(rotate):
+    theta = np.arange(0, 1 << 16, 7)
+    ox, oy = rotate(np.zeros_like(theta), np.zeros_like(theta), theta)
+    assert not ox.any() and not oy.any()
+
+
+def check_park_inverse_park_round_trip_model(rotate):
+    """Park (rotation by −θ) then inverse Park (by +θ) of 200 000 vectors: back within 2 LSB."""
+    rng = np.random.default_rng(13)
+    n = 200_000
+    r = rng.uniform(0, FS - 1, n)
+    phi = rng.uniform(-math.pi, math.pi, n)
+    x, y = np.round(r * np.cos(phi)).astype(np.int64), np.round(r * np.sin(phi)).astype(np.int64)
+    theta = rng.integers(0, 1 << 16, n)
+    dx, dy = rotate(x, y, (-theta) % (1 << 16))        # Park: rotate by −θ
+    ax, ay = rotate(dx, dy, theta)                      # inverse Park: by +θ
+    err = np.maximum(np.abs(ax - x), np.abs(ay - y))
+    assert err.max() <= 2
+
+
+# --- gateware checks -------------------------------------------------------------------------
+
 def check_park_inverse_park_round_trip(park, inverse, n, spacing=1):
     """Park (θ negated) feeds inverse Park, θ travelling in the first block's 16-bit tag: the
     vectors come back within 2 LSB."""

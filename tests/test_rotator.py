@@ -13,8 +13,11 @@ from foc_servo.hdl.rotator import Rotator, RotatorParams
 from foc_servo.sim.models.rotator import rotate, rotate_ideal, rotate_trace, trig
 from foc_servo.sim.verify.rotator import corner_cases, run
 
-from rotation_common import (FS, check_latency_cycle_by_cycle,
-                             check_park_inverse_park_round_trip, signal_ports,
+from rotation_common import (FS, check_corners_saturate_never_wrap, check_latency_cycle_by_cycle,
+                             check_park_inverse_park_round_trip,
+                             check_park_inverse_park_round_trip_model,
+                             check_quarter_turns_and_small_angles, check_zero_vector_stays_zero,
+                             model_error_one_million_vectors, signal_ports,
                              random_vectors as _random, simulate_vectors)
 
 def _simulate_vectors(dut, vectors, spacing=None):
@@ -129,17 +132,9 @@ def test_rotator_trig_operands_fit_other_configurations(params):
 
 
 def test_rotator_model_against_float_one_million_vectors():
-    x, y, theta = _random(1_000_000, seed=11)
-    cx, cy, ct = corner_cases()
-    x, y, theta = (np.concatenate(a) for a in ((x, cx), (y, cy), (theta, ct)))
-    gx, gy = rotate(x, y, theta)
-    ix, iy = rotate_ideal(x, y, theta)
-    err = np.concatenate([gx - ix, gy - iy])
-    assert np.max(np.abs(err)) <= 2.0            # target; measured 0.985 (CORDIC ≈ 0.9)
-    assert math.sqrt(np.mean(err ** 2)) <= 0.7   # target; measured 0.303 (CORDIC ≈ 0.30)
-    assert np.max(np.abs(err)) <= 1.1            # this design, with margin
-    assert math.sqrt(np.mean(err ** 2)) <= 0.31
-    assert abs(np.mean(err)) < 0.01              # no bias
+    err = model_error_one_million_vectors(rotate, rotate_ideal, corner_cases)
+    assert np.max(np.abs(err)) <= 1.1            # measured 0.985 (CORDIC ≈ 0.9)
+    assert math.sqrt(np.mean(err ** 2)) <= 0.31  # measured 0.303 (CORDIC ≈ 0.30)
 
 
 @pytest.mark.parametrize("params", [{"width": 8}, {"width": 12, "angle_width": 16},
@@ -154,26 +149,13 @@ def test_rotator_model_against_float_other_widths(params):
 
 
 def test_rotator_corners_saturate_never_wrap():
-    turn = 1 << 16
-    # (32767, 32767) by +45° → (0, 46341): y saturates to +32767.
-    ox, oy = rotate([FS - 1, -FS, -FS], [FS - 1, -FS, FS - 1], [turn // 8, turn // 8, 0])
-    assert abs(ox[0]) <= 1 and oy[0] == FS - 1
-    # (−32768, −32768) by +45° → (0, −46341): saturates to −32768.
-    assert abs(ox[1]) <= 1 and oy[1] == -FS
-    # θ = 0 of (−32768, 32767) passes through.
-    assert (ox[2], oy[2]) == (-FS, FS - 1)
-    # θ = −π (raw 0x8000) negates; −(−32768) saturates to +32767.
-    ox, oy = rotate([-FS, 12345], [FS - 1, -FS], [turn // 2, turn // 2])
-    assert (ox[0], oy[0]) == (FS - 1, -(FS - 1))
-    assert (ox[1], oy[1]) == (-12345, FS - 1)
+    check_corners_saturate_never_wrap(rotate)
 
 
 def test_rotator_quarter_turns_exact_and_small_angles():
     turn = 1 << 16
-    x, y = 20000, -7000
-    assert tuple(int(v[0]) for v in rotate([x], [y], [turn // 4])) == (-y, x)        # +π/2
-    assert tuple(int(v[0]) for v in rotate([x], [y], [3 * turn // 4])) == (y, -x)    # −π/2
-    assert tuple(int(v[0]) for v in rotate([x], [y], [0])) == (x, y)
+    check_quarter_turns_and_small_angles(rotate, rotate_ideal, (1, turn - 1, turn // 2 - 1,
+                                                                turn // 8 - 1, turn // 8 + 1))
     # Every x, y of a grid passes θ = 0 unchanged and is swapped/negated exactly by π/2.
     g = np.arange(-FS, FS, 257)
     gx, gy = np.meshgrid(g, g)
@@ -184,10 +166,6 @@ def test_rotator_quarter_turns_exact_and_small_angles():
     ox, oy = rotate(gx, gy, turn // 4)
     np.testing.assert_array_equal(ox, np.minimum(-gy, FS - 1))
     np.testing.assert_array_equal(oy, gx)
-    for raw in (1, turn - 1, turn // 2 - 1, turn // 8 - 1, turn // 8 + 1):
-        gx1, gy1 = rotate([x], [y], [raw])
-        ix, iy = rotate_ideal([x], [y], [raw])
-        assert abs(gx1[0] - ix[0]) <= 1 and abs(gy1[0] - iy[0]) <= 1
 
 
 def test_rotator_odd_symmetric_and_zero_vector():
@@ -199,22 +177,11 @@ def test_rotator_odd_symmetric_and_zero_vector():
     bx, by = rotate(-x, -y, theta)
     np.testing.assert_array_equal(bx, -ax)
     np.testing.assert_array_equal(by, -ay)
-    theta = np.arange(0, 1 << 16, 7)
-    ox, oy = rotate(np.zeros_like(theta), np.zeros_like(theta), theta)
-    assert not ox.any() and not oy.any()
+    check_zero_vector_stays_zero(rotate)
 
 
 def test_rotator_park_inverse_park_round_trip_model():
-    rng = np.random.default_rng(13)
-    n = 200_000
-    r = rng.uniform(0, FS - 1, n)
-    phi = rng.uniform(-math.pi, math.pi, n)
-    x, y = np.round(r * np.cos(phi)).astype(np.int64), np.round(r * np.sin(phi)).astype(np.int64)
-    theta = rng.integers(0, 1 << 16, n)
-    dx, dy = rotate(x, y, (-theta) % (1 << 16))        # Park: rotate by −θ
-    ax, ay = rotate(dx, dy, theta)                      # inverse Park: by +θ
-    err = np.maximum(np.abs(ax - x), np.abs(ay - y))
-    assert err.max() <= 2
+    check_park_inverse_park_round_trip_model(rotate)
 
 
 def test_rotator_model_trace_sums_exact():
