@@ -97,10 +97,29 @@ def _field(words, offset, width, signed):
     return v.astype(np.int64)
 
 
-def run_capture(bench, vectors, clocks, w, tw, *, name, progress):
-    """Run a rotator bench (``out_addr``, ``first_out``, ``last_out``, ``capture`` memory of
-    ``{x, y[, tag]}`` words) for ``clocks``; return ``(result, x, y, tag, sim_s)`` with the
-    captured outputs as int64 arrays. Shared by the CORDIC and the sine-table rotator."""
+def run_rotation(dut, rotate, rotate_ideal, model, *, count, seed, spacing, name, progress):
+    """Feed a rotation block (the CORDIC or the sine-table rotator: same ports, ``params``,
+    ``latency``) the corner cases plus ``count`` seeded random vectors (x, y, θ and tag uniform
+    over their full ranges), one every ``spacing`` clocks, from a :class:`RotationBench`;
+    compare the captured outputs with ``rotate(x, y, θ, **model)`` bit for bit and with
+    ``rotate_ideal`` for the error figures. Returns the dict of :func:`run`."""
+    p = dut.params
+    w, aw, tw = p.width, p.angle_width, p.tag_width
+    rng = np.random.default_rng(seed)
+    cx, cy, ct = corner_cases(w, aw)
+    fs = 1 << (w - 1)
+    x = np.concatenate([cx, rng.integers(-fs, fs, count)])
+    y = np.concatenate([cy, rng.integers(-fs, fs, count)])
+    theta = np.concatenate([ct, rng.integers(0, 1 << aw, count)])
+    vectors = len(x)
+    tag = rng.integers(0, 1 << tw, vectors) if tw else np.zeros(vectors, dtype=np.int64)
+
+    mask = (1 << w) - 1
+    words = [(int(a) & mask) | (int(b) & mask) << w | int(t) << 2 * w | int(g) << (2 * w + aw)
+             for a, b, t, g in zip(x, y, theta, tag)]
+    bench = RotationBench(dut, words, spacing)
+    clocks = (vectors - 1) * spacing + p.latency + 2
+
     result = {}
     bar = Progress(f"{name} {vectors} vectors", clocks, enabled=progress)
 
@@ -117,7 +136,25 @@ def run_capture(bench, vectors, clocks, w, tw, *, name, progress):
     gx = _field(out, 0, w, True)
     gy = _field(out, w, w, True)
     gt = _field(out, 2 * w, tw, False) if tw else np.zeros(vectors, dtype=np.int64)
-    return result, gx, gy, gt, sim_s
+
+    ex, ey = rotate(x, y, theta, **model)
+    produced = result["outputs"]
+    mismatches = int(np.count_nonzero((gx != ex) | (gy != ey) | (gt != tag)))
+    ix, iy = rotate_ideal(x, y, theta, width=w, angle_width=aw)
+    err = np.concatenate([gx - ix, gy - iy])
+    span = result["last_out"] - result["first_out"] + spacing
+    return {
+        "mismatches": mismatches,
+        "outputs_missing": vectors - produced,
+        "vectors": vectors,
+        "clocks": clocks,
+        "sim_s": sim_s,
+        "clk_per_s": clocks / sim_s,
+        "latency_clk": result["first_out"],
+        "throughput_per_clk": produced / span if produced else 0.0,
+        "max_err_lsb": float(np.max(np.abs(err))),
+        "rms_err_lsb": float(math.sqrt(np.mean(err ** 2))),
+    }
 
 
 def run(count=100_000, *, seed=0, progress=False, **params):
@@ -147,41 +184,6 @@ def run(count=100_000, *, seed=0, progress=False, **params):
         quantized angle, clipped to the output range; x and y pooled), ``outputs_missing``.
     """
     dut = Cordic(**params)
-    p = dut.params
-    w, aw, tw = p.width, p.angle_width, p.tag_width
-    rng = np.random.default_rng(seed)
-    cx, cy, ct = corner_cases(w, aw)
-    fs = 1 << (w - 1)
-    x = np.concatenate([cx, rng.integers(-fs, fs, count)])
-    y = np.concatenate([cy, rng.integers(-fs, fs, count)])
-    theta = np.concatenate([ct, rng.integers(0, 1 << aw, count)])
-    vectors = len(x)
-    tag = rng.integers(0, 1 << tw, vectors) if tw else np.zeros(vectors, dtype=np.int64)
-
-    mask = (1 << w) - 1
-    words = [(int(a) & mask) | (int(b) & mask) << w | int(t) << 2 * w | int(g) << (2 * w + aw)
-             for a, b, t, g in zip(x, y, theta, tag)]
-    bench = RotationBench(dut, words)
-
-    clocks = vectors + p.latency + 1
-    result, gx, gy, gt, sim_s = run_capture(bench, vectors, clocks, w, tw, name="cordic",
-                                            progress=progress)
     model = {k: v for k, v in params.items() if k not in ("iterations_per_stage", "tag_width")}
-    ex, ey = rotate(x, y, theta, **model)
-    produced = result["outputs"]
-    mismatches = int(np.count_nonzero((gx != ex) | (gy != ey) | (gt != tag)))
-    ix, iy = rotate_ideal(x, y, theta, width=w, angle_width=aw)
-    err = np.concatenate([gx - ix, gy - iy])
-    span = result["last_out"] - result["first_out"] + 1
-    return {
-        "mismatches": mismatches,
-        "outputs_missing": vectors - produced,
-        "vectors": vectors,
-        "clocks": clocks,
-        "sim_s": sim_s,
-        "clk_per_s": clocks / sim_s,
-        "latency_clk": result["first_out"],
-        "throughput_per_clk": produced / span if produced else 0.0,
-        "max_err_lsb": float(np.max(np.abs(err))),
-        "rms_err_lsb": float(math.sqrt(np.mean(err ** 2))),
-    }
+    return run_rotation(dut, rotate, rotate_ideal, model, count=count, seed=seed, spacing=1,
+                        name="cordic", progress=progress)
