@@ -37,12 +37,9 @@ def run(count=100_000, *, seed=0, spacing=None, progress=False, **params):
     Returns
     -------
     dict
-        ``mismatches`` (gateware outputs, tag included, differing from the golden model),
-        ``vectors``, ``clocks``, ``sim_s`` (wall seconds of simulation), ``clk_per_s``,
-        ``latency_clk`` (measured: clocks from the first ``i.valid`` to the first ``o.valid``),
-        ``throughput_per_clk`` (outputs per clock between the first and the last output),
-        ``max_err_lsb`` and ``rms_err_lsb`` (gateware outputs against the float rotation by the
-        quantized angle, clipped to the output range; x and y pooled), ``outputs_missing``.
+        The figures of :func:`.cordic.run` (``mismatches``, ``outputs_missing``, ``vectors``,
+        ``clocks``, ``sim_s``, ``clk_per_s``, ``latency_clk``, ``throughput_per_clk``,
+        ``max_err_lsb``, ``rms_err_lsb``).
     """
     dut = Rotator(**params)
     p = dut.params
