@@ -16,8 +16,8 @@ The piece (:func:`mt_arith`) computes, with ``N = k·mtm`` (< 2**63) and ``D = m
 
     G = floor(N / 2**24) = mkh·mtm + floor(mkl·mtm / 2**24)        (MUL, post, MUL, MAC)
     saturated  iff  N >= 2**31·D  iff  G >= 2**7·D                 (MAC, post, flag, BR)
-    A = floor(N / 2**16) = (mkh·mtm)·2**8 + floor(mkl·mtm / 2**16)  (MUL, 8 DIV steps by a
-        divisor above every partial remainder: a left shift; MAC) — A < 2**15·D, so
+    A = floor(N / 2**16) = (mkh·mtm)·2**8 + floor(mkl·mtm / 2**16)  (MUL, 8 DIV steps by D,
+        whose trials stay below D/2 (A < 2**15·D): a left shift, no new constant; MAC), so
     q1 = floor(A / D) < 2**15, R1 = A mod D                         (16 DIV steps)
     q2 = floor((R1·2**16 + N mod 2**16) / D) < 2**16                (MACs, 16 DIV steps)
     q  = q1·2**16 + q2 = floor(N / D), or 2**31 − 1 saturated      (MUL, MAC, post)
@@ -34,9 +34,10 @@ magnitude of the last output.
 from amaranth.hdl import unsigned
 
 from .engine import Assembler, Op
+from .foc_engine import DUTY_CLOCKS, START_CLOCKS, _clocks, _paths
 
 __all__ = ["MT_SPECIALS", "MT_SHAPES", "MT_OUTS", "MT_STATE", "MT_ENGINE_PARAMS", "MT_SAT",
-           "mt_arith", "mt_program", "mt_operands", "mt_k_slices"]
+           "mt_arith", "mt_program", "mt_operands", "mt_k_slices", "mt_run_timing"]
 
 #: The MTSpeed parameters the piece is written for (the iCEBreaker top's, but the TC span:
 #: 27 bits, the ``DIV`` divisor's limit).
@@ -110,7 +111,11 @@ def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False):
     branch around the division (shorter there, but the piece is then three straight-line
     regions); else it runs the division on 0 / 1 and selects the saturated value after it
     (one region, which the assembler can interleave with other straight-line code)."""
-    r = lambda name: f"r.{prefix}{name}"                                  # noqa: E731
+    # Five temporaries, each value in the first one free (by the written order; the
+    # scheduler keeps every read before the next write of a register).
+    slot = dict(kl="a", c24="a", sg="a", sv="a", kh="b", khs="b", q1="b", mm="b", c16="c",
+                c16s="c", q2="c", nm="c", d="d", ds="d", q="d", lo="e", los="e", qd="e")
+    r = lambda name: f"r.{prefix}{slot[name]}"                            # noqa: E731
     sat, done = prefix + "sat", prefix + "out"
     A.alu(Op.ADD, r("kl"), "s.mkl", 0)
     A.alu(Op.ADD, r("kh"), "s.mkh", 0)
@@ -139,7 +144,7 @@ def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False):
         A.alu(Op.SEL, d, 1, r("d"), cond="N")
         A.alu(Op.SEL, r("sv"), MT_SAT, 0, cond="N")
     A.mul("s.mtm", kh)                              # < 2**34 when not saturated
-    A.div(_DIV_MAX, 8)                              # ·2**8: the divisor exceeds every remainder
+    A.div(d, 8)                                     # ·2**8: every trial is below D / 2
     A.mac(1, c16)                                   # A = floor(N / 2**16) < 2**15·D
     A.div(d, 16)                                    # P = R1·2**16 + q1
     A.alu(Op.ADD, r("q1"), "s.PQ", 0)
@@ -176,3 +181,25 @@ def mt_program(*, fuse=True, schedule=True, branches=False):
     mt_arith(A, branches=branches)
     A.end()
     return A.assemble(fuse=fuse, schedule=schedule)
+
+
+def mt_run_timing(program, *, out="mtspd"):
+    """Per path through ``program`` from its ``mt`` label (or 0): ``latency``, the clocks from
+    the run's start to the output ``out`` in place (its write + :data:`DUTY_CLOCKS`, a
+    strobe registered as the speed run's ``o.valid`` is), and ``length``, the clocks until
+    the engine takes its next start (executed instructions + :data:`START_CLOCKS`). A sorted
+    list of ``(latency, length)``, one per distinct path timing."""
+    start = program.labels.get("mt", 0)
+    index = program.outs.index(out)
+    timing = set()
+    for path in _paths(program, start):
+        k, at = 0, None
+        for pc in path:
+            ins = program.instrs[pc]
+            if ins.out == index:
+                at = k
+            k += _clocks(ins)
+        if at is None:
+            raise ValueError(f"M/T program: a path without a write of {out}")
+        timing.add((at + 1 + DUTY_CLOCKS, k + START_CLOCKS))
+    return sorted(timing)

@@ -9,7 +9,7 @@ import pytest
 
 from foc_servo.hdl.engine import MUL_B, Assembler, Op
 from foc_servo.hdl.engine_mt import (MT_ENGINE_PARAMS, MT_SAT, MT_SPECIALS, mt_k_slices,
-                                     mt_operands, mt_program)
+                                     mt_operands, mt_program, mt_run_timing)
 from foc_servo.hdl.foc_engine import _clocks, _paths
 from foc_servo.sim.models.engine import EngineModel
 from foc_servo.sim.models.engine_mt import EngineMTModel
@@ -183,7 +183,9 @@ def test_engine_div_divisor_is_the_multipliers_b_operand():
 
 
 def test_engine_mt_program_size():
-    """The figures of docs/AREA.md §7.64: words, NOPs, clocks per run (every path)."""
+    """The figures of docs/AREA.md §7.64: words, NOPs, clocks per run (every path), and the
+    run's timing: the speed in place 101 clocks after the start (MTSpeed: 38), the engine free
+    99 clocks after it."""
     sizes = {}
     for name, prog in PROGRAMS.items():
         ins = prog.instrs
@@ -191,3 +193,5 @@ def test_engine_mt_program_size():
                        sorted(sum(_clocks(ins[pc]) for pc in p) for p in _paths(prog)))
     assert sizes == {"straight": (59, 22, [96]), "branches": (58, 24, [35, 94])}
     assert set(PROGRAMS["straight"].specials) >= set(MT_SPECIALS)
+    assert mt_run_timing(PROGRAMS["straight"]) == [(101, 99)]
+    assert mt_run_timing(PROGRAMS["branches"]) == [(40, 38), (99, 97)]
