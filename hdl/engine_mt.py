@@ -15,7 +15,8 @@ two 24-bit slices ``mkl = k[0:24]``, ``mkh = k[24:48]`` (wiring, as the speed lo
 The piece (:func:`mt_arith`) computes, with ``N = k·mtm`` (< 2**63) and ``D = mtd``::
 
     G = floor(N / 2**24) = mkh·mtm + floor(mkl·mtm / 2**24)        (MUL, post, MUL, MAC)
-    saturated  iff  N >= 2**31·D  iff  G >= 2**7·D                 (MAC, post, flag, BR)
+    saturated  iff  N >= 2**31·D  iff  G >= 2**7·D                 (MAC, post, flag; then
+        the division below runs on 0 / 1 and 2**31 − 1 is added, or ``branches``: a BR)
     A = floor(N / 2**16) = (mkh·mtm)·2**8 + floor(mkl·mtm / 2**16)  (MUL, 8 DIV steps by D,
         whose trials stay below D/2 (A < 2**15·D): a left shift, no new constant; MAC), so
     q1 = floor(A / D) < 2**15, R1 = A mod D                         (16 DIV steps)
@@ -33,7 +34,7 @@ magnitude of the last output.
 
 from amaranth.hdl import unsigned
 
-from .engine import Assembler, Op
+from .engine import MUL_B, Assembler, Op
 from .foc_engine import DUTY_CLOCKS, START_CLOCKS, _clocks, _paths
 
 __all__ = ["MT_SPECIALS", "MT_SHAPES", "MT_OUTS", "MT_STATE", "MT_ENGINE_PARAMS", "MT_SAT",
@@ -56,7 +57,7 @@ MT_OUTS = {"ang": 16, "mtspd": 32}
 MT_STATE = ("mt_pm",)
 
 #: ``DIV``'s divisor is the multiplier's signed B operand (28 bits).
-_DIV_MAX = (1 << 27) - 1
+_DIV_MAX = (1 << (MUL_B - 1)) - 1
 
 
 def mt_k_slices(k):
