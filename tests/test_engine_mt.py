@@ -195,3 +195,53 @@ def test_engine_mt_program_size():
     assert set(PROGRAMS["straight"].specials) >= set(MT_SPECIALS)
     assert mt_run_timing(PROGRAMS["straight"]) == [(101, 99)]
     assert mt_run_timing(PROGRAMS["branches"]) == [(40, 38), (99, 97)]
+
+
+def test_engine_mt_on_the_gateware_engine_cycle_by_cycle():
+    """The piece on the gateware :class:`Engine` (its specials as ports, shaped as
+    :data:`MT_SHAPES`) against :class:`EngineMTModel`: every executed instruction's write back
+    (pc, P, destination, value) in the same clock, and the output ``mtspd`` after each END,
+    over updates in sequence (the state register kept in the register file): saturated and
+    not, ΔT up to 2**27 − 1 (the DIV divisor's limit in the gateware too), bounded and
+    stopped ones."""
+    from foc_servo.hdl.engine import Engine
+    from foc_servo.hdl.engine_mt import MT_OUTS, MT_SHAPES
+    from foc_servo.sim.harness import simulate as hdl_simulate
+    from foc_servo.sim.models.engine import _complete
+
+    from engine_trace import follow_trace
+
+    prog = PROGRAMS["straight"]
+    dut = Engine(program=prog, special_shapes=MT_SHAPES, out_widths=MT_OUTS)
+    model = EngineMTModel(program=prog)
+    jobs = [(K_MAX, FRESH, -M_MAX, 1), (K_MAX, FRESH, 3, D_MAX), (1, FRESH, 1, D_MAX),
+            (0, FRESH, 5, 0), (1 << 40, FRESH, -3, 1 << 20), (1 << 40, BOUND, 1, 1 << 18),
+            (1 << 40, BOUND, 1, 1 << 22), (1 << 40, STOPPED, 0, 0), (1 << 40, BOUND, 1, 7)]
+    jobs += [(k, FRESH, dm, dt) for k, dm, dt in _random(9, 30)]
+    jobs += [(k, FRESH, dm, dt) for k, dm, dt in _corners()[::180]]
+    errors, done = [], [0]
+
+    async def testbench(ctx):
+        for n, (k, mode, dm, dt) in enumerate(jobs):
+            want = model.update(k, mode, dm, dt)
+            spec = {**mt_k_slices(k), **mt_operands(mode, dm, dt, last[0])}
+            last[0] = want
+            spec, _ = _complete(prog, spec, {})
+            for name in MT_SHAPES:
+                ctx.set(getattr(dut, f"s_{name}"), spec[name])
+            ctx.set(dut.start, 1)
+            await ctx.tick()
+            ctx.set(dut.start, 0)
+            error, _ = await follow_trace(ctx, dut, model.trace)
+            if error is not None:
+                errors.append((n, *error))
+                return
+            await ctx.tick()
+            if ctx.get(dut.o_mtspd) != want % (1 << 32):
+                errors.append((n, "mtspd", ctx.get(dut.o_mtspd), want))
+            done[0] += 1
+
+    last = [0]
+    hdl_simulate(dut, [testbench], name="engine_mt")
+    assert errors == []
+    assert done[0] == len(jobs)
