@@ -191,6 +191,8 @@ class EngineModel:
                 prod = -(a * b) if (ins.neg ^ c) else a * b
                 self.p = _fits((self.p if ins.acc else 0) + prod, P_WORD, f"P at pc {pc}")
             elif op == Op.DIV:
+                # The divisor reaches X3 as the product 1·B: the multiplier's B operand.
+                _fits(b, MUL_B, f"DIV divisor at pc {pc}")
                 t2 = self.p << 1
                 if (t2 >> q) >= b:
                     t2 = t2 - (b << q) + 1
