@@ -1149,13 +1149,15 @@ class Engine(wiring.Component):
         m_neg = Signal()
         m.d.comb += [ma.eq(a2[:MUL_A]), mb.eq(b2[:MUL_B])]
         m.d.sync += m_neg.eq(ir.neg ^ c)
-        # ``init`` ones on the bits above the SB_MAC16's 16 outputs: an iCE40 flip-flop stores
-        # ``value XOR init``, so those bits hold ``~prod`` and DIV's ``− prod`` gets its carry
-        # operand without an inverter LUT (the inversion at D folds into the adder's sum LUT;
-        # bits 0–15 come straight from a DSP, where it would cost the LUT back). Loaded every
-        # clock and read only in X3: the power-up value is never used (docs/AREA.md §7.55).
+        # ``init`` ones on the multiplier's 28 bits: an iCE40 flip-flop stores ``value XOR
+        # init``, so they hold ``~prod`` and DIV's ``− prod`` gets its carry operand without an
+        # inverter LUT; the inversion at D folds into the sum LUT of the adder that joins the
+        # SB_MAC16s' partial products (bits 16–27) or packs with the flip-flop (bits 0–15, fed
+        # by an SB_MAC16 output: alone in their cells before), and X3's ``± prod`` XOR LUT
+        # takes the other polarity. Loaded every clock and read only in X3: the power-up value
+        # is never used (docs/AREA.md §7.55, §7.63).
         prod = Signal(signed(MUL_A + MUL_B), reset_less=True,
-                      init=((1 << MUL_B) - 1) & ~0xFFFF)
+                      init=(1 << MUL_B) - 1)
         m_neg3 = Signal(reset_less=True)
         m.d.sync += [prod.eq(ma * mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(P_WORD + 1))
