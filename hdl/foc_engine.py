@@ -85,7 +85,8 @@ CURRENT_STATE = ("i_d", "ep_d", "i_q", "ep_q", "dcg")
 SPEED_STATE = ("h0", "h1", "h2", "ih", "il", "ep")
 
 #: The speed-loop program's special operands (:func:`speed_profile_program`; docs/ENGINE.md
-#: "Speed loop as a program"): the speed sample ``spd`` latched when the run is accepted,
+#: "Speed loop as a program"): the speed sample ``spd`` (the ``speed`` port, held from the
+#: run's request to its read: :attr:`EngineCurrentLoop.speed_read`),
 #: ``speed_ref``, the profile's reference ``ref_int`` (the output register, which the gateware
 #: forces to the tracked value while ``clear``), the slew as ``slh = S >> 1`` and ``sll = S & 1``
 #: (S is UQ1.31: no signed 32-bit operand holds it), ``iq_ff``, the i_q limits and the
@@ -540,26 +541,36 @@ def speed_run_timing(program):
     by the slew; ``"none"``: it steps to ``speed_ref``): a dict of path → dict with
     ``ref_latency`` (clocks from the run's start to the new ``ref_int``, ``ref_int``'s write +
     :data:`DUTY_CLOCKS`, the output registered as ``o.valid`` is), ``latency`` (to the i_q
-    reference and ``o.valid``, the write of ``iq`` likewise) and ``length`` (executed
+    reference and ``o.valid``, the write of ``iq`` likewise), ``length`` (executed
     instructions: the engine takes the next start ``START_CLOCKS + length`` clocks after
-    this one's). ``sat`` is written before ``iq`` on every path (checked)."""
+    this one's) and ``speed_read`` (clocks from the start to the clock in which the engine
+    samples the special ``spd``: the R stage of the one instruction that reads it,
+    ``START_CLOCKS − 1`` + the clocks executed before it). ``sat`` is written before ``iq``
+    on every path, ``spd`` read once (checked)."""
     start = program.labels.get("speed", 0)
     prefix = "spd_" if "speed" in program.labels else ""
     up, dn = program.labels[prefix + "up"], program.labels[prefix + "dn"]
     outs = program.outs
+    spd = program.specials.index("spd")
     timing = {}
     for path in _paths(program, start):
         kind = "up" if up in path else "dn" if dn in path else "none"
-        k, at = 0, {}
+        k, at, reads = 0, {}, []
         for pc in path:
             ins = program.instrs[pc]
             if ins.out and outs[ins.out] in ("ref_int", "iq", "sat"):
                 at[outs[ins.out]] = k
+            if ins.asp and ins.a == spd:
+                reads.append(k)
             k += _clocks(ins)
         if not at.get("sat", k) < at.get("iq", -1) or "ref_int" not in at:
             raise ValueError("speed program: sat must be written before iq, and ref_int")
+        if len(reads) != 1:
+            raise ValueError(f"speed program: the special spd must be read once per run, not "
+                             f"{len(reads)} times")
         t = {"ref_latency": at["ref_int"] + 1 + DUTY_CLOCKS,
-             "latency": at["iq"] + 1 + DUTY_CLOCKS, "length": k}
+             "latency": at["iq"] + 1 + DUTY_CLOCKS, "length": k,
+             "speed_read": START_CLOCKS - 1 + reads[0]}
         if timing.setdefault(kind, t) != t:
             raise ValueError(f"speed program: two {kind} paths of different timing")
     return timing
@@ -595,6 +606,13 @@ class EngineCurrentLoop(wiring.Component):
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
         With ``config="ram"`` the configuration RAM's word ``klead`` instead (as ``u_rated``'s:
         word ``urat``).
+    speed : In(signed(32))
+        The speed (M/T's), latched with each sample for the feed-forward and θ_lead; with
+        ``speed=True`` also the speed run's feedback, which the program reads from the port
+        itself, :attr:`speed_read` clocks after the run's start: ``speed`` must hold from the
+        ``speed_valid`` strobe that requests a run until then (the top's M/T output register
+        changes only at its strobes, a PWM period apart, longer than :attr:`interval` +
+        :attr:`speed_read`: a run waits at most for one current-loop sample's program).
 
     Parameters
     ----------
@@ -655,6 +673,9 @@ class EngineCurrentLoop(wiring.Component):
         status output is written.
     status_mode : str
         The ``status`` parameter.
+    speed_read : int or None
+        ``speed=True``: clocks from a speed run's start to the clock in which the program
+        samples ``speed`` (worst case over the profile paths; :func:`speed_run_timing`).
     program : Program
     """
 
@@ -790,6 +811,8 @@ class EngineCurrentLoop(wiring.Component):
     #: is idle, worst case (a current-loop run in flight delays it; class docstring).
     speed_latency = property(lambda self: None if self._speed_timing is None
                              else max(t["latency"] for t in self._speed_timing.values()))
+    speed_read = property(lambda self: None if self._speed_timing is None
+                          else max(t["speed_read"] for t in self._speed_timing.values()))
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
@@ -925,10 +948,10 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += req.eq(0)
         with m.Elif(new):
             m.d.sync += req.eq(1)
-        # The speed latched at the request; ``fresh`` (set by clear) latched at the start.
-        l_spd = Signal(signed(sp["speed_width"]), name="l_spd")
-        with m.If(new):
-            m.d.sync += l_spd.eq(self.speed)
+        # The speed: read by the program from the port itself, which holds from the request
+        # to the run's read (the contract, class docstring: M/T's output register in the top,
+        # a PWM period between its updates; no 32-bit latch). ``fresh`` (set by clear)
+        # latched at the start.
         fresh = Signal(init=1)
         l_fresh = Signal()
         with m.If(clear):
@@ -962,7 +985,7 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
-        m.d.comb += [eng.s_spd.eq(l_spd), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
+        m.d.comb += [eng.s_spd.eq(self.speed), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
                      eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
                      eng.s_ih.eq(self.speed_int_hold)]
