@@ -33,7 +33,7 @@ from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
-           "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
+           "phase_latency", "sample_read", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
@@ -45,7 +45,8 @@ ENGINE_WIDTH = 16
 #: Fraction bits of the DC-bus gain (UQ2.16, as :class:`~.svpwm.DCBusCompensation`'s).
 DCBUS_GAIN_FRAC = 16
 
-#: User special operands: latched sample values and configuration ports.
+#: User special operands: latched sample values (``ia``, ``ib``: the sample port itself,
+#: :attr:`EngineCurrentLoop.sample_read`) and configuration ports.
 SPECIALS = ("ia", "ib", "theta", "klead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
             "gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q",
             "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "udc", "urat")
@@ -510,6 +511,29 @@ def phase_latency(program):
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
+def sample_read(program):
+    """Clocks from the start of ``program`` (the accepted sample's, :class:`EngineCurrentLoop`)
+    to the clock in which it reads the last of the ADC codes ``ia``, ``ib`` (special operands
+    sampled in R, ``START_CLOCKS − 1`` clocks after the start for the first instruction): both
+    are read on the straight-line start of the program (before its first branch) and
+    nowhere else (checked)."""
+    names = [program.specials.index(n) for n in ("ia", "ib")]
+    bnames = [program.bspecials.index(n) for n in ("ia", "ib") if n in program.bspecials]
+    reads = {}
+    k, straight = 0, True
+    for pc, ins in enumerate(program.instrs):
+        if (ins.asp and ins.a in names) or (ins.bsp and ins.b in bnames):
+            if not straight:
+                raise ValueError("engine program: ia or ib read after the first branch")
+            reads[pc] = k
+        if ins.op in (Op.BR, Op.END):
+            straight = False
+        k += _clocks(ins)
+    if not reads:
+        raise ValueError("engine program: ia and ib are not read")
+    return START_CLOCKS - 1 + max(reads.values())
+
+
 def status_quiet(program):
     """Clocks from ``done`` of :class:`EngineCurrentLoop` running ``program`` (that clock
     included) in which no status output (:data:`STATUS`) is written: after its last duty
@@ -593,8 +617,8 @@ class EngineCurrentLoop(wiring.Component):
     flag) is written before the duties. After the duties the program computes the next
     sample's DC-bus gain (from the register file only) before it ends: a sample accepted in
     that time (back to back, less than :attr:`interval` clocks after the previous one) is
-    latched and its program starts when the running one ends (its latency then grows by the
-    rest of it). ``phase.valid`` strobes the clock after the program wrote phase c. The DC-bus
+    latched (but its ADC codes ``ia``, ``ib``: ``i`` below) and its program starts when the
+    running one ends (its latency then grows by the rest of it). ``phase.valid`` strobes the clock after the program wrote phase c. The DC-bus
     gain lives in the engine's register file (block RAM), which a reset does not clear: it is
     1.0 at power-up and after a reset the last gain computed until the next sample's.
 
@@ -606,6 +630,12 @@ class EngineCurrentLoop(wiring.Component):
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
         With ``config="ram"`` the configuration RAM's word ``klead`` instead (as ``u_rated``'s:
         word ``urat``).
+    i : In(stream.Signature(...))
+        The ADC sample (:class:`~.foc.CurrentLoop`'s). ``udc`` is latched at the accepting
+        clock (the ``udc`` output), ``ia`` and ``ib`` are read by the program from the port
+        itself (no latch), :attr:`sample_read` clocks after its start: they must hold from the
+        accepting clock until then, :attr:`sample_hold` clocks at most (the top's ADC shift
+        registers hold its codes until the next conversion's first bit, a PWM period later).
     speed : In(signed(32))
         The speed (M/T's), latched with each sample for the feed-forward and θ_lead; with
         ``speed=True`` also the speed run's feedback, which the program reads from the port
@@ -668,6 +698,14 @@ class EngineCurrentLoop(wiring.Component):
     phase_latency : int
         Clocks from the accepted sample to the ``phase`` transfer (the program's write of
         phase c, :func:`phase_latency`).
+    sample_read : int
+        Clocks from a sample's program start to the clock in which it reads the last of
+        ``i.payload.ia``, ``ib`` (:func:`sample_read`; the start is the accepting clock when
+        the engine is idle).
+    sample_hold : int
+        Clocks from the accepting clock to that read, worst case (the engine busy with the
+        previous sample's program or, ``speed=True``, a speed run): ``ia``, ``ib`` must hold
+        that long (class docstring, ``i``).
     status_quiet : int
         :func:`status_quiet` of the program: from ``done`` (included), the clocks in which no
         status output is written.
@@ -732,6 +770,14 @@ class EngineCurrentLoop(wiring.Component):
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
+        self._sample_read = sample_read(self._program)
+        # A sample accepted while the engine runs starts when that program ends: a current-loop
+        # program (accepted back to back, at the earliest at its done, ``min(latencies)``
+        # after its start) or a speed run (``START_CLOCKS + length`` after its start).
+        wait = self._interval - min(self._latencies)
+        if speed:
+            wait = max([wait] + [START_CLOCKS + t["length"] for t in self._speed_timing.values()])
+        self._sample_hold = wait + self._sample_read
         self._status_quiet = status_quiet(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
@@ -801,6 +847,8 @@ class EngineCurrentLoop(wiring.Component):
     interval = property(lambda self: self._interval)
     gain_limit_raw = property(lambda self: self._gain_limit_raw)
     phase_latency = property(lambda self: self._phase_latency)
+    sample_read = property(lambda self: self._sample_read)
+    sample_hold = property(lambda self: self._sample_hold)
     status_quiet = property(lambda self: self._status_quiet)
     status_mode = property(lambda self: self._status)
     speed_mode = property(lambda self: self._speed)
@@ -866,13 +914,14 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += pending.eq(0)
 
         # --- Per-sample inputs, latched with the sample ------------------------------------------
+        # (``ia``, ``ib``: read from the port, which holds until the program has read them:
+        # ``sample_hold``, the class docstring.)
         lat = {name: Signal(shapes[name], name=f"l_{name}")
-               for name in ("ia", "ib", "theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
+               for name in ("theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
         run, ol, ff = Signal(), Signal(), Signal()
         nspd_round = round_shift_plain(self.speed, SPEED_WIDTH - w)
         with m.If(accept):
             m.d.sync += [
-                lat["ia"].eq(self.i.payload.ia), lat["ib"].eq(self.i.payload.ib),
                 lat["theta"].eq(self.theta),
                 lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
                 lat["ol_ud"].eq(self.ol_ud), lat["ol_uq"].eq(self.ol_uq),
@@ -888,7 +937,8 @@ class EngineCurrentLoop(wiring.Component):
             config = {}
         else:
             config = {name: getattr(self, CONFIG_PORTS[name]) for name in CONFIG}
-        config.update({"scale": self.scale, "udc": self.udc.payload})
+        config.update({"scale": self.scale, "udc": self.udc.payload,
+                       "ia": self.i.payload.ia, "ib": self.i.payload.ib})
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),

@@ -678,6 +678,17 @@ class Top(wiring.Component):
                 raise ValueError(f"Top speed_loop='engine' needs a PWM period longer than the "
                                  f"speed run's read of M/T's speed ({hold} clocks), not "
                                  f"{self._timer.period} clocks")
+        if current_loop == "engine":
+            # The engine reads the ADC's ia, ib shift registers itself (no latch), up to
+            # sample_hold clocks after the sample; they hold until the next conversion's first
+            # bit, which comes after the next sample strobe: more than a period less the
+            # ADC's latency after o.valid.
+            hold = self._timer.period - self._adc.latency
+            if hold <= self._loop.sample_hold:
+                raise ValueError(f"Top current_loop='engine' needs a PWM period longer than "
+                                 f"the ADC's latency + the engine's sample hold "
+                                 f"({self._adc.latency + self._loop.sample_hold} clocks), not "
+                                 f"{self._timer.period} clocks")
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain)
