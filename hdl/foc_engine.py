@@ -20,7 +20,7 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
@@ -511,6 +511,21 @@ def phase_latency(program):
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
+def ge_ripple(a, b):
+    """``a >= b`` for unsigned values of one width, as a ripple of per-bit terms from the low
+    bit up (``a < b`` on bits ``0 … i``: ``a_i < b_i``, or ``a_i = b_i`` and ``a < b`` below),
+    with no adder: on the iCE40 a compare's carry chain takes a cell per bit, and an inverter
+    cell per bit of the operand on its inverted side when that is a flip-flop (whose polarity
+    its reset value fixes); the ripple takes one LUT per bit (the speed run's decimation, a
+    slow path: AREA.md §7.63)."""
+    if len(a) != len(b):
+        raise ValueError(f"ge_ripple operands must have one width, not {len(a)} and {len(b)}")
+    lt = Const(0)
+    for i in range(len(a)):
+        lt = (~a[i] & b[i]) | (~(a[i] ^ b[i]) & lt)
+    return ~lt
+
+
 def sample_read(program):
     """Clocks from the start of ``program`` (the accepted sample's, :class:`EngineCurrentLoop`)
     to the clock in which it reads the last of the ADC codes ``ia``, ``ib`` (special operands
@@ -983,7 +998,7 @@ class EngineCurrentLoop(wiring.Component):
         with m.If(clear):
             m.d.sync += count.eq(0)
         with m.Elif(self.speed_valid):
-            m.d.sync += count.eq(Mux(count >= self.speed_rate_div, 0, count + 1))
+            m.d.sync += count.eq(Mux(ge_ripple(count, self.speed_rate_div), 0, count + 1))
         req = Signal()          # a run requested (waits while the engine is busy)
         fl = Signal()           # a run started, its iq not yet written, not aborted
         abort = Signal(2)       # aborted runs whose iq is still to come (their writes gated)

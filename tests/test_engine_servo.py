@@ -234,6 +234,35 @@ def test_engine_speed_run_reads_the_speed_port_at_speed_read():
     assert worst == max(reads) and len(set(reads)) == 3
 
 
+def test_ge_ripple_is_unsigned_greater_or_equal():
+    """``ge_ripple`` (the decimation's compare, no adder) against ``>=``: every pair of 5-bit
+    values, the 8-bit corners and random 8-bit pairs; operands of two widths refused."""
+    import pytest
+    from amaranth.hdl import Module, Signal
+
+    from foc_servo.hdl.foc_engine import ge_ripple
+    rng = np.random.default_rng(3)
+    cases = {5: [(a, b) for a in range(32) for b in range(32)],
+             8: ([(a, b) for a in (0, 1, 127, 128, 254, 255) for b in (0, 1, 127, 128, 254, 255)]
+                 + [tuple(int(v) for v in rng.integers(0, 256, 2)) for _ in range(400)])}
+    for width, pairs in cases.items():
+        m = Module()
+        a, b, ge = Signal(width), Signal(width), Signal()
+        m.d.comb += ge.eq(ge_ripple(a, b))
+        got = []
+
+        async def testbench(ctx):
+            for x, y in pairs:
+                ctx.set(a, x)
+                ctx.set(b, y)
+                got.append(ctx.get(ge))
+
+        simulate(m, [testbench], name=f"ge_ripple_{width}")
+        assert got == [int(x >= y) for x, y in pairs]
+    with pytest.raises(ValueError, match=r"^ge_ripple operands must have one width, not 3 and 4$"):
+        ge_ripple(Signal(3), Signal(4))
+
+
 def test_engine_speed_parameters_are_checked():
     """Clear errors: ``speed`` not a bool, ``speed=True`` without the configuration RAM, a
     ``config_init`` not of the 20 words; an ``Engine`` slice of a word not in ``config`` or
