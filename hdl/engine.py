@@ -1122,14 +1122,32 @@ class Engine(wiring.Component):
                 m.d.sync += sat_mask.eq(0)
         ovf4 = Signal()
         m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
-        # The fields X4 uses, registered from X3.
-        w4_sat = Signal(2)
-        w4_dst = Signal(7)
-        w4_out = Signal(5)
-        w4_wen = Signal()
-        w4_op = Signal(4)
-        m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
-                     w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
+        # The fields X4 uses (and whether the op writes back), three clocks after X1: a delay
+        # line in a small RAM (written with X1's instruction every clock, read two addresses
+        # behind with its registered port) in place of three flip-flop stages of 16 bits
+        # (ir2, ir3, the X4 copy: on the iCE40 a flip-flop loaded from a flip-flop is a lone
+        # cell; docs/AREA.md §7.63). X4's fields are not reset (x4_valid, which is, gates
+        # every use); ``ram_style`` asks yosys for a block RAM for the 4 words.
+        x4_layout = data.StructLayout({"dst": 7, "out": 5, "wen": 1, "sat": 2, "writes": 1})
+        m.submodules.x4_delay = x4_delay = Memory(shape=x4_layout, depth=4, init=[],
+                                                  attrs={"ram_style": "block", "no_rw_check": 1})
+        dl_w = x4_delay.write_port()
+        dl_r = x4_delay.read_port(domain="comb")
+        # (An asynchronous port with its data registered here, as the register file's, which
+        # yosys merges into the block RAM without a read-during-write emulation.)
+        dl_q = Signal(x4_layout, reset_less=True)
+        m.d.sync += dl_q.eq(dl_r.data)
+        dl_n = Signal(2)
+        m.d.sync += dl_n.eq(dl_n + 1)
+        m.d.comb += [
+            dl_w.addr.eq(dl_n), dl_w.en.eq(1),
+            dl_w.data.eq(Cat(ir.dst, ir.out, ir.wen, ir.sat,
+                             (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) |
+                             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL) |
+                             (ir.op == Op.MUL))),
+            dl_r.addr.eq(dl_n - 2),
+        ]
+        w4_sat, w4_dst, w4_out, w4_wen = dl_q.sat, dl_q.dst, dl_q.out, dl_q.wen
         y = Signal(signed(WORD))
         lim = Signal(signed(WORD))
         m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
@@ -1172,9 +1190,7 @@ class Engine(wiring.Component):
         execute = x_valid & self.running
         x4_valid = Signal()
         m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
-        writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
-                              (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
-                              (w4_op == Op.MUL))
+        writes4 = x4_valid & dl_q.writes
         p3 = Signal(signed(P_WORD))           # P as the instruction in X3 read it in X2 (trace)
         p4 = Signal(signed(P_WORD))           # the same, in X4
         m.d.sync += [p3.eq(p), p4.eq(p3)]
