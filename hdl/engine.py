@@ -1122,12 +1122,13 @@ class Engine(wiring.Component):
                 m.d.sync += sat_mask.eq(0)
         ovf4 = Signal()
         m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
-        # The fields X4 uses (and whether the op writes back), three clocks after X1: a delay
-        # line in a small RAM (written with X1's instruction every clock, read two addresses
-        # behind with its registered port) in place of three flip-flop stages of 16 bits
-        # (ir2, ir3, the X4 copy: on the iCE40 a flip-flop loaded from a flip-flop is a lone
-        # cell; docs/AREA.md §7.63). X4's fields are not reset (x4_valid, which is, gates
-        # every use); ``ram_style`` asks yosys for a block RAM for the 4 words.
+        # The fields X4 uses (and whether the op writes back), four clocks after R: a delay
+        # line in a small RAM (written every clock with R's instruction, the ROM's read data,
+        # which X1's register ``ir`` takes in the next clock; read three words behind, i.e.
+        # one ahead, with its registered port) in place of four flip-flop stages (ir, ir2,
+        # ir3, the X4 copy: on the iCE40 a flip-flop loaded from a flip-flop or a block RAM
+        # is a lone cell; docs/AREA.md §7.63). X4's fields are not reset (x4_valid, which
+        # is, gates every use); ``ram_style`` asks yosys for a block RAM for the 4 words.
         x4_layout = data.StructLayout({"dst": 7, "out": 5, "wen": 1, "sat": 2, "writes": 1})
         m.submodules.x4_delay = x4_delay = Memory(shape=x4_layout, depth=4, init=[],
                                                   attrs={"ram_style": "block", "no_rw_check": 1})
@@ -1141,11 +1142,11 @@ class Engine(wiring.Component):
         m.d.sync += dl_n.eq(dl_n + 1)
         m.d.comb += [
             dl_w.addr.eq(dl_n), dl_w.en.eq(1),
-            dl_w.data.eq(Cat(ir.dst, ir.out, ir.wen, ir.sat,
-                             (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) |
-                             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL) |
-                             (ir.op == Op.MUL))),
-            dl_r.addr.eq(dl_n - 2),
+            dl_w.data.eq(Cat(ir1.dst, ir1.out, ir1.wen, ir1.sat,
+                             (ir1.op == Op.ADD) | (ir1.op == Op.SUB) | (ir1.op == Op.RSUB) |
+                             (ir1.op == Op.MIN) | (ir1.op == Op.MAX) | (ir1.op == Op.SEL) |
+                             (ir1.op == Op.MUL))),
+            dl_r.addr.eq(dl_n - 3),
         ]
         w4_sat, w4_dst, w4_out, w4_wen = dl_q.sat, dl_q.dst, dl_q.out, dl_q.wen
         y = Signal(signed(WORD))
