@@ -1136,8 +1136,9 @@ class Engine(wiring.Component):
         dl_r = x4_delay.read_port(domain="comb")
         # (An asynchronous port with its data registered here, as the register file's, which
         # yosys merges into the block RAM without a read-during-write emulation.)
-        dl_q = Signal(x4_layout, reset_less=True)
+        dl_q = Signal(x4_layout.size, reset_less=True)
         m.d.sync += dl_q.eq(dl_r.data)
+        dl_q = data.View(x4_layout, dl_q)
         dl_n = Signal(2)
         m.d.sync += dl_n.eq(dl_n + 1)
         m.d.comb += [
