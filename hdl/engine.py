@@ -51,7 +51,7 @@ special operands are selected and registered in R).
 import dataclasses
 import enum
 
-from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Shape, Signal, Value, signed, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -652,6 +652,23 @@ class Assembler:
                        outs=self.outs)
 
 
+def _delay_line(m, name, n, behind, fields):
+    """``fields`` (name → value) ``behind + 1`` clocks later, through a 4-word RAM ``name``
+    (written every clock at ``n``, a 2-bit count of the clocks, read at ``n − behind`` through
+    an asynchronous port with its data registered: the register file's pattern, which yosys
+    merges into a block RAM without collision logic; the addresses always differ). The data
+    register (``{name}_q``) is not reset; returns a view of it."""
+    layout = data.StructLayout({k: len(Value.cast(v)) for k, v in fields.items()})
+    m.submodules[name] = mem = Memory(shape=layout, depth=4, init=[],
+                                      attrs={"ram_style": "block", "no_rw_check": 1})
+    wr, rd = mem.write_port(), mem.read_port(domain="comb")
+    q = Signal(layout.size, reset_less=True, name=f"{name}_q")
+    m.d.sync += q.eq(rd.data)
+    m.d.comb += [wr.addr.eq(n), wr.en.eq(1), wr.data.eq(Cat(*fields.values())),
+                 rd.addr.eq(n - behind)]
+    return data.View(layout, q)
+
+
 class Engine(wiring.Component):
     """The loop engine's datapath and sequencer (see the module docstring).
 
@@ -906,12 +923,26 @@ class Engine(wiring.Component):
         ir = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))   # the instruction in X1
         ir2 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X2
         x2_valid = Signal()
-        ir3 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X3
         x3_valid = Signal()
         ir1 = data.View(INSTR_LAYOUT, rom_r.data[:INSTR_WIDTH])
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
         m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
                      x_valid.eq(r_valid)]
+        # The fields X3 uses (``sh``, ``acc``, whether the op is MUL, DIV or END), three
+        # clocks after R, and those X4 uses (below), four after: delay lines in small RAMs,
+        # written every clock with R's instruction (the ROM's read data, which X1's register
+        # ``ir`` takes in the next clock: no enable from R to X4) and read through an
+        # asynchronous port two (X3) or three (X4) words behind, its data registered here,
+        # in place of flip-flop stages (on the iCE40 a flip-flop loaded from a flip-flop or
+        # a block RAM is a lone cell; docs/AREA.md §7.63). Their data are not reset
+        # (x3_valid and x4_valid, which are, gate every use); ``ram_style`` asks yosys for a
+        # block RAM for the 4 words, ``no_rw_check`` for no collision logic (the read and
+        # write addresses always differ).
+        dl_n = Signal(2)
+        m.d.sync += dl_n.eq(dl_n + 1)
+        ir3 = _delay_line(m, "x3_delay", dl_n, 2,          # the fields of the instruction in X3
+                          {"sh": ir1.sh, "acc": ir1.acc, "mul": ir1.op == Op.MUL,
+                           "div": ir1.op == Op.DIV, "end": ir1.op == Op.END})
         # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
         rep_k = Signal(5)
@@ -1102,8 +1133,7 @@ class Engine(wiring.Component):
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
         m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
-                     x3_nz.eq(x2e != 0),
-                     ir3.as_value().eq(ir2.as_value())]
+                     x3_nz.eq(x2e != 0)]
         shifted = Signal(signed(P_WORD + 2))
         x4_nz = Signal()
         m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
@@ -1122,14 +1152,14 @@ class Engine(wiring.Component):
                 m.d.sync += sat_mask.eq(0)
         ovf4 = Signal()
         m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
-        # The fields X4 uses, registered from X3.
-        w4_sat = Signal(2)
-        w4_dst = Signal(7)
-        w4_out = Signal(5)
-        w4_wen = Signal()
-        w4_op = Signal(4)
-        m.d.sync += [w4_sat.eq(ir3.sat), w4_dst.eq(ir3.dst), w4_out.eq(ir3.out),
-                     w4_wen.eq(ir3.wen), w4_op.eq(ir3.op)]
+        # The fields X4 uses (and whether the op writes back): the delay line of X3's (above),
+        # read three words behind.
+        ir4 = _delay_line(m, "x4_delay", dl_n, 3,
+                          {"dst": ir1.dst, "out": ir1.out, "wen": ir1.wen, "sat": ir1.sat,
+                           "writes": (ir1.op == Op.ADD) | (ir1.op == Op.SUB) |
+                           (ir1.op == Op.RSUB) | (ir1.op == Op.MIN) | (ir1.op == Op.MAX) |
+                           (ir1.op == Op.SEL) | (ir1.op == Op.MUL)})
+        w4_sat, w4_dst, w4_out, w4_wen = ir4.sat, ir4.dst, ir4.out, ir4.wen
         y = Signal(signed(WORD))
         lim = Signal(signed(WORD))
         m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
@@ -1149,13 +1179,15 @@ class Engine(wiring.Component):
         m_neg = Signal()
         m.d.comb += [ma.eq(a2[:MUL_A]), mb.eq(b2[:MUL_B])]
         m.d.sync += m_neg.eq(ir.neg ^ c)
-        # ``init`` ones on the bits above the SB_MAC16's 16 outputs: an iCE40 flip-flop stores
-        # ``value XOR init``, so those bits hold ``~prod`` and DIV's ``− prod`` gets its carry
-        # operand without an inverter LUT (the inversion at D folds into the adder's sum LUT;
-        # bits 0–15 come straight from a DSP, where it would cost the LUT back). Loaded every
-        # clock and read only in X3: the power-up value is never used (docs/AREA.md §7.55).
+        # ``init`` ones on the multiplier's 28 bits: an iCE40 flip-flop stores ``value XOR
+        # init``, so they hold ``~prod`` and DIV's ``− prod`` gets its carry operand without an
+        # inverter LUT; the inversion at D folds into the sum LUT of the adder that joins the
+        # SB_MAC16s' partial products (bits 16–27) or packs with the flip-flop (bits 0–15, fed
+        # by an SB_MAC16 output: alone in their cells before), and X3's ``± prod`` XOR LUT
+        # takes the other polarity. Loaded every clock and read only in X3: the power-up value
+        # is never used (docs/AREA.md §7.55, §7.63).
         prod = Signal(signed(MUL_A + MUL_B), reset_less=True,
-                      init=((1 << MUL_B) - 1) & ~0xFFFF)
+                      init=(1 << MUL_B) - 1)
         m_neg3 = Signal(reset_less=True)
         m.d.sync += [prod.eq(ma * mb), m_neg3.eq(m_neg)]
         t2 = Signal(signed(P_WORD + 1))
@@ -1170,9 +1202,7 @@ class Engine(wiring.Component):
         execute = x_valid & self.running
         x4_valid = Signal()
         m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
-        writes4 = x4_valid & ((w4_op == Op.ADD) | (w4_op == Op.SUB) | (w4_op == Op.RSUB) |
-                              (w4_op == Op.MIN) | (w4_op == Op.MAX) | (w4_op == Op.SEL) |
-                              (w4_op == Op.MUL))
+        writes4 = x4_valid & ir4.writes
         p3 = Signal(signed(P_WORD))           # P as the instruction in X3 read it in X2 (trace)
         p4 = Signal(signed(P_WORD))           # the same, in X4
         m.d.sync += [p3.eq(p), p4.eq(p3)]
@@ -1232,17 +1262,17 @@ class Engine(wiring.Component):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
                 m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
-        with m.If(x3_valid & (ir3.op == Op.MUL)):
+        with m.If(x3_valid & ir3.mul):
             # P ± prod: one adder, the carry-in negates; carry-select (``p_sum``, above).
             m.d.sync += p.eq(p_sum)
-        with m.If(x3_valid & (ir3.op == Op.DIV)):
+        with m.If(x3_valid & ir3.div):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
 
         # --- Sequencer -------------------------------------------------------------------------
         # END stops the fetch in X1; ``end`` strobes with END in X3, when the instruction before
         # it writes back (X4): from the next clock on every result is in place.
         halt = execute & (ir.op == Op.END)
-        m.d.comb += self.end.eq(x3_valid & (ir3.op == Op.END))
+        m.d.comb += self.end.eq(x3_valid & ir3.end)
         m.d.comb += pc_next.eq(pc)
         with m.If(self.start & ~self.running):
             m.d.sync += [self.running.eq(1), f_valid.eq(1), r_valid.eq(0), x_valid.eq(0)]

@@ -20,7 +20,7 @@ previous sample's bus voltage, as in :class:`~.foc.CurrentLoop` (1.0 at power-up
 
 import math
 
-from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
@@ -33,7 +33,7 @@ from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
 __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_lengths",
-           "phase_latency", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
+           "phase_latency", "sample_read", "SPECIALS", "BSPECIALS", "CONDS", "OUTS", "CONFIG", "CONFIGS",
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
@@ -45,7 +45,8 @@ ENGINE_WIDTH = 16
 #: Fraction bits of the DC-bus gain (UQ2.16, as :class:`~.svpwm.DCBusCompensation`'s).
 DCBUS_GAIN_FRAC = 16
 
-#: User special operands: latched sample values and configuration ports.
+#: User special operands: latched sample values (``ia``, ``ib``: the sample port itself,
+#: :attr:`EngineCurrentLoop.sample_read`) and configuration ports.
 SPECIALS = ("ia", "ib", "theta", "klead", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd",
             "gain_a", "gain_b", "off_a", "off_b", "kp_d", "kx_d", "lo_d", "hi_d", "kp_q",
             "kx_q", "lo_q", "hi_q", "ff_l", "ff_psi", "scale", "udc", "urat")
@@ -85,7 +86,8 @@ CURRENT_STATE = ("i_d", "ep_d", "i_q", "ep_q", "dcg")
 SPEED_STATE = ("h0", "h1", "h2", "ih", "il", "ep")
 
 #: The speed-loop program's special operands (:func:`speed_profile_program`; docs/ENGINE.md
-#: "Speed loop as a program"): the speed sample ``spd`` latched when the run is accepted,
+#: "Speed loop as a program"): the speed sample ``spd`` (the ``speed`` port, held from the
+#: run's request to its read: :attr:`EngineCurrentLoop.speed_read`),
 #: ``speed_ref``, the profile's reference ``ref_int`` (the output register, which the gateware
 #: forces to the tracked value while ``clear``), the slew as ``slh = S >> 1`` and ``sll = S & 1``
 #: (S is UQ1.31: no signed 32-bit operand holds it), ``iq_ff``, the i_q limits and the
@@ -509,6 +511,44 @@ def phase_latency(program):
     raise ValueError("engine program: no write of phase c before the first branch")
 
 
+def ge_ripple(a, b):
+    """``a >= b`` for unsigned values of one width, as a ripple of per-bit terms from the low
+    bit up (``a < b`` on bits ``0 … i``: ``a_i < b_i``, or ``a_i = b_i`` and ``a < b`` below),
+    with no adder: on the iCE40 a compare's carry chain takes a cell per bit, and an inverter
+    cell per bit of the operand on its inverted side when that is a flip-flop (whose polarity
+    its reset value fixes); the ripple takes one LUT per bit (the speed run's decimation, a
+    slow path: AREA.md §7.63)."""
+    if len(a) != len(b):
+        raise ValueError(f"ge_ripple operands must have one width, not {len(a)} and {len(b)}")
+    lt = Const(0)
+    for i in range(len(a)):
+        lt = (~a[i] & b[i]) | (~(a[i] ^ b[i]) & lt)
+    return ~lt
+
+
+def sample_read(program):
+    """Clocks from the start of ``program`` (the accepted sample's, :class:`EngineCurrentLoop`)
+    to the clock in which it reads the last of the ADC codes ``ia``, ``ib`` (special operands
+    sampled in R, ``START_CLOCKS − 1`` clocks after the start for the first instruction): both
+    are read on the straight-line start of the program (before its first branch) and
+    nowhere else (checked)."""
+    names = [program.specials.index(n) for n in ("ia", "ib")]
+    bnames = [program.bspecials.index(n) for n in ("ia", "ib") if n in program.bspecials]
+    reads = {}
+    k, straight = 0, True
+    for pc, ins in enumerate(program.instrs):
+        if (ins.asp and ins.a in names) or (ins.bsp and ins.b in bnames):
+            if not straight:
+                raise ValueError("engine program: ia or ib read after the first branch")
+            reads[pc] = k
+        if ins.op in (Op.BR, Op.END):
+            straight = False
+        k += _clocks(ins)
+    if not reads:
+        raise ValueError("engine program: ia and ib are not read")
+    return START_CLOCKS - 1 + max(reads.values())
+
+
 def status_quiet(program):
     """Clocks from ``done`` of :class:`EngineCurrentLoop` running ``program`` (that clock
     included) in which no status output (:data:`STATUS`) is written: after its last duty
@@ -540,26 +580,36 @@ def speed_run_timing(program):
     by the slew; ``"none"``: it steps to ``speed_ref``): a dict of path → dict with
     ``ref_latency`` (clocks from the run's start to the new ``ref_int``, ``ref_int``'s write +
     :data:`DUTY_CLOCKS`, the output registered as ``o.valid`` is), ``latency`` (to the i_q
-    reference and ``o.valid``, the write of ``iq`` likewise) and ``length`` (executed
+    reference and ``o.valid``, the write of ``iq`` likewise), ``length`` (executed
     instructions: the engine takes the next start ``START_CLOCKS + length`` clocks after
-    this one's). ``sat`` is written before ``iq`` on every path (checked)."""
+    this one's) and ``speed_read`` (clocks from the start to the clock in which the engine
+    samples the special ``spd``: the R stage of the one instruction that reads it,
+    ``START_CLOCKS − 1`` + the clocks executed before it). ``sat`` is written before ``iq``
+    on every path, ``spd`` read once (checked)."""
     start = program.labels.get("speed", 0)
     prefix = "spd_" if "speed" in program.labels else ""
     up, dn = program.labels[prefix + "up"], program.labels[prefix + "dn"]
     outs = program.outs
+    spd = program.specials.index("spd")
     timing = {}
     for path in _paths(program, start):
         kind = "up" if up in path else "dn" if dn in path else "none"
-        k, at = 0, {}
+        k, at, reads = 0, {}, []
         for pc in path:
             ins = program.instrs[pc]
             if ins.out and outs[ins.out] in ("ref_int", "iq", "sat"):
                 at[outs[ins.out]] = k
+            if ins.asp and ins.a == spd:
+                reads.append(k)
             k += _clocks(ins)
         if not at.get("sat", k) < at.get("iq", -1) or "ref_int" not in at:
             raise ValueError("speed program: sat must be written before iq, and ref_int")
+        if len(reads) != 1:
+            raise ValueError(f"speed program: the special spd must be read once per run, not "
+                             f"{len(reads)} times")
         t = {"ref_latency": at["ref_int"] + 1 + DUTY_CLOCKS,
-             "latency": at["iq"] + 1 + DUTY_CLOCKS, "length": k}
+             "latency": at["iq"] + 1 + DUTY_CLOCKS, "length": k,
+             "speed_read": START_CLOCKS - 1 + reads[0]}
         if timing.setdefault(kind, t) != t:
             raise ValueError(f"speed program: two {kind} paths of different timing")
     return timing
@@ -582,8 +632,8 @@ class EngineCurrentLoop(wiring.Component):
     flag) is written before the duties. After the duties the program computes the next
     sample's DC-bus gain (from the register file only) before it ends: a sample accepted in
     that time (back to back, less than :attr:`interval` clocks after the previous one) is
-    latched and its program starts when the running one ends (its latency then grows by the
-    rest of it). ``phase.valid`` strobes the clock after the program wrote phase c. The DC-bus
+    latched (but its ADC codes ``ia``, ``ib``: ``i`` below) and its program starts when the
+    running one ends (its latency then grows by the rest of it). ``phase.valid`` strobes the clock after the program wrote phase c. The DC-bus
     gain lives in the engine's register file (block RAM), which a reset does not clear: it is
     1.0 at power-up and after a reset the last gain computed until the next sample's.
 
@@ -595,6 +645,19 @@ class EngineCurrentLoop(wiring.Component):
         mod 2**16 from the speed ``n`` latched with the sample (:class:`~.top.LeadAngle`).
         With ``config="ram"`` the configuration RAM's word ``klead`` instead (as ``u_rated``'s:
         word ``urat``).
+    i : In(stream.Signature(...))
+        The ADC sample (:class:`~.foc.CurrentLoop`'s). ``udc`` is latched at the accepting
+        clock (the ``udc`` output), ``ia`` and ``ib`` are read by the program from the port
+        itself (no latch), :attr:`sample_read` clocks after its start: they must hold from the
+        accepting clock until then, :attr:`sample_hold` clocks at most (the top's ADC shift
+        registers hold its codes until the next conversion's first bit, a PWM period later).
+    speed : In(signed(32))
+        The speed (M/T's), latched with each sample for the feed-forward and θ_lead; with
+        ``speed=True`` also the speed run's feedback, which the program reads from the port
+        itself, :attr:`speed_read` clocks after the run's start: ``speed`` must hold from the
+        ``speed_valid`` strobe that requests a run until then (the top's M/T output register
+        changes only at its strobes, a PWM period apart, longer than :attr:`interval` +
+        :attr:`speed_read`: a run waits at most for one current-loop sample's program).
 
     Parameters
     ----------
@@ -650,11 +713,22 @@ class EngineCurrentLoop(wiring.Component):
     phase_latency : int
         Clocks from the accepted sample to the ``phase`` transfer (the program's write of
         phase c, :func:`phase_latency`).
+    sample_read : int
+        Clocks from a sample's program start to the clock in which it reads the last of
+        ``i.payload.ia``, ``ib`` (:func:`sample_read`; the start is the accepting clock when
+        the engine is idle).
+    sample_hold : int
+        Clocks from the accepting clock to that read, worst case (the engine busy with the
+        previous sample's program or, ``speed=True``, a speed run): ``ia``, ``ib`` must hold
+        that long (class docstring, ``i``).
     status_quiet : int
         :func:`status_quiet` of the program: from ``done`` (included), the clocks in which no
         status output is written.
     status_mode : str
         The ``status`` parameter.
+    speed_read : int or None
+        ``speed=True``: clocks from a speed run's start to the clock in which the program
+        samples ``speed`` (worst case over the profile paths; :func:`speed_run_timing`).
     program : Program
     """
 
@@ -711,6 +785,14 @@ class EngineCurrentLoop(wiring.Component):
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
+        self._sample_read = sample_read(self._program)
+        # A sample accepted while the engine runs starts when that program ends: a current-loop
+        # program (accepted back to back, at the earliest at its done, ``min(latencies)``
+        # after its start) or a speed run (``START_CLOCKS + length`` after its start).
+        wait = self._interval - min(self._latencies)
+        if speed:
+            wait = max([wait] + [START_CLOCKS + t["length"] for t in self._speed_timing.values()])
+        self._sample_hold = wait + self._sample_read
         self._status_quiet = status_quiet(self._program)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
@@ -780,6 +862,8 @@ class EngineCurrentLoop(wiring.Component):
     interval = property(lambda self: self._interval)
     gain_limit_raw = property(lambda self: self._gain_limit_raw)
     phase_latency = property(lambda self: self._phase_latency)
+    sample_read = property(lambda self: self._sample_read)
+    sample_hold = property(lambda self: self._sample_hold)
     status_quiet = property(lambda self: self._status_quiet)
     status_mode = property(lambda self: self._status)
     speed_mode = property(lambda self: self._speed)
@@ -790,6 +874,8 @@ class EngineCurrentLoop(wiring.Component):
     #: is idle, worst case (a current-loop run in flight delays it; class docstring).
     speed_latency = property(lambda self: None if self._speed_timing is None
                              else max(t["latency"] for t in self._speed_timing.values()))
+    speed_read = property(lambda self: None if self._speed_timing is None
+                          else max(t["speed_read"] for t in self._speed_timing.values()))
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
@@ -843,13 +929,14 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += pending.eq(0)
 
         # --- Per-sample inputs, latched with the sample ------------------------------------------
+        # (``ia``, ``ib``: read from the port, which holds until the program has read them:
+        # ``sample_hold``, the class docstring.)
         lat = {name: Signal(shapes[name], name=f"l_{name}")
-               for name in ("ia", "ib", "theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
+               for name in ("theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
         run, ol, ff = Signal(), Signal(), Signal()
         nspd_round = round_shift_plain(self.speed, SPEED_WIDTH - w)
         with m.If(accept):
             m.d.sync += [
-                lat["ia"].eq(self.i.payload.ia), lat["ib"].eq(self.i.payload.ib),
                 lat["theta"].eq(self.theta),
                 lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
                 lat["ol_ud"].eq(self.ol_ud), lat["ol_uq"].eq(self.ol_uq),
@@ -865,7 +952,8 @@ class EngineCurrentLoop(wiring.Component):
             config = {}
         else:
             config = {name: getattr(self, CONFIG_PORTS[name]) for name in CONFIG}
-        config.update({"scale": self.scale, "udc": self.udc.payload})
+        config.update({"scale": self.scale, "udc": self.udc.payload,
+                       "ia": self.i.payload.ia, "ib": self.i.payload.ib})
         for name, sig in list(lat.items()) + list(config.items()):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),
@@ -910,7 +998,7 @@ class EngineCurrentLoop(wiring.Component):
         with m.If(clear):
             m.d.sync += count.eq(0)
         with m.Elif(self.speed_valid):
-            m.d.sync += count.eq(Mux(count >= self.speed_rate_div, 0, count + 1))
+            m.d.sync += count.eq(Mux(ge_ripple(count, self.speed_rate_div), 0, count + 1))
         req = Signal()          # a run requested (waits while the engine is busy)
         fl = Signal()           # a run started, its iq not yet written, not aborted
         abort = Signal(2)       # aborted runs whose iq is still to come (their writes gated)
@@ -925,10 +1013,10 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += req.eq(0)
         with m.Elif(new):
             m.d.sync += req.eq(1)
-        # The speed latched at the request; ``fresh`` (set by clear) latched at the start.
-        l_spd = Signal(signed(sp["speed_width"]), name="l_spd")
-        with m.If(new):
-            m.d.sync += l_spd.eq(self.speed)
+        # The speed: read by the program from the port itself, which holds from the request
+        # to the run's read (the contract, class docstring: M/T's output register in the top,
+        # a PWM period between its updates; no 32-bit latch). ``fresh`` (set by clear)
+        # latched at the start.
         fresh = Signal(init=1)
         l_fresh = Signal()
         with m.If(clear):
@@ -962,7 +1050,7 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
-        m.d.comb += [eng.s_spd.eq(l_spd), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
+        m.d.comb += [eng.s_spd.eq(self.speed), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
                      eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
                      eng.s_ih.eq(self.speed_int_hold)]

@@ -86,7 +86,10 @@ back into the Servo (``Servo(speed_loop="engine")``). The run starts at M/T's st
 engine is idle and gives its i_q reference 228 … 233 clocks later (``speed_timing``; the
 SpeedLoop: 120), so a centred sample still sees this period's reference while half a period
 exceeds ``MTSpeed.latency + 1 + speed_latency`` (checked: ``ValueError``; at 10 kHz and 33 MHz
-half a period is ≈ 1 650 clocks, against 38 + 1 + 233). **Sample-point limit:** a
+half a period is ≈ 1 650 clocks, against 38 + 1 + 233). The run reads M/T's output register
+itself (``EngineCurrentLoop.speed_read`` clocks after its start, no latch), which holds for a
+period from the strobe, longer than a run's wait for a current-loop sample (``interval``) and
+that read (checked too). **Sample-point limit:** a
 current-loop sample that arrives during a speed run waits for it (and a speed run for a
 current-loop sample): a ``pwm_sample_point`` (``pwm_sample_custom``) that puts the sample
 (+ ``AdcInterface.latency``) within ≈ 233 clocks after M/T's strobe, i.e. within
@@ -667,6 +670,25 @@ class Top(wiring.Component):
                                  f"than M/T's latency + the speed run ({due} clocks), not "
                                  f"{self._timer.period // 2} clocks (pwm_hz {pwm_hz!r} at "
                                  f"clk_hz {clk_hz:g})")
+            # The run reads M/T's output register itself (no latch: EngineCurrentLoop's
+            # ``speed``), which must hold from the strobe to that read: at most a current-loop
+            # program (interval) and speed_read later; the next strobe comes a period later.
+            hold = self._loop.interval + self._loop.speed_read
+            if self._timer.period <= hold:          # pragma: no cover (implied by the above)
+                raise ValueError(f"Top speed_loop='engine' needs a PWM period longer than the "
+                                 f"speed run's read of M/T's speed ({hold} clocks), not "
+                                 f"{self._timer.period} clocks")
+        if current_loop == "engine":
+            # The engine reads the ADC's ia, ib shift registers itself (no latch), up to
+            # sample_hold clocks after the sample; they hold until the next conversion's first
+            # bit, which comes after the next sample strobe: more than a period less the
+            # ADC's latency after o.valid.
+            hold = self._timer.period - self._adc.latency
+            if hold <= self._loop.sample_hold:
+                raise ValueError(f"Top current_loop='engine' needs a PWM period longer than "
+                                 f"the ADC's latency + the engine's sample hold "
+                                 f"({self._adc.latency + self._loop.sample_hold} clocks), not "
+                                 f"{self._timer.period} clocks")
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain)

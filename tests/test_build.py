@@ -566,7 +566,8 @@ def test_icebreaker_plan_reads_the_ram_registers_without_power_up_value(tmp_path
 #: frees: (module of ``hdl``, signal name).
 _FREED = {("regs", "rd_data"), ("hostlink", "rd_data"), ("servo", "cfg_q"),
           ("servo", "rf_rd_q"), ("foc_engine", "data_q"), ("engine", "rf_a_data"),
-          ("engine", "rf_b_data"), ("engine", "rd_data")}
+          ("engine", "rf_b_data"), ("engine", "rd_data"), ("engine", "x3_delay_q"),
+          ("engine", "x4_delay_q")}
 
 
 def _vcd_after(path, t_cut):
@@ -602,7 +603,7 @@ def _vcd_after(path, t_cut):
 
 def test_freed_ram_registers_power_up_value_unseen_after_reset(tmp_path, monkeypatch):
     """Why dropping those power-up values is safe: the iCEBreaker's Top (engine loop, staging
-    in block RAM; the scope in block RAM for the simulator) simulated with the eight registers
+    in block RAM; the scope in block RAM for the simulator) simulated with the ten registers
     powering up all ones instead of 0, the domain reset held for the first clock only (the
     board holds it ≥ 500), then 1 500 clocks (the export walk, ADC samples, current-loop
     runs): from the fourth clock edge on every signal is the same as with 0. Before it only
@@ -657,13 +658,13 @@ def test_freed_ram_registers_power_up_value_unseen_after_reset(tmp_path, monkeyp
             sim.run()
         monkeypatch.undo()
         assert sorted(m[:2] for m in made) == sorted(_FREED)
-        if not ones:        # the registers the flow frees in this Top are these eight
+        if not ones:        # the registers the flow frees in this Top are these ten
             top = bench.top
             text = rtlil.convert(top, name="top", ports=ports(top))
             assert _freed_registers(text) == {m[2] for m in made}
         return vcd
     zero, ones = run(False), run(True)
-    # before the first clock edge: the eight registers (and what they drive) differ
+    # before the first clock edge: the ten registers (and what they drive) differ
     at0 = _vcd_after(zero, 0)[0], _vcd_after(ones, 0)[0]
     assert {k.rpartition(".")[2] for k in at0[0] if at0[0][k] != at0[1][k]} >= \
         {name for _, name in _FREED}

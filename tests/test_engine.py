@@ -581,6 +581,69 @@ def test_phase_latency_attribute(loop):
         assert dut.phase_latency + 20 < min(dut.latencies)
 
 
+def _sample_run(dut, codes, *, speed_first=0):
+    """One sample into ``dut`` (gains 1.0, enabled): ``i.valid`` in clock ``4 + speed_first``
+    (after a speed run requested in clock 4 when ``speed_first``), the payload ``codes[k]``
+    (ia, ib) from clock ``4 + speed_first + k`` on; the phase currents and the duties."""
+    seen = {}
+    t0 = 4 + speed_first
+
+    async def testbench(ctx):
+        for name, value in {"enable": 1, "iq_ref": 3000, "scale": 2500}.items():
+            ctx.set(getattr(dut, name), value)
+        if not dut.speed_mode:
+            for name, value in {"gain_a": 1 << 15, "gain_b": 1 << 15, "kp_d": 256, "kp_q": 256,
+                                "lim_lo_d": -1000, "lim_hi_d": 1000, "lim_lo_q": -1000,
+                                "lim_hi_q": 1000, "u_rated": 20000}.items():
+                ctx.set(getattr(dut, name), value)
+        for t in range(t0 + 400):
+            ctx.set(dut.speed_valid if dut.speed_mode else dut.enable,
+                    int(t == 4) if dut.speed_mode else 1)
+            ctx.set(dut.i.valid, int(t == t0))
+            k = t - t0
+            if 0 <= k < len(codes):
+                ctx.set(dut.i.payload, {"ia": codes[k][0], "ib": codes[k][1], "udc": 20000,
+                                        "aux": 0})
+            if ctx.get(dut.phase.valid):
+                seen["phase"] = ctx.get(dut.phase.payload)
+            if ctx.get(dut.o.valid) and "duties" not in seen:
+                seen["duties"] = ctx.get(dut.o.payload)
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="engine_sample_read")
+    return seen
+
+
+def test_engine_current_loop_reads_the_adc_codes_at_sample_read():
+    """The program reads ``i.payload.ia``, ``ib`` from the port itself (no latch at the
+    sample), the last in the clock ``sample_read`` after its start (the accepting clock, the
+    engine idle): a change of the codes in that clock is the sample's, one in the next is not.
+    Behind a speed run (the engine busy when the sample comes) the codes are read later but
+    within ``sample_hold``: a change in the clock after the sample is the sample's, one
+    ``sample_hold + 1`` clocks after it is not."""
+    x, y = (1200, -700), (-300, 900)
+    dut = EngineCurrentLoop()
+    r = dut.sample_read
+    assert r == 3 and dut.sample_hold > r
+    ports = [EngineCurrentLoop() for _ in range(5)]
+    base, other, mixed = (_sample_run(ports.pop(), [c]) for c in (x, y, (x[0], y[1])))
+    assert len({str(v) for v in (base, other, mixed)}) == 3
+    assert mixed["phase"]["a"] == x[0] and mixed["phase"]["b"] == y[1]
+    # ia is read in the clock r − 1, ib in r.
+    assert _sample_run(ports.pop(), [x] * (r - 1) + [y]) == other
+    assert _sample_run(ports.pop(), [x] * r + [y]) == mixed
+    assert _sample_run(dut, [x] * (r + 1) + [y]) == base
+
+    speed = [EngineCurrentLoop(config="ram", status="ram", speed=True,
+                               config_init=[1 << 15, 1 << 15] + [0] * 18) for _ in range(4)]
+    hold = speed[0].sample_hold
+    assert hold > dut.sample_hold
+    base, other = (_sample_run(speed.pop(), [c], speed_first=1) for c in (x, y))
+    assert base["phase"] != other["phase"]
+    assert _sample_run(speed.pop(), [x, y], speed_first=1) == other
+    assert _sample_run(speed.pop(), [x] * (hold + 1) + [y], speed_first=1) == base
+
+
 # --- EngineCurrentLoop(config="ram") ------------------------------------------------------------
 
 class _PortsAndRam(Elaboratable):

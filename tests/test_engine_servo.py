@@ -105,7 +105,11 @@ def _run(seed, clocks):
                 cfg_queue = [(j_cfg + k, c[key], key) for k, key in
                              enumerate(("kp", "kx", "speed_slew", "iq_ff"))]
             strobe = "spd" in e and not cfg_queue
-            if strobe:
+            # (M/T's register changes with each strobe; the engine reads the port itself, so
+            # it holds from a run's request to the engine's read: EngineCurrentLoop's
+            # contract, kept by the top's PWM period. A strobe in that window, only here,
+            # keeps it and still exercises the drop.)
+            if strobe and not model.speed_held:
                 ports["speed"] = e["spd"]
             ctx.set(dut.speed_valid, int(strobe))
             ctx.set(dut.speed, ports["speed"])
@@ -183,6 +187,79 @@ def test_engine_speed_loop_matches_speed_loop_model_cycle_by_cycle():
     assert errors == []
     assert stats["starts"] >= 40 and stats["waited"] >= 3 and stats["cur_waited"] >= 2
     assert stats["aborted"] >= 5 and stats["valid"] >= 30
+
+
+def _read_run(path, speeds):
+    """One speed run on an idle engine (kp 1.0, no integral, the profile path ``path``): the
+    strobe in clock 4 with ``speeds[0]``, the ``speed`` port then ``speeds[k]`` from clock
+    ``4 + k`` on; the run's i_q reference."""
+    init = [0] * len(CONFIG) + [1 << 12, 0, 0 if path == "none" else 1, 0]
+    dut = EngineCurrentLoop(config="ram", status="ram", speed=True, config_init=init)
+    ref = {"none": 0, "up": 1 << 24, "dn": -(1 << 24)}[path]
+    got = []
+
+    async def testbench(ctx):
+        ctx.set(dut.iq_lim_lo, -(1 << 15))
+        ctx.set(dut.iq_lim_hi, (1 << 15) - 1)
+        ctx.set(dut.speed_ref, ref)
+        for t in range(400):
+            k = t - 4
+            ctx.set(dut.speed_valid, int(k == 0))
+            if 0 <= k < len(speeds):
+                ctx.set(dut.speed, speeds[k])
+            if ctx.get(dut.speed_o.valid):
+                got.append(ctx.get(dut.speed_o.payload))
+            await ctx.tick()
+
+    simulate(dut, [testbench], name=f"engine_speed_read_{path}")
+    assert len(got) == 1
+    return got[0], dut.speed_timing[path]["speed_read"], dut.speed_read
+
+
+def test_engine_speed_run_reads_the_speed_port_at_speed_read():
+    """The speed run reads the ``speed`` port itself (no latch at the request), in the clock
+    ``speed_timing[path]["speed_read"]`` after its start (here the strobe's clock, the engine
+    idle), on each profile path: a change of the port in that clock is the run's speed, one in
+    the next is not; ``speed_read`` is the worst case (the contract the top's M/T register
+    keeps, EngineCurrentLoop's docstring)."""
+    x, y = 1 << 22, -(1 << 22)
+    reads = []
+    for path in ("none", "up", "dn"):
+        iq_x, read, worst = _read_run(path, [x])
+        iq_y = _read_run(path, [y])[0]
+        assert iq_x != iq_y
+        assert _read_run(path, [x] * read + [y])[0] == iq_y, path
+        assert _read_run(path, [x] * (read + 1) + [y])[0] == iq_x, path
+        reads.append(read)
+    assert worst == max(reads) and len(set(reads)) == 3
+
+
+def test_ge_ripple_is_unsigned_greater_or_equal():
+    """``ge_ripple`` (the decimation's compare, no adder) against ``>=``: every pair of 5-bit
+    values, the 8-bit corners and random 8-bit pairs; operands of two widths refused."""
+    import pytest
+    from amaranth.hdl import Module, Signal
+
+    from foc_servo.hdl.foc_engine import ge_ripple
+    rng = np.random.default_rng(3)
+    cases = {5: [(a, b) for a in range(32) for b in range(32)],
+             8: ([(a, b) for a in (0, 1, 127, 128, 254, 255) for b in (0, 1, 127, 128, 254, 255)]
+                 + [tuple(int(v) for v in rng.integers(0, 256, 2)) for _ in range(400)])}
+    for width, pairs in cases.items():
+        m = Module()
+        ab, ge = Signal(2 * width), Signal()           # the operands side by side
+        m.d.comb += ge.eq(ge_ripple(ab[:width], ab[width:]))
+        got = []
+
+        async def testbench(ctx):
+            for x, y in pairs:
+                ctx.set(ab, x | y << width)
+                got.append(ctx.get(ge))
+
+        simulate(m, [testbench], name=f"ge_ripple_{width}")
+        assert got == [int(x >= y) for x, y in pairs]
+    with pytest.raises(ValueError, match=r"^ge_ripple operands must have one width, not 3 and 4$"):
+        ge_ripple(Signal(3), Signal(4))
 
 
 def test_engine_speed_parameters_are_checked():

@@ -170,6 +170,9 @@ def _signed(word, bits=32):
       "pwm_hz": 100e3}, ValueError,
      r"^Top speed_loop='engine' needs half a PWM period longer than M/T's latency \+ the "
      r"speed run \(\d+ clocks\), not 250 clocks \(pwm_hz 100000.0 at clk_hz 5e\+07\)$"),
+    ({"current_loop": "engine", "pwm_hz": 294e3}, ValueError,
+     r"^Top current_loop='engine' needs a PWM period longer than the ADC's latency \+ the "
+     r"engine's sample hold \(179 clocks\), not 170 clocks$"),
     ({"regs_staging": "bram", "pwm_hz": 1.25e6}, ValueError,
      r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
      r"not 40 clocks$"),

@@ -46,7 +46,9 @@ class SpeedLoopModel:
     The inputs the gateware reads during a run (``speed_ref``, ``speed_slew``,
     ``iq_ff``, ``ref_delay``, ``int_hold``, ``kp``, ``kx``, ``lim_lo``, ``lim_hi``) must keep
     their accept-clock values until the run ends (``interval − 1`` clocks after acceptance, or a
-    ``clear``): the model raises :exc:`AssertionError` naming the input that changed.
+    ``clear``): the model raises :exc:`AssertionError` naming the input that changed. With
+    ``engine_timing`` (the engine reads the ``speed`` port itself) ``speed`` must likewise keep
+    its accept-clock value until the engine reads it (:attr:`speed_held`).
 
     Attributes
     ----------
@@ -84,6 +86,7 @@ class SpeedLoopModel:
         self.engine_timing = engine_timing
         self.waiting = None                 # engine: the accepted run not yet started
         self.started = None                 # engine: (path, clocks waited) of a start now
+        self.read_due = -1                  # engine: the clock the started run reads speed
         self.speed_width, self.width = speed_width, width
         self.pi = PIModel(width=width, kp_format=kp_format, kx_format=kx_format,
                           int_guard=int_guard)
@@ -107,6 +110,14 @@ class SpeedLoopModel:
     def busy(self):
         """A run is in flight (no run can be accepted) in the current clock."""
         return self.t < self.run_end or self.waiting is not None
+
+    @property
+    def speed_held(self):
+        """``engine_timing``: the speed of the last accepted run is yet to be read by the
+        engine in the current clock (waiting, or started and before its timing's
+        ``speed_read``: the engine reads the ``speed`` port itself, which must hold)."""
+        return self.run_inputs is not None and (self.waiting is not None
+                                                or self.t <= self.read_due)
 
     def _to_pi(self, value):
         return saturate_np(round_shift_np(value, self._shift_in), signed(self.width))
@@ -140,7 +151,7 @@ class SpeedLoopModel:
         self.o_valid = 0
         if clear:
             self.pending = self.pending_ref = self.run_inputs = self.waiting = None
-            self.run_end = 0
+            self.run_end, self.read_due = 0, -1
             self.pi.clear()
             self.count = 0
             self.o_payload = self.sat = 0
@@ -155,6 +166,9 @@ class SpeedLoopModel:
                     raise AssertionError(f"SpeedLoop input {changed[0]} changed during a run "
                                          f"(clock {self.t}: {self.run_inputs[changed[0]]} → "
                                          f"{now[changed[0]]})")
+            if self.speed_held and speed != self.run_inputs["speed"]:
+                raise AssertionError(f"SpeedLoop speed changed before the engine read it "
+                                     f"(clock {self.t}: {self.run_inputs['speed']} → {speed})")
             if self.pending is not None and self.pending[0] == self.t:
                 _, pi_out, pi_sat, lo, hi, ff = self.pending
                 self.pending = None
@@ -189,6 +203,7 @@ class SpeedLoopModel:
         self.pending = (self.t + tm["latency"] - 1, pi_out, pi_sat, lo, hi, ff)
         self.pending_ref = (self.t + tm["ref_latency"] - 1, plan)
         self.run_end = self.t + tm["latency"]
+        self.read_due = self.t + tm.get("speed_read", -1 - self.t)
 
     def _run(self, inp, d_int, d_frac):
         """Compute an accepted run (clock ``self.t``) and schedule its results."""
