@@ -14,7 +14,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -330,8 +330,9 @@ class LinkCore(wiring.Component):
         lmax = self.max_frame
         bus = self.bus
 
-        # The read port is asynchronous with a reset-less register behind it (``rd_data``), which
-        # yosys merges into the block RAM's synchronous port; ``no_rw_check`` leaves a read of
+        # The read port is asynchronous with a reset-less register behind it (``rd_data``, with
+        # an enable: see the reply's read below), which yosys merges into the block RAM's
+        # synchronous port (its read enable); ``no_rw_check`` leaves a read of
         # the word being written undefined, so yosys does not emulate Amaranth's read-old-data
         # behaviour in the fabric (32 flip-flops and their multiplexers on the iCE40). No read
         # is used in a clock that writes its word: RECV writes word ``idx`` and reads it, a read
@@ -342,7 +343,6 @@ class LinkCore(wiring.Component):
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port(domain="comb")
         rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
-        m.d.sync += rd_data.eq(rd.data)
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
@@ -414,8 +414,8 @@ class LinkCore(wiring.Component):
         scan_end = Signal()
         m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
 
-        # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
-        # addresses the buffer with v at once. Which part of the reply j is in (header, data,
+        # The reply's byte j. The buffer is read one clock ahead (below: ``rd_data`` holds the
+        # word of byte j in every clock where ``jb`` is used). Which part of the reply j is in (header, data,
         # first CRC byte, second) is registered with j, from the candidate values of j_next
         # (dend is valid from CRC on, and j = 0, set in REPLY, is in the header whatever dend
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
@@ -454,10 +454,24 @@ class LinkCore(wiring.Component):
             """j := ``value``, with its part flags ``value_parts``."""
             m.d.comb += [j_next.eq(value), flags_next.eq(value_parts)]
 
-        def next_j(value, value_parts, *, read=None):
-            """:func:`set_j`, and the buffer reads reply byte ``read`` (default ``value``)."""
-            set_j(value, value_parts)
-            m.d.comb += rd_addr.eq(word(value if read is None else read))
+        # The buffer's read, without the state decode or the transmitter's ``o.ready`` in front
+        # of its address (the whole top's 100 MHz on the ECP5: the state → address multiplexer
+        # → distributed-RAM read → ``rd_data`` path, docs/AREA.md §7.62). The address is one of
+        # three, chosen by two flags registered with the state: word(j + 1) in CRC, SCAN, DATA
+        # and NEXT (``rd_rep``), word(p) in CODE (``rd_at_p`` too), else ``idx`` (the accesses;
+        # and whatever the RECV, CHECK, REPLY and END clocks read is unused). Where the reply
+        # needs the word of j itself, the register keeps it (``rd_hold``): DATA waiting for
+        # ``o.ready`` (j stays; the word of j came from CODE's word(p) or the last word(j + 1)
+        # with j := j + 1) and NEXT without a zero byte (j is the block's end, so the word of j
+        # again: a 254-byte block's next SCAN starts there, or END, which reads nothing).
+        # ``rd_data`` is the same word as a read of word(j) in every clock that uses it;
+        # ``bus.w_data`` outside accesses (meaningless, the bus protocol) may differ.
+        rd_rep = Signal()
+        rd_at_p = Signal()
+        rd_hold = Signal()
+        with m.If(~rd_hold):
+            m.d.sync += rd_data.eq(rd.data)
+        m.d.comb += rd.addr.eq(Mux(rd_rep, Mux(rd_at_p, word(p), word(j + 1)), idx))
 
         # The receive state's reset for the next frame: one enable, applied after the FSM (it
         # overrides every other assignment of these registers in its clock).
@@ -505,11 +519,7 @@ class LinkCore(wiring.Component):
             else:
                 counter(self.dropped)
 
-        # The buffer address the FSM gives (rd_addr), except in DATA with o.ready high: byte
-        # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
-        # state; the link's 100 MHz).
-        rd_addr = Signal.like(rd.addr)
-        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
+        m.d.comb += [j_next.eq(j), flags_next.eq(flags), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
             with m.State("RECV"):
@@ -660,7 +670,8 @@ class LinkCore(wiring.Component):
                         else:
                             counter(getattr(self, name))
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
-                next_j(0, parts_0)
+                set_j(0, parts_0)
+                m.d.sync += rd_rep.eq(1)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
@@ -676,17 +687,18 @@ class LinkCore(wiring.Component):
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    next_j(0, parts_0, read=j + 1)
+                    set_j(0, parts_0)
                     m.next = "SCAN"
                 with m.Else():
                     m.d.sync += crc_last.eq(j == dend_m2)
-                    next_j(j + 1, parts_j1)
+                    set_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
-                next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
+                set_j(j + 1, parts_j1)              # also when the block ends: CODE sets p
                 with m.If(scan_end | jb_zero):
+                    m.d.sync += rd_at_p.eq(1)
                     m.d.sync += blk_zero.eq(~scan_end)
                     if long_blocks:
                         m.d.sync += more254.eq((blk == 254) & (j != rlen))
@@ -697,9 +709,10 @@ class LinkCore(wiring.Component):
                                  blk.eq(blk + 1)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
-                next_j(p, p_flags)
+                set_j(p, p_flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
+                    m.d.sync += rd_at_p.eq(0)
                     with m.If(blk == 0):
                         m.next = "NEXT"
                     with m.Else():
@@ -707,7 +720,7 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
-                next_j(j, flags)
+                m.d.comb += rd_hold.eq(~self.o.ready)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
@@ -715,16 +728,18 @@ class LinkCore(wiring.Component):
                         m.next = "NEXT"
 
             with m.State("NEXT"):                   # j = p + blk, the block's end
+                m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
                     m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
                                  scan_end.eq(j == rlen_m1)]
-                    next_j(j + 1, parts_j1)
+                    set_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
                     m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
-                    next_j(j, flags)
+                    set_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
+                    m.d.sync += rd_rep.eq(0)
                     m.next = "END"
 
             with m.State("END"):
@@ -735,7 +750,10 @@ class LinkCore(wiring.Component):
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
-        m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
+        # (The read address's flags follow the state: checked in every simulation.)
+        in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
+        m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
+                           "LinkCore: the buffer's read flags and the state disagree")
         return m
 
 
