@@ -218,6 +218,12 @@ def _check_strobed(owner, strobed):
     return strobed
 
 
+def _check_read_hold(owner, read_hold):
+    if not isinstance(read_hold, bool):
+        raise TypeError(f"{owner} read_hold must be a bool, not {read_hold!r}")
+    return read_hold
+
+
 def _counter_members(width, strobed=()):
     """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink;
     a ``<name>_strobe`` for those in ``strobed``."""
@@ -252,6 +258,13 @@ class LinkCore(wiring.Component):
         clock in which the counter would first hold its new value (the one after the REPLY
         state's, a register); ``dropped``'s is combinational, high in the clock in which the
         counter would count (the loss). Default ``()``.
+    read_hold : bool
+        The frame buffer's read address from two flags registered with the state, and its read
+        register held where the reply needs the same word again (the ECP5 board's choice, for
+        its Fmax: no state decode or ``o.ready`` in front of the distributed-RAM read); default
+        ``False``: the address chosen from the state in every clock (fewer iCE40 cells). The
+        same replies, accesses and timing either way; ``bus.w_data`` outside accesses (no
+        meaning, the bus protocol) may differ.
 
     Members
     -------
@@ -292,10 +305,12 @@ class LinkCore(wiring.Component):
     output never stalls (CRC pass, COBS scan, emission, one byte per clock each).
     """
 
-    def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=()):
+    def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=(),
+                 read_hold=False):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
         self._strobed = _check_strobed("LinkCore", strobed)
+        self._read_hold = _check_read_hold("LinkCore", read_hold)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -310,6 +325,7 @@ class LinkCore(wiring.Component):
         })
 
     strobed = property(lambda self: self._strobed)
+    read_hold = property(lambda self: self._read_hold)
     max_words = property(lambda self: self._max_words)
     address_map = property(lambda self: self._address_map)
     counter_width = property(lambda self: self._counter_width)
@@ -343,6 +359,9 @@ class LinkCore(wiring.Component):
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port(domain="comb")
         rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
+        hold = self._read_hold
+        if not hold:
+            m.d.sync += rd_data.eq(rd.data)
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
@@ -454,9 +473,12 @@ class LinkCore(wiring.Component):
             """j := ``value``, with its part flags ``value_parts``."""
             m.d.comb += [j_next.eq(value), flags_next.eq(value_parts)]
 
-        # The buffer's read, without the state decode or the transmitter's ``o.ready`` in front
-        # of its address (the whole top's 100 MHz on the ECP5: the state → address multiplexer
-        # → distributed-RAM read → ``rd_data`` path, docs/AREA.md §7.62). The address is one of
+        # The buffer's read. Without ``read_hold`` the FSM gives the address of the byte j is set
+        # to (``next_j``: word(j_next), or ``read``), in DATA with o.ready high byte j + 1,
+        # selected last, after the state decode (o.ready comes from the transmitter's state).
+        # With ``read_hold`` (the ECP5's form) no state decode or ``o.ready`` sits in front of
+        # the address (the whole top's 100 MHz on the ECP5: the state → address multiplexer →
+        # distributed-RAM read → ``rd_data`` path, docs/AREA.md §7.62). The address is one of
         # three, chosen by two flags registered with the state: word(j + 1) in CRC, SCAN, DATA
         # and NEXT (``rd_rep``), word(p) in CODE (``rd_at_p`` too), else ``idx`` (the accesses;
         # and whatever the RECV, CHECK, REPLY and END clocks read is unused). Where the reply
@@ -469,9 +491,22 @@ class LinkCore(wiring.Component):
         rd_rep = Signal()
         rd_at_p = Signal()
         rd_hold = Signal()
-        with m.If(~rd_hold):
-            m.d.sync += rd_data.eq(rd.data)
-        m.d.comb += rd.addr.eq(Mux(rd_rep, Mux(rd_at_p, word(p), word(j + 1)), idx))
+        if hold:
+            with m.If(~rd_hold):
+                m.d.sync += rd_data.eq(rd.data)
+            m.d.comb += rd.addr.eq(Mux(rd_rep, Mux(rd_at_p, word(p), word(j + 1)), idx))
+
+        def next_j(value, value_parts, *, read=None):
+            """:func:`set_j`; without ``read_hold`` the buffer reads reply byte ``read``
+            (default ``value``)."""
+            set_j(value, value_parts)
+            if not hold:
+                m.d.comb += rd_addr.eq(word(value if read is None else read))
+
+        def read_flag(flag, value):
+            """With ``read_hold``: the read address's ``flag`` := ``value`` (with the state)."""
+            if hold:
+                m.d.sync += flag.eq(value)
 
         # The receive state's reset for the next frame: one enable, applied after the FSM (it
         # overrides every other assignment of these registers in its clock).
@@ -519,7 +554,11 @@ class LinkCore(wiring.Component):
             else:
                 counter(self.dropped)
 
-        m.d.comb += [j_next.eq(j), flags_next.eq(flags), wr.addr.eq(idx)]
+        if hold:
+            m.d.comb += [j_next.eq(j), flags_next.eq(flags), wr.addr.eq(idx)]
+        else:
+            rd_addr = Signal.like(rd.addr)
+            m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
             with m.State("RECV"):
@@ -670,8 +709,8 @@ class LinkCore(wiring.Component):
                         else:
                             counter(getattr(self, name))
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
-                set_j(0, parts_0)
-                m.d.sync += rd_rep.eq(1)
+                next_j(0, parts_0)
+                read_flag(rd_rep, 1)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
@@ -687,18 +726,18 @@ class LinkCore(wiring.Component):
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    set_j(0, parts_0)
+                    next_j(0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
                     m.d.sync += crc_last.eq(j == dend_m2)
-                    set_j(j + 1, parts_j1)
+                    next_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
                 # The block ends at the reply's end (j = rlen), after 254 bytes (j = p + 254,
                 # so j − p = 254 too) or at a zero byte.
-                set_j(j + 1, parts_j1)              # also when the block ends: CODE sets p
+                next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
                 with m.If(scan_end | jb_zero):
-                    m.d.sync += rd_at_p.eq(1)
+                    read_flag(rd_at_p, 1)
                     m.d.sync += blk_zero.eq(~scan_end)
                     if long_blocks:
                         m.d.sync += more254.eq((blk == 254) & (j != rlen))
@@ -709,10 +748,10 @@ class LinkCore(wiring.Component):
                                  blk.eq(blk + 1)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
-                set_j(p, p_flags)
+                next_j(p, p_flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
-                    m.d.sync += rd_at_p.eq(0)
+                    read_flag(rd_at_p, 0)
                     with m.If(blk == 0):
                         m.next = "NEXT"
                     with m.Else():
@@ -720,7 +759,10 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
-                m.d.comb += rd_hold.eq(~self.o.ready)
+                if hold:
+                    m.d.comb += rd_hold.eq(~self.o.ready)
+                else:
+                    next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
@@ -728,18 +770,19 @@ class LinkCore(wiring.Component):
                         m.next = "NEXT"
 
             with m.State("NEXT"):                   # j = p + blk, the block's end
-                m.d.comb += rd_hold.eq(~blk_zero)
+                if hold:
+                    m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
                     m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
                                  scan_end.eq(j == rlen_m1)]
-                    set_j(j + 1, parts_j1)
+                    next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
                     m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
-                    set_j(j, flags)
+                    next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
-                    m.d.sync += rd_rep.eq(0)
+                    read_flag(rd_rep, 0)
                     m.next = "END"
 
             with m.State("END"):
@@ -750,10 +793,14 @@ class LinkCore(wiring.Component):
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
-        # (The read address's flags follow the state: checked in every simulation.)
-        in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
-        m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
-                           "LinkCore: the buffer's read flags and the state disagree")
+        if hold:
+            # (The read address's flags follow the state: checked in every simulation.)
+            in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
+            m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
+                               "LinkCore: the buffer's read flags and the state disagree")
+        else:
+            m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1),
+                                       rd_addr))
         return m
 
 
@@ -766,7 +813,7 @@ class HostLink(wiring.Component):
         Clock frequency, Hz.
     baud : float
         UART bit rate, bit/s; at most ``clk_hz / 8``.
-    max_words, address_map, counter_width, strobed
+    max_words, address_map, counter_width, strobed, read_hold
         See :class:`LinkCore`.
 
     Members
@@ -791,12 +838,13 @@ class HostLink(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
-                 counter_width=16, strobed=()):
+                 counter_width=16, strobed=(), read_hold=False):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
         _check_strobed("HostLink", strobed)
+        _check_read_hold("HostLink", read_hold)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
-                              counter_width=counter_width, strobed=strobed)
+                              counter_width=counter_width, strobed=strobed, read_hold=read_hold)
         self._clk_hz, self._baud = clk_hz, baud
         cw = self._core.counter_width
         super().__init__({
@@ -807,6 +855,7 @@ class HostLink(wiring.Component):
         })
 
     strobed = property(lambda self: self._core.strobed)
+    read_hold = property(lambda self: self._core.read_hold)
     clk_hz = property(lambda self: self._clk_hz)
     baud = property(lambda self: self._baud)
     core = property(lambda self: self._core)
