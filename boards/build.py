@@ -89,6 +89,12 @@ MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
 #: The same verdicts either way.
 UV_ARM_CHAIN = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
+#: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
+#: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
+#: logic cells on the iCEBreaker the other way). The same replies and accesses either way.
+LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
+
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
 #: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
@@ -327,7 +333,8 @@ class BoardTop(Elaboratable):
         self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
                         current_loop=current_loop, scope_ram=self._board.scope_ram,
                         regs_staging=self._board.regs_staging, speed_loop=speed_loop,
-                        uv_arm_chain=UV_ARM_CHAIN[self._board.family])
+                        uv_arm_chain=UV_ARM_CHAIN[self._board.family],
+                        link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

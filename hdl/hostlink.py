@@ -14,7 +14,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -218,6 +218,12 @@ def _check_strobed(owner, strobed):
     return strobed
 
 
+def _check_read_hold(owner, read_hold):
+    if not isinstance(read_hold, bool):
+        raise TypeError(f"{owner} read_hold must be a bool, not {read_hold!r}")
+    return read_hold
+
+
 def _counter_members(width, strobed=()):
     """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink;
     a ``<name>_strobe`` for those in ``strobed``."""
@@ -252,6 +258,13 @@ class LinkCore(wiring.Component):
         clock in which the counter would first hold its new value (the one after the REPLY
         state's, a register); ``dropped``'s is combinational, high in the clock in which the
         counter would count (the loss). Default ``()``.
+    read_hold : bool
+        The frame buffer's read address from two flags registered with the state, and its read
+        register held where the reply needs the same word again (the ECP5 board's choice, for
+        its Fmax: no state decode or ``o.ready`` in front of the distributed-RAM read); default
+        ``False``: the address chosen from the state in every clock (fewer iCE40 cells). The
+        same replies, accesses and timing either way; ``bus.w_data`` outside accesses (no
+        meaning, the bus protocol) may differ.
 
     Members
     -------
@@ -292,10 +305,12 @@ class LinkCore(wiring.Component):
     output never stalls (CRC pass, COBS scan, emission, one byte per clock each).
     """
 
-    def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=()):
+    def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=(),
+                 read_hold=False):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
         self._strobed = _check_strobed("LinkCore", strobed)
+        self._read_hold = _check_read_hold("LinkCore", read_hold)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -310,6 +325,7 @@ class LinkCore(wiring.Component):
         })
 
     strobed = property(lambda self: self._strobed)
+    read_hold = property(lambda self: self._read_hold)
     max_words = property(lambda self: self._max_words)
     address_map = property(lambda self: self._address_map)
     counter_width = property(lambda self: self._counter_width)
@@ -330,8 +346,9 @@ class LinkCore(wiring.Component):
         lmax = self.max_frame
         bus = self.bus
 
-        # The read port is asynchronous with a reset-less register behind it (``rd_data``), which
-        # yosys merges into the block RAM's synchronous port; ``no_rw_check`` leaves a read of
+        # The read port is asynchronous with a reset-less register behind it (``rd_data``, with
+        # an enable: see the reply's read below), which yosys merges into the block RAM's
+        # synchronous port (its read enable); ``no_rw_check`` leaves a read of
         # the word being written undefined, so yosys does not emulate Amaranth's read-old-data
         # behaviour in the fabric (32 flip-flops and their multiplexers on the iCE40). No read
         # is used in a clock that writes its word: RECV writes word ``idx`` and reads it, a read
@@ -342,7 +359,9 @@ class LinkCore(wiring.Component):
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port(domain="comb")
         rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
-        m.d.sync += rd_data.eq(rd.data)
+        hold = self._read_hold
+        if not hold:
+            m.d.sync += rd_data.eq(rd.data)
 
         # --- receive state -----------------------------------------------------------------
         length = Signal(range(lmax + 2))        # decoded bytes, saturating at lmax + 1
@@ -414,8 +433,8 @@ class LinkCore(wiring.Component):
         scan_end = Signal()
         m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
 
-        # The reply's byte j. The buffer is read one clock ahead: `next_j(v)` sets j_next and
-        # addresses the buffer with v at once. Which part of the reply j is in (header, data,
+        # The reply's byte j. The buffer is read one clock ahead (below: ``rd_data`` holds the
+        # word of byte j in every clock where ``jb`` is used). Which part of the reply j is in (header, data,
         # first CRC byte, second) is registered with j, from the candidate values of j_next
         # (dend is valid from CRC on, and j = 0, set in REPLY, is in the header whatever dend
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
@@ -454,10 +473,40 @@ class LinkCore(wiring.Component):
             """j := ``value``, with its part flags ``value_parts``."""
             m.d.comb += [j_next.eq(value), flags_next.eq(value_parts)]
 
+        # The buffer's read. Without ``read_hold`` the FSM gives the address of the byte j is set
+        # to (``next_j``: word(j_next), or ``read``), in DATA with o.ready high byte j + 1,
+        # selected last, after the state decode (o.ready comes from the transmitter's state).
+        # With ``read_hold`` (the ECP5's form) no state decode or ``o.ready`` sits in front of
+        # the address (the whole top's 100 MHz on the ECP5: the state → address multiplexer →
+        # distributed-RAM read → ``rd_data`` path, docs/AREA.md §7.62). The address is one of
+        # three, chosen by two flags registered with the state: word(j + 1) in CRC, SCAN, DATA
+        # and NEXT (``rd_rep``), word(p) in CODE (``rd_at_p`` too), else ``idx`` (the accesses;
+        # and whatever the RECV, CHECK, REPLY and END clocks read is unused). Where the reply
+        # needs the word of j itself, the register keeps it (``rd_hold``): DATA waiting for
+        # ``o.ready`` (j stays; the word of j came from CODE's word(p) or the last word(j + 1)
+        # with j := j + 1) and NEXT without a zero byte (j is the block's end, so the word of j
+        # again: a 254-byte block's next SCAN starts there, or END, which reads nothing).
+        # ``rd_data`` is the same word as a read of word(j) in every clock that uses it;
+        # ``bus.w_data`` outside accesses (meaningless, the bus protocol) may differ.
+        rd_rep = Signal()
+        rd_at_p = Signal()
+        rd_hold = Signal()
+        if hold:
+            with m.If(~rd_hold):
+                m.d.sync += rd_data.eq(rd.data)
+            m.d.comb += rd.addr.eq(Mux(rd_rep, Mux(rd_at_p, word(p), word(j + 1)), idx))
+
         def next_j(value, value_parts, *, read=None):
-            """:func:`set_j`, and the buffer reads reply byte ``read`` (default ``value``)."""
+            """:func:`set_j`; without ``read_hold`` the buffer reads reply byte ``read``
+            (default ``value``)."""
             set_j(value, value_parts)
-            m.d.comb += rd_addr.eq(word(value if read is None else read))
+            if not hold:
+                m.d.comb += rd_addr.eq(word(value if read is None else read))
+
+        def read_flag(flag, value):
+            """With ``read_hold``: the read address's ``flag`` := ``value`` (with the state)."""
+            if hold:
+                m.d.sync += flag.eq(value)
 
         # The receive state's reset for the next frame: one enable, applied after the FSM (it
         # overrides every other assignment of these registers in its clock).
@@ -505,11 +554,11 @@ class LinkCore(wiring.Component):
             else:
                 counter(self.dropped)
 
-        # The buffer address the FSM gives (rd_addr), except in DATA with o.ready high: byte
-        # j + 1, selected last, after the state decode (o.ready comes from the transmitter's
-        # state; the link's 100 MHz).
-        rd_addr = Signal.like(rd.addr)
-        m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
+        if hold:
+            m.d.comb += [j_next.eq(j), flags_next.eq(flags), wr.addr.eq(idx)]
+        else:
+            rd_addr = Signal.like(rd.addr)
+            m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
             with m.State("RECV"):
@@ -661,6 +710,7 @@ class LinkCore(wiring.Component):
                             counter(getattr(self, name))
                 m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
                 next_j(0, parts_0)
+                read_flag(rd_rep, 1)
                 m.next = "CRC"
 
             # One reply byte per clock in every pass: the buffer is addressed with j_next, so
@@ -687,6 +737,7 @@ class LinkCore(wiring.Component):
                 # so j − p = 254 too) or at a zero byte.
                 next_j(j + 1, parts_j1)             # also when the block ends: CODE sets p
                 with m.If(scan_end | jb_zero):
+                    read_flag(rd_at_p, 1)
                     m.d.sync += blk_zero.eq(~scan_end)
                     if long_blocks:
                         m.d.sync += more254.eq((blk == 254) & (j != rlen))
@@ -700,6 +751,7 @@ class LinkCore(wiring.Component):
                 next_j(p, p_flags)
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
                 with m.If(self.o.ready):
+                    read_flag(rd_at_p, 0)
                     with m.If(blk == 0):
                         m.next = "NEXT"
                     with m.Else():
@@ -707,7 +759,10 @@ class LinkCore(wiring.Component):
 
             with m.State("DATA"):
                 m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(jb)]
-                next_j(j, flags)
+                if hold:
+                    m.d.comb += rd_hold.eq(~self.o.ready)
+                else:
+                    next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
@@ -715,6 +770,8 @@ class LinkCore(wiring.Component):
                         m.next = "NEXT"
 
             with m.State("NEXT"):                   # j = p + blk, the block's end
+                if hold:
+                    m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
                     m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
                                  scan_end.eq(j == rlen_m1)]
@@ -725,6 +782,7 @@ class LinkCore(wiring.Component):
                     next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
+                    read_flag(rd_rep, 0)
                     m.next = "END"
 
             with m.State("END"):
@@ -735,7 +793,14 @@ class LinkCore(wiring.Component):
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
-        m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1), rd_addr))
+        if hold:
+            # (The read address's flags follow the state: checked in every simulation.)
+            in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
+            m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
+                               "LinkCore: the buffer's read flags and the state disagree")
+        else:
+            m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1),
+                                       rd_addr))
         return m
 
 
@@ -748,7 +813,7 @@ class HostLink(wiring.Component):
         Clock frequency, Hz.
     baud : float
         UART bit rate, bit/s; at most ``clk_hz / 8``.
-    max_words, address_map, counter_width, strobed
+    max_words, address_map, counter_width, strobed, read_hold
         See :class:`LinkCore`.
 
     Members
@@ -773,12 +838,13 @@ class HostLink(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
-                 counter_width=16, strobed=()):
+                 counter_width=16, strobed=(), read_hold=False):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
         _check_strobed("HostLink", strobed)
+        _check_read_hold("HostLink", read_hold)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
-                              counter_width=counter_width, strobed=strobed)
+                              counter_width=counter_width, strobed=strobed, read_hold=read_hold)
         self._clk_hz, self._baud = clk_hz, baud
         cw = self._core.counter_width
         super().__init__({
@@ -789,6 +855,7 @@ class HostLink(wiring.Component):
         })
 
     strobed = property(lambda self: self._core.strobed)
+    read_hold = property(lambda self: self._core.read_hold)
     clk_hz = property(lambda self: self._clk_hz)
     baud = property(lambda self: self._baud)
     core = property(lambda self: self._core)

@@ -256,6 +256,21 @@ def _or_tree(values):
     return values[0] if values else Const(0, 1)
 
 
+def _member_bits(m, index, block_bits, codes, name):
+    """A register of one bit per block of ``index`` (its bits from ``block_bits`` up) holding
+    ``codes``: bit ``j`` is ``index`` in the ``j``-th such block and its offset one of that
+    block's codes, loaded in every clock; ``index in codes`` is their OR in the next clock."""
+    blocks = {}
+    for c in codes:
+        blocks.setdefault(c >> block_bits, 0)
+        blocks[c >> block_bits] |= 1 << (c & ((1 << block_bits) - 1))
+    bits = Signal(max(1, len(blocks)), name=name)
+    terms = [(index[block_bits:] == blk) & Const(mask, 1 << block_bits).bit_select(
+                 index[:block_bits], 1) for blk, mask in sorted(blocks.items())]
+    m.d.sync += bits.eq(Cat(terms) if terms else 0)
+    return bits
+
+
 def _bits(port):
     """The plain value of a port (a View / EnumView or a Signal)."""
     return port.as_value() if hasattr(port, "as_value") else Value.cast(port)
@@ -610,14 +625,16 @@ class RegisterFile(wiring.Component):
                     m.d.sync += sel.eq(0)
         if not bram:
             # Flip-flop staging reads the word select only as ``known`` and ``read_only``
-            # (below): those two bits are registered from the index directly.
-            known_q, ro_q = Signal(name="known"), Signal(name="read_only")
-            ro_codes = {_index_of(addr, block_bits, picked) for addr, r, k in words
-                        if r.access in (Access.RO, Access.CONST)}
+            # (below): those two are registered from the index directly, each as one bit per
+            # block of the index (its upper bits: one compare, and its lower ``block_bits`` a
+            # constant function), ORed in t + 1 (ECP5 Fmax: the ~110-way OR of compares in one
+            # clock was the critical path, docs/AREA.md §7.62).
+            ro_codes = [_index_of(addr, block_bits, picked) for addr, r, k in words
+                        if r.access in (Access.RO, Access.CONST)]
             codes = [_index_of(addr, block_bits, picked) for addr, r, k in words]
             assert len(set(codes)) == len(codes)        # (word_index: one index per word)
-            m.d.sync += [known_q.eq(Cat(index == c for c in codes).any()),
-                         ro_q.eq(Cat(index == c for c in sorted(ro_codes)).any())]
+            known_q = _member_bits(m, index, block_bits, codes, "known")
+            ro_q = _member_bits(m, index, block_bits, ro_codes, "read_only")
         with m.If(access):
             m.d.sync += [we.eq(bus.we), blk_ok.eq(0), win_wr.eq(0),
                          *(hit.eq(0) for hit in win_pend.values())]
@@ -669,7 +686,7 @@ class RegisterFile(wiring.Component):
                         m.d.comb += [known.eq(1),
                                      read_only.eq(r.access in (Access.RO, Access.CONST))]
         else:
-            known, read_only = known_q, ro_q
+            known, read_only = known_q.any(), ro_q.any()
 
         def part(r, k, held_r):
             """The word's value (zero-extended) and its sign bit if it is sign-extended, else

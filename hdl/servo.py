@@ -943,13 +943,24 @@ class SpeedLoop(wiring.Component):
                 v = v | Mux(t, code, 0)
             return v
 
+        # The control for the next clock: clock 0's terms on ``accept``, clock 1's on ``first``,
+        # else the ROM word's (``arms``: those three per field). A code field's decodes are
+        # made on each arm and then chosen (``pick``), so that ``accept`` (behind the Servo's
+        # mode, ``clear``) meets only the last multiplexer in front of the control registers,
+        # not the decodes too (ECP5 Fmax: ``active`` → ``b_prd``, docs/AREA.md §7.62).
         nv = {}                         # key / field → the value for the next clock (loading)
+
+        def pick(arm_values):
+            v0, v1, v2 = arm_values
+            return Mux(accept, v0, Mux(first, v1, v2))
+
         for j, key in enumerate(bits):
             v = rom_q[j]
             for k, c in enumerate(cond_clocks):
                 if not isinstance(terms[c][key], int):
                     v = v | (rom_q[n_f + k] & terms[c][key])
-            nv[key] = Mux(accept, terms[0][key], Mux(first, terms[1][key], v))
+            nv[key] = pick((terms[0][key], terms[1][key], v))
+        arms = {}                       # field → (clock 0's code, clock 1's, the ROM word's)
         for field in ("b", "wrf", "cap"):
             off, fw = layout[field]
             v = rom_q[off:off + fw]
@@ -962,15 +973,21 @@ class SpeedLoop(wiring.Component):
                 c0, c1 = cap_code(terms[0]), cap_code(terms[1])
             else:
                 c0, c1 = (expr(*code_terms(field, terms[c])) for c in (0, 1))
+            arms[field] = tuple(C(x, fw) if isinstance(x, int) else Value.cast(x)[:fw]
+                                for x in (c0, c1, v))
             sig = Signal(fw, name=f"next_{field}")
-            m.d.comb += sig.eq(Mux(accept, c0, Mux(first, c1, v)))
+            m.d.comb += sig.eq(pick(arms[field]))
             nv[field] = sig
-        # Decoded codes.
+
+        def decoded(field, fn):
+            """``fn`` of the field's value for the next clock, decoded on each arm."""
+            return pick(tuple(fn(x) for x in arms[field]))
+
         for k in b_sel:
-            nv["b", k] = nv["b"] == b_code[k]
+            nv["b", k] = decoded("b", lambda x, k=k: x == b_code[k])
         for f in flag_names:
-            nv["flag", f] = Cat(*[nv["cap"] == j + 1 for j, s in enumerate(cap_sets)
-                                  if f in s]).any()
+            nv["flag", f] = decoded("cap", lambda x, f=f: Cat(
+                *[x == j + 1 for j, s in enumerate(cap_sets) if f in s]).any())
 
         # The registered control: selects, carry, enable; events of FF destinations, flag
         # captures and side actions; the register file's B select and write port.
@@ -985,17 +1002,18 @@ class SpeedLoop(wiring.Component):
         ctl_load = [(a_sel[k], nv["a", k]) for k in a_sel]
         ctl_load += [(b_sel[k], nv["b", k]) for k in b_sel]
         # The integrator and E[n−1] read as 0 while ``zst`` (constant during a run).
-        b_rf_v = ((nv["b"] != 0) & (nv["b"] <= rf_code_max)
-                  & ~(zst & ((nv["b"] == b_code["I"]) | (nv["b"] == b_code["EP"]))))
+        b_rf_v = decoded("b", lambda x: (x != 0) & (x <= rf_code_max)
+                         & ~(zst & ((x == b_code["I"]) | (x == b_code["EP"]))))
         ctl_load += [(b_rf, b_rf_v), (c_sub, nv["c", "sub"]), (c_cin, nv["c", "cin"]),
                      (c_en, nv["c", "en"])]
         ev_load = [(ev_wr[k], nv[("wr", *k)]) for k in ev_wr]
         ev_load += [(ev_flag[f], nv["flag", f]) for f in flag_names]
         ev_load += [(ev_act[a], nv["act", a]) for a in ev_act]
-        wr_a, wr_k = nv["wrf"][:ab], nv["wrf"][ab:]
-        ev_load += [(wr_rf, wr_a != 0),
-                    (wr_rf_addr, Mux(wr_a == b_code["TP"], rf_addr_of["TP"], wr_a)),
-                    (wr_rf_raw, wr_k == wr_kinds["raw"]), (wr_rf_g, wr_k == wr_kinds["wg"])]
+        ev_load += [(wr_rf, decoded("wrf", lambda x: x[:ab] != 0)),
+                    (wr_rf_addr, decoded("wrf", lambda x: Mux(x[:ab] == b_code["TP"],
+                                                              rf_addr_of["TP"], x[:ab]))),
+                    (wr_rf_raw, decoded("wrf", lambda x: x[ab:] == wr_kinds["raw"])),
+                    (wr_rf_g, decoded("wrf", lambda x: x[ab:] == wr_kinds["wg"]))]
         # The read address (for the next clock, as ``next_b``) from the ROM word alone, not
         # from ``accept``, ``first`` or ``clear``: the operations of clocks 0 and 1, which those
         # select, read no register-file word (``b_rf`` is 0 then and after ``clear``), so the
@@ -1029,7 +1047,7 @@ class SpeedLoop(wiring.Component):
             m.d.comb += cfg_rd.addr.eq(
                 Mux(nv["act", "mult_x"], cfg_index["kx"],
                     Mux(nv["act", "mult_p"], cfg_index["kp"],
-                        Mux(nv["b"] == b_code["IQFF"], cfg_index["iq_ff"],
+                        Mux(decoded("b", lambda x: x == b_code["IQFF"]), cfg_index["iq_ff"],
                             cfg_index["speed_slew"]))))
         m.d.comb += rf_rd_addr.eq(rd_v)
         # (Checked at each clock edge in every simulation and proved with ``speed_loop``.)
@@ -1423,6 +1441,17 @@ class Servo(wiring.Component):
                          self.speed_ref_int.eq(self.sl_ref_int)]
         else:
             sl_iq = sl.o.payload
+            # The speed loop's ``clear`` from a copy of ``active == SPEED`` of its own (loaded
+            # like ``active``): ``active`` drives the Servo's outputs too, and its decode and
+            # fan-out were in front of the speed loop's control registers (ECP5 Fmax,
+            # docs/AREA.md §7.62). ``trip`` still clears it in its own clock.
+            sl_speed = Signal()
+            with m.If(self.trip):
+                m.d.sync += sl_speed.eq(0)
+            with m.Elif(self.loop):
+                m.d.sync += sl_speed.eq(self.mode == Mode.SPEED)
+            m.d.sync += Assert(sl_speed == (active == Mode.SPEED),
+                               "Servo: the speed loop's copy of the mode and active disagree")
             if self.config_mode == "ram":
                 wiring.connect(m, speed_config=wiring.flipped(self.speed_config),
                                speed_loop=sl.config)
@@ -1436,7 +1465,7 @@ class Servo(wiring.Component):
                 sl.rate_div.eq(self.speed_rate_div),
                 sl.ref_delay.eq(self.speed_ref_delay),
                 sl.int_hold.eq(self.speed_int_hold),
-                sl.clear.eq(~is_speed),
+                sl.clear.eq(self.trip | ~sl_speed),
                 self.speed_clear.eq(~is_speed),
                 self.speed_sat.eq(sl.sat),
                 self.speed_valid.eq(sl.o.valid),

@@ -441,6 +441,10 @@ class Top(wiring.Component):
         :class:`~.protect.Protection` ``uv_arm_chain``: the under-voltage arming's compare on a
         carry chain of its own (the same verdicts; the ECP5 board's choice, for its Fmax;
         default ``False``, two chains, fewer iCE40 cells).
+    link_read_hold : bool
+        :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
+        registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
+        default ``False``, fewer iCE40 cells).
 
     Members
     -------
@@ -486,8 +490,8 @@ class Top(wiring.Component):
         The parameter.
     current_loop, scope_ram, regs_staging : str
         The parameters.
-    uv_arm_chain : bool
-        The parameter.
+    uv_arm_chain, link_read_hold : bool
+        The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
         ``period_start`` and the new values are all in place in the ``period_start`` clock
@@ -505,7 +509,8 @@ class Top(wiring.Component):
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, baud=115_200, scales=None, dead_time_s=None,
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
-                 regs_staging="ff", speed_loop="sequential", uv_arm_chain=False):
+                 regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
+                 link_read_hold=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -626,7 +631,7 @@ class Top(wiring.Component):
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width,
-                              strobed=self._ram_counters)
+                              strobed=self._ram_counters, read_hold=link_read_hold)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
@@ -729,6 +734,7 @@ class Top(wiring.Component):
     scope_ram = property(lambda self: self._scope.ram)
     regs_staging = property(lambda self: self._regs.staging)
     uv_arm_chain = property(lambda self: self._protect.uv_arm_chain)
+    link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
     def elaborate(self, platform):

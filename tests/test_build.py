@@ -27,8 +27,8 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, MUL_WIDTH, NAME, BoardTop, _tool, build,
-                                    pll_config, prepare, synthesis_verilog)
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME, BoardTop,
+                                    _tool, build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -239,6 +239,17 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
                                    top.top._servo.loop_params["mul_width"]))
     assert widths == (mul_width,) * 3
     assert MUL_WIDTH[get_board(name).family] == mul_width
+
+
+@pytest.mark.parametrize("name, hold", [("icebreaker", False), ("ulx3s", True),
+                                        ("arty_s7", False), ("atlys", False)])
+def test_board_top_link_read_hold_is_the_families(name, hold):
+    """The host link's registered frame-buffer read address on the ECP5 only (its Fmax; the
+    iCE40's cells the other way, docs/AREA.md §7.62)."""
+    facts = _inspect(lambda: BoardTop(name),
+                     lambda top: (top.top.link_read_hold, top.top._link.core.read_hold))
+    assert facts == (hold, hold)
+    assert LINK_READ_HOLD[get_board(name).family] is hold
 
 
 @pytest.mark.parametrize("kwargs, loop", [({}, "pipelined"), ({"current_loop": "pipelined"},
