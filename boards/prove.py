@@ -672,14 +672,19 @@ class HostLinkSpec(Elaboratable):
     regmap : RegMap
         The register map (default :data:`~foc_servo.hdl.regmap.REGMAP`); the link's address map
         is :func:`~foc_servo.hdl.top.regmap_address_map` of it, as in the top.
+    read_hold : bool
+        :class:`LinkCore`'s ``read_hold`` (the frame buffer's read with registered flags: the
+        ECP5 form, ``boards.build.LINK_READ_HOLD``); its ``Assert`` tying the flags to the
+        state is part of the proof.
     broken : bool
         Prove a :func:`mutant` of :class:`LinkCore` whose frame check ignores the CRC.
     """
 
-    def __init__(self, *, max_words=64, regmap=REGMAP, broken=False):
+    def __init__(self, *, max_words=64, regmap=REGMAP, read_hold=False, broken=False):
         self.max_words = max_words
         self.regmap = regmap
         self.address_map = regmap_address_map(regmap)
+        self.read_hold = read_hold
         self.broken = broken
 
     def elaborate(self, platform):
@@ -688,7 +693,8 @@ class HostLinkSpec(Elaboratable):
         if self.broken:
             cls = mutant(LinkCore, ("with m.Elif((crc != 0) | _below(length, 2)):",
                                     "with m.Elif(_below(length, 2)):"))
-        link = cls(max_words=self.max_words, address_map=self.address_map)
+        link = cls(max_words=self.max_words, address_map=self.address_map,
+                   read_hold=self.read_hold)
         m.submodules.link, internal = elaborate_with_internals(link, platform)
         _drive_inputs(m, link)
 
@@ -993,6 +999,8 @@ PROOFS = {p.name: p for p in (
           "no wrapping write or adder result"),
     Proof("hostlink", HostLinkSpec, 3, 20,
           "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
+    Proof("hostlink_hold", functools.partial(HostLinkSpec, read_hold=True), 3, 20,
+          "LinkCore(read_hold=True), the ECP5's link: the same properties"),
     Proof("regfile", RegFileSpec, 2, 4,
           "RegisterFile: a register changes only after a bus write to it"),
     Proof("regfile_bram", functools.partial(RegFileSpec, staging="bram"), 2, 10,
@@ -1208,9 +1216,11 @@ def prove(names=None, *, broken=False, cover=False, progress=False, timeout_s=60
     return results
 
 
-def table(results):
-    """A plain-text table of :func:`prove`'s results, one line per proof."""
-    lines = [f"{'proof':<10} {'status':<8} {'time':>8}  {'k':>3}  details"]
+def table(results, *, suffix=""):
+    """A plain-text table of :func:`prove`'s results, one line per proof (its name followed by
+    ``suffix``, e.g. ``"_broken"``)."""
+    w = max([10, *(len(n + suffix) for n in results)])     # the name column: the longest name
+    lines = [f"{'proof':<{w}} {'status':<8} {'time':>8}  {'k':>3}  details"]
     for name, r in results.items():
         detail = ""
         if r["status"] == "failed":
@@ -1219,7 +1229,7 @@ def table(results):
             detail = r.get("reason", "")
         if "cover" in r:
             detail = f"cover: {r['cover']}" + (f"; {detail}" if detail else "")
-        lines.append(f"{name:<10} {r['status']:<8} {r['time_s']:>6.1f} s  {r['depth']:>3}  "
+        lines.append(f"{name + suffix:<{w}} {r['status']:<8} {r['time_s']:>6.1f} s  {r['depth']:>3}  "
                      f"{detail}")
     return "\n".join(lines)
 

@@ -158,7 +158,7 @@ def cmd_bench(args):
 
 
 def cmd_prove(args):
-    from ..boards.prove import PROOFS, prove, summary
+    from ..boards.prove import PROOFS, prove, summary, table
     unknown = [n for n in args.names if n not in PROOFS]
     if unknown:
         raise SystemExit(f"foc-servo prove: unknown proof {unknown[0]!r}; "
@@ -168,11 +168,7 @@ def cmd_prove(args):
                     progress=not args.quiet, timeout_s=args.timeout)
     doc = summary(results, broken=args.broken)
     doc["wall_s"] = time.perf_counter() - start
-    lines = [f"{'proof':<10} {'status':<8} {'time':>8}  depth"]
-    for name, r in results.items():
-        lines.append(f"{name + ('_broken' if args.broken else ''):<10} {r['status']:<8} "
-                     f"{r['time_s']:>7.1f}s  {r['depth']}")
-    emit(doc, lines, args.json)
+    emit(doc, table(results, suffix="_broken" if args.broken else "").splitlines(), args.json)
     want = "failed" if args.broken else "proven"
     return 0 if all(r["status"] == want for r in results.values()) else 1
 

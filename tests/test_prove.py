@@ -28,6 +28,7 @@ CAUGHT_BY = {
     "pi_speed": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "speed_loop": r"speed wrap: R written unsaturated out of its range",
     "hostlink": r"hostlink crc: a write without a frame with a valid CRC",
+    "hostlink_hold": r"hostlink crc: a write without a frame with a valid CRC",
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
     "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }
@@ -122,6 +123,10 @@ def test_table():
     lines = table(results).splitlines()
     assert re.fullmatch(r"deadtime +proven +5\.2 s +2  cover: covered", lines[1])
     assert re.fullmatch(r"fault +failed +6\.0 s +8  fault bound: x; fault latch: y", lines[2])
+    # Names longer than the column widen it: the status column stays aligned.
+    lines = table(results, suffix="_broken_variant").splitlines()
+    assert {line.index(s) for line, s in zip(lines, ("status", "proven", "failed"))} == \
+        {len("deadtime_broken_variant") + 1}
 
 
 def test_sby_config():
