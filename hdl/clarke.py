@@ -19,7 +19,7 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
 from .dsp import MUL_WIDTH, check_mul_width, partial_sum, registered_products, saturate_bits
-from .fixed import Q, QFormat, round_shift
+from .fixed import Q, QFormat, check_bool, round_shift
 
 __all__ = ["Clarke", "clarke_constants"]
 
@@ -124,8 +124,7 @@ class Clarke(wiring.Component):
         if not 2 <= gain_format.width <= 32 or not 0 <= gain_format.frac <= 62:
             raise TypeError(f"Clarke gain_format must be 2 to 32 bits wide with 0 to 62 "
                             f"fractional bits, not {gain_format!r}")
-        if not isinstance(three_phase, bool):
-            raise TypeError(f"Clarke three_phase must be a bool, not {three_phase!r}")
+        check_bool("Clarke", "three_phase", three_phase)
 
         self._mul_width = check_mul_width("Clarke", mul_width)
         self._width = width

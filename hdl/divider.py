@@ -18,7 +18,7 @@ from amaranth.hdl import Cat, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import saturate, shape_range
+from .fixed import check_bool, saturate, shape_range
 
 __all__ = ["Divider", "divider_params"]
 
@@ -43,8 +43,7 @@ def divider_params(*, width=32, divisor_width=None, signed=True, quotient_width=
             or divisor_width < 2):
         raise TypeError(f"Divider divisor_width must be None or an integer of at least 2, "
                         f"not {divisor_width!r}")
-    if not isinstance(signed, bool):
-        raise TypeError(f"Divider signed must be a bool, not {signed!r}")
+    check_bool("Divider", "signed", signed)
     if quotient_width is None:
         quotient_width = width
     elif (not isinstance(quotient_width, int) or isinstance(quotient_width, bool)

@@ -24,7 +24,7 @@ from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_param, BinaryAngle
+from .fixed import check_bool, check_param, BinaryAngle
 
 __all__ = [
     "GlitchFilter", "QuadratureDecoder", "HallSensor", "HallPlausibility", "EncoderFrontEnd",
@@ -706,10 +706,8 @@ class HallPlausibility(wiring.Component):
     latency = 3
 
     def __init__(self, *, theta_registered=False):
-        if not isinstance(theta_registered, bool):
-            raise TypeError(f"HallPlausibility theta_registered must be a bool, not "
-                            f"{theta_registered!r}")
-        self._theta_registered = theta_registered
+        self._theta_registered = check_bool("HallPlausibility", "theta_registered",
+                                            theta_registered)
         super().__init__({
             "theta": In(ANGLE.shape),
             "aligned": In(1),

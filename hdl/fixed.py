@@ -40,7 +40,7 @@ __all__ = [
     "QFormat", "Q", "UQ", "BinaryAngle", "Quantity",
     "saturate", "clamp", "round_shift", "round_shift_plain", "sat_add", "sat_sub", "mul_round",
     "saturate_np", "clamp_np", "round_shift_np", "mul_round_np", "shape_range",
-    "is_int", "check_param", "at_least",
+    "is_int", "check_param", "check_bool", "check_choice", "at_least",
 ]
 
 
@@ -56,6 +56,14 @@ def check_param(owner, name, value, lo, hi):
     if not is_int(value) or not lo <= value <= hi:
         raise TypeError(f"{owner} {name} must be an integer from {lo} to {hi}, not {value!r}")
     return int(value)
+
+
+def check_bool(owner, name, value):
+    """The switch-parameter check: ``value`` a bool, else ``TypeError("<owner> <name> must be a
+    bool, not <value>")``. Returns ``value``."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{owner} {name} must be a bool, not {value!r}")
+    return value
 
 
 def check_choice(owner, name, value, choices):

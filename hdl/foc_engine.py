@@ -28,7 +28,7 @@ from amaranth.lib.wiring import In, Out
 from .bus import WordWriteSignature
 from .dsp import saturate_bits
 from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
-from .fixed import Q, UQ, check_choice, round_shift_plain
+from .fixed import Q, UQ, check_bool, check_choice, round_shift_plain
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
 
@@ -757,8 +757,7 @@ class EngineCurrentLoop(wiring.Component):
                              f"not {gain_limit!r}")
         self._gain_limit_raw = limit_raw
         check_choice("EngineCurrentLoop", "config", config, CONFIGS)
-        if not isinstance(speed, bool):
-            raise TypeError(f"EngineCurrentLoop speed must be a bool, not {speed!r}")
+        check_bool("EngineCurrentLoop", "speed", speed)
         if speed and config != "ram":
             raise ValueError(f"EngineCurrentLoop speed=True needs config='ram' (the speed "
                              f"loop's gains and slew are slices of its words), not "

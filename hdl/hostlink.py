@@ -21,6 +21,7 @@ from amaranth.lib.wiring import In, Out
 
 from ..host.protocol import CRC_BYTES, REPLY_HEADER, REQUEST_HEADER, Command, ReplyStatus
 from .bus import ADDR_WIDTH, RegBusSignature, Status
+from .fixed import check_bool
 from .uart import UartRx, UartTx, uart_params
 
 __all__ = ["normalize_address_map", "address_decode", "hostlink_params", "crc16_byte", "LinkCore",
@@ -218,12 +219,6 @@ def _check_strobed(owner, strobed):
     return strobed
 
 
-def _check_read_hold(owner, read_hold):
-    if not isinstance(read_hold, bool):
-        raise TypeError(f"{owner} read_hold must be a bool, not {read_hold!r}")
-    return read_hold
-
-
 def _counter_members(width, strobed=()):
     """The link's status counters (wrapping, ``width`` bits), shared by LinkCore and HostLink;
     a ``<name>_strobe`` for those in ``strobed``."""
@@ -310,7 +305,7 @@ class LinkCore(wiring.Component):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
         self._strobed = _check_strobed("LinkCore", strobed)
-        self._read_hold = _check_read_hold("LinkCore", read_hold)
+        self._read_hold = check_bool("LinkCore", "read_hold", read_hold)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -842,7 +837,7 @@ class HostLink(wiring.Component):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
         _check_strobed("HostLink", strobed)
-        _check_read_hold("HostLink", read_hold)
+        check_bool("HostLink", "read_hold", read_hold)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
                               counter_width=counter_width, strobed=strobed, read_hold=read_hold)
         self._clk_hz, self._baud = clk_hz, baud

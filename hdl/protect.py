@@ -33,7 +33,7 @@ from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value, 
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import abs_exceeds, check_param, shape_range
+from .fixed import abs_exceeds, check_bool, check_param, shape_range
 
 __all__ = ["FAULTS", "FAULT_LAYOUT", "Protection", "udc_compares"]
 
@@ -162,9 +162,7 @@ class Protection(wiring.Component):
                  uv_arm_chain=False):
         for name, value in (("current_width", current_width), ("speed_width", speed_width)):
             check_param("Protection", name, value, 4, 32)
-        if not isinstance(uv_arm_chain, bool):
-            raise TypeError(f"Protection uv_arm_chain must be a bool, not {uv_arm_chain!r}")
-        self._uv_arm_chain = uv_arm_chain
+        self._uv_arm_chain = check_bool("Protection", "uv_arm_chain", uv_arm_chain)
         if not isinstance(udc_shape, Shape) or not 2 <= udc_shape.width <= 32:
             raise TypeError(f"Protection udc_shape must be a Shape of 2 to 32 bits such as "
                             f"signed(16), not {udc_shape!r}")

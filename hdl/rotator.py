@@ -88,7 +88,7 @@ from amaranth.hdl import Array, Assert, Cat, Const, Module, Mux, Signal, signed,
 from amaranth.lib import wiring
 from amaranth.lib.memory import Memory
 
-from .fixed import is_int
+from .fixed import check_bool, is_int
 from .cordic import rotation_members
 
 __all__ = ["RotatorParams", "Rotator"]
@@ -169,8 +169,7 @@ class RotatorParams:
         if not is_int(tag_width) or tag_width < 0:
             raise TypeError(f"Rotator tag_width must be a non-negative integer, "
                             f"not {tag_width!r}")
-        if not isinstance(registered, bool):
-            raise TypeError(f"Rotator registered must be a bool, not {registered!r}")
+        check_bool("Rotator", "registered", registered)
         if table_bits > angle_width - 3:
             raise ValueError(f"Rotator table_bits must be at most angle_width − 3 = "
                              f"{angle_width - 3}, not {table_bits!r}")
