@@ -37,6 +37,7 @@ __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_le
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
+           "REF_CONFIG_WORDS", "REFS",
            "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_SHAPES", "SPEED_FLAGS", "SPEED_CONDS", "SPEED_OUTS"]
 
@@ -65,6 +66,14 @@ CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
                 "urat": "u_rated"}
 #: Values of ``EngineCurrentLoop(config=...)``.
 CONFIGS = ("ports", "ram")
+#: ``EngineCurrentLoop(refs="ram")``: the per-sample inputs read from the configuration RAM
+#: (words after :data:`CONFIG`, before the speed loop's :data:`SPEED_CONFIG_WORDS`) in place of
+#: the ports of the same names and their latches: the open-loop voltages (the program selects
+#: them by ``OL``, so the caller's ``OL ? set : 0`` goes too). The register file's export port
+#: writes them at its commit copy, while the loop is idle (hdl/top.py).
+REF_CONFIG_WORDS = ("ol_ud", "ol_uq")
+#: Values of ``EngineCurrentLoop(refs=...)``.
+REFS = ("ports", "ram")
 #: Values of ``EngineCurrentLoop(status=...)``.
 STATUSES = ("ports", "ram")
 #: The status outputs (``status="ram"``: the status RAM's words, in this order).
@@ -674,6 +683,15 @@ class EngineCurrentLoop(wiring.Component):
     config_init : list of int
         ``config="ram"``: the RAM's initial words (default all 0; the top passes the
         registers' reset values, :attr:`~.regs.RegisterFile.export_init`).
+    refs : str
+        ``"ports"`` (default): the open-loop voltages ``ol_ud``, ``ol_uq`` are input ports,
+        latched with the sample. ``"ram"`` (needs ``config="ram"``): they are the
+        configuration RAM's words :data:`REF_CONFIG_WORDS` (after :data:`CONFIG`, before the
+        speed loop's words; raw, not selected by the mode: the program takes them only with
+        ``ol_enable``), read by the program when it runs, with no port and no latch: the same
+        values whenever no word is written between the accepting clock and the program's read
+        (the register file's commit copy, which the top keeps clear of the loop's run,
+        hdl/top.py "Engine configuration in RAM").
     status : str
         Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
         registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM
@@ -735,7 +753,7 @@ class EngineCurrentLoop(wiring.Component):
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
                  kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
-                 config="ports", config_init=None, status="ports", speed=False):
+                 config="ports", config_init=None, status="ports", speed=False, refs="ports"):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -763,7 +781,13 @@ class EngineCurrentLoop(wiring.Component):
                              f"loop's gains and slew are slices of its words), not "
                              f"config={config!r}")
         self._speed = speed
-        n_config = len(CONFIG) + (len(SPEED_CONFIG_WORDS) if speed else 0)
+        check_choice("EngineCurrentLoop", "refs", refs, REFS)
+        if refs == "ram" and config != "ram":
+            raise ValueError(f"EngineCurrentLoop refs='ram' needs config='ram' (the references "
+                             f"are words of its configuration RAM), not config={config!r}")
+        self._refs = refs
+        n_config = (len(CONFIG) + (len(REF_CONFIG_WORDS) if refs == "ram" else 0)
+                    + (len(SPEED_CONFIG_WORDS) if speed else 0))
         if config_init is not None and config != "ram":
             raise ValueError(f"EngineCurrentLoop config_init applies only to config='ram', "
                              f"not config={config!r}")
@@ -835,7 +859,8 @@ class EngineCurrentLoop(wiring.Component):
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
             "theta": In(unsigned(aw)), **first,
             "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
-            "ol_ud": In(sw), "ol_uq": In(sw), "ff_enable": In(1),
+            **({} if refs == "ram" else {"ol_ud": In(sw), "ol_uq": In(sw)}),
+            "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
             **ports,
             **last, "scale": In(unsigned(cw)),
@@ -866,6 +891,7 @@ class EngineCurrentLoop(wiring.Component):
     status_quiet = property(lambda self: self._status_quiet)
     status_mode = property(lambda self: self._status)
     speed_mode = property(lambda self: self._speed)
+    refs_mode = property(lambda self: self._refs)
     #: ``speed=True``: :func:`speed_run_timing` of the program (per profile path); else None.
     speed_timing = property(lambda self: None if self._speed_timing is None
                             else {k: dict(v) for k, v in self._speed_timing.items()})
@@ -896,11 +922,13 @@ class EngineCurrentLoop(wiring.Component):
         strobe_outs = (tuple(STATUS_OUTS[n] for n in STATUS if STATUS_OUTS[n] != "pa")
                        if self._status == "ram" else ())
         config = CONFIG
+        refs = REF_CONFIG_WORDS if self._refs == "ram" else ()
+        config = CONFIG + refs
         if spd:
             shapes.update(SPEED_SHAPES)
             outs.update({k: v for k, v in SPEED_OUTS.items() if k not in OUTS})
             strobe_outs += ("ref_int", "iq")
-            config = CONFIG + SPEED_CONFIG_WORDS
+            config = CONFIG + refs + SPEED_CONFIG_WORDS
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
                                            out_widths=outs, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
@@ -931,14 +959,16 @@ class EngineCurrentLoop(wiring.Component):
         # (``ia``, ``ib``: read from the port, which holds until the program has read them:
         # ``sample_hold``, the class docstring.)
         lat = {name: Signal(shapes[name], name=f"l_{name}")
-               for name in ("theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")}
+               for name in ("theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")
+               if name not in refs}
         run, ol, ff = Signal(), Signal(), Signal()
         nspd_round = round_shift_plain(self.speed, SPEED_WIDTH - w)
         with m.If(accept):
             m.d.sync += [
                 lat["theta"].eq(self.theta),
                 lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
-                lat["ol_ud"].eq(self.ol_ud), lat["ol_uq"].eq(self.ol_uq),
+                *(lat[name].eq(getattr(self, name)) for name in ("ol_ud", "ol_uq")
+                  if name in lat),
                 lat["nspd"].eq(saturate_bits(nspd_round, sw)),
                 run.eq(self.enable & ~self.ol_enable), ol.eq(self.ol_enable),
                 ff.eq(self.ff_enable & self.enable & ~self.ol_enable),
@@ -987,7 +1017,8 @@ class EngineCurrentLoop(wiring.Component):
         clear = self.speed_clear
         # ``speed_slew ≠ 0`` (the tracking choice while ``clear``, read every clock) as a
         # flip-flop loaded with the slew's configuration word (as SpeedLoop(config="ram")).
-        j_slew = len(CONFIG) + SPEED_CONFIG_WORDS.index("slew")
+        j_slew = (len(CONFIG) + (len(REF_CONFIG_WORDS) if self._refs == "ram" else 0)
+                  + SPEED_CONFIG_WORDS.index("slew"))
         slew_nz = Signal(init=int(self._config_init[j_slew] != 0))
         with m.If(self.config.valid & (self.config.index == j_slew)):
             m.d.sync += slew_nz.eq(self.config.data != 0)

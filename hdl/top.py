@@ -194,6 +194,7 @@ from .fixed import at_least, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import STATUS as ENGINE_STATUS
+from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
@@ -226,6 +227,11 @@ ENGINE_CONFIG = tuple({
     "hi_q": "pi_q_lim_hi", "ff_l": "decouple_l", "ff_psi": "decouple_psi",
     "klead": "theta_lead", "urat": "u_rated",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
+#: The registers read as the loop engine's configuration-RAM words after :data:`ENGINE_CONFIG`
+#: (``EngineCurrentLoop(refs="ram")``, with its configuration RAM), in its word order
+#: (:data:`~.foc_engine.REF_CONFIG_WORDS`): no flip-flops in the register file, no latch in
+#: the engine, no mode multiplexer in the Servo.
+ENGINE_REFS = tuple({"ol_ud": "ol_u_d", "ol_uq": "ol_u_q"}[name] for name in ENGINE_REF_WORDS)
 #: The registers of the speed loop's configuration words (``regs_staging="bram"``), in its word
 #: order (:data:`~.servo.SPEED_CONFIG`).
 SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
@@ -607,7 +613,7 @@ class Top(wiring.Component):
                                   counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
                                             + (TOP_COUNTERS if self._ram_counters else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=((ENGINE_CONFIG if cfg_ram else ())
+                                  export=((ENGINE_CONFIG + ENGINE_REFS if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
@@ -644,10 +650,11 @@ class Top(wiring.Component):
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
                                         config_init=self._regs.export_init[
-                                            :len(ENGINE_CONFIG) + (len(SPEED_LOOP_CONFIG)
-                                                                   if speed_loop == "engine"
-                                                                   else 0)],
-                                        status="ram", speed=speed_loop == "engine")
+                                            :len(ENGINE_CONFIG) + len(ENGINE_REFS)
+                                            + (len(SPEED_LOOP_CONFIG)
+                                               if speed_loop == "engine" else 0)],
+                                        status="ram", speed=speed_loop == "engine",
+                                        refs="ram")
                       if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
@@ -850,8 +857,9 @@ class Top(wiring.Component):
             cl.theta.eq(servo.theta),
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
-            cl.ol_ud.eq(servo.ol_ud),
-            cl.ol_uq.eq(servo.ol_uq),
+            # (the engine's references in its RAM: no ports, ENGINE_REFS)
+            *([] if "ol_ud" not in cl.signature.members else [cl.ol_ud.eq(servo.ol_ud),
+                                                               cl.ol_uq.eq(servo.ol_uq)]),
             cl.speed.eq(cl_speed),
 
             prot.fault_n.eq(fault_n),
@@ -902,8 +910,9 @@ class Top(wiring.Component):
         if hasattr(cl, "config"):
             # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1; with the
             # engine's speed run the speed loop's words after them too: all of them).
-            n_cfg = len(ENGINE_CONFIG) + (len(SPEED_LOOP_CONFIG)
-                                          if self._speed_loop == "engine" else 0)
+            n_cfg = len(ENGINE_CONFIG) + len(ENGINE_REFS) + (len(SPEED_LOOP_CONFIG)
+                                                             if self._speed_loop == "engine"
+                                                             else 0)
             m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < n_cfg)),
                          cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
@@ -935,8 +944,10 @@ class Top(wiring.Component):
             servo.id_set.eq(regs.i_d_ref),
             servo.iq_set.eq(regs.i_q_ref),
             servo.ol_src.eq(regs.ol_angle_mode),
-            servo.ud_set.eq(regs.ol_u_d),
-            servo.uq_set.eq(regs.ol_u_q),
+            # (the engine's references in its RAM: no flip-flops, the Servo's ol_ud, ol_uq
+            # unused; ENGINE_REFS)
+            *([] if "ol_ud" not in cl.signature.members else [servo.ud_set.eq(regs.ol_u_d),
+                                                               servo.uq_set.eq(regs.ol_u_q)]),
             servo.ol_theta.eq(regs.ol_angle),
             servo.ol_freq.eq(regs.ol_freq),
 

@@ -653,8 +653,8 @@ def test_top_current_loop_duties_match_the_model(current_loop, staging):
     each within the loop's latency, with no overrun. The pipelined loop with ``"bram"`` staging
     is the Arty S7's configuration; the engine with ``"bram"`` staging (the iCEBreaker's) reads its configuration from its RAM (written by the register file's reset
     walk): the configuration recorded is then the registers' reset values."""
-    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
-    from foc_servo.hdl.top import ENGINE_CONFIG
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, REF_CONFIG_WORDS
+    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CONFIG_FIELDS, SAMPLE_FIELDS, CurrentLoopModel
     clk = 33.333e6          # the ADC model checks the datasheet timing at this clock
@@ -678,7 +678,8 @@ def test_top_current_loop_duties_match_the_model(current_loop, staging):
              **{f: getattr(cl, f) for f in fields + CONFIG_FIELDS
                 if f not in ("ia", "ib", "udc") and hasattr(cl, f)}}
     in_ram = {port: top.regmap[reg].reset for port, reg in
-              zip((CONFIG_PORTS[n] for n in CONFIG), ENGINE_CONFIG)}
+              zip([CONFIG_PORTS[n] for n in CONFIG] + list(REF_CONFIG_WORDS),
+                  ENGINE_CONFIG + ENGINE_REFS)}
     assert (current_loop, staging) == ("engine", "bram") or not hasattr(cl, "config")
     if hasattr(cl, "config"):
         assert set(in_ram) == (set(CONFIG_FIELDS) | set(fields)) - set(ports)
@@ -915,6 +916,49 @@ def test_top_theta_lead_advances_the_inverse_park_angle(current_loop):
     assert math.hypot(ua, ub) == pytest.approx(16000, abs=2)
 
 
+def test_top_engine_open_loop_voltages_are_words_of_the_engine_ram():
+    """The iCEBreaker's top (engine current and speed loop, ``"bram"`` staging): ``ol_u_d`` and
+    ``ol_u_q`` have no flip-flops in the register file and no port on the engine
+    (:data:`~foc_servo.hdl.top.ENGINE_REFS`, words of its configuration RAM after
+    :data:`ENGINE_CONFIG`): in open loop every pass's u_d, u_q (the engine's status RAM) are
+    the reset values, then, from the first pass after the commit copy that follows a host
+    frame writing both, the new ones (a pass before it keeps the old)."""
+    from foc_servo.hdl.foc_engine import STATUS
+    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS
+    top = Top(pwm_hz=PWM / 2, baud=BAUD, current_loop="engine", regs_staging="bram",
+              speed_loop="engine",
+              resets={"mode": Mode.OPEN_LOOP.value, "ol_u_d": 12000, "ol_u_q": -3000})
+    regs, cl = top._regs, top._loop
+    names = [r.name for _, r, _ in regs.export_words]
+    assert names[:len(ENGINE_CONFIG) + 2] == list(ENGINE_CONFIG + ENGINE_REFS)
+    assert not any(hasattr(regs, n) for n in ENGINE_REFS)
+    assert not hasattr(cl, "ol_ud") and not hasattr(cl, "ol_uq")
+    bench = _Bench(top, BAUD)
+    passes, marks = [], {}
+
+    def probe(ctx):
+        if ctx.get(cl.done):
+            mem = cl.status_memory
+            passes.append((host.clocks, ctx.get(mem.data[STATUS.index("u_d")]),
+                           ctx.get(mem.data[STATUS.index("u_q")])))
+    host = _TracingHost(bench, probe)
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        for _ in range(3):
+            await host.next_period(ctx, top)
+        await host.write(ctx, _addr(top, "ol_u_d"), 0xFFFF & -7000, 5000)
+        marks["replied"] = host.clocks
+        for _ in range(4):
+            await host.next_period(ctx, top)
+
+    simulate(bench, [testbench], name="test_top_engine_refs")
+    before = [(u, v) for t, u, v in passes if t < marks["replied"]]
+    after = [(u, v) for t, u, v in passes[-3:]]
+    assert len(before) >= 3 and set(before) == {(12000, -3000)}
+    assert set(after) == {(-7000, 5000)}
+
+
 def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
     """LeadAngle and the protection's overspeed check take M/T's result through a register, the
     strobe too (ECP5 Fmax; Top docstring, "The speed's consumers"), clock by clock: their
@@ -1129,8 +1173,8 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     same replay with either switch one sample earlier or later differs (the test sees when a
     word arrives, not only that it does). ("After its frame": after the register file's last
     write of the frame, with the commit copy starting after it.)"""
-    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, STATUS
-    from foc_servo.hdl.top import ENGINE_CONFIG
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, REF_CONFIG_WORDS, STATUS
+    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CurrentLoopModel
     clk = 33.333e6
@@ -1192,7 +1236,8 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     assert len(got) >= len(ins) - 1 >= 12
     # The configuration in force: the reset values, then each frame from its commit on.
     port_of = {reg: CONFIG_PORTS[s] for s, reg in zip(CONFIG, ENGINE_CONFIG)}
-    config = {port_of[reg]: rm[reg].reset for reg in ENGINE_CONFIG}
+    port_of.update(zip(ENGINE_REFS, REF_CONFIG_WORDS))      # (their RAM words, no ports)
+    config = {port_of[reg]: rm[reg].reset for reg in ENGINE_CONFIG + ENGINE_REFS}
     switches = []
     for t in replied:
         # The frame's last register write; the commit copy that starts after it (the copy's
@@ -1238,7 +1283,7 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
     the words go into the loop engine's configuration RAM after its own, the speed run's inputs
     are the engine's ports, and the model is :class:`ServoModel` with the engine's timing."""
     from foc_servo.hdl.servo import SPEED_CONFIG
-    from foc_servo.hdl.top import ENGINE_CONFIG, SPEED_LOOP_CONFIG
+    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS, SPEED_LOOP_CONFIG
     from foc_servo.sim.models.servo import SERVO_INPUTS, ServoModel
     REF = (1 << 30) + (1 << 26)         # the encoder's 6000 r/min = 2^30 of N_FS, + 375 r/min
     eng = speed_loop == "engine"
@@ -1248,7 +1293,7 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
                   "pi_speed_lim_lo": -9000, "pi_speed_lim_hi": 9000, "prot_mask": 0})
     regs, servo, rm, cl = top._regs, top._servo, top.regmap, top._loop
     names = [r.name for _, r, _ in regs.export_words]
-    engine = ENGINE_CONFIG if current_loop == "engine" else ()
+    engine = ENGINE_CONFIG + ENGINE_REFS if current_loop == "engine" else ()
     assert names == list(engine + SPEED_LOOP_CONFIG)
     assert not any(hasattr(regs, n) for n in SPEED_LOOP_CONFIG)
     assert servo.config_mode == ("ports" if eng else "ram") and servo.speed_loop == speed_loop
@@ -1261,7 +1306,7 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
            servo.speed.payload.speed if n == "speed" else getattr(servo, n)
            for n in SERVO_INPUTS if n not in config.values()}
     cfg = cl.config if eng else servo.speed_config
-    off_cfg = len(ENGINE_CONFIG) if eng else 0     # the speed words' first index there
+    off_cfg = len(ENGINE_CONFIG + ENGINE_REFS) if eng else 0    # the speed words' first index
     params = {k: v for k, v in servo.loop_params.items()
               if k not in ("mul_width", "config", "config_init")}
     if eng:
