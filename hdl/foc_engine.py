@@ -37,7 +37,8 @@ __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_le
            "ENGINE_WIDTH", "PIPELINE_CLOCKS", "DUTY_CLOCKS", "START_CLOCKS", "DCBUS_GAIN_FRAC",
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
-           "REF_CONFIG_WORDS", "REFS",
+           "REF_CONFIG_WORDS", "REFS", "REF_SPECIALS", "REF_OUTS", "REF_STATUS",
+           "REF_STATUS_OUTS",
            "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_SHAPES", "SPEED_FLAGS", "SPEED_CONDS", "SPEED_OUTS"]
 
@@ -66,12 +67,24 @@ CONFIG_PORTS = {"gain_a": "gain_a", "gain_b": "gain_b", "off_a": "offset_a",
                 "urat": "u_rated"}
 #: Values of ``EngineCurrentLoop(config=...)``.
 CONFIGS = ("ports", "ram")
-#: ``EngineCurrentLoop(refs="ram")``: the per-sample inputs read from the configuration RAM
-#: (words after :data:`CONFIG`, before the speed loop's :data:`SPEED_CONFIG_WORDS`) in place of
-#: the ports of the same names and their latches: the open-loop voltages (the program selects
-#: them by ``OL``, so the caller's ``OL ? set : 0`` goes too). The register file's export port
-#: writes them at its commit copy, while the loop is idle (hdl/top.py).
-REF_CONFIG_WORDS = ("ol_ud", "ol_uq")
+#: ``EngineCurrentLoop(refs="ram")``: the references read from the configuration RAM (words
+#: after :data:`CONFIG`, before the speed loop's :data:`SPEED_CONFIG_WORDS`) in place of the
+#: ports ``ol_ud``, ``ol_uq``, ``id_ref``, ``iq_ref``, ``iq_lim_lo``, ``iq_lim_hi`` and the
+#: latches of the first four: the open-loop voltages (the program selects them by ``OL``), the
+#: current set-points ``idset``, ``iqset`` and the i_q limits ``ilo``, ``ihi`` (the speed run's
+#: specials, now words), from which the program forms the references as the Servo did
+#: (``current_loop_program(refs=True)``). The register file's export port writes them at its
+#: commit copy, while the loop is idle (hdl/top.py).
+REF_CONFIG_WORDS = ("ol_ud", "ol_uq", "idset", "iqset", "ilo", "ihi")
+#: ``current_loop_program(refs=True)``: the special operands of the references (the
+#: configuration words ``idset``, ``iqset``, the speed run's i_q reference ``sliq``) and the
+#: outputs that show the references the program used (the scope's ``i_d_ref``, ``i_q_ref``).
+REF_SPECIALS = ("idset", "iqset", "sliq")
+REF_OUTS = {"idr": 16, "iqr": 16}
+#: ``refs="ram"``: the status RAM's words after :data:`STATUS` (the references the program
+#: used, for the scope; no status registers) and the outputs that write them.
+REF_STATUS = ("i_d_ref", "i_q_ref")
+REF_STATUS_OUTS = {"i_d_ref": "idr", "i_q_ref": "iqr"}
 #: Values of ``EngineCurrentLoop(refs=...)``.
 REFS = ("ports", "ram")
 #: Values of ``EngineCurrentLoop(status=...)``.
@@ -180,8 +193,8 @@ def _rotate(asm, x, y, xo, yo, out_x, out_y, w):
     A.post(yo, w, sat=SAT_W, out=out_y)
 
 
-def _pi_head(asm, ax, fb):
-    asm.alu(Op.SUB, f"r.e_{ax}", f"s.i{ax}_ref", fb, sat=SAT_W)
+def _pi_head(asm, ax, fb, ref=None):
+    asm.alu(Op.SUB, f"r.e_{ax}", ref or f"s.i{ax}_ref", fb, sat=SAT_W)
 
 
 def _pis(asm, *, kx_shift, filler=None):
@@ -261,14 +274,16 @@ def _lead_lim(A, gain_limit_raw):
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
-                         schedule=True, speed=False):
+                         schedule=True, speed=False, refs=False):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
     straight-line code (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
     (:func:`speed_loop_program`) follows at the label ``speed`` (its entry), its temporaries in
     the current loop's registers (:data:`CURRENT_STATE` excepted), its specials, conditions
     and outputs after the current loop's (whose words are then the same but for the constants'
-    addresses); the plan's step 2 (docs/ENGINE.md).
+    addresses); the plan's step 2 (docs/ENGINE.md). ``refs`` (with ``speed``): the current
+    references from the configuration words and the speed run's result
+    (:data:`REF_SPECIALS`; ``EngineCurrentLoop(refs="ram")``).
 
     Returns
     -------
@@ -277,10 +292,14 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     rot = rotator if rotator is not None else RotatorParams(width=width, angle_width=16,
                                                             tag_width=1)
     w = width
+    if refs and not speed:
+        raise ValueError("engine program: refs needs speed (the i_q limits and the speed run's "
+                         "i_q reference)")
     if speed:
         outs = tuple(OUTS) + tuple(o for o in SPEED_OUTS if o not in OUTS)
-        A = Assembler(specials=SPECIALS + SPEED_SPECIALS, bspecials=BSPECIALS,
-                      conds=CONDS + SPEED_CONDS, outs=outs)
+        outs += tuple(REF_OUTS) if refs else ()
+        A = Assembler(specials=SPECIALS + SPEED_SPECIALS + (REF_SPECIALS if refs else ()),
+                      bspecials=BSPECIALS, conds=CONDS + SPEED_CONDS, outs=outs)
     else:
         A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
     A.guard = int_guard
@@ -315,10 +334,20 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     # For the gain's division after the duties (which reads the register file only).
     A.alu(Op.MAX, "r.u8", "s.udc", 0, asl=True)                       # 2**8·U, U = max(U_dc, 0)
     A.alu(Op.ADD, "r.uh", "r.u8", 0, sh=9)                            # floor(U/2)
+    if refs:
+        # The references as the Servo forms them (hdl/servo.py): i_d = id_set; i_q =
+        # clamp(iq_set, lim_lo, lim_hi) in CURRENT mode, the speed run's result in SPEED mode
+        # (OL, which the wrapper raises in SPEED mode too: on the RUN path it tells the two
+        # apart); both also to the status outputs the scope records (idr, iqr).
+        A.alu(Op.ADD, "r.iqs", "s.iqset", 0)
+        A.alu(Op.MIN, "r.iqt", "s.ihi", "r.iqs", setf=True)           # N: iq_set > hi
+        A.alu(Op.MAX, "r.iqc", "s.ilo", "r.iqt", cond="N")            # clamp (the Servo's order)
+        A.alu(Op.SEL, "r.iqr", "s.sliq", "r.iqc", cond="!OL", out="iqr")
+        A.alu(Op.ADD, None, "s.idset", 0, out="idr")
     # --- Run or clear ------------------------------------------------------------------------------
     A.br("!RUN", "off")
-    _pi_head(A, "d", "r.id")                                          # delay slots
-    _pi_head(A, "q", "r.iq")
+    _pi_head(A, "d", "r.id", "s.idset" if refs else None)             # delay slots
+    _pi_head(A, "q", "r.iq", "r.iqr" if refs else None)
     A.br("!FF", "noff")
     A.alu(Op.ADD, "r.ffd", 0, 0)                                      # delay slots: ff = 0
     A.alu(Op.ADD, "r.ffq", 0, 0)
@@ -558,15 +587,15 @@ def sample_read(program):
     return START_CLOCKS - 1 + max(reads.values())
 
 
-def status_quiet(program):
+def status_quiet(program, names=STATUS):
     """Clocks from ``done`` of :class:`EngineCurrentLoop` running ``program`` (that clock
     included) in which no status output (:data:`STATUS`) is written: after its last duty
     (``o.valid``, before ``done``) the program writes no status output, and the next program
     starts at the earliest in the ``done`` clock (a sample accepted then), writing its first
     status output ``START_CLOCKS + k + WRITE_DELAY`` clocks after that (``k`` instruction
     clocks before it, on the straight-line start of the program)."""
-    outs = ("",) + tuple(OUTS)
-    status = {outs.index(STATUS_OUTS[name]) for name in STATUS}
+    outs = program.outs
+    status = {outs.index({**STATUS_OUTS, **REF_STATUS_OUTS}[name]) for name in names}
     dc = outs.index("dc")
     instrs = program.instrs
     for path in _paths(program):
@@ -782,9 +811,11 @@ class EngineCurrentLoop(wiring.Component):
                              f"config={config!r}")
         self._speed = speed
         check_choice("EngineCurrentLoop", "refs", refs, REFS)
-        if refs == "ram" and config != "ram":
-            raise ValueError(f"EngineCurrentLoop refs='ram' needs config='ram' (the references "
-                             f"are words of its configuration RAM), not config={config!r}")
+        if refs == "ram" and (config, speed) != ("ram", True):
+            raise ValueError(f"EngineCurrentLoop refs='ram' needs config='ram' and speed=True "
+                             f"(the references are words of its configuration RAM, the SPEED "
+                             f"mode's i_q the speed run's), not config={config!r}, "
+                             f"speed={speed!r}")
         self._refs = refs
         n_config = (len(CONFIG) + (len(REF_CONFIG_WORDS) if refs == "ram" else 0)
                     + (len(SPEED_CONFIG_WORDS) if speed else 0))
@@ -803,7 +834,9 @@ class EngineCurrentLoop(wiring.Component):
         self._config_init = list(config_init) if config_init is not None else [0] * n_config
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
         self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw,
-                                             speed=speed)
+                                             speed=speed, refs=refs == "ram")
+        #: The status RAM's words (``status="ram"``).
+        self._status_words = STATUS + (REF_STATUS if refs == "ram" else ())
         self._speed_timing = speed_run_timing(self._program) if speed else None
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
@@ -816,7 +849,8 @@ class EngineCurrentLoop(wiring.Component):
         if speed:
             wait = max([wait] + [START_CLOCKS + t["length"] for t in self._speed_timing.values()])
         self._sample_hold = wait + self._sample_read
-        self._status_quiet = status_quiet(self._program)
+        self._status_quiet = status_quiet(self._program,
+                                          self._status_words if status == "ram" else STATUS)
         w, aw, cw = width, angle_width, count_width
         sw = signed(w)
         ports = {
@@ -842,7 +876,7 @@ class EngineCurrentLoop(wiring.Component):
             sp = SPEED_PARAMS
             speed_ports = {
                 "speed_valid": In(1), "speed_ref": In(signed(sp["speed_width"])),
-                "iq_lim_lo": In(sw), "iq_lim_hi": In(sw),
+                **({} if refs == "ram" else {"iq_lim_lo": In(sw), "iq_lim_hi": In(sw)}),
                 "speed_rate_div": In(unsigned(8)),
                 "speed_ref_delay": In(unsigned(sp["delay_width"])), "speed_int_hold": In(1),
                 "speed_clear": In(1),
@@ -851,14 +885,17 @@ class EngineCurrentLoop(wiring.Component):
             }
         if status == "ram":
             rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
-            status_ports = {"status_rd": Out(rd), "status_probe": Out(rd)}
+            probe = ReadPort.Signature(addr_width=(len(self._status_words) - 1).bit_length(),
+                                       shape=sw)
+            status_ports = {"status_rd": Out(rd), "status_probe": Out(probe)}
         else:
             status_ports = {name: Out(sw) for name in STATUS}
         super().__init__({
             "i": In(stream.Signature(data.StructLayout(
                 {name: signed(adc_width) for name in ADC_CHANNELS}), always_ready=True)),
             "theta": In(unsigned(aw)), **first,
-            "id_ref": In(sw), "iq_ref": In(sw), "enable": In(1), "ol_enable": In(1),
+            **({} if refs == "ram" else {"id_ref": In(sw), "iq_ref": In(sw)}),
+            "enable": In(1), "ol_enable": In(1),
             **({} if refs == "ram" else {"ol_ud": In(sw), "ol_uq": In(sw)}),
             "ff_enable": In(1),
             "speed": In(signed(SPEED_WIDTH)),
@@ -892,6 +929,9 @@ class EngineCurrentLoop(wiring.Component):
     status_mode = property(lambda self: self._status)
     speed_mode = property(lambda self: self._speed)
     refs_mode = property(lambda self: self._refs)
+    #: The status RAM's words (``status="ram"``: :data:`STATUS`, with ``refs="ram"`` then
+    #: :data:`REF_STATUS`).
+    status_words = property(lambda self: self._status_words)
     #: ``speed=True``: :func:`speed_run_timing` of the program (per profile path); else None.
     speed_timing = property(lambda self: None if self._speed_timing is None
                             else {k: dict(v) for k, v in self._speed_timing.items()})
@@ -904,6 +944,9 @@ class EngineCurrentLoop(wiring.Component):
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
+    #: ``status="ram"``: the scope's status RAM (``status_probe``'s; word ``j``:
+    #: :attr:`status_words` ``[j]``), for a testbench.
+    probe_memory = property(lambda self: self._status_mems.get("status_probe"))
 
     def elaborate(self, platform):
         m = Module()
@@ -921,14 +964,17 @@ class EngineCurrentLoop(wiring.Component):
         outs = dict(OUTS)
         strobe_outs = (tuple(STATUS_OUTS[n] for n in STATUS if STATUS_OUTS[n] != "pa")
                        if self._status == "ram" else ())
-        config = CONFIG
         refs = REF_CONFIG_WORDS if self._refs == "ram" else ()
-        config = CONFIG + refs
+        config = CONFIG
         if spd:
             shapes.update(SPEED_SHAPES)
             outs.update({k: v for k, v in SPEED_OUTS.items() if k not in OUTS})
             strobe_outs += ("ref_int", "iq")
             config = CONFIG + refs + SPEED_CONFIG_WORDS
+        if refs:
+            shapes.update({name: sw for name in REF_SPECIALS})
+            outs.update(REF_OUTS)
+            strobe_outs += tuple(REF_OUTS)
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
                                            out_widths=outs, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
@@ -960,17 +1006,19 @@ class EngineCurrentLoop(wiring.Component):
         # ``sample_hold``, the class docstring.)
         lat = {name: Signal(shapes[name], name=f"l_{name}")
                for name in ("theta", "id_ref", "iq_ref", "ol_ud", "ol_uq", "nspd")
-               if name not in refs}
+               if name not in refs and not (refs and name in ("id_ref", "iq_ref"))}
         run, ol, ff = Signal(), Signal(), Signal()
         nspd_round = round_shift_plain(self.speed, SPEED_WIDTH - w)
         with m.If(accept):
             m.d.sync += [
                 lat["theta"].eq(self.theta),
-                lat["id_ref"].eq(self.id_ref), lat["iq_ref"].eq(self.iq_ref),
-                *(lat[name].eq(getattr(self, name)) for name in ("ol_ud", "ol_uq")
-                  if name in lat),
+                *(lat[name].eq(getattr(self, name)) for name in ("id_ref", "iq_ref", "ol_ud",
+                                                                 "ol_uq") if name in lat),
                 lat["nspd"].eq(saturate_bits(nspd_round, sw)),
-                run.eq(self.enable & ~self.ol_enable), ol.eq(self.ol_enable),
+                run.eq(self.enable & ~self.ol_enable),
+                # (refs="ram": OL in SPEED mode too, where the program, on its RUN path, takes
+                # the speed run's i_q reference, not the clamped set-point)
+                ol.eq(self.ol_enable | (~self.speed_clear if refs else 0)),
                 ff.eq(self.ff_enable & self.enable & ~self.ol_enable),
                 self.udc.payload.eq(self.i.payload.udc),
             ]
@@ -1081,15 +1129,20 @@ class EngineCurrentLoop(wiring.Component):
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
         m.d.comb += [eng.s_spd.eq(self.speed), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
-                     eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
                      eng.s_ih.eq(self.speed_int_hold)]
+        if self._refs == "ram":         # (the limits are configuration words)
+            m.d.comb += eng.s_sliq.eq(self.speed_o.payload)
+        else:
+            m.d.comb += [eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi)]
 
     def _status_ram(self, m, eng):
         """The status RAM (class docstring): written at the engine's writes of the status
         outputs, read through ``status_rd`` (transparent) and ``status_probe`` (old word)."""
-        strobes = [getattr(eng, f"o_{STATUS_OUTS[name]}_we") for name in STATUS]
-        addr = Signal(range(len(STATUS)))
+        words = self._status_words
+        strobes = [getattr(eng, f"o_{({**STATUS_OUTS, **REF_STATUS_OUTS})[name]}_we")
+                   for name in words]
+        addr = Signal(range(len(words)))
         for j, we in enumerate(strobes):        # one strobe at a time (one write per clock)
             with m.If(we):
                 m.d.comb += addr.eq(j)
@@ -1101,15 +1154,18 @@ class EngineCurrentLoop(wiring.Component):
         # merges into the block RAM's synchronous port; a synchronous port reading the old word
         # made it add 38 flip-flops.)
         # One RAM per read port (a block RAM has one), both written alike.
+        # (refs="ram": the references' words, for the scope, in the scope's RAM only.)
+        n_words = {"status_rd": len(STATUS), "status_probe": len(words)}
         self._status_mems = {
-            name: Memory(shape=signed(ENGINE_WIDTH), depth=len(STATUS), init=[],
+            name: Memory(shape=signed(ENGINE_WIDTH), depth=n_words[name], init=[],
                          attrs={} if name == "status_rd" else {"no_rw_check": 1})
             for name in ("status_rd", "status_probe")}
         for name, transparent in (("status_rd", True), ("status_probe", False)):
             port = getattr(self, name)
             m.submodules[f"{name}_ram"] = mem = self._status_mems[name]
             wr = mem.write_port()
-            m.d.comb += [wr.en.eq(Cat(*strobes).any()), wr.addr.eq(addr),
+            m.d.comb += [wr.en.eq(Cat(*strobes[:n_words[name]]).any()),
+                         wr.addr.eq(addr[:len(wr.addr)]),
                          wr.data.eq(eng.o_data[:ENGINE_WIDTH])]
             if transparent:
                 rd = mem.read_port(transparent_for=(wr,))

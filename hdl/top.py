@@ -136,6 +136,26 @@ speed-PI result in the sample's own clock changes what it latches: the previous 
 one at the next sample. (A trip lowers ``enable`` at once and the loop's PIs are then held
 cleared whatever the references.)
 
+**References in the engine's RAM** (``current_loop="engine"``, ``speed_loop="engine"``,
+``regs_staging="bram"``: the iCEBreaker; :data:`ENGINE_REFS`, docs/AREA.md §7.69): ``ol_u_d``,
+``ol_u_q``, ``i_d_ref``, ``i_q_ref``, ``pi_speed_lim_lo`` and ``pi_speed_lim_hi`` are words of the
+engine's configuration RAM after its 16 (the export port, before the speed loop's four): no
+flip-flops in the register file, no reference registers here, no latches in the engine, and the
+Servo's reference outputs (its mode multiplexer and i_q clamp) unused. The program forms the
+references as the Servo did (``EngineCurrentLoop(refs="ram")``: ``i_d = i_d_ref``; i_q the
+set-point clamped to the limits in CURRENT mode, the speed run's result in SPEED mode; the open-loop
+voltages under ``OL``; the speed run's limits from the same words), reading the words while it
+runs, where the latches took the ports at the sample: the same values, since the commit copy
+and the mode copy come while the loop is idle (the timing rule above); a speed run's result
+that a sample waiting behind it (the sample-point limit of "Speed loop on the engine") reads is
+that run's (the latch took the previous one; the trace already showed that run's). The scope's
+``i_d_ref`` / ``i_q_ref`` come from the engine's status RAM, which the program writes with the
+references it used (two words after the eight status values, in the scope's RAM only), each
+masked to 0 here unless the mode one clock before the sampled clock was CURRENT or SPEED: the
+values the registers would have held, a trip in the middle of a pass included (the tests:
+``test_top_scope_reads_the_engine_references_as_the_registers_held_them``,
+``tests/test_engine_refs.py``).
+
 **Scope trigger.** The Servo's ``ref_step`` strobes at the first loop strobe that sees the
 value of a host write to the mode or a reference (:data:`REF_STEP_REGISTERS`): the top flags
 such a write at its ``ack`` (an address look-up on the bus, not a compare of the values) and
@@ -193,6 +213,7 @@ from .encoder import EncoderFrontEnd
 from .fixed import at_least, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
+from .foc_engine import REF_STATUS as ENGINE_REF_STATUS
 from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
 from .foc_engine import EngineCurrentLoop
@@ -228,10 +249,13 @@ ENGINE_CONFIG = tuple({
     "klead": "theta_lead", "urat": "u_rated",
 }[name] for name in ENGINE_CONFIG_SPECIALS)
 #: The registers read as the loop engine's configuration-RAM words after :data:`ENGINE_CONFIG`
-#: (``EngineCurrentLoop(refs="ram")``, with its configuration RAM), in its word order
-#: (:data:`~.foc_engine.REF_CONFIG_WORDS`): no flip-flops in the register file, no latch in
-#: the engine, no mode multiplexer in the Servo.
-ENGINE_REFS = tuple({"ol_ud": "ol_u_d", "ol_uq": "ol_u_q"}[name] for name in ENGINE_REF_WORDS)
+#: (``EngineCurrentLoop(refs="ram")``: the engine's speed run with its configuration RAM, the
+#: iCEBreaker's), in its word order (:data:`~.foc_engine.REF_CONFIG_WORDS`): no flip-flops in
+#: the register file, no latches in the engine, no mode multiplexer or i_q clamp in the Servo,
+#: no reference registers in the top (module docstring, "References").
+ENGINE_REFS = tuple({"ol_ud": "ol_u_d", "ol_uq": "ol_u_q", "idset": "i_d_ref",
+                     "iqset": "i_q_ref", "ilo": "pi_speed_lim_lo",
+                     "ihi": "pi_speed_lim_hi"}[name] for name in ENGINE_REF_WORDS)
 #: The registers of the speed loop's configuration words (``regs_staging="bram"``), in its word
 #: order (:data:`~.servo.SPEED_CONFIG`).
 SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
@@ -601,7 +625,13 @@ class Top(wiring.Component):
         # ... and its status in its status RAM, read by the register file and the scope.
         self._status_ram = cfg_ram
         speed_ram = regs_staging == "bram"
-        self._scope = Scope(ram=scope_ram, ram_sources=ENGINE_STATUS if cfg_ram else ())
+        # ... and with its speed run too, the references in its configuration RAM; the scope
+        # reads the ones it used from its status RAM (ENGINE_REFS).
+        refs = cfg_ram and speed_loop == "engine"
+        self._refs = refs
+        self._scope = Scope(ram=scope_ram,
+                            ram_sources=(ENGINE_STATUS + (ENGINE_REF_STATUS if refs else ())
+                                         if cfg_ram else ()))
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
         self._operands = _operands(self._scope, regmap)
@@ -613,7 +643,8 @@ class Top(wiring.Component):
                                   counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
                                             + (TOP_COUNTERS if self._ram_counters else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
-                                  export=((ENGINE_CONFIG + ENGINE_REFS if cfg_ram else ())
+                                  export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
+                                           if cfg_ram else ())
                                           + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
@@ -650,11 +681,11 @@ class Top(wiring.Component):
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
                                         config_init=self._regs.export_init[
-                                            :len(ENGINE_CONFIG) + len(ENGINE_REFS)
-                                            + (len(SPEED_LOOP_CONFIG)
+                                            :len(ENGINE_CONFIG)
+                                            + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
                                                if speed_loop == "engine" else 0)],
                                         status="ram", speed=speed_loop == "engine",
-                                        refs="ram")
+                                        refs="ram" if refs else "ports")
                       if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
@@ -910,9 +941,8 @@ class Top(wiring.Component):
         if hasattr(cl, "config"):
             # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1; with the
             # engine's speed run the speed loop's words after them too: all of them).
-            n_cfg = len(ENGINE_CONFIG) + len(ENGINE_REFS) + (len(SPEED_LOOP_CONFIG)
-                                                             if self._speed_loop == "engine"
-                                                             else 0)
+            n_cfg = len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
+                                          if self._speed_loop == "engine" else 0)
             m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < n_cfg)),
                          cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
@@ -934,15 +964,17 @@ class Top(wiring.Component):
             m.d.comb += [cl.speed_clear.eq(servo.speed_clear),
                          servo.sl_iq.valid.eq(cl.speed_o.valid),
                          servo.sl_iq.payload.eq(cl.speed_o.payload),
-                         servo.sl_sat.eq(cl.speed_sat), servo.sl_ref_int.eq(cl.speed_ref_int),
-                         cl.iq_lim_lo.eq(regs.pi_speed_lim_lo),
-                         cl.iq_lim_hi.eq(regs.pi_speed_lim_hi)]
+                         servo.sl_sat.eq(cl.speed_sat), servo.sl_ref_int.eq(cl.speed_ref_int)]
+            if not self._refs:
+                m.d.comb += [cl.iq_lim_lo.eq(regs.pi_speed_lim_lo),
+                             cl.iq_lim_hi.eq(regs.pi_speed_lim_hi)]
         sl = cl if engine_speed else servo
         m.d.comb += [
             servo.mode.eq(regs.mode),
             sl.speed_ref.eq(regs.speed_ref),
-            servo.id_set.eq(regs.i_d_ref),
-            servo.iq_set.eq(regs.i_q_ref),
+            # (the engine's references in its RAM: the Servo's id_ref, iq_ref unused, ENGINE_REFS)
+            *([] if self._refs else [servo.id_set.eq(regs.i_d_ref),
+                                     servo.iq_set.eq(regs.i_q_ref)]),
             servo.ol_src.eq(regs.ol_angle_mode),
             # (the engine's references in its RAM: no flip-flops, the Servo's ol_ud, ol_uq
             # unused; ENGINE_REFS)
@@ -961,8 +993,8 @@ class Top(wiring.Component):
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),
 
-            servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
-            servo.iq_lim_hi.eq(regs.pi_speed_lim_hi),
+            *([] if self._refs else [servo.iq_lim_lo.eq(regs.pi_speed_lim_lo),
+                                     servo.iq_lim_hi.eq(regs.pi_speed_lim_hi)]),
             sl.speed_rate_div.eq(operand("speed_div")),
             sl.speed_ref_delay.eq(regs.speed_ref_delay),
             sl.speed_int_hold.eq(regs.speed_int_hold),
@@ -1027,23 +1059,41 @@ class Top(wiring.Component):
         # Servo's outputs, which the loop, latching them at its sample, sees only for a
         # speed-PI result in the clock of the sample (module docstring, "References").
         theta_q = Signal.like(servo.theta)
-        id_ref_q = Signal.like(servo.id_ref)
-        iq_ref_q = Signal.like(servo.iq_ref)
-        m.d.sync += [theta_q.eq(servo.theta), id_ref_q.eq(servo.id_ref),
-                     iq_ref_q.eq(servo.iq_ref)]
-        m.d.comb += [cl.id_ref.eq(id_ref_q), cl.iq_ref.eq(iq_ref_q)]
+        if not self._refs:
+            id_ref_q = Signal.like(servo.id_ref)
+            iq_ref_q = Signal.like(servo.iq_ref)
+            m.d.sync += [theta_q.eq(servo.theta), id_ref_q.eq(servo.id_ref),
+                         iq_ref_q.eq(servo.iq_ref)]
+            m.d.comb += [cl.id_ref.eq(id_ref_q), cl.iq_ref.eq(iq_ref_q)]
+        else:
+            m.d.sync += theta_q.eq(servo.theta)
         m.d.comb += [
             src.speed.eq(speed),
             src.speed_ref.eq(regs.speed_ref),
-            src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q),
+            *([] if self._refs else [src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q)]),
             src.theta.eq(theta_q),
             src.u_dc.eq(cl.udc.payload),
         ]
         # The loop's status: its ports, or (the engine's status RAM) one read port of it each
         # for the register file and the scope (the scope samples it in the engine's quiet
         # clocks after done: checked in __init__).
+        if self._refs:
+            # The references the engine used, from its status RAM (written by its program
+            # while it runs, ENGINE_REFS), as the registers the scope took them from would
+            # hold them: the Servo's of the clock before, 0 unless the mode was CURRENT or
+            # SPEED then. A channel reading one in clock c gets the data in c + 1: masked by
+            # that mode as of c − 1 (two registers) when its address (registered) was one of
+            # theirs. (Equal to the registers' unless a commit or a mode copy falls in the
+            # run, which the top's timing keeps out of it: module docstring.)
+            run_q, run_qq, ref_q = Signal(), Signal(), Signal()
+            probe = cl.status_probe
+            m.d.sync += [run_q.eq(servo.enable & ~servo.ol_enable), run_qq.eq(run_q),
+                         ref_q.eq(scope.ram_rd.addr >= len(ENGINE_STATUS))]
+            m.d.comb += [probe.addr.eq(scope.ram_rd.addr), probe.en.eq(scope.ram_rd.en),
+                         scope.ram_rd.data.eq(Mux(ref_q & ~run_qq, 0, probe.data))]
         if self._status_ram:
-            wiring.connect(m, current_loop=cl.status_probe, scope=scope.ram_rd)
+            if not self._refs:
+                wiring.connect(m, current_loop=cl.status_probe, scope=scope.ram_rd)
             wiring.connect(m, current_loop=cl.status_rd, regs=regs.status_rd)
         else:
             m.d.comb += [getattr(src, n).eq(getattr(cl, n)) for n in ENGINE_STATUS]

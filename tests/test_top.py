@@ -653,8 +653,8 @@ def test_top_current_loop_duties_match_the_model(current_loop, staging):
     each within the loop's latency, with no overrun. The pipelined loop with ``"bram"`` staging
     is the Arty S7's configuration; the engine with ``"bram"`` staging (the iCEBreaker's) reads its configuration from its RAM (written by the register file's reset
     walk): the configuration recorded is then the registers' reset values."""
-    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, REF_CONFIG_WORDS
-    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS
+    from foc_servo.hdl.top import ENGINE_CONFIG
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CONFIG_FIELDS, SAMPLE_FIELDS, CurrentLoopModel
     clk = 33.333e6          # the ADC model checks the datasheet timing at this clock
@@ -677,9 +677,10 @@ def test_top_current_loop_duties_match_the_model(current_loop, staging):
     ports = {"ia": cl.i.payload.ia, "ib": cl.i.payload.ib, "udc": cl.i.payload.udc,
              **{f: getattr(cl, f) for f in fields + CONFIG_FIELDS
                 if f not in ("ia", "ib", "udc") and hasattr(cl, f)}}
+    # (The engine's references are words of its RAM only with its speed run: not here.)
+    assert not hasattr(cl, "refs_mode") or cl.refs_mode == "ports"
     in_ram = {port: top.regmap[reg].reset for port, reg in
-              zip([CONFIG_PORTS[n] for n in CONFIG] + list(REF_CONFIG_WORDS),
-                  ENGINE_CONFIG + ENGINE_REFS)}
+              zip((CONFIG_PORTS[n] for n in CONFIG), ENGINE_CONFIG)}
     assert (current_loop, staging) == ("engine", "bram") or not hasattr(cl, "config")
     if hasattr(cl, "config"):
         assert set(in_ram) == (set(CONFIG_FIELDS) | set(fields)) - set(ports)
@@ -930,7 +931,7 @@ def test_top_engine_open_loop_voltages_are_words_of_the_engine_ram():
               resets={"mode": Mode.OPEN_LOOP.value, "ol_u_d": 12000, "ol_u_q": -3000})
     regs, cl = top._regs, top._loop
     names = [r.name for _, r, _ in regs.export_words]
-    assert names[:len(ENGINE_CONFIG) + 2] == list(ENGINE_CONFIG + ENGINE_REFS)
+    assert names[:len(ENGINE_CONFIG + ENGINE_REFS)] == list(ENGINE_CONFIG + ENGINE_REFS)
     assert not any(hasattr(regs, n) for n in ENGINE_REFS)
     assert not hasattr(cl, "ol_ud") and not hasattr(cl, "ol_uq")
     bench = _Bench(top, BAUD)
@@ -957,6 +958,72 @@ def test_top_engine_open_loop_voltages_are_words_of_the_engine_ram():
     after = [(u, v) for t, u, v in passes[-3:]]
     assert len(before) >= 3 and set(before) == {(12000, -3000)}
     assert set(after) == {(-7000, 5000)}
+
+
+@pytest.mark.parametrize("mode", ["current", "speed"])
+def test_top_scope_reads_the_engine_references_as_the_registers_held_them(mode):
+    """The iCEBreaker's top (:data:`~foc_servo.hdl.top.ENGINE_REFS`): the scope's ``i_d_ref``
+    and ``i_q_ref`` are words of the engine's status RAM, written by its program with the
+    references it used, masked in the top by the mode: in every clock ``c`` after a pass
+    (``done`` … ``done + 3``, the clocks the scope samples in) in which the scope addresses one
+    of them, the data in ``c + 1`` is what the top's reference registers held in ``c``: the
+    Servo's reference of ``c − 1`` (CURRENT: ``i_d_ref`` and ``clamp(i_q_ref)``; SPEED: the
+    speed run's i_q), 0 unless the mode was CURRENT or SPEED then: after a driver fault trips
+    the drive in the middle of a pass, 0 although the RAM still holds the pass's values."""
+    from foc_servo.hdl.foc_engine import STATUS
+    from foc_servo.hdl.protect import FAULTS
+    from foc_servo.hdl.scope import DEFAULT_SOURCES
+    codes = list(DEFAULT_SOURCES)
+    resets = {"mode": (Mode.CURRENT if mode == "current" else Mode.SPEED).value,
+              "i_d_ref": -3000, "i_q_ref": 9000, "pi_speed_lim_lo": -4000,
+              "pi_speed_lim_hi": 7000, "speed_ref": 1 << 28, "pi_speed_kp": 1 << 12,
+              "prot_mask": 1 << FAULTS.index("external"),
+              **{f"scope_chan{c}": codes.index("i_q_ref" if c % 2 else "i_d_ref")
+                 for c in range(4)}}
+    top = Top(pwm_hz=PWM / 2, baud=BAUD, current_loop="engine", regs_staging="bram",
+              speed_loop="engine", resets=resets)
+    cl, servo, scope = top._loop, top._servo, top._scope
+    assert scope.ram_sources == STATUS + ("i_d_ref", "i_q_ref")
+    assert not hasattr(top._regs, "i_d_ref") and not hasattr(cl, "iq_ref")
+
+    def probe(ctx):
+        if ctx.get(cl.count) == 5 and ctx.get(cl.busy) and ctx.get(cl.i.valid) == 0:
+            ctx.set(top.fault_n, 0)                 # in the sixth pass: a driver fault
+        return (ctx.get(cl.done), ctx.get(scope.ram_rd.addr), ctx.get(scope.ram_rd.data),
+                ctx.get(servo.enable) & ~ctx.get(servo.ol_enable), ctx.get(servo.active).value,
+                ctx.get(cl.speed_o.payload), ctx.get(cl.probe_memory.data[len(STATUS)]),
+                ctx.get(cl.probe_memory.data[len(STATUS) + 1]))
+    host = _TracingHost(_Bench(top, BAUD), probe)
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        ctx.set(top.fault_n, 1)
+        await host.write(ctx, _addr(top, "scope_arm"), 1)       # (the scope latches sel)
+        await host.tick(ctx, 8 * top.pwm_period)
+
+    simulate(host.bench, [testbench], name=f"test_top_scope_refs_{mode}")
+    done, addr, data, run, active, sl_iq, w_id, w_iq = (np.array(c) for c in zip(*host.trace))
+    checked, masked = {8: 0, 9: 0}, 0
+    for t in np.flatnonzero(done):
+        for c in range(t, t + 4):
+            a = int(addr[c])
+            if a not in checked:
+                continue
+            checked[a] += 1
+            if not run[c - 1]:
+                want = 0
+            elif a == 8:
+                want = -3000
+            elif active[c - 1] == Mode.CURRENT.value:
+                want = 7000                                 # clamp(9000, −4000, 7000)
+            else:
+                want = int(sl_iq[c - 1])
+            assert data[c + 1] == want, (t, c, a, int(data[c + 1]), want)
+            masked += not run[c - 1] and (w_id[c] if a == 8 else w_iq[c]) != 0
+    assert min(checked.values()) >= 6 and masked >= 2
+    assert run[:len(run) // 2].any() and not run[-1]           # tripped in the end
+    if mode == "speed":
+        assert len({int(v) for v in sl_iq[run.astype(bool)]}) >= 2
 
 
 def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
@@ -1173,8 +1240,8 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     same replay with either switch one sample earlier or later differs (the test sees when a
     word arrives, not only that it does). ("After its frame": after the register file's last
     write of the frame, with the commit copy starting after it.)"""
-    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, REF_CONFIG_WORDS, STATUS
-    from foc_servo.hdl.top import ENGINE_CONFIG, ENGINE_REFS
+    from foc_servo.hdl.foc_engine import CONFIG, CONFIG_PORTS, STATUS
+    from foc_servo.hdl.top import ENGINE_CONFIG
     from foc_servo.sim.models.engine import engine_fields, loop_model_inputs
     from foc_servo.sim.models.foc import CurrentLoopModel
     clk = 33.333e6
@@ -1236,8 +1303,7 @@ def test_top_engine_config_written_over_the_link_reaches_the_engine_ram():
     assert len(got) >= len(ins) - 1 >= 12
     # The configuration in force: the reset values, then each frame from its commit on.
     port_of = {reg: CONFIG_PORTS[s] for s, reg in zip(CONFIG, ENGINE_CONFIG)}
-    port_of.update(zip(ENGINE_REFS, REF_CONFIG_WORDS))      # (their RAM words, no ports)
-    config = {port_of[reg]: rm[reg].reset for reg in ENGINE_CONFIG + ENGINE_REFS}
+    config = {port_of[reg]: rm[reg].reset for reg in ENGINE_CONFIG}
     switches = []
     for t in replied:
         # The frame's last register write; the commit copy that starts after it (the copy's
@@ -1293,7 +1359,8 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
                   "pi_speed_lim_lo": -9000, "pi_speed_lim_hi": 9000, "prot_mask": 0})
     regs, servo, rm, cl = top._regs, top._servo, top.regmap, top._loop
     names = [r.name for _, r, _ in regs.export_words]
-    engine = ENGINE_CONFIG + ENGINE_REFS if current_loop == "engine" else ()
+    engine = (ENGINE_CONFIG + (ENGINE_REFS if eng else ()) if current_loop == "engine"
+              else ())
     assert names == list(engine + SPEED_LOOP_CONFIG)
     assert not any(hasattr(regs, n) for n in SPEED_LOOP_CONFIG)
     assert servo.config_mode == ("ports" if eng else "ram") and servo.speed_loop == speed_loop
@@ -1340,9 +1407,16 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
              name=f"test_top_speed_config_{current_loop}_{speed_loop}")
     assert seen["read"] == list(new.values())
     ram = [rm[n].reset for n in SPEED_LOOP_CONFIG]
+    # The engine's speed run takes the i_q limits from its RAM too (ENGINE_REFS: not from the
+    # Servo's ports, which have no driver there): the model takes the words written.
+    at_lim = {names.index(f"pi_speed_lim_{s}"): f"iq_lim_{s}" for s in ("lo", "hi")
+              if eng}
+    lims = {port: rm[names[j]].reset for j, port in at_lim.items()}
     runs, mismatches, writes = [], [], []
     for t, (i, (valid, index, data), got) in enumerate(host.trace):
-        want = model.clock({**i, **dict(zip(config.values(), ram))})
+        want = model.clock({**i, **dict(zip(config.values(), ram)), **lims})
+        if valid and index in at_lim:
+            lims[at_lim[index]] = data - ((data >> 31) << 32)
         if want != got:
             mismatches.append((t, got, want))
         if got["speed_valid"]:
@@ -1367,8 +1441,9 @@ def test_top_bram_speed_loop_configuration_written_through_the_register_file(cur
     assert len(ramp) > 3 and set(ramp[3:]) == {-(3 << 24)}
     # The feed-forward counts: the same trace with speed_ff_iq left at 0 is not the model's.
     model, ram, off = ServoModel(**params), [rm[n].reset for n in SPEED_LOOP_CONFIG], 0
+    lims = {port: rm[names[j]].reset for j, port in at_lim.items()}
     for i, (valid, index, data), got in host.trace:
-        off += model.clock({**i, **dict(zip(config.values(), ram)), "iq_ff": 0}) != got
+        off += model.clock({**i, **dict(zip(config.values(), ram)), **lims, "iq_ff": 0}) != got
         if valid and index >= off_cfg:
             ram[index - off_cfg] = data
     assert off > 0
