@@ -1018,7 +1018,7 @@ class EngineCurrentLoop(wiring.Component):
                 run.eq(self.enable & ~self.ol_enable),
                 # (refs="ram": OL in SPEED mode too, where the program, on its RUN path, takes
                 # the speed run's i_q reference, not the clamped set-point)
-                ol.eq(self.ol_enable | (~self.speed_clear if refs else 0)),
+                ol.eq(self.ol_enable | ~self.speed_clear if refs else self.ol_enable),
                 ff.eq(self.ff_enable & self.enable & ~self.ol_enable),
                 self.udc.payload.eq(self.i.payload.udc),
             ]
@@ -1128,13 +1128,14 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
+        refs = self._refs == "ram"      # (the limits are configuration words then)
         m.d.comb += [eng.s_spd.eq(self.speed), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
+                     *([] if refs else [eng.s_ilo.eq(self.iq_lim_lo),
+                                        eng.s_ihi.eq(self.iq_lim_hi)]),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
                      eng.s_ih.eq(self.speed_int_hold)]
-        if self._refs == "ram":         # (the limits are configuration words)
-            m.d.comb += eng.s_sliq.eq(self.speed_o.payload)
-        else:
-            m.d.comb += [eng.s_ilo.eq(self.iq_lim_lo), eng.s_ihi.eq(self.iq_lim_hi)]
+        if refs:
+            m.d.comb += eng.s_sliq.eq(self.speed_o.payload)     # SPEED mode's i_q reference
 
     def _status_ram(self, m, eng):
         """The status RAM (class docstring): written at the engine's writes of the status
