@@ -713,14 +713,21 @@ class EngineCurrentLoop(wiring.Component):
         ``config="ram"``: the RAM's initial words (default all 0; the top passes the
         registers' reset values, :attr:`~.regs.RegisterFile.export_init`).
     refs : str
-        ``"ports"`` (default): the open-loop voltages ``ol_ud``, ``ol_uq`` are input ports,
-        latched with the sample. ``"ram"`` (needs ``config="ram"``): they are the
-        configuration RAM's words :data:`REF_CONFIG_WORDS` (after :data:`CONFIG`, before the
-        speed loop's words; raw, not selected by the mode: the program takes them only with
-        ``ol_enable``), read by the program when it runs, with no port and no latch: the same
-        values whenever no word is written between the accepting clock and the program's read
-        (the register file's commit copy, which the top keeps clear of the loop's run,
-        hdl/top.py "Engine configuration in RAM").
+        ``"ports"`` (default): the references are input ports (``id_ref``, ``iq_ref``,
+        ``ol_ud``, ``ol_uq`` latched with the sample; with ``speed=True`` the speed run's
+        ``iq_lim_lo``, ``iq_lim_hi``). ``"ram"`` (needs ``config="ram"`` and ``speed=True``):
+        none of those ports; the configuration RAM's words :data:`REF_CONFIG_WORDS` (after
+        :data:`CONFIG`, before the speed loop's words) hold the open-loop voltages, the
+        current set-points and the i_q limits, and the program forms the references as the
+        Servo does (``current_loop_program(refs=True)``: ``id_ref`` = the set-point; ``iq_ref`` =
+        the set-point clamped to the limits, or in SPEED mode (``speed_clear`` low at the
+        sample) the speed run's result ``speed_o``; the voltages under ``ol_enable``), reading
+        the words while it runs: the same values as the latches whenever no word is written
+        between the accepting clock and the read (the register file's commit copy, which the
+        top keeps clear of the loop's run, hdl/top.py "References in the engine's RAM"); a
+        SPEED sample that waits behind a speed run takes that run's result. With
+        ``status="ram"`` the references it used are two more words of ``status_probe``'s RAM
+        (:data:`REF_STATUS`, for the scope).
     status : str
         Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
         registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM
