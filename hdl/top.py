@@ -213,9 +213,9 @@ from .encoder import EncoderFrontEnd
 from .fixed import at_least, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
+from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
 from .foc_engine import REF_STATUS as ENGINE_REF_STATUS
 from .foc_engine import STATUS as ENGINE_STATUS
-from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
@@ -889,8 +889,7 @@ class Top(wiring.Component):
             cl.enable.eq(servo.enable),
             cl.ol_enable.eq(servo.ol_enable),
             # (the engine's references in its RAM: no ports, ENGINE_REFS)
-            *([] if "ol_ud" not in cl.signature.members else [cl.ol_ud.eq(servo.ol_ud),
-                                                               cl.ol_uq.eq(servo.ol_uq)]),
+            *([] if self._refs else [cl.ol_ud.eq(servo.ol_ud), cl.ol_uq.eq(servo.ol_uq)]),
             cl.speed.eq(cl_speed),
 
             prot.fault_n.eq(fault_n),
@@ -976,10 +975,9 @@ class Top(wiring.Component):
             *([] if self._refs else [servo.id_set.eq(regs.i_d_ref),
                                      servo.iq_set.eq(regs.i_q_ref)]),
             servo.ol_src.eq(regs.ol_angle_mode),
-            # (the engine's references in its RAM: no flip-flops, the Servo's ol_ud, ol_uq
-            # unused; ENGINE_REFS)
-            *([] if "ol_ud" not in cl.signature.members else [servo.ud_set.eq(regs.ol_u_d),
-                                                               servo.uq_set.eq(regs.ol_u_q)]),
+            # (the engine's references in its RAM: the Servo's ol_ud, ol_uq unused too)
+            *([] if self._refs else [servo.ud_set.eq(regs.ol_u_d),
+                                     servo.uq_set.eq(regs.ol_u_q)]),
             servo.ol_theta.eq(regs.ol_angle),
             servo.ol_freq.eq(regs.ol_freq),
 
