@@ -939,6 +939,10 @@ class EngineCurrentLoop(wiring.Component):
     #: The status RAM's words (``status="ram"``: :data:`STATUS`, with ``refs="ram"`` then
     #: :data:`REF_STATUS`).
     status_words = property(lambda self: self._status_words)
+    #: ``status="ram"``, ``refs="ram"``: the address of ``status_probe``'s word that is never
+    #: written (it reads 0: the top's mask of the references, hdl/top.py); else None.
+    status_zero = property(lambda self: len(self._status_words)
+                           if self._refs == "ram" and self._status == "ram" else None)
     #: ``speed=True``: :func:`speed_run_timing` of the program (per profile path); else None.
     speed_timing = property(lambda self: None if self._speed_timing is None
                             else {k: dict(v) for k, v in self._speed_timing.items()})
@@ -1162,8 +1166,10 @@ class EngineCurrentLoop(wiring.Component):
         # merges into the block RAM's synchronous port; a synchronous port reading the old word
         # made it add 38 flip-flops.)
         # One RAM per read port (a block RAM has one), both written alike.
-        # (refs="ram": the references' words, for the scope, in the scope's RAM only.)
-        n_words = {"status_rd": len(STATUS), "status_probe": len(words)}
+        # (refs="ram": the references' words, for the scope, in the scope's RAM only, and one
+        # more word there that is never written: it reads 0, ``status_zero``.)
+        n_words = {"status_rd": len(STATUS),
+                   "status_probe": len(words) + (self._refs == "ram")}
         self._status_mems = {
             name: Memory(shape=signed(ENGINE_WIDTH), depth=n_words[name], init=[],
                          attrs={} if name == "status_rd" else {"no_rw_check": 1})

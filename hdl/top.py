@@ -151,8 +151,8 @@ that a sample waiting behind it (the sample-point limit of "Speed loop on the en
 that run's (the latch took the previous one; the trace already showed that run's). The scope's
 ``i_d_ref`` / ``i_q_ref`` come from the engine's status RAM, which the program writes with the
 references it used (two words after the eight status values, in the scope's RAM only), each
-masked to 0 here unless the mode one clock before the sampled clock was CURRENT or SPEED: the
-values the registers would have held, a trip in the middle of a pass included (the tests:
+read as 0 here (the RAM's never-written word) unless the mode one clock before the sampled
+clock was CURRENT or SPEED: the values the registers would have held, a trip in the middle of a pass included (the tests:
 ``test_top_scope_reads_the_engine_references_as_the_registers_held_them``,
 ``tests/test_engine_refs.py``).
 
@@ -1079,16 +1079,16 @@ class Top(wiring.Component):
             # The references the engine used, from its status RAM (written by its program
             # while it runs, ENGINE_REFS), as the registers the scope took them from would
             # hold them: the Servo's of the clock before, 0 unless the mode was CURRENT or
-            # SPEED then. A channel reading one in clock c gets the data in c + 1: masked by
-            # that mode as of c − 1 (two registers) when its address (registered) was one of
-            # theirs. (Equal to the registers' unless a commit or a mode copy falls in the
-            # run, which the top's timing keeps out of it: module docstring.)
-            run_q, run_qq, ref_q = Signal(), Signal(), Signal()
-            probe = cl.status_probe
-            m.d.sync += [run_q.eq(servo.enable & ~servo.ol_enable), run_qq.eq(run_q),
-                         ref_q.eq(scope.ram_rd.addr >= len(ENGINE_STATUS))]
-            m.d.comb += [probe.addr.eq(scope.ram_rd.addr), probe.en.eq(scope.ram_rd.en),
-                         scope.ram_rd.data.eq(Mux(ref_q & ~run_qq, 0, probe.data))]
+            # SPEED then. A channel reading one in clock c (its data in c + 1) reads the RAM's
+            # word that is never written (0, ``status_zero``) instead unless that mode held in
+            # c − 1 (``run_q``). (Equal to the registers' unless a commit or a mode copy falls
+            # in the run, which the top's timing keeps out of it: module docstring.)
+            run_q = Signal()
+            probe, addr = cl.status_probe, scope.ram_rd.addr
+            m.d.sync += run_q.eq(servo.enable & ~servo.ol_enable)
+            m.d.comb += [probe.addr.eq(Mux((addr >= len(ENGINE_STATUS)) & ~run_q,
+                                           cl.status_zero, addr)),
+                         probe.en.eq(scope.ram_rd.en), scope.ram_rd.data.eq(probe.data)]
         if self._status_ram:
             if not self._refs:
                 wiring.connect(m, current_loop=cl.status_probe, scope=scope.ram_rd)

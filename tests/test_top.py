@@ -960,8 +960,9 @@ def test_top_engine_open_loop_voltages_are_words_of_the_engine_ram():
     assert set(after) == {(-7000, 5000)}
 
 
-@pytest.mark.parametrize("mode", ["current", "speed"])
-def test_top_scope_reads_the_engine_references_as_the_registers_held_them(mode):
+@pytest.mark.parametrize("mode, trip", [("current", "mid"), ("speed", "mid"),
+                                        ("current", "edge")])
+def test_top_scope_reads_the_engine_references_as_the_registers_held_them(mode, trip):
     """The iCEBreaker's top (:data:`~foc_servo.hdl.top.ENGINE_REFS`): the scope's ``i_d_ref``
     and ``i_q_ref`` are words of the engine's status RAM, written by its program with the
     references it used, masked in the top by the mode: in every clock ``c`` after a pass
@@ -986,9 +987,18 @@ def test_top_scope_reads_the_engine_references_as_the_registers_held_them(mode):
     assert scope.ram_sources == STATUS + ("i_d_ref", "i_q_ref")
     assert not hasattr(top._regs, "i_d_ref") and not hasattr(cl, "iq_ref")
 
+    dones = []
+
     def probe(ctx):
-        if ctx.get(cl.count) == 5 and ctx.get(cl.busy) and ctx.get(cl.i.valid) == 0:
+        if ctx.get(cl.done):
+            dones.append(host.clocks)
+        if trip == "mid" and ctx.get(cl.count) == 5 and ctx.get(cl.busy):
             ctx.set(top.fault_n, 0)                 # in the sixth pass: a driver fault
+        # "edge": the pin so that the mode falls in the clock after the sixth pass's done
+        # (passes a period apart; pin → Servo.enable 3 clocks here): the scope's channel 1
+        # must still read the references (the mode of the clock before), channel 2 on 0.
+        if trip == "edge" and len(dones) == 5 and host.clocks == dones[4] + top.pwm_period - 3:
+            ctx.set(top.fault_n, 0)
         return (ctx.get(cl.done), ctx.get(scope.ram_rd.addr), ctx.get(scope.ram_rd.data),
                 ctx.get(servo.enable) & ~ctx.get(servo.ol_enable), ctx.get(servo.active).value,
                 ctx.get(cl.speed_o.payload), ctx.get(cl.probe_memory.data[len(STATUS)]),
@@ -1021,6 +1031,9 @@ def test_top_scope_reads_the_engine_references_as_the_registers_held_them(mode):
             assert data[c + 1] == want, (t, c, a, int(data[c + 1]), want)
             masked += not run[c - 1] and (w_id[c] if a == 8 else w_iq[c]) != 0
     assert min(checked.values()) >= 6 and masked >= 2
+    if trip == "edge":
+        fall = int(np.flatnonzero(run[1:] < run[:-1])[0]) + 1
+        assert fall == np.flatnonzero(done)[5] + 1 and addr[fall] == 9 and data[fall + 1] != 0
     assert run[:len(run) // 2].any() and not run[-1]           # tripped in the end
     if mode == "speed":
         assert len({int(v) for v in sl_iq[run.astype(bool)]}) >= 2
