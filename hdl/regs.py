@@ -140,6 +140,7 @@ from amaranth.utils import ceil_log2
 
 from .bus import DATA_WIDTH, RegBusSignature, Status, WordWriteSignature
 from .fixed import check_choice
+from .hostlink import _below
 from .regmap import REGMAP, Access, RegMap
 
 __all__ = ["Derived", "RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
@@ -492,6 +493,11 @@ class RegisterFile(wiring.Component):
                           **{a: len(self._slots) + j
                              for j, (a, _, _) in enumerate(self._counter_words)},
                           **{a: base + walked + j for j, (a, _, _) in enumerate(self._consts)}}
+        # "bram": the word select's codes (_sel_code): a RAM word's address, below a flag bit
+        # that marks the words outside the RAM (its low bits: 0 none, 1 read-only, 2 strobe).
+        ram_bits = ceil_log2(base + walked + len(self._consts)) if self._slots else 0
+        self._sel_width = max(ram_bits, 2) + 1
+        self._sel_none = 1 << (self._sel_width - 1)
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
@@ -561,9 +567,11 @@ class RegisterFile(wiring.Component):
         # The access's address, registered in t for t + 1: its word index (word_index(), a
         # choice of address bits), whether its block is one of the map's, and we.
         index = Cat(bus.addr[:block_bits], *(bus.addr[block_bits + p] for p in picked))
-        # Word select: 1 + the index of the addressed word in words (0: none), looked up from
-        # the word index (valid with blk_ok).
-        sel = Signal(range(len(words) + 1))
+        # Word select, looked up from the word index (valid with blk_ok). Flip-flop staging:
+        # not used (``known`` and ``read_only`` are registered from the index, below). Block-RAM
+        # staging: the word's code (:meth:`_sel_code`), whose fields are what t + 1 needs: the
+        # RAM address itself, or a flag and the kind of a word outside the RAM.
+        sel = Signal(self._sel_width)
         blk_ok = Signal()
         we = Signal(name="we_p")
         win_wr = Signal()                       # a write to a window (read only)
@@ -618,11 +626,11 @@ class RegisterFile(wiring.Component):
         # docs/AREA.md §7.58); the RAM staging also reads it between accesses.
         def load_sel():
             with m.Switch(index):
-                for i, (addr, r, k) in enumerate(words):
+                for addr, r, k in words:
                     with m.Case(_index_of(addr, block_bits, picked)):
-                        m.d.sync += sel.eq(i + 1)
+                        m.d.sync += sel.eq(self._sel_code(addr, r))
                 with m.Default():
-                    m.d.sync += sel.eq(0)
+                    m.d.sync += sel.eq(self._sel_none)
         if not bram:
             # Flip-flop staging reads the word select only as ``known`` and ``read_only``
             # (below): those two are registered from the index directly, each as one bit per
@@ -678,13 +686,11 @@ class RegisterFile(wiring.Component):
         word = Signal(DATA_WIDTH)
         sign = {}
         if bram:
-            known = Signal()                    # sel is a word (blk_ok: the address is)
-            read_only = Signal()                # ... a read-only one (ro, const)
-            with m.Switch(sel):
-                for i, (addr, r, k) in enumerate(words):
-                    with m.Case(i + 1):
-                        m.d.comb += [known.eq(1),
-                                     read_only.eq(r.access in (Access.RO, Access.CONST))]
+            # sel is a word (blk_ok: the address is); a read-only one (ro, const): outside the
+            # RAM its kind; in the RAM every word after the slots (counters, consts).
+            flag = sel[-1]
+            known = ~flag | (sel != self._sel_none)
+            read_only = Mux(flag, sel == self._sel_none + 1, ~stage["staged"])
         else:
             known, read_only = known_q.any(), ro_q.any()
 
@@ -904,15 +910,17 @@ class RegisterFile(wiring.Component):
                          self.export.data.eq(rd_data),
                          self.export_walk.eq(walk | load_walk)]
 
-        # t + 1: the access's RAM word and word format, looked up from the word select.
-        with m.Switch(sel):
-            for i, (a, r, k) in enumerate(self._regmap.words()):
-                if a in self._ram_addr:
-                    with m.Case(i + 1):
-                        m.d.comb += [in_ram.eq(1), ram_addr.eq(self._ram_addr[a])]
-                        if a in self._slot_of:
-                            m.d.comb += [staged.eq(1),
-                                         fmt.eq(formats.index(self._word_format(r, k)))]
+        # t + 1: the access's RAM word (the word select's code itself), whether it is a slot
+        # (code below n) and the slot's word format (a table of the code's low bits).
+        flag = sel[-1]
+        m.d.comb += [in_ram.eq(~flag), ram_addr.eq(sel[:-1]),
+                     staged.eq(~flag & _below(sel[:-1], n))]
+        fbits = ceil_log2(n)
+        fw = len(fmt)
+        table = [formats.index(self._word_format(r, k)) for _, r, k in slots]
+        table += [0] * ((1 << fbits) - n)
+        m.d.comb += fmt.eq(Const(sum(f << (fw * i) for i, f in enumerate(table)),
+                                 fw << fbits).word_select(sel[:fbits], fw))
         m.d.comb += [wr_pend.eq(pending & blk_ok & staged & we),
                      pend.eq(pending & blk_ok & in_ram & ~we)]
 
@@ -928,7 +936,15 @@ class RegisterFile(wiring.Component):
             wr.data.eq(Mux(load_walk | inc_wr, walk_data, w_fmt)),
             wr.en.eq((load & load_walk) | wr_pend | inc_wr),
         ]
-        return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
+        return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit, "staged": staged}
+
+    def _sel_code(self, addr, r):
+        """``staging="bram"``: the word select's code of the word at ``addr`` of register ``r``:
+        its RAM address if it is in the RAM, else the flag bit with 1 (read-only) or 2
+        (strobe)."""
+        if addr in self._ram_addr:
+            return self._ram_addr[addr]
+        return self._sel_none | (1 if r.access in (Access.RO, Access.CONST) else 2)
 
     def _derive(self, r, word):
         """The Out member's value of a ``derived`` register ``r`` from ``word`` (its raw value
