@@ -42,8 +42,9 @@ it). The read multiplexer is left with the read-only status words. The bus timin
 ``ack`` two clocks after the access is taken::
 
     t      word select registered, as with "ff"; an immediate register or strobe written
-    t + 1  the RAM word and word format looked up from the word select; write: the RAM's word
-           written (w_data still held, formatted); read: the RAM read
+    t + 1  the RAM word is the word select's code (with ``"bram"`` the code of a RAM word is
+           its RAM address), its format a table of the code; write: the RAM's word written
+           (w_data still held, formatted); read: the RAM read
     t + 2  ack; a read's r_data is the RAM's read data
 
 ``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
@@ -738,12 +739,16 @@ class RegisterFile(wiring.Component):
             return held_r[lo:hi], held_r[hi - 1]
 
         terms, sign_terms = [], {}
+        blk_now = Cat(bus.addr[block_bits:] == blk for blk in blocks).any()     # (blk_ok's D)
         if muxed:
             hot = Signal(len(muxed), name="hot")
             codes = [_index_of(words[i][0], block_bits, picked) for (i, r, k, _) in muxed]
             assert len(set(codes)) == len(codes)        # (one hot bit per index)
             # One compare per bit (no shared multiplexer tree, no reset term).
-            m.d.sync += hot.eq(Cat(index == c for c in codes))
+            if bram:                            # (the read's block hit and ~we in them)
+                m.d.sync += hot.eq(Cat((index == c) & blk_now & ~bus.we for c in codes))
+            else:
+                m.d.sync += hot.eq(Cat(index == c for c in codes))
             for j, (i, r, k, held_r) in enumerate(muxed):
                 value, sx = part(r, k, held_r)
                 value = Value.cast(value)
@@ -764,7 +769,7 @@ class RegisterFile(wiring.Component):
             with m.Switch(index):
                 for name in self._status_ram:
                     with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
-                        m.d.sync += st_hot.eq(1)
+                        m.d.sync += st_hot.eq(blk_now & ~bus.we if bram else 1)
             value, sx = part(r0, 0, Value.cast(rd.data))
             value = Value.cast(value)
             terms.append(value & st_hot.replicate(len(value)))
@@ -778,7 +783,9 @@ class RegisterFile(wiring.Component):
         for w, bit in sign.items():
             value = value | Cat(Const(0, w), bit.replicate(DATA_WIDTH - w))
         with m.If(pending):
-            m.d.sync += [r_data.eq(Mux(blk_ok & ~we, value, 0)),
+            # (With "bram" the hot bits are loaded with the block hit and ~we of their clock t
+            # (blk_ok, we), so no word is selected outside a read of the map: no AND here.)
+            m.d.sync += [r_data.eq(value if bram else Mux(blk_ok & ~we, value, 0)),
                          *(win_hit[n].eq(win_pend[n]) for n in win_hit)]
             if bram:
                 m.d.sync += stage["hit"].eq(stage["pend"])
