@@ -140,8 +140,7 @@ from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
 from .bus import DATA_WIDTH, RegBusSignature, Status, WordWriteSignature
-from .fixed import check_choice
-from .hostlink import _below
+from .fixed import at_least, check_choice
 from .regmap import REGMAP, Access, RegMap
 
 __all__ = ["Derived", "RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
@@ -953,7 +952,7 @@ class RegisterFile(wiring.Component):
         # (code below n) and the slot's word format (a table of the code's low bits).
         flag = sel[-1]
         m.d.comb += [in_ram.eq(~flag), ram_addr.eq(sel[:-1]),
-                     staged.eq(~flag & _below(sel[:-1], n))]
+                     staged.eq(~flag & ~at_least(sel[:-1], n))]
         fbits = ceil_log2(n)
         fw = len(fmt)
         table = [formats.index(self._word_format(r, k)) for _, r, k in slots]
