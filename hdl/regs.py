@@ -957,8 +957,11 @@ class RegisterFile(wiring.Component):
         fw = len(fmt)
         table = [formats.index(self._word_format(r, k)) for _, r, k in slots]
         table += [0] * ((1 << fbits) - n)
-        m.d.comb += fmt.eq(Const(sum(f << (fw * i) for i, f in enumerate(table)),
-                                 fw << fbits).word_select(sel[:fbits], fw))
+        if fw and fbits:                        # (else one format, or one slot: constant)
+            m.d.comb += fmt.eq(Const(sum(f << (fw * i) for i, f in enumerate(table)),
+                                     fw << fbits).word_select(sel[:fbits], fw))
+        else:
+            m.d.comb += fmt.eq(table[0])
         m.d.comb += [wr_pend.eq(pending & blk_ok & staged & we),
                      pend.eq(pending & blk_ok & in_ram & ~we)]
 

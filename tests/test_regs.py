@@ -11,7 +11,8 @@ from amaranth.hdl import (Elaboratable, Module, Mux, Signal, UnusedElaboratable,
 from amaranth.lib.memory import Memory
 
 from foc_servo.hdl.bus import Status
-from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
+from foc_servo.hdl.regmap import (FAULT_FIELDS, REGMAP, Access, Mode, RegMap, Register, Scales,
+                                  build_regmap)
 from foc_servo.hdl.bus import WordWriteSignature
 from foc_servo.hdl.regs import (Derived, RegisterFile, export_init, export_words, staging_slots,
                                 word_index)
@@ -511,6 +512,24 @@ def test_random_bus_traffic_with_resets_matches_the_model(staging):
         assert fig[key] > 0, key
     if staging == "bram":
         assert fig["copies"] > 10 and fig["held"] > 100
+
+
+@pytest.mark.parametrize("kinds", [("slot", "ro"), ("slot", "ro", "imm16"),
+                                   ("slot", "imm8", "ro", "const")])
+def test_random_bram_traffic_on_small_maps_matches_the_model(kinds):
+    """Block-RAM staging on maps of one or two slots (the word select's code and the format
+    table at their smallest: one slot, one format), with a read-only word (the bench needs
+    one) and a const word."""
+    from foc_servo.hdl.fixed import Q, UQ
+    make = {"slot": lambda: Register("a", 0x10, UQ(8, 0), Access.RW, 3, "a", shadow="g"),
+            "ro": lambda: Register("b", 0x400, Q(16, 0), Access.RO, 0, "b"),
+            "imm16": lambda: Register("c", 0x11, Q(16, 0), Access.RW, -3, "c"),
+            "imm8": lambda: Register("c", 0x11, UQ(8, 0), Access.RW, 5, "c"),
+            "const": lambda: Register("d", 0x12, UQ(12, 0), Access.CONST, 0x5A5, "d")}
+    fig = run(600, seed=5, regmap=RegMap([make[k]() for k in kinds]), staging="bram",
+              rst_p=0.002)
+    assert fig["mismatches"] == 0 and fig["stuck"] == 0, fig["first_mismatch"]
+    assert fig["writes"] > 100 and fig["bad_address"] > 50
 
 
 def test_random_bram_comparison_detects_a_wrong_copy_order_or_a_copy_under_lock(monkeypatch):
