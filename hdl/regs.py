@@ -42,8 +42,9 @@ it). The read multiplexer is left with the read-only status words. The bus timin
 ``ack`` two clocks after the access is taken::
 
     t      word select registered, as with "ff"; an immediate register or strobe written
-    t + 1  the RAM word and word format looked up from the word select; write: the RAM's word
-           written (w_data still held, formatted); read: the RAM read
+    t + 1  the RAM word is the word select's code (with ``"bram"`` the code of a RAM word is
+           its RAM address), its format a table of the code; write: the RAM's word written
+           (w_data still held, formatted); read: the RAM read
     t + 2  ack; a read's r_data is the RAM's read data
 
 ``commit`` is a copy, one word per clock: it starts in clock ``s`` with ``commit`` high only if
@@ -139,7 +140,7 @@ from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
 from .bus import DATA_WIDTH, RegBusSignature, Status, WordWriteSignature
-from .fixed import check_choice
+from .fixed import at_least, check_choice
 from .regmap import REGMAP, Access, RegMap
 
 __all__ = ["Derived", "RegisterFile", "STAGINGS", "export_init", "export_words", "ram_slots",
@@ -254,6 +255,31 @@ def _or_tree(values):
         values = [values[i] | values[i + 1] if i + 1 < len(values) else values[i]
                   for i in range(0, len(values), 2)]
     return values[0] if values else Const(0, 1)
+
+
+def _table_bit(index, table):
+    """The bit ``table[index]`` (``None``: either value) as a tree of 2:1 multiplexers on the
+    bits of ``index`` from the top, each subtree a constant where its entries allow one, equal
+    subtrees shared."""
+    memo = {}
+
+    def node(level, entries):
+        known = {e for e in entries if e is not None}
+        if len(known) <= 1:
+            return Const(known.pop() if known else 0, 1)
+        key = (level, tuple(entries))
+        if key not in memo:
+            half = len(entries) // 2
+            lo, hi = entries[:half], entries[half:]
+            if all(e is None for e in hi):
+                memo[key] = node(level - 1, lo)
+            elif all(e is None for e in lo):
+                memo[key] = node(level - 1, hi)
+            else:
+                memo[key] = Mux(index[level - 1], node(level - 1, hi), node(level - 1, lo))
+        return memo[key]
+
+    return node(len(index), list(table))
 
 
 def _member_bits(m, index, block_bits, codes, name):
@@ -492,6 +518,11 @@ class RegisterFile(wiring.Component):
                           **{a: len(self._slots) + j
                              for j, (a, _, _) in enumerate(self._counter_words)},
                           **{a: base + walked + j for j, (a, _, _) in enumerate(self._consts)}}
+        # "bram": the word select's codes (_sel_code): a RAM word's address, below a flag bit
+        # that marks the words outside the RAM (its low bits: 0 none, 1 read-only, 2 strobe).
+        ram_bits = ceil_log2(base + walked + len(self._consts)) if self._slots else 0
+        self._sel_width = max(ram_bits, 2) + 1
+        self._sel_none = 1 << (self._sel_width - 1)
         members = {"bus": In(RegBusSignature()), "commit": In(1)}
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
@@ -561,9 +592,11 @@ class RegisterFile(wiring.Component):
         # The access's address, registered in t for t + 1: its word index (word_index(), a
         # choice of address bits), whether its block is one of the map's, and we.
         index = Cat(bus.addr[:block_bits], *(bus.addr[block_bits + p] for p in picked))
-        # Word select: 1 + the index of the addressed word in words (0: none), looked up from
-        # the word index (valid with blk_ok).
-        sel = Signal(range(len(words) + 1))
+        # Word select, looked up from the word index (valid with blk_ok). Flip-flop staging:
+        # not used (``known`` and ``read_only`` are registered from the index, below). Block-RAM
+        # staging: the word's code (:meth:`_sel_code`), whose fields are what t + 1 needs: the
+        # RAM address itself, or a flag and the kind of a word outside the RAM.
+        sel = Signal(self._sel_width)
         blk_ok = Signal()
         we = Signal(name="we_p")
         win_wr = Signal()                       # a write to a window (read only)
@@ -617,12 +650,19 @@ class RegisterFile(wiring.Component):
         # ``access`` (the bus handshake) in front of its flip-flops' enable (ECP5 Fmax,
         # docs/AREA.md §7.58); the RAM staging also reads it between accesses.
         def load_sel():
-            with m.Switch(index):
-                for i, (addr, r, k) in enumerate(words):
-                    with m.Case(_index_of(addr, block_bits, picked)):
-                        m.d.sync += sel.eq(i + 1)
-                with m.Default():
-                    m.d.sync += sel.eq(0)
+            # The code of every word's index, the no-word code for the other indexes of the
+            # map's blocks, and any code for the indexes of other blocks (blk_ok low: the code
+            # is not used), as a multiplexer tree per bit (_table_bit; a Switch of the words'
+            # cases measured 35 logic cells more, docs/AREA.md §7.68).
+            table = [None] * (1 << len(index))
+            for blk in blocks:
+                lo = _index_of(blk << block_bits, block_bits, picked)
+                table[lo:lo + (1 << block_bits)] = [self._sel_none] * (1 << block_bits)
+            for addr, r, k in words:
+                table[_index_of(addr, block_bits, picked)] = self._sel_code(addr, r)
+            m.d.sync += sel.eq(Cat(_table_bit(index, [None if c is None else c >> b & 1
+                                                      for c in table])
+                                   for b in range(len(sel))))
         if not bram:
             # Flip-flop staging reads the word select only as ``known`` and ``read_only``
             # (below): those two are registered from the index directly, each as one bit per
@@ -678,13 +718,11 @@ class RegisterFile(wiring.Component):
         word = Signal(DATA_WIDTH)
         sign = {}
         if bram:
-            known = Signal()                    # sel is a word (blk_ok: the address is)
-            read_only = Signal()                # ... a read-only one (ro, const)
-            with m.Switch(sel):
-                for i, (addr, r, k) in enumerate(words):
-                    with m.Case(i + 1):
-                        m.d.comb += [known.eq(1),
-                                     read_only.eq(r.access in (Access.RO, Access.CONST))]
+            # sel is a word (blk_ok: the address is); a read-only one (ro, const): outside the
+            # RAM its kind; in the RAM every word after the slots (counters, consts).
+            flag = sel[-1]
+            known = ~flag | (sel != self._sel_none)
+            read_only = Mux(flag, sel == self._sel_none + 1, ~stage["staged"])
         else:
             known, read_only = known_q.any(), ro_q.any()
 
@@ -700,12 +738,16 @@ class RegisterFile(wiring.Component):
             return held_r[lo:hi], held_r[hi - 1]
 
         terms, sign_terms = [], {}
+        blk_now = Cat(bus.addr[block_bits:] == blk for blk in blocks).any()     # (blk_ok's D)
         if muxed:
             hot = Signal(len(muxed), name="hot")
             codes = [_index_of(words[i][0], block_bits, picked) for (i, r, k, _) in muxed]
             assert len(set(codes)) == len(codes)        # (one hot bit per index)
             # One compare per bit (no shared multiplexer tree, no reset term).
-            m.d.sync += hot.eq(Cat(index == c for c in codes))
+            if bram:                            # (the read's block hit and ~we in them)
+                m.d.sync += hot.eq(Cat((index == c) & blk_now & ~bus.we for c in codes))
+            else:
+                m.d.sync += hot.eq(Cat(index == c for c in codes))
             for j, (i, r, k, held_r) in enumerate(muxed):
                 value, sx = part(r, k, held_r)
                 value = Value.cast(value)
@@ -726,7 +768,7 @@ class RegisterFile(wiring.Component):
             with m.Switch(index):
                 for name in self._status_ram:
                     with m.Case(_index_of(self._regmap[name].addr, block_bits, picked)):
-                        m.d.sync += st_hot.eq(1)
+                        m.d.sync += st_hot.eq(blk_now & ~bus.we if bram else 1)
             value, sx = part(r0, 0, Value.cast(rd.data))
             value = Value.cast(value)
             terms.append(value & st_hot.replicate(len(value)))
@@ -740,7 +782,9 @@ class RegisterFile(wiring.Component):
         for w, bit in sign.items():
             value = value | Cat(Const(0, w), bit.replicate(DATA_WIDTH - w))
         with m.If(pending):
-            m.d.sync += [r_data.eq(Mux(blk_ok & ~we, value, 0)),
+            # (With "bram" the hot bits are loaded with the block hit and ~we of their clock t
+            # (blk_ok, we), so no word is selected outside a read of the map: no AND here.)
+            m.d.sync += [r_data.eq(value if bram else Mux(blk_ok & ~we, value, 0)),
                          *(win_hit[n].eq(win_pend[n]) for n in win_hit)]
             if bram:
                 m.d.sync += stage["hit"].eq(stage["pend"])
@@ -904,15 +948,20 @@ class RegisterFile(wiring.Component):
                          self.export.data.eq(rd_data),
                          self.export_walk.eq(walk | load_walk)]
 
-        # t + 1: the access's RAM word and word format, looked up from the word select.
-        with m.Switch(sel):
-            for i, (a, r, k) in enumerate(self._regmap.words()):
-                if a in self._ram_addr:
-                    with m.Case(i + 1):
-                        m.d.comb += [in_ram.eq(1), ram_addr.eq(self._ram_addr[a])]
-                        if a in self._slot_of:
-                            m.d.comb += [staged.eq(1),
-                                         fmt.eq(formats.index(self._word_format(r, k)))]
+        # t + 1: the access's RAM word (the word select's code itself), whether it is a slot
+        # (code below n) and the slot's word format (a table of the code's low bits).
+        flag = sel[-1]
+        m.d.comb += [in_ram.eq(~flag), ram_addr.eq(sel[:-1]),
+                     staged.eq(~flag & ~at_least(sel[:-1], n))]
+        fbits = ceil_log2(n)
+        fw = len(fmt)
+        table = [formats.index(self._word_format(r, k)) for _, r, k in slots]
+        table += [0] * ((1 << fbits) - n)
+        if fw and fbits:                        # (else one format, or one slot: constant)
+            m.d.comb += fmt.eq(Const(sum(f << (fw * i) for i, f in enumerate(table)),
+                                     fw << fbits).word_select(sel[:fbits], fw))
+        else:
+            m.d.comb += fmt.eq(table[0])
         m.d.comb += [wr_pend.eq(pending & blk_ok & staged & we),
                      pend.eq(pending & blk_ok & in_ram & ~we)]
 
@@ -928,7 +977,15 @@ class RegisterFile(wiring.Component):
             wr.data.eq(Mux(load_walk | inc_wr, walk_data, w_fmt)),
             wr.en.eq((load & load_walk) | wr_pend | inc_wr),
         ]
-        return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit}
+        return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit, "staged": staged}
+
+    def _sel_code(self, addr, r):
+        """``staging="bram"``: the word select's code of the word at ``addr`` of register ``r``:
+        its RAM address if it is in the RAM, else the flag bit with 1 (read-only) or 2
+        (strobe)."""
+        if addr in self._ram_addr:
+            return self._ram_addr[addr]
+        return self._sel_none | (1 if r.access in (Access.RO, Access.CONST) else 2)
 
     def _derive(self, r, word):
         """The Out member's value of a ``derived`` register ``r`` from ``word`` (its raw value

@@ -11,7 +11,8 @@ from amaranth.hdl import (Elaboratable, Module, Mux, Signal, UnusedElaboratable,
 from amaranth.lib.memory import Memory
 
 from foc_servo.hdl.bus import Status
-from foc_servo.hdl.regmap import FAULT_FIELDS, REGMAP, Access, Mode, Scales, build_regmap
+from foc_servo.hdl.regmap import (FAULT_FIELDS, REGMAP, Access, Mode, RegMap, Register, Scales,
+                                  build_regmap)
 from foc_servo.hdl.bus import WordWriteSignature
 from foc_servo.hdl.regs import (Derived, RegisterFile, export_init, export_words, staging_slots,
                                 word_index)
@@ -513,6 +514,24 @@ def test_random_bus_traffic_with_resets_matches_the_model(staging):
         assert fig["copies"] > 10 and fig["held"] > 100
 
 
+@pytest.mark.parametrize("kinds", [("slot", "ro"), ("slot", "ro", "imm16"),
+                                   ("slot", "imm8", "ro", "const")])
+def test_random_bram_traffic_on_small_maps_matches_the_model(kinds):
+    """Block-RAM staging on maps of one or two slots (the word select's code and the format
+    table at their smallest: one slot, one format), with a read-only word (the bench needs
+    one) and a const word."""
+    from foc_servo.hdl.fixed import Q, UQ
+    make = {"slot": lambda: Register("a", 0x10, UQ(8, 0), Access.RW, 3, "a", shadow="g"),
+            "ro": lambda: Register("b", 0x400, Q(16, 0), Access.RO, 0, "b"),
+            "imm16": lambda: Register("c", 0x11, Q(16, 0), Access.RW, -3, "c"),
+            "imm8": lambda: Register("c", 0x11, UQ(8, 0), Access.RW, 5, "c"),
+            "const": lambda: Register("d", 0x12, UQ(12, 0), Access.CONST, 0x5A5, "d")}
+    fig = run(600, seed=5, regmap=RegMap([make[k]() for k in kinds]), staging="bram",
+              rst_p=0.002)
+    assert fig["mismatches"] == 0 and fig["stuck"] == 0, fig["first_mismatch"]
+    assert fig["writes"] > 100 and fig["bad_address"] > 50
+
+
 def test_random_bram_comparison_detects_a_wrong_copy_order_or_a_copy_under_lock(monkeypatch):
     from foc_servo.sim.models import regs as model_regs
     slots = model_regs.staging_slots
@@ -735,28 +754,43 @@ def test_status_ram_reads_equal_status_inputs_clock_by_clock(staging):
     """``status_ram``: random status writes in random clocks (also in an access's clock and the
     one after), random reads of every word: the bus (ack, status, r_data sign-extended) is the
     same in every clock as a register file's whose status inputs are flip-flops loaded in those
-    clocks."""
+    clocks; also for writes (READ_ONLY, r_data 0) and for addresses outside the map whose word
+    index is a status word's (BAD_ADDRESS, r_data 0)."""
     import numpy as np
     rng = np.random.default_rng(11)
     bench = _StatusRamBench(staging)
     ref, dut = bench.ref, bench.dut
     st_addrs = [REGMAP[n].addr for n in STATUS_RAM]
     others = [a for a, r, k in REGMAP.words() if r.name not in STATUS_RAM]
-    fig = {"reads": 0, "status_reads": 0, "negative": 0, "bad": None}
+    fig = {"reads": 0, "status_reads": 0, "negative": 0, "status_writes": 0, "aliases": 0,
+           "bad": None}
+    block_bits, picked = word_index(REGMAP)
+    used = {a >> block_bits for a, _, _ in REGMAP.words()} | {REGMAP.windows[0].addr >> block_bits}
+    # Addresses outside the map's blocks with a status word's index (same offset and picked
+    # block bits, another block).
+    aliases = [a ^ (1 << b) for a in st_addrs for b in range(block_bits, 16)
+               if all(b != block_bits + p for p in picked) and (a ^ (1 << b)) >> block_bits
+               not in used]
 
     async def tb(ctx):
-        stb, addr = 0, 0
+        stb, addr, we = 0, 0, 0
         for clock in range(3000):
             ctx.set(bench.st_we, int(rng.random() < 0.5))
             ctx.set(bench.st_addr, int(rng.integers(len(STATUS_RAM))))
             ctx.set(bench.st_data, int(rng.integers(-32768, 32768)))
             if not stb and rng.random() < 0.5:
                 stb = 1
-                addr = (int(rng.choice(st_addrs)) if rng.random() < 0.7 else
-                        int(rng.choice(others)))
+                kind = rng.random()
+                addr = (int(rng.choice(st_addrs)) if kind < 0.6 else
+                        int(rng.choice(aliases)) if kind < 0.7 else int(rng.choice(others)))
+                we = int(rng.random() < 0.2)
+                fig["status_writes"] += we and addr in st_addrs
+                fig["aliases"] += addr in aliases
+                w_data = int(rng.integers(1 << 32))
                 for rf in (ref, dut):
                     ctx.set(rf.bus.addr, addr)
-                    ctx.set(rf.bus.we, 0)
+                    ctx.set(rf.bus.we, we)
+                    ctx.set(rf.bus.w_data, w_data)
             for rf in (ref, dut):
                 ctx.set(rf.bus.stb, stb)
             got = [(ctx.get(rf.bus.ack), ctx.get(rf.bus.status), ctx.get(rf.bus.r_data))
@@ -765,7 +799,7 @@ def test_status_ram_reads_equal_status_inputs_clock_by_clock(staging):
                 fig["bad"] = (clock, hex(addr), got)
             if got[0][0]:
                 fig["reads"] += 1
-                if addr in st_addrs:
+                if addr in st_addrs and not we:
                     fig["status_reads"] += 1
                     fig["negative"] += got[0][2] >> 31
                 stb = 0
@@ -775,6 +809,7 @@ def test_status_ram_reads_equal_status_inputs_clock_by_clock(staging):
     assert fig["bad"] is None, fig["bad"]
     assert fig["status_reads"] > 300 and fig["reads"] > fig["status_reads"] + 100
     assert fig["negative"] > 50
+    assert fig["status_writes"] > 50 and fig["aliases"] > 50
 
 
 def test_status_ram_members_and_errors():
