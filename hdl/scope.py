@@ -296,25 +296,33 @@ class Scope(wiring.Component):
         # of `phase`: sel[0] is always the code of the channel sampled in this clock (no
         # `sel[phase]` multiplexer in front of the source multiplexer).
         sel = Signal.like(self.sel)
-        # Latched at arm and read only while capturing: no reset needed. Its power-up value is
-        # all ones because an iCE40 flip-flop holds `value XOR init`, so the decimation compare
-        # (`dcount >= decim`, which wants `~decim` on the carry inputs) gets the complement
-        # without an inverter LUT per bit (AREA.md §7.50).
+        # Latched at arm and read only while capturing: no reset needed (its power-up value,
+        # all ones, is from the decimation's former carry-chain compare, AREA.md §7.50; the
+        # equality that replaced it takes either polarity).
         decim = Signal.like(self.decim, init=(1 << len(self.decim)) - 1, reset_less=True)
         pre = Signal.like(self.pretrigger)
         trig_src = Signal(TriggerSource)
         state = Signal(ScopeState)
         done = Signal()
+        # The ring slot of the sample being taken and written: it steps when the RAM writes a
+        # sample's last channel (or arm cuts a sample short), not at the take, so it stays
+        # the sample's slot while its channels are written (no copy of it, no multiplexer in
+        # front of the write address). Only reads see it between the take and that write,
+        # and those read 0 (wr_en is high in all of those clocks).
         wr_ptr = Signal(unsigned(ab))
-        filled = Signal(unsigned(ab))
-        post_left = Signal(unsigned(ab + 1))
+        # PRE: pre-trigger samples still wanted, `pre − taken` down to 0 (full: 0; no compare
+        # of a fill count with `pre`); POST: samples left, counted by `post_left`.
+        need = Signal(unsigned(ab))
+        # POST: samples left = post_left + post_extra (post_extra: the trigger clock took no
+        # sample, one more to take; no `~pre + 1` adder).
+        post_left = Signal(unsigned(ab))
+        post_extra = Signal()
         dcount = Signal.like(self.decim)
         dzero = Signal(init=1)          # dcount == 0, registered (off the RAM-address path)
         # Channel being sampled: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
-        # in the clocks after it; `slot` is the ring address of that sample. The RAM writes
-        # each channel a clock later (wr_en, wr_addr, wr_data).
+        # in the clocks after it. The RAM writes each channel a clock later (wr_en, wr_chan,
+        # wr_data) in ring slot wr_ptr.
         phase = Signal(range(n))
-        slot = Signal(unsigned(ab))
         busy = phase != 0
         wr_en = Signal()                # the RAM writes (a channel of the clock before's sample)
 
@@ -328,7 +336,7 @@ class Scope(wiring.Component):
             strobe.eq(self.strobe & ~busy),
             take.eq(strobe & capturing & dzero & ~self.arm),
             write.eq((take | busy) & ~self.arm),
-            full.eq(filled >= pre),
+            full.eq(need == 0),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
             self.done.eq(done & ~busy & ~wr_en),
@@ -354,22 +362,23 @@ class Scope(wiring.Component):
             # sel is back in channel order when the sample is complete.
             rotated = Cat(*(sel[(c + 1) % n] for c in range(n)))
             with m.Elif(take):
-                m.d.sync += [phase.eq(1), slot.eq(wr_ptr), sel.eq(rotated)]
+                m.d.sync += [phase.eq(1), sel.eq(rotated)]
             with m.Elif(busy):
                 m.d.sync += [phase.eq(Mux(phase == n - 1, 0, phase + 1)), sel.eq(rotated)]
 
-        # The write of channel `phase` (word `channel · depth + ring slot`: slot `wr_ptr` with the
-        # strobe, `slot` after it), registered: the RAM's data, write enable and write address
-        # all come from flip-flops, one clock after the multiplexer (the sources reach the
-        # multiplexer from all over the design; the RAM's data input is a long route).
+        # The write of channel `phase` (word `channel · depth + ring slot`), registered: the
+        # RAM's data, write enable and channel come from flip-flops, one clock after the
+        # multiplexer (the sources reach the multiplexer from all over the design; the RAM's
+        # data input is a long route), the slot from wr_ptr, which holds until that write.
         words = n * depth
-        wr_addr = Signal(range(words))
+        wr_chan = Signal.like(phase)
         wr_data = Signal(unsigned(width))
         m.d.sync += [
             wr_en.eq(write),
-            wr_addr.eq(Cat(Mux(busy, slot, wr_ptr), phase)),
+            wr_chan.eq(phase),
             wr_data.eq(sample),
         ]
+        wr_addr = Cat(wr_ptr, wr_chan)
         if self._ram_sources:
             # A source in a RAM: its read data (the value of the clock before) in place of the
             # write register's (0 for it).
@@ -408,11 +417,15 @@ class Scope(wiring.Component):
         m.d.sync += valid_q.eq(~wr_en & (self.rd_addr[ab:] < n))
         m.d.comb += self.rd_data.eq(Mux(valid_q, word[:width], 0))
 
+        # The slot steps with the RAM's write of a sample's last channel (channel n − 1, then
+        # phase is back at 0), or of the last one before an arm abandoned the rest.
+        with m.If(wr_en & (~busy | self.arm)):
+            m.d.sync += wr_ptr.eq(wr_ptr + 1)
         with m.If(self.arm):
             m.d.sync += [
                 state.eq(ScopeState.PRE),
                 done.eq(0),
-                filled.eq(0),
+                need.eq(self.pretrigger),
                 dcount.eq(0),
                 dzero.eq(1),
                 sel.eq(self.sel),
@@ -422,26 +435,30 @@ class Scope(wiring.Component):
             ]
         with m.Else():
             with m.If(strobe & capturing):
-                wrap = dcount >= decim
+                # dcount runs 0 … decim (decim holds from arm on), so `dcount >= decim` is
+                # `dcount == decim`: an equality in LUTs, no carry chain.
+                wrap = dcount == decim
                 m.d.sync += [dcount.eq(Mux(wrap, 0, dcount + 1)), dzero.eq(wrap)]
-            with m.If(take):
-                m.d.sync += wr_ptr.eq(wr_ptr + 1)
             with m.If(state == ScopeState.PRE):
                 # depth − pre − take samples are left. No subtractor behind `take` (a late
                 # signal: strobe, phase, decimation): with pre < depth, depth − pre − 1 = ~pre,
-                # so the count is ~pre or ~pre + 1 (both from registers), and it is zero only if
-                # `take` and pre = depth − 1 (all ones).
+                # so the count is ~pre, and one more (post_extra) without `take`; it is zero
+                # only if `take` and pre = depth − 1 (all ones).
                 with m.If(event & full):
                     with m.If(take & pre.all()):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
                         m.d.sync += [state.eq(ScopeState.POST),
-                                     post_left.eq(Mux(take, ~pre, ~pre + 1))]
-                with m.Elif(take & (filled != depth - 1)):
-                    m.d.sync += filled.eq(filled + 1)
+                                     post_left.eq(~pre), post_extra.eq(~take)]
+                with m.Elif(take & ~full):
+                    m.d.sync += need.eq(need - 1)
             with m.Elif(state == ScopeState.POST):
                 with m.If(take):
-                    m.d.sync += post_left.eq(post_left - 1)
-                    with m.If(post_left == 1):
+                    with m.If(post_extra):
+                        m.d.sync += post_extra.eq(0)
+                    with m.Else():
+                        m.d.sync += post_left.eq(post_left - 1)
+                    last = (post_left[1:] == 0) & (post_left[0] ^ post_extra)
+                    with m.If(last):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
         return m
