@@ -208,6 +208,22 @@ def test_scope_pretrigger_extremes(pretrigger):
     assert ch[0] == window(list(range(3, 150, 3)), 60, pretrigger)
 
 
+@pytest.mark.parametrize("pretrigger", [0, 1, 13, 14, 15])
+@pytest.mark.parametrize("trigger_at", [60, 61])
+def test_scope_post_count_with_and_without_a_sample_in_the_trigger_clock(pretrigger, trigger_at):
+    """The samples after the trigger: ``depth − pretrigger`` from the trigger sample on, whether
+    the trigger clock takes a sample (60, a strobe) or not (61: the next strobe's, 63, is the
+    trigger sample), at the pre-trigger counts where the remaining count is 16, 15, 3, 2, 1
+    (clock by clock against the model, and the read-back window); done from the clock after
+    the last sample's last channel is written."""
+    got, model, ch = capture(150, pretrigger=pretrigger, trigger_at=trigger_at, strobe_every=3)
+    clocks = window(list(range(3, 150, 3)), trigger_at, pretrigger)
+    assert model.captures == 1 and ch[0] == clocks
+    last = clocks[-1]
+    assert got[last]["state"] in (PRE, POST) and got[last + 1]["state"] == IDLE
+    assert [g["done"] for g in got[last + 3:last + 5]] == [0, 1]
+
+
 def test_scope_ignores_triggers_before_pretrigger_is_full():
     # Arm at 0 takes no sample; samples at clocks 3, 6, …: 8 pre-trigger samples are in after
     # clock 24.
