@@ -79,7 +79,7 @@ from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from .fixed import check_choice, is_int
+from .fixed import check_bool, check_choice, is_int
 from .regmap import ScopeState, TriggerSource
 
 __all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES", "RAMS"]
@@ -166,6 +166,12 @@ class Scope(wiring.Component):
     ram_sources : tuple of str
         Sources of one shape read through ``ram_rd`` (module docstring) rather than ``src``,
         in their RAM's word order. Default ``()``.
+    down_counts : bool
+        The pre-trigger fill and the samples after the trigger counted down to zero (no compare
+        of a fill count with the pre-trigger count, no ``~pre + 1`` adder: the iCE40's form,
+        docs/AREA.md §7.70); ``False`` (default): a fill count compared with it and a post
+        count loaded from ``~pre`` or ``~pre + 1`` (fewer LUT6 where carry chains are cheap,
+        Spartan-7). The same behaviour clock for clock.
 
     Members
     -------
@@ -217,8 +223,9 @@ class Scope(wiring.Component):
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
-                 decim_width=16, ram="bram", ram_sources=()):
+                 decim_width=16, ram="bram", ram_sources=(), down_counts=False):
         shapes = check_scope(sources, channels, depth, width, decim_width, ram)
+        self._down_counts = check_bool("Scope", "down_counts", down_counts)
         if (not isinstance(ram_sources, tuple) or len(set(ram_sources)) != len(ram_sources)
                 or not all(n in shapes for n in ram_sources)
                 or len({shapes[n] for n in ram_sources}) > 1):
@@ -271,6 +278,7 @@ class Scope(wiring.Component):
     strobe_interval = property(lambda self: self._channels)
     ram = property(lambda self: self._ram)
     ram_sources = property(lambda self: self._ram_sources)
+    down_counts = property(lambda self: self._down_counts)
 
     def _aligned(self, name):
         """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
@@ -310,13 +318,18 @@ class Scope(wiring.Component):
         # front of the write address). Only reads see it between the take and that write,
         # and those read 0 (wr_en is high in all of those clocks).
         wr_ptr = Signal(unsigned(ab))
-        # PRE: pre-trigger samples still wanted, `pre − taken` down to 0 (full: 0; no compare
-        # of a fill count with `pre`); POST: samples left, counted by `post_left`.
-        need = Signal(unsigned(ab))
-        # POST: samples left = post_left + post_extra (post_extra: the trigger clock took no
-        # sample, one more to take; no `~pre + 1` adder).
-        post_left = Signal(unsigned(ab))
-        post_extra = Signal()
+        down = self._down_counts
+        if down:
+            # PRE: pre-trigger samples still wanted, `pre − taken` down to 0 (full: 0; no
+            # compare of a fill count with `pre`). POST: samples left = post_left + post_extra
+            # (post_extra: the trigger clock took no sample, one more; no `~pre + 1` adder).
+            need = Signal(unsigned(ab))
+            post_left = Signal(unsigned(ab))
+            post_extra = Signal()
+        else:
+            # PRE: samples taken, saturating at depth − 1 (full: filled ≥ pre). POST: left.
+            filled = Signal(unsigned(ab))
+            post_left = Signal(unsigned(ab + 1))
         dcount = Signal.like(self.decim)
         dzero = Signal(init=1)          # dcount == 0, registered (off the RAM-address path)
         # Channel being sampled: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
@@ -336,7 +349,7 @@ class Scope(wiring.Component):
             strobe.eq(self.strobe & ~busy),
             take.eq(strobe & capturing & dzero & ~self.arm),
             write.eq((take | busy) & ~self.arm),
-            full.eq(need == 0),
+            full.eq(need == 0 if down else filled >= pre),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
             self.done.eq(done & ~busy & ~wr_en),
@@ -425,7 +438,7 @@ class Scope(wiring.Component):
             m.d.sync += [
                 state.eq(ScopeState.PRE),
                 done.eq(0),
-                need.eq(self.pretrigger),
+                need.eq(self.pretrigger) if down else filled.eq(0),
                 dcount.eq(0),
                 dzero.eq(1),
                 sel.eq(self.sel),
@@ -442,23 +455,34 @@ class Scope(wiring.Component):
             with m.If(state == ScopeState.PRE):
                 # depth − pre − take samples are left. No subtractor behind `take` (a late
                 # signal: strobe, phase, decimation): with pre < depth, depth − pre − 1 = ~pre,
-                # so the count is ~pre, and one more (post_extra) without `take`; it is zero
-                # only if `take` and pre = depth − 1 (all ones).
+                # so the count is ~pre or ~pre + 1 (down_counts: ~pre and post_extra), and it is
+                # zero only if `take` and pre = depth − 1 (all ones).
                 with m.If(event & full):
                     with m.If(take & pre.all()):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
-                        m.d.sync += [state.eq(ScopeState.POST),
-                                     post_left.eq(~pre), post_extra.eq(~take)]
-                with m.Elif(take & ~full):
-                    m.d.sync += need.eq(need - 1)
+                        m.d.sync += state.eq(ScopeState.POST)
+                        if down:
+                            m.d.sync += [post_left.eq(~pre), post_extra.eq(~take)]
+                        else:
+                            m.d.sync += post_left.eq(Mux(take, ~pre, ~pre + 1))
+                if down:
+                    with m.Elif(take & ~full):
+                        m.d.sync += need.eq(need - 1)
+                else:
+                    with m.Elif(take & (filled != depth - 1)):
+                        m.d.sync += filled.eq(filled + 1)
             with m.Elif(state == ScopeState.POST):
                 with m.If(take):
-                    with m.If(post_extra):
-                        m.d.sync += post_extra.eq(0)
-                    with m.Else():
+                    if down:
+                        with m.If(post_extra):
+                            m.d.sync += post_extra.eq(0)
+                        with m.Else():
+                            m.d.sync += post_left.eq(post_left - 1)
+                        last = (post_left[1:] == 0) & (post_left[0] ^ post_extra)
+                    else:
                         m.d.sync += post_left.eq(post_left - 1)
-                    last = (post_left[1:] == 0) & (post_left[0] ^ post_extra)
+                        last = post_left == 1
                     with m.If(last):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
         return m
