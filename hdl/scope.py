@@ -30,9 +30,11 @@ must come at least ``strobe_interval`` = ``channels`` clocks apart to be all see
 strobes once per current-loop computation (one per PWM period, ≥ 5 000 clocks).
 
 **Write register.** The multiplexer's output is registered together with the write enable and
-the word address, and written into the RAM one clock after it was taken (channel ``c`` in clock
+the channel, and written into the RAM one clock after it was taken (channel ``c`` in clock
 ``c + 1`` after the strobe's): the RAM's data input comes from a flip-flop, not from sources
-spread over the whole design. ``done`` waits until the last channel of the last sample is in the
+spread over the whole design. The word's ring slot is the write pointer itself, which steps in
+the clock that writes a sample's last channel (or the last one before an ``arm``), not at the
+taken strobe: the reads it translates in between all fall in write clocks and read 0 (below). ``done`` waits until the last channel of the last sample is in the
 RAM (``write_clocks`` = ``channels + 1`` clocks from the strobe). ``arm`` abandons the channels
 not yet taken; one taken in the clock before ``arm`` still reaches the RAM in ``arm``'s clock.
 
