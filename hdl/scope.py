@@ -324,7 +324,8 @@ class Scope(wiring.Component):
         if down:
             # PRE: pre-trigger samples still wanted, `pre − taken` down to 0 (full: 0; no
             # compare of a fill count with `pre`). POST: samples left = post_left + post_extra
-            # (post_extra: the trigger clock took no sample, one more; no `~pre + 1` adder).
+            # (post_extra: the trigger clock took no sample, one more; no `~pre + 1` adder);
+            # post_left holds ~pre from arm on (pre itself is then not kept).
             need = Signal(unsigned(ab))
             post_left = Signal(unsigned(ab))
             post_extra = Signal()
@@ -441,11 +442,14 @@ class Scope(wiring.Component):
                 state.eq(ScopeState.PRE),
                 done.eq(0),
                 need.eq(self.pretrigger) if down else filled.eq(0),
+                # (down_counts: the post count's ~pre from arm on; nothing else writes it
+                # before POST, so no copy of pre is kept)
+                *([post_left.eq(~self.pretrigger)] if down else []),
                 dcount.eq(0),
                 dzero.eq(1),
                 sel.eq(self.sel),
                 decim.eq(self.decim),
-                pre.eq(self.pretrigger),
+                *([] if down else [pre.eq(self.pretrigger)]),
                 trig_src.eq(self.trig_src),
             ]
         with m.Else():
@@ -460,12 +464,12 @@ class Scope(wiring.Component):
                 # so the count is ~pre or ~pre + 1 (down_counts: ~pre and post_extra), and it is
                 # zero only if `take` and pre = depth − 1 (all ones).
                 with m.If(event & full):
-                    with m.If(take & pre.all()):
+                    with m.If(take & ((post_left == 0) if down else pre.all())):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
                         m.d.sync += state.eq(ScopeState.POST)
                         if down:
-                            m.d.sync += [post_left.eq(~pre), post_extra.eq(~take)]
+                            m.d.sync += post_extra.eq(~take)
                         else:
                             m.d.sync += post_left.eq(Mux(take, ~pre, ~pre + 1))
                 if down:
