@@ -89,6 +89,20 @@ MUL_WIDTH = {"ice40": None, "ecp5": 18, "xc7": None, "xc6s": 18}
 #: The same verdicts either way.
 UV_ARM_CHAIN = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(trip_register=…)`` per FPGA family: the protection's OR of its causes in a flip-flop of
+#: its own (ECP5: the trip and the gates start at one flip-flop, 100 MHz, docs/AREA.md §7.34;
+#: the Spartans as before: the other form is +1 LUT6 on the Arty S7); the OR of the
+#: ``present`` flip-flops on the iCE40 (those flip-flops pack with their LUTs: −8 logic cells on
+#: the iCEBreaker, §7.70). The same trip either way.
+TRIP_REGISTER = {"ice40": False, "ecp5": True, "xc7": True, "xc6s": True}
+
+#: ``Top(scope_down_counts=…)`` per FPGA family: the scope's pre-trigger fill and post-trigger
+#: count as down-counters on the iCE40 (no compare of a fill count with the pre-trigger count,
+#: no ``~pre + 1`` adder: −23 logic cells on the iCEBreaker); a fill count and its compare
+#: elsewhere (the Spartan-7's carry chains are cheap: the down-counters cost it +22 LUT6;
+#: docs/AREA.md §7.70). The same captures either way.
+SCOPE_DOWN_COUNTS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -334,6 +348,8 @@ class BoardTop(Elaboratable):
                         current_loop=current_loop, scope_ram=self._board.scope_ram,
                         regs_staging=self._board.regs_staging, speed_loop=speed_loop,
                         uv_arm_chain=UV_ARM_CHAIN[self._board.family],
+                        trip_register=TRIP_REGISTER[self._board.family],
+                        scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)

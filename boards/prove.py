@@ -224,14 +224,19 @@ class FaultSpec(Elaboratable):
     ----------
     broken : bool
         Delay ``trip`` by 2 more flops on its way to the gates.
+    trip_register : bool
+        :class:`~foc_servo.hdl.protect.Protection`'s ``trip_register`` (``True``, the default
+        and the ECP5's; ``False`` the iCE40's: the OR of ``present``'s flip-flops).
     """
 
-    def __init__(self, *, broken=False):
+    def __init__(self, *, broken=False, trip_register=True):
         self.broken = broken
+        self.trip_register = trip_register
 
     def elaborate(self, platform):
         m = Module()
-        prot = Protection(current_width=16, udc_shape=signed(16), speed_width=32)
+        prot = Protection(current_width=16, udc_shape=signed(16), speed_width=32,
+                          trip_register=self.trip_register)
         gates = Gates()
         m.submodules.protect, internal = elaborate_with_internals(prot, platform)
         m.submodules.gates = gates
@@ -986,6 +991,9 @@ PROOFS = {p.name: p for p in (
           "Gates: never high and low together; every turn-on after >= the dead time off"),
     Proof("fault", FaultSpec, 4, 8,
           "Protection + Gates: all gates off within 3 clocks of a fault, until a clear"),
+    Proof("fault_or", functools.partial(FaultSpec, trip_register=False), 4, 8,
+          "Protection(trip_register=False), the iCE40's trip (the OR of present's flip-flops): "
+          "the same properties"),
     Proof("abs_compare", AbsCompareSpec, 1, 1,
           "Protection's comparators: |v| > limit equal to the magnitude compare (16 and 32 "
           "bit), the U_dc verdicts to the plain compares"),

@@ -103,6 +103,13 @@ class Protection(wiring.Component):
         (:func:`udc_compares`' ``arm_chain``; the same verdicts: the ECP5's form, where the
         shared chain's AND tree was the critical path); ``False``: two chains (fewer iCE40
         cells).
+    trip_register : bool
+        ``present``'s OR in a flip-flop of its own beside ``present``, loaded from the same
+        terms (the same value in every clock): ``trip`` and the gates behind it start at one
+        flip-flop (the ECP5's form, for its Fmax, docs/AREA.md §7.34; default ``True``);
+        ``False``: the OR of ``present``'s flip-flops (the iCE40's: each of them then packs
+        with the LUT of its term, which no longer also feeds the OR, docs/AREA.md §7.70).
+        The same outputs either way.
 
     Members
     -------
@@ -159,10 +166,11 @@ class Protection(wiring.Component):
     latency = 1
 
     def __init__(self, *, current_width=16, udc_shape=signed(16), speed_width=16,
-                 uv_arm_chain=False):
+                 uv_arm_chain=False, trip_register=True):
         for name, value in (("current_width", current_width), ("speed_width", speed_width)):
             check_param("Protection", name, value, 4, 32)
         self._uv_arm_chain = check_bool("Protection", "uv_arm_chain", uv_arm_chain)
+        self._trip_register = check_bool("Protection", "trip_register", trip_register)
         if not isinstance(udc_shape, Shape) or not 2 <= udc_shape.width <= 32:
             raise TypeError(f"Protection udc_shape must be a Shape of 2 to 32 bits such as "
                             f"signed(16), not {udc_shape!r}")
@@ -198,6 +206,7 @@ class Protection(wiring.Component):
     udc_shape = property(lambda self: self._udc_shape)
     speed_width = property(lambda self: self._speed_width)
     uv_arm_chain = property(lambda self: self._uv_arm_chain)
+    trip_register = property(lambda self: self._trip_register)
 
     def elaborate(self, platform):
         m = Module()
@@ -240,13 +249,17 @@ class Protection(wiring.Component):
         present = Signal(FAULT_LAYOUT)
         for name in FAULTS:
             m.d.sync += present[name].eq(cause[name] & self.mask[name])
-        # ``present``'s OR, registered beside it from the same terms (the same value in every
-        # clock): the trip and the gates behind it see one flip-flop, not an 11-input OR of
-        # flip-flops across the die (ECP5 Fmax, docs/AREA.md §7.34).
         any_present = Signal()
-        m.d.sync += any_present.eq(Cat(cause[name] & self.mask[name] for name in FAULTS).any())
-        m.d.comb += Assert(any_present == present.as_value().any(),
-                           "protect: the registered OR equals present's OR")
+        if self._trip_register:
+            # ``present``'s OR, registered beside it from the same terms (the same value in
+            # every clock): the trip and the gates behind it see one flip-flop, not an 11-input
+            # OR of flip-flops across the die (ECP5 Fmax, docs/AREA.md §7.34).
+            m.d.sync += any_present.eq(
+                Cat(cause[name] & self.mask[name] for name in FAULTS).any())
+            m.d.comb += Assert(any_present == present.as_value().any(),
+                               "protect: the registered OR equals present's OR")
+        else:
+            m.d.comb += any_present.eq(present.as_value().any())
 
         latched = Signal()
         first = Signal(FAULT_LAYOUT)

@@ -30,9 +30,11 @@ must come at least ``strobe_interval`` = ``channels`` clocks apart to be all see
 strobes once per current-loop computation (one per PWM period, ≥ 5 000 clocks).
 
 **Write register.** The multiplexer's output is registered together with the write enable and
-the word address, and written into the RAM one clock after it was taken (channel ``c`` in clock
+the channel, and written into the RAM one clock after it was taken (channel ``c`` in clock
 ``c + 1`` after the strobe's): the RAM's data input comes from a flip-flop, not from sources
-spread over the whole design. ``done`` waits until the last channel of the last sample is in the
+spread over the whole design. The word's ring slot is the write pointer itself, which steps in
+the clock that writes a sample's last channel (or the last one before an ``arm``), not at the
+taken strobe: the reads it translates in between all fall in write clocks and read 0 (below). ``done`` waits until the last channel of the last sample is in the
 RAM (``write_clocks`` = ``channels + 1`` clocks from the strobe). ``arm`` abandons the channels
 not yet taken; one taken in the clock before ``arm`` still reaches the RAM in ``arm``'s clock.
 
@@ -79,7 +81,7 @@ from amaranth.lib.memory import Memory, ReadPort
 from amaranth.lib.wiring import In, Out
 from amaranth.utils import ceil_log2
 
-from .fixed import check_choice, is_int
+from .fixed import check_bool, check_choice, is_int
 from .regmap import ScopeState, TriggerSource
 
 __all__ = ["Scope", "ScopeState", "TriggerSource", "DEFAULT_SOURCES", "RAMS"]
@@ -166,6 +168,12 @@ class Scope(wiring.Component):
     ram_sources : tuple of str
         Sources of one shape read through ``ram_rd`` (module docstring) rather than ``src``,
         in their RAM's word order. Default ``()``.
+    down_counts : bool
+        The pre-trigger fill and the samples after the trigger counted down to zero (no compare
+        of a fill count with the pre-trigger count, no ``~pre + 1`` adder: the iCE40's form,
+        docs/AREA.md §7.70); ``False`` (default): a fill count compared with it and a post
+        count loaded from ``~pre`` or ``~pre + 1`` (fewer LUT6 where carry chains are cheap,
+        Spartan-7). The same behaviour clock for clock.
 
     Members
     -------
@@ -217,8 +225,9 @@ class Scope(wiring.Component):
     """
 
     def __init__(self, *, sources=DEFAULT_SOURCES, channels=4, depth=1024, width=16,
-                 decim_width=16, ram="bram", ram_sources=()):
+                 decim_width=16, ram="bram", ram_sources=(), down_counts=False):
         shapes = check_scope(sources, channels, depth, width, decim_width, ram)
+        self._down_counts = check_bool("Scope", "down_counts", down_counts)
         if (not isinstance(ram_sources, tuple) or len(set(ram_sources)) != len(ram_sources)
                 or not all(n in shapes for n in ram_sources)
                 or len({shapes[n] for n in ram_sources}) > 1):
@@ -271,6 +280,7 @@ class Scope(wiring.Component):
     strobe_interval = property(lambda self: self._channels)
     ram = property(lambda self: self._ram)
     ram_sources = property(lambda self: self._ram_sources)
+    down_counts = property(lambda self: self._down_counts)
 
     def _aligned(self, name):
         """Source ``name`` MSB-aligned to ``width`` bits (raw, unsigned)."""
@@ -296,25 +306,39 @@ class Scope(wiring.Component):
         # of `phase`: sel[0] is always the code of the channel sampled in this clock (no
         # `sel[phase]` multiplexer in front of the source multiplexer).
         sel = Signal.like(self.sel)
-        # Latched at arm and read only while capturing: no reset needed. Its power-up value is
-        # all ones because an iCE40 flip-flop holds `value XOR init`, so the decimation compare
-        # (`dcount >= decim`, which wants `~decim` on the carry inputs) gets the complement
-        # without an inverter LUT per bit (AREA.md §7.50).
+        # Latched at arm and read only while capturing: no reset needed (its power-up value,
+        # all ones, is from the decimation's former carry-chain compare, AREA.md §7.50; the
+        # equality that replaced it takes either polarity).
         decim = Signal.like(self.decim, init=(1 << len(self.decim)) - 1, reset_less=True)
         pre = Signal.like(self.pretrigger)
         trig_src = Signal(TriggerSource)
         state = Signal(ScopeState)
         done = Signal()
+        # The ring slot of the sample being taken and written: it steps when the RAM writes a
+        # sample's last channel (or arm cuts a sample short), not at the take, so it stays
+        # the sample's slot while its channels are written (no copy of it, no multiplexer in
+        # front of the write address). Only reads see it between the take and that write,
+        # and those read 0 (wr_en is high in all of those clocks).
         wr_ptr = Signal(unsigned(ab))
-        filled = Signal(unsigned(ab))
-        post_left = Signal(unsigned(ab + 1))
+        down = self._down_counts
+        if down:
+            # PRE: pre-trigger samples still wanted, `pre − taken` down to 0 (full: 0; no
+            # compare of a fill count with `pre`). POST: samples left = post_left + post_extra
+            # (post_extra: the trigger clock took no sample, one more; no `~pre + 1` adder);
+            # post_left holds ~pre from arm on (pre itself is then not kept).
+            need = Signal(unsigned(ab))
+            post_left = Signal(unsigned(ab))
+            post_extra = Signal()
+        else:
+            # PRE: samples taken, saturating at depth − 1 (full: filled ≥ pre). POST: left.
+            filled = Signal(unsigned(ab))
+            post_left = Signal(unsigned(ab + 1))
         dcount = Signal.like(self.decim)
         dzero = Signal(init=1)          # dcount == 0, registered (off the RAM-address path)
         # Channel being sampled: 0 while idle (channel 0 goes with the taken strobe), 1 … n − 1
-        # in the clocks after it; `slot` is the ring address of that sample. The RAM writes
-        # each channel a clock later (wr_en, wr_addr, wr_data).
+        # in the clocks after it. The RAM writes each channel a clock later (wr_en, wr_chan,
+        # wr_data) in ring slot wr_ptr.
         phase = Signal(range(n))
-        slot = Signal(unsigned(ab))
         busy = phase != 0
         wr_en = Signal()                # the RAM writes (a channel of the clock before's sample)
 
@@ -328,7 +352,7 @@ class Scope(wiring.Component):
             strobe.eq(self.strobe & ~busy),
             take.eq(strobe & capturing & dzero & ~self.arm),
             write.eq((take | busy) & ~self.arm),
-            full.eq(filled >= pre),
+            full.eq(need == 0 if down else filled >= pre),
             event.eq(self.force | (self.trigger & (trig_src == TriggerSource.EXTERNAL))),
             self.state.eq(state),
             self.done.eq(done & ~busy & ~wr_en),
@@ -354,22 +378,23 @@ class Scope(wiring.Component):
             # sel is back in channel order when the sample is complete.
             rotated = Cat(*(sel[(c + 1) % n] for c in range(n)))
             with m.Elif(take):
-                m.d.sync += [phase.eq(1), slot.eq(wr_ptr), sel.eq(rotated)]
+                m.d.sync += [phase.eq(1), sel.eq(rotated)]
             with m.Elif(busy):
                 m.d.sync += [phase.eq(Mux(phase == n - 1, 0, phase + 1)), sel.eq(rotated)]
 
-        # The write of channel `phase` (word `channel · depth + ring slot`: slot `wr_ptr` with the
-        # strobe, `slot` after it), registered: the RAM's data, write enable and write address
-        # all come from flip-flops, one clock after the multiplexer (the sources reach the
-        # multiplexer from all over the design; the RAM's data input is a long route).
+        # The write of channel `phase` (word `channel · depth + ring slot`), registered: the
+        # RAM's data, write enable and channel come from flip-flops, one clock after the
+        # multiplexer (the sources reach the multiplexer from all over the design; the RAM's
+        # data input is a long route), the slot from wr_ptr, which holds until that write.
         words = n * depth
-        wr_addr = Signal(range(words))
+        wr_chan = Signal.like(phase)
         wr_data = Signal(unsigned(width))
         m.d.sync += [
             wr_en.eq(write),
-            wr_addr.eq(Cat(Mux(busy, slot, wr_ptr), phase)),
+            wr_chan.eq(phase),
             wr_data.eq(sample),
         ]
+        wr_addr = Cat(wr_ptr, wr_chan)
         if self._ram_sources:
             # A source in a RAM: its read data (the value of the clock before) in place of the
             # write register's (0 for it).
@@ -408,40 +433,62 @@ class Scope(wiring.Component):
         m.d.sync += valid_q.eq(~wr_en & (self.rd_addr[ab:] < n))
         m.d.comb += self.rd_data.eq(Mux(valid_q, word[:width], 0))
 
+        # The slot steps with the RAM's write of a sample's last channel (channel n − 1, then
+        # phase is back at 0), or of the last one before an arm abandoned the rest.
+        with m.If(wr_en & (~busy | self.arm)):
+            m.d.sync += wr_ptr.eq(wr_ptr + 1)
         with m.If(self.arm):
             m.d.sync += [
                 state.eq(ScopeState.PRE),
                 done.eq(0),
-                filled.eq(0),
+                need.eq(self.pretrigger) if down else filled.eq(0),
+                # (down_counts: the post count's ~pre from arm on; nothing else writes it
+                # before POST, so no copy of pre is kept)
+                *([post_left.eq(~self.pretrigger)] if down else []),
                 dcount.eq(0),
                 dzero.eq(1),
                 sel.eq(self.sel),
                 decim.eq(self.decim),
-                pre.eq(self.pretrigger),
+                *([] if down else [pre.eq(self.pretrigger)]),
                 trig_src.eq(self.trig_src),
             ]
         with m.Else():
             with m.If(strobe & capturing):
-                wrap = dcount >= decim
+                # dcount runs 0 … decim (decim holds from arm on), so `dcount >= decim` is
+                # `dcount == decim`: an equality in LUTs, no carry chain.
+                wrap = dcount == decim
                 m.d.sync += [dcount.eq(Mux(wrap, 0, dcount + 1)), dzero.eq(wrap)]
-            with m.If(take):
-                m.d.sync += wr_ptr.eq(wr_ptr + 1)
             with m.If(state == ScopeState.PRE):
                 # depth − pre − take samples are left. No subtractor behind `take` (a late
                 # signal: strobe, phase, decimation): with pre < depth, depth − pre − 1 = ~pre,
-                # so the count is ~pre or ~pre + 1 (both from registers), and it is zero only if
-                # `take` and pre = depth − 1 (all ones).
+                # so the count is ~pre or ~pre + 1 (down_counts: ~pre and post_extra), and it is
+                # zero only if `take` and pre = depth − 1 (all ones).
                 with m.If(event & full):
-                    with m.If(take & pre.all()):
+                    with m.If(take & ((post_left == 0) if down else pre.all())):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
                     with m.Else():
-                        m.d.sync += [state.eq(ScopeState.POST),
-                                     post_left.eq(Mux(take, ~pre, ~pre + 1))]
-                with m.Elif(take & (filled != depth - 1)):
-                    m.d.sync += filled.eq(filled + 1)
+                        m.d.sync += state.eq(ScopeState.POST)
+                        if down:
+                            m.d.sync += post_extra.eq(~take)
+                        else:
+                            m.d.sync += post_left.eq(Mux(take, ~pre, ~pre + 1))
+                if down:
+                    with m.Elif(take & ~full):
+                        m.d.sync += need.eq(need - 1)
+                else:
+                    with m.Elif(take & (filled != depth - 1)):
+                        m.d.sync += filled.eq(filled + 1)
             with m.Elif(state == ScopeState.POST):
                 with m.If(take):
-                    m.d.sync += post_left.eq(post_left - 1)
-                    with m.If(post_left == 1):
+                    if down:
+                        with m.If(post_extra):
+                            m.d.sync += post_extra.eq(0)
+                        with m.Else():
+                            m.d.sync += post_left.eq(post_left - 1)
+                        last = (post_left[1:] == 0) & (post_left[0] ^ post_extra)
+                    else:
+                        m.d.sync += post_left.eq(post_left - 1)
+                        last = post_left == 1
+                    with m.If(last):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
         return m

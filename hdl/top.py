@@ -471,6 +471,14 @@ class Top(wiring.Component):
         :class:`~.protect.Protection` ``uv_arm_chain``: the under-voltage arming's compare on a
         carry chain of its own (the same verdicts; the ECP5 board's choice, for its Fmax;
         default ``False``, two chains, fewer iCE40 cells).
+    scope_down_counts : bool
+        :class:`~.scope.Scope` ``down_counts``: the scope's pre-trigger fill and post-trigger
+        samples counted down to zero (the same captures; the iCE40's choice and the default,
+        fewer iCE40 cells; ``False`` fewer LUT6 on the Spartan-7).
+    trip_register : bool
+        :class:`~.protect.Protection` ``trip_register``: ``present``'s OR in a flip-flop of
+        its own (the same trip; the ECP5 board's choice, for its Fmax; default ``False``, the
+        OR of ``present``'s flip-flops, fewer iCE40 cells).
     link_read_hold : bool
         :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
         registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
@@ -520,7 +528,7 @@ class Top(wiring.Component):
         The parameter.
     current_loop, scope_ram, regs_staging : str
         The parameters.
-    uv_arm_chain, link_read_hold : bool
+    uv_arm_chain, trip_register, link_read_hold, scope_down_counts : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -540,7 +548,7 @@ class Top(wiring.Component):
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
-                 link_read_hold=False):
+                 trip_register=False, link_read_hold=False, scope_down_counts=True):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -631,7 +639,8 @@ class Top(wiring.Component):
         self._refs = refs
         self._scope = Scope(ram=scope_ram,
                             ram_sources=(ENGINE_STATUS + (ENGINE_REF_STATUS if refs else ())
-                                         if cfg_ram else ()))
+                                         if cfg_ram else ()),
+                            down_counts=scope_down_counts)
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
         self._operands = _operands(self._scope, regmap)
@@ -734,7 +743,8 @@ class Top(wiring.Component):
                                  f"{self._timer.period} clocks")
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
-        self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain)
+        self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain,
+                                   trip_register=trip_register)
         self._gates = Gates()
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
@@ -772,6 +782,8 @@ class Top(wiring.Component):
     scope_ram = property(lambda self: self._scope.ram)
     regs_staging = property(lambda self: self._regs.staging)
     uv_arm_chain = property(lambda self: self._protect.uv_arm_chain)
+    trip_register = property(lambda self: self._protect.trip_register)
+    scope_down_counts = property(lambda self: self._scope.down_counts)
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 

@@ -27,8 +27,9 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME, BoardTop,
-                                    _tool, build, pll_config, prepare, synthesis_verilog)
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
+                                    SCOPE_DOWN_COUNTS, TRIP_REGISTER, BoardTop, _tool, build,
+                                    pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -250,6 +251,28 @@ def test_board_top_link_read_hold_is_the_families(name, hold):
                      lambda top: (top.top.link_read_hold, top.top._link.core.read_hold))
     assert facts == (hold, hold)
     assert LINK_READ_HOLD[get_board(name).family] is hold
+
+
+@pytest.mark.parametrize("name, register", [("icebreaker", False), ("ulx3s", True),
+                                            ("arty_s7", True), ("atlys", True)])
+def test_board_top_trip_register_is_the_families(name, register):
+    """The protection's OR of its causes in a flip-flop of its own but on the iCE40 (the ECP5's
+    Fmax; the iCE40's cells the other way, the Spartan's LUT6 unchanged: docs/AREA.md §7.70)."""
+    facts = _inspect(lambda: BoardTop(name),
+                     lambda top: (top.top.trip_register, top.top._protect.trip_register))
+    assert facts == (register, register)
+    assert TRIP_REGISTER[get_board(name).family] is register
+
+
+@pytest.mark.parametrize("name, down", [("icebreaker", True), ("ulx3s", False),
+                                        ("arty_s7", False), ("atlys", False)])
+def test_board_top_scope_down_counts_is_the_families(name, down):
+    """The scope's down-counters on the iCE40 only (its cells; the Spartan-7's LUT6 the other
+    way, docs/AREA.md §7.70)."""
+    facts = _inspect(lambda: BoardTop(name),
+                     lambda top: (top.top.scope_down_counts, top.top._scope.down_counts))
+    assert facts == (down, down)
+    assert SCOPE_DOWN_COUNTS[get_board(name).family] is down
 
 
 @pytest.mark.parametrize("kwargs, loop", [({}, "pipelined"), ({"current_loop": "pipelined"},

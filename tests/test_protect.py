@@ -75,6 +75,7 @@ def flags(*names):
     ({"udc_shape": unsigned(40)}, r"^Protection udc_shape must be a Shape of 2 to 32 bits "
                                   r"such as signed\(16\), not unsigned\(40\)$"),
     ({"uv_arm_chain": 1}, r"^Protection uv_arm_chain must be a bool, not 1$"),
+    ({"trip_register": None}, r"^Protection trip_register must be a bool, not None$"),
 ])
 def test_protect_parameter_validation(kwargs, message):
     with pytest.raises(TypeError, match=message):
@@ -166,8 +167,11 @@ def test_protect_mask_ignores_cause():
     assert [r["trip"] for r in rec] == [0, 0, 0, 0, 0, 0, 1]
 
 
-def test_protect_random_fault_sequences_vs_model():
-    result = verify_protect.run(6000, seed=3)
+@pytest.mark.parametrize("trip_register", [True, False])
+def test_protect_random_fault_sequences_vs_model(trip_register):
+    """Both forms of the trip's OR (``trip_register``: the ECP5's flip-flop of its own, the
+    iCE40's OR of ``present``), every output in every clock against the model."""
+    result = verify_protect.run(6000, seed=3, trip_register=trip_register)
     assert result["mismatches"] == 0, result
     assert result["trips"] > 20 and result["clears"] > 20
     assert result["fault_latency_clk_max"] == 1

@@ -70,10 +70,11 @@ class SimSpramScope(Scope):
         return SpramStandIn(ports)
 
 
-def scope_clocks(seq, *, cls=Scope, **params):
-    """Drive :class:`Scope` (or ``cls``) with one input dict per clock; return its outputs per
-    clock, checked clock by clock against :class:`ScopeModel`; also returns the model."""
-    dut = cls(**params)
+def scope_clocks(seq, *, cls=Scope, down_counts=False, **params):
+    """Drive :class:`Scope` (or ``cls``; ``down_counts`` its counters' form) with one input dict
+    per clock; return its outputs per clock, checked clock by clock against
+    :class:`ScopeModel`; also returns the model."""
+    dut = cls(**params, down_counts=down_counts)
     model = ScopeModel(**params)
     want = [model.clock(i) for i in seq]
     signals = {f"src.{n}": dut.src[n] for n in dut.source_names}
@@ -102,7 +103,7 @@ def scope_clocks(seq, *, cls=Scope, **params):
 
 
 def capture(n_clocks, *, pretrigger, trigger_at, depth=16, decim=0, strobe_every=1,
-            trig_src=HOST, use_trigger=False, read=True):
+            trig_src=HOST, use_trigger=False, read=True, down_counts=False):
     """Arm at clock 0 and sample ``ramp`` = clock number (wide = −clock·2^16, narrow = clock
     mod 256) on every ``strobe_every``-th clock; trigger at ``trigger_at``; then read back the
     three channels in order. Returns (outputs, model, read-back samples per channel)."""
@@ -117,7 +118,8 @@ def capture(n_clocks, *, pretrigger, trigger_at, depth=16, decim=0, strobe_every
     n_read = 3 * depth if read else 0
     for k in range(n_read + 1):
         seq.append(idle_inputs(rd_addr=k % (4 * depth)))
-    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=depth)
+    got, model = scope_clocks(seq, sources=SOURCES, channels=3, depth=depth,
+                              down_counts=down_counts)
     data = [g["rd_data"] for g in got[n_clocks + 1:]]
     return got, model, [data[c * depth:(c + 1) * depth] for c in range(3)]
 
@@ -141,6 +143,12 @@ def capture(n_clocks, *, pretrigger, trigger_at, depth=16, decim=0, strobe_every
 def test_scope_parameter_validation(cls, kwargs, msg):
     with pytest.raises(TypeError, match=msg):
         cls(**kwargs)
+
+
+def test_scope_down_counts_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^Scope down_counts must be a bool, not 1$"):
+        Scope(down_counts=1)
+    assert Scope().down_counts is False and Scope(down_counts=True).down_counts is True
 
 
 @pytest.mark.parametrize("cls", [Scope, ScopeModel])
@@ -184,11 +192,13 @@ def window(samples, trigger_at, pretrigger, depth=16):
     return samples[k - pretrigger:k - pretrigger + depth]
 
 
-def test_scope_pretrigger_and_wraparound():
+@pytest.mark.parametrize("down_counts", [False, True])
+def test_scope_pretrigger_and_wraparound(down_counts):
     # depth 16, 5 pre-trigger samples, a strobe every 3rd clock (= channels: every one taken);
     # the ring wraps several times before the trigger. Channel c records its source c clocks
     # after the strobe.
-    got, model, ch = capture(200, pretrigger=5, trigger_at=120, strobe_every=3)
+    got, model, ch = capture(200, pretrigger=5, trigger_at=120, strobe_every=3,
+                             down_counts=down_counts)
     clocks = window(list(range(3, 200, 3)), 120, 5)
     assert clocks[5] == 120 and model.captures == 1
     assert ch[0] == clocks
@@ -202,16 +212,39 @@ def test_scope_pretrigger_and_wraparound():
     assert [g["done"] for g in got[149:156]] == [0, 0, 0, 0, 0, 1, 1]
 
 
+@pytest.mark.parametrize("down_counts", [False, True])
 @pytest.mark.parametrize("pretrigger", [0, 15])
-def test_scope_pretrigger_extremes(pretrigger):
-    got, model, ch = capture(150, pretrigger=pretrigger, trigger_at=60, strobe_every=3)
+def test_scope_pretrigger_extremes(pretrigger, down_counts):
+    got, model, ch = capture(150, pretrigger=pretrigger, trigger_at=60, strobe_every=3,
+                             down_counts=down_counts)
     assert ch[0] == window(list(range(3, 150, 3)), 60, pretrigger)
 
 
-def test_scope_ignores_triggers_before_pretrigger_is_full():
+@pytest.mark.parametrize("down_counts", [False, True])
+@pytest.mark.parametrize("pretrigger", [0, 1, 13, 14, 15])
+@pytest.mark.parametrize("trigger_at", [60, 61])
+def test_scope_post_count_with_and_without_a_sample_in_the_trigger_clock(pretrigger, trigger_at,
+                                                                         down_counts):
+    """The samples after the trigger: ``depth − pretrigger`` from the trigger sample on, whether
+    the trigger clock takes a sample (60, a strobe) or not (61: the next strobe's, 63, is the
+    trigger sample), at the pre-trigger counts where the remaining count is 16, 15, 3, 2, 1
+    (clock by clock against the model, and the read-back window); done from the clock after
+    the last sample's last channel is written."""
+    got, model, ch = capture(150, pretrigger=pretrigger, trigger_at=trigger_at, strobe_every=3,
+                             down_counts=down_counts)
+    clocks = window(list(range(3, 150, 3)), trigger_at, pretrigger)
+    assert model.captures == 1 and ch[0] == clocks
+    last = clocks[-1]
+    assert got[last]["state"] in (PRE, POST) and got[last + 1]["state"] == IDLE
+    assert [g["done"] for g in got[last + 3:last + 5]] == [0, 1]
+
+
+@pytest.mark.parametrize("down_counts", [False, True])
+def test_scope_ignores_triggers_before_pretrigger_is_full(down_counts):
     # Arm at 0 takes no sample; samples at clocks 3, 6, …: 8 pre-trigger samples are in after
     # clock 24.
-    got, model, ch = capture(40, pretrigger=8, trigger_at=5, strobe_every=3)
+    got, model, ch = capture(40, pretrigger=8, trigger_at=5, strobe_every=3,
+                             down_counts=down_counts)
     assert model.triggers_ignored == 1 and model.captures == 0
     assert all(g["state"] == PRE for g in got[1:40])
     assert [g["pre_full"] for g in got[1:28]] == [0] * 24 + [1] * 3
@@ -277,16 +310,18 @@ def test_scope_rearm_restarts_capture():
     assert [g["rd_data"] for g in got[91:107]] == list(range(24, 72, 3))
 
 
-def test_scope_random_sequences_vs_model():
-    result = run_scope(4000, seed=5, depth=32, channels=3)
+@pytest.mark.parametrize("down_counts", [False, True])
+def test_scope_random_sequences_vs_model(down_counts):
+    result = run_scope(4000, seed=5, depth=32, channels=3, down_counts=down_counts)
     assert result["mismatches"] == 0, result["first_mismatch"]
     assert result["captures"] > 10 and result["wraps"] > 10
     assert result["pretrigger_zero_captures"] + result["pretrigger_max_captures"] > 0
 
 
 @pytest.mark.slow
-def test_scope_100k_clocks_vs_model():
-    result = run_scope(100_000)
+@pytest.mark.parametrize("down_counts", [False, True])
+def test_scope_100k_clocks_vs_model(down_counts):
+    result = run_scope(100_000, down_counts=down_counts)
     assert result["mismatches"] == 0, result["first_mismatch"]
     # Coverage: the time-shared source mux (one channel per clock) makes a capture a few clocks
     # longer; 100 000 clocks hold 10 of them.
@@ -324,12 +359,14 @@ def random_inputs(seed, clocks, channels, depth):
 
 
 @pytest.mark.parametrize("params", [dict(channels=3, depth=16), dict(channels=4, depth=32),
-                                    dict(channels=1, depth=16)])
+                                    dict(channels=1, depth=16),
+                                    dict(channels=4, depth=32, down_counts=True)])
 def test_scope_spram_vs_model(params):
     """The SPRAM variant (cell replaced by a cells_sim.v-like stand-in whose DATAOUT after a
     write is a poison value) against the same model, over random traffic with reads at every
     clock: the port wiring, the address map and the masking of the undefined output."""
     seq = random_inputs(7, 2500, params["channels"], params["depth"])
+    # (down_counts: the iCEBreaker's form, its SPRAM and counters)
     got, model = scope_clocks(seq, cls=SimSpramScope, sources=SOURCES, ram="ice40_spram",
                               **params)
     assert model.captures >= 3

@@ -19,10 +19,11 @@ __all__ = ["FaultChain", "run"]
 
 
 class FaultChain(wiring.Component):
-    """Protection and Gates wired as in the top: ``gates.trip`` ← ``protect.trip``."""
+    """Protection and Gates wired as in the top: ``gates.trip`` ← ``protect.trip``
+    (``trip_register``: :class:`Protection`'s, the ECP5's form or ``False`` the iCE40's)."""
 
-    def __init__(self):
-        self.protect = Protection()
+    def __init__(self, *, trip_register=True):
+        self.protect = Protection(trip_register=trip_register)
         self.gates = Gates()
         super().__init__({})
 
@@ -55,10 +56,10 @@ def _stimuli(p):
     }
 
 
-def run(*, dead_time=3, progress=False):
+def run(*, dead_time=3, progress=False, trip_register=True):
     """Returns ``{"latency_clk": {cause: clocks}, "fault_latency_clk_max": int,
-    "latched": bool, "released": bool}``."""
-    dut = FaultChain()
+    "latched": bool, "released": bool}`` (``trip_register``: :class:`FaultChain`'s)."""
+    dut = FaultChain(trip_register=trip_register)
     p, g = dut.protect, dut.gates
     stimuli = _stimuli(p)
     missing = set(FAULTS) - set(stimuli)

@@ -260,7 +260,7 @@ def measure_latency(**params):
 
 
 def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=signed(16),
-        speed_width=16):
+        speed_width=16, trip_register=True):
     """Simulate :class:`Protection` for ``count`` clocks of random fault sequences and compare
     every output in every clock with the golden model; measure each input's trip latency.
 
@@ -271,9 +271,10 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
         ``clocks``, ``sim_s``, ``clocks_per_s``, ``trips`` (latch set events in the run),
         ``clears`` (successful clears), ``first_mismatch``, ``trip_latency_clk`` (cause →
         clocks), ``fault_latency_clk_max`` (their maximum; the gate stage adds 1 more).
+    ``trip_register``: :class:`Protection`'s (the ECP5's form, or ``False`` the iCE40's).
     """
     params = dict(current_width=current_width, udc_shape=udc_shape, speed_width=speed_width)
-    dut = Protection(**params)
+    dut = Protection(**params, trip_register=trip_register)
     cols = stimulus(count, seed=seed, **params)
     exp = protect_np(cols)
     layout = _in_layout(dut)
@@ -289,7 +290,7 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
 
     sim_s = simulate(bench, [testbench], name="protect")
     prog.close()
-    latency = measure_latency(**params)
+    latency = measure_latency(**params, trip_register=trip_register)
     trip = exp["trip"]
     first = result["first_mismatch"]
     values = [v for v in latency.values() if v is not None]

@@ -438,8 +438,9 @@ def _scope_stimulus(count, rng, model, dut):
     return inputs, outputs, figures
 
 
-def run_scope(count=100_000, *, seed=0, progress=False, **params):
-    """:class:`Scope` against :class:`ScopeModel` for ``count`` clocks; ``params`` go to both.
+def run_scope(count=100_000, *, seed=0, progress=False, down_counts=False, **params):
+    """:class:`Scope` against :class:`ScopeModel` for ``count`` clocks; ``params`` go to both,
+    ``down_counts`` to the Scope (its counters' form; one model for both).
 
     Returns
     -------
@@ -450,7 +451,7 @@ def run_scope(count=100_000, *, seed=0, progress=False, **params):
         pre-trigger part was full), ``arms``, ``wraps`` (ring write pointer wrapped),
         ``capture_order_errors``, ``pretrigger_max_captures``, ``pretrigger_zero_captures``.
     """
-    dut = Scope(**params)
+    dut = Scope(**params, down_counts=down_counts)
     model = ScopeModel(**params)
     rng = np.random.default_rng(seed)
     inputs, outputs, figures = _scope_stimulus(count, rng, model, dut)
