@@ -507,7 +507,7 @@ class QuadratureDecoder(wiring.Component):
         # --- position counters --------------------------------------------------------------
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
-        rm4 = Signal(qw)                # rm / 4; rm = em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
+        rm4 = Signal(qw)                # rm / 4: em·2**16 − thm·cpr (mod 2**16·cpr), in [0, cpr)
         # Each wrap test is the carry out of a register plus a per-configuration constant (or
         # a comparison of two registers), side by side with the step's own adder (em + p ≥ cpr
         # ⇔ carry out of em + (p − cpr); rm − Rp < 0 ⇔ rm < Rp). One adder per counter serves

@@ -240,8 +240,8 @@ class MTSpeed(wiring.Component):
         # age_last restarts at each counted edge; the gap takes the reference's age at an edge
         # that does not close the window, and is cleared when the last edge becomes the
         # reference (a first edge, a close), so no register has to take another's value in
-        # that clock (iCE40: each counter feeds its own flip-flops only, and no select sits in
-        # front of the adders).
+        # that clock: no select in front of the adders and no subtractor for ΔT (iCE40 area;
+        # docs/AREA.md §7.67).
         tick = Signal()
         if r == 1:
             m.d.comb += tick.eq(1)
