@@ -354,20 +354,30 @@ class QuadratureDecoder(wiring.Component):
         cpr0 = 4 * lines0
         z_q = Signal(CPR_WIDTH, init=z0)
         qp = Signal(aw, init=qp0)
-        rp = Signal(CPR_WIDTH, init=rp0)
         qz = Signal(aw, init=qz0)
         valid = Signal(init=valid0)
+        # The remainders Rp, Rz and rm (below) are multiples of 4, whatever the configuration:
+        # cpr = 4·lines is one and so is n·2**16 (the divisions' dividends, also modulo 2**18,
+        # the working register's width), so every remainder the divisions leave is one (an
+        # invalid configuration's too: divide_angle), so are Rp − cpr and Rz − cpr, and rm
+        # only ever steps by ±Rp or ±(Rp − cpr) from 0. Their registers hold the value / 4 (16
+        # bits, ``rp4``: Rp = 4·rp4): the wrap tests and the step on them lose two bits whose
+        # carries are 0, and the values, sums and carries are the same.
+        qw = CPR_WIDTH - 2
+        rp4 = Signal(qw, init=rp0 >> 2)
         # The wrap tests of the position steps and of the output sums as one carry chain each,
-        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (c − cpr is
-        # −cpr … −1 modulo 2**18 in a valid configuration). In an invalid one (Rz < 2**18 may
-        # then exceed cpr) the angle's carry is still that of rm + ((Rz − cpr) mod 2**18), as
-        # the model has it. cpr − z for e, signed (z may exceed cpr); cpr − 1 for the count's
-        # wrap.
-        n_rp = Signal(CPR_WIDTH, init=(rp0 - cpr0) % (1 << CPR_WIDTH))
+        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (16 for the
+        # quartered rm: c − cpr is −cpr … −1 modulo 2**18 in a valid configuration). In an
+        # invalid one (Rz < 2**18 may then exceed cpr) the angle's carry is still that of
+        # rm + ((Rz − cpr) mod 2**18), as the model has it. cpr − z for e, signed (z may
+        # exceed cpr); cpr − 1 for the count's wrap.
+        n_rp4 = Signal(qw, init=((rp0 - cpr0) % (1 << CPR_WIDTH)) >> 2)
         n_pp = Signal(CPR_WIDTH, init=(pp0 - cpr0) % (1 << CPR_WIDTH))
-        n_rz = Signal(CPR_WIDTH, init=(rz0 - cpr0) % (1 << CPR_WIDTH))
+        n_rz4 = Signal(qw, init=((rz0 - cpr0) % (1 << CPR_WIDTH)) >> 2)
         cpr_z = Signal(signed(CPR_WIDTH + 2), init=cpr0 - z0)
-        cpr_m1 = Signal(CPR_WIDTH, init=(cpr0 - 1) % (1 << CPR_WIDTH))
+        # cpr − 1 modulo 2**18 ends in binary 11 (also for cpr = 0): only lines − 1 is stored.
+        lines_m1 = Signal(LINES_WIDTH, init=((cpr0 - 1) % (1 << CPR_WIDTH)) >> 2)
+        cpr_m1 = Cat(Const(0b11, 2), lines_m1)
         # The configuration is read from the inputs themselves while the divisions run (no
         # copies): a change is announced by ``lp_changed`` / ``z_changed`` in the first clock
         # of the new value and taken in then (idle). Whether ``lines`` or ``pole_pairs``
@@ -453,11 +463,11 @@ class QuadratureDecoder(wiring.Component):
             m.d.sync += [wr.eq(Mux(fits, diff, sub_t)), wq.eq(Cat(fits, wq[:-1]))]
         with m.Switch(timer):
             with m.Case(1):
-                m.d.sync += [cpr_m1.eq(~diff[:CPR_WIDTH]), wr.eq(pp_p)]
+                m.d.sync += [lines_m1.eq(~diff[2:CPR_WIDTH]), wr.eq(pp_p)]
             with m.Case(t_p):
                 m.d.sync += [n_pp.eq(diff), pp_c.eq(wr), pp_ok.eq(diff < 0)]
             with m.Case(t_qp):
-                m.d.sync += [n_rp.eq(diff), qp.eq(wq), rp.eq(wr), wr.eq(z_p)]
+                m.d.sync += [n_rp4.eq(diff[2:CPR_WIDTH]), qp.eq(wq), rp4.eq(wr[2:]), wr.eq(z_p)]
             with m.Case(t_z):
                 m.d.sync += z_ok.eq(diff < 0)
         new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
@@ -465,7 +475,7 @@ class QuadratureDecoder(wiring.Component):
         m.d.comb += restart.eq(commit & (lp_run | lp_again | ~new_valid))
         with m.If(commit):
             m.d.sync += [
-                z_q.eq(z_p), qz.eq(wq), n_rz.eq(diff), valid.eq(new_valid),
+                z_q.eq(z_p), qz.eq(wq), n_rz4.eq(diff[2:CPR_WIDTH]), valid.eq(new_valid),
                 cpr_z.eq(cpr_p - z_p),
             ]
 
@@ -497,7 +507,7 @@ class QuadratureDecoder(wiring.Component):
         # --- position counters --------------------------------------------------------------
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
-        rm = Signal(CPR_WIDTH)          # em·2**16 − thm·cpr (mod 2**16·cpr), 0 ≤ rm < cpr
+        rm4 = Signal(qw)                # rm / 4: em·2**16 − thm·cpr (mod 2**16·cpr), in [0, cpr)
         # Each wrap test is the carry out of a register plus a per-configuration constant (or
         # a comparison of two registers), side by side with the step's own adder (em + p ≥ cpr
         # ⇔ carry out of em + (p − cpr); rm − Rp < 0 ⇔ rm < Rp). One adder per counter serves
@@ -511,19 +521,19 @@ class QuadratureDecoder(wiring.Component):
         # (pole_pairs from the register made with n_pp, so that e's step constants agree
         # whatever the input does; the Top uses no e: this goes with em.)
         em_next, _ = _step(fwd_c, em, pp_c, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_c)
-        rm_next, cin = _step(fwd_c, rm, rp, n_rp, (rm + n_rp)[CPR_WIDTH], rm < rp)
+        rm_next, cin = _step(fwd_c, rm4, rp4, n_rp4, (rm4 + n_rp4)[qw], rm4 < rp4)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
         with m.If(valid & ~(self.busy & lp_run) & ~lp_again & (fwd | bwd)):
-            m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm.eq(rm_next),
+            m.d.sync += [self.count.eq(count_next), em.eq(em_next), rm4.eq(rm_next),
                          thm.eq(thm_next)]
         arm = ~self.aligned | self.realign
         with m.If(valid & index & arm):
-            m.d.sync += [self.aligned.eq(1), self.count.eq(0), em.eq(0), thm.eq(0), rm.eq(0)]
+            m.d.sync += [self.aligned.eq(1), self.count.eq(0), em.eq(0), thm.eq(0), rm4.eq(0)]
         with m.Elif(self.realign):
             m.d.sync += self.aligned.eq(0)
         with m.If(restart):
-            m.d.sync += [self.aligned.eq(0), self.count.eq(0), em.eq(0), thm.eq(0), rm.eq(0)]
+            m.d.sync += [self.aligned.eq(0), self.count.eq(0), em.eq(0), thm.eq(0), rm4.eq(0)]
 
         # --- outputs: the Z offset added to the electrical position -------------------------
         # e = (em + z) mod cpr and θ = θm + Qz + (rm + Rz ≥ cpr), with the wrap tests made on
@@ -531,7 +541,7 @@ class QuadratureDecoder(wiring.Component):
         # before the sums, not two.
         m.d.comb += [
             self.e.eq(Mux(em >= cpr_z, em - cpr_z, em + z_q)),
-            self.theta.eq(thm + qz + (rm + n_rz)[CPR_WIDTH]),
+            self.theta.eq(thm + qz + (rm4 + n_rz4)[qw]),
         ]
         return m
 

@@ -13,8 +13,9 @@ one sequential data path (iCE40 area, session 9): the product ``k·|ΔM|`` is fo
 ``k`` at a time on one multiplier and written straight into the register of a restoring
 division, whose first step decides saturation and whose quotient bits enter with the result's
 sign already applied (see :meth:`MTSpeed.elaborate`). TC and the T latches are not stored as
-such: the gateware keeps the *ages* of the reference and last edges (TC − T mod 2**tc_width),
-which give ΔT, the elapsed time and the expiry (the age counter's carry out) directly.
+such: the gateware keeps the *age* of the last edge (TC − T mod 2**tc_width) and the *gap*
+from the reference edge to the last one, which give ΔT (the gap), the elapsed time (their sum,
+the reference's age) and the expiry (that sum at its largest value) directly.
 
 Window rules (the golden model :mod:`foc_servo.sim.models.mt_speed` reproduces them clock for
 clock):
@@ -233,9 +234,14 @@ class MTSpeed(wiring.Component):
         r = self._tclk_ratio
 
         # --- Time: instead of a free-running TC and the latched T of the reference and last
-        # edges, the *ages* of those two edges, counting TCLK ticks modulo 2**w (the same
-        # differences: age = TC − T mod 2**w). age_last restarts at each counted edge; age_ref
-        # takes age_last's value when the last edge becomes the reference.
+        # edges, the *age* of the last counted edge, counting TCLK ticks modulo 2**w, and the
+        # *gap* from the reference edge to the last one (T(last) − T(ref) mod 2**w, 0 when they
+        # are the same edge): the reference's age is their sum (age = TC − T mod 2**w).
+        # age_last restarts at each counted edge; the gap takes the reference's age at an edge
+        # that does not close the window, and is cleared when the last edge becomes the
+        # reference (a first edge, a close), so no register has to take another's value in
+        # that clock: no select in front of the adders and no subtractor for ΔT (iCE40 area;
+        # docs/AREA.md §7.67).
         tick = Signal()
         if r == 1:
             m.d.comb += tick.eq(1)
@@ -246,26 +252,17 @@ class MTSpeed(wiring.Component):
                 m.d.comb += tick.eq(1)
             with m.Else():
                 m.d.sync += pre.eq(pre + 1)
-        # ~(TC − T(last counted edge)) mod 2**w: kept inverted (a down-counter), so that the
-        # subtraction age_ref − age_last is age_ref + n_last + 1, without inverters (iCE40).
-        n_last = Signal(w, reset_less=True)
-        # The reference's age `age_ref` = TC − T(reference edge) mod 2**w is the register
-        # `ref_reg`, except in the clock after the window closed on an earlier edge (`load`):
-        # the new reference is then the last edge, whose age is ~n_last. (The register takes
-        # it then, a clock late, so that n_last's down-counter feeds its own flip-flop only:
-        # iCE40 packing.)
-        ref_reg = Signal(w, reset_less=True)
-        load = Signal()
+        age_last = Signal(w, reset_less=True)
+        gap = Signal(w, reset_less=True)
+        # The reference's age, modulo 2**w (without a reference, have_ref low, nothing reads it).
         age_ref = Signal(w)
-        m.d.comb += age_ref.eq(Mux(load, ~n_last, ref_reg))
-        # age_ref + tick; the carry out: TC + 1 == T(reference) with a tick this clock, a whole
-        # span since the reference edge.
-        ref_inc = Signal(w + 1)
-        m.d.comb += ref_inc.eq(age_ref + tick)
-        at_span = ref_inc[w]
+        m.d.comb += age_ref.eq(age_last + gap)
+        # A whole span since the reference edge: TC + 1 == T(reference) with a tick this clock
+        # (the age at 2**w − 1; a compare in LUTs, no carry chain).
+        at_span = tick & (age_ref == (1 << w) - 1)
 
-        # --- Window state. Invariant: pending == 0 implies ΔM == 0 and (with have_ref)
-        # age_last == age_ref; have_ref == 0 implies pending == 0.
+        # --- Window state. Invariant: pending == 0 implies ΔM == 0 and (with have_ref) gap == 0,
+        # i.e. age_last == age_ref; have_ref == 0 implies pending == 0.
         # Net edges since the reference edge, saturating to signed(mw), kept as magnitude and
         # sign (ECP5 Fmax: the snapshot's |ΔM| is then one up/down step of a register, without a
         # negation behind the signed add and its saturation). m_neg is meaningless when
@@ -315,10 +312,15 @@ class MTSpeed(wiring.Component):
         close = have_ref & pend_e & (start | expire)
         # An edge in this clock: its age is 0 now, `tick` in the next clock.
         m.d.sync += [
-            n_last.eq(Mux(step, ~Cat(tick, Const(0, w - 1)), n_last - tick)),
-            ref_reg.eq(Mux((first | close) & step, tick, ref_inc[:w])),
-            load.eq(close & ~step),
+            age_last.eq(Mux(step, tick, age_last + tick)),
         ]
+        # The reference's next age is age_ref + tick unless the last edge becomes the
+        # reference (first edge, close: gap 0); an edge that is counted into the open window
+        # is the new last edge (age tick next clock): the gap is then age_ref.
+        with m.If(first | close):
+            m.d.sync += gap.eq(0)
+        with m.Elif(step):
+            m.d.sync += gap.eq(age_ref)
         with m.If(have_ref):
             m.d.sync += [m_mag.eq(Mux(close, 0, mag_e)), m_neg.eq(neg_e & ~close),
                          pending.eq(pend_e & ~close)]
@@ -342,9 +344,7 @@ class MTSpeed(wiring.Component):
         sgn = Signal()
         p = self.o.payload
         dt = Signal(w)
-        dt_sub = Signal(w + 1)          # age_ref − age_last: the +1 as a carry in at bit 0
-        m.d.comb += dt_sub.eq(Cat(Const(1, 1), age_ref) + Cat(Const(1, 1), n_last))
-        m.d.comb += dt.eq(Mux(pending & ~step, dt_sub[1:], age_ref))
+        m.d.comb += dt.eq(Mux(pending & ~step, gap, age_ref))     # gap = age_ref − age_last
         with m.If(start):
             m.d.sync += [busy.eq(1), n_dv.eq(~dt)]
             with m.If(have_ref & pend_e):

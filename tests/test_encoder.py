@@ -554,6 +554,20 @@ def test_divide_angle_is_divmod_for_every_valid_dividend():
         assert divide_angle(n, cpr) == divmod(n << 16, cpr), (n, cpr)
 
 
+
+def test_divide_angle_remainder_is_a_multiple_of_four_in_any_configuration():
+    """The decoder keeps Rp, Rz, Rp − cpr, Rz − cpr and rm divided by 4 (``rp4``, …): the
+    divisions' remainders are multiples of 4 for every dividend and cpr = 4·lines, valid or
+    not (n ≥ cpr, lines = 0), as the gateware's 18-bit working register leaves them, so
+    nothing is lost (random 18-bit dividends, every width of lines, the extremes)."""
+    rng = np.random.default_rng(8)
+    cases = [(0, 0), ((1 << 18) - 1, 0), ((1 << 18) - 1, 4), (255, 4 * 65535), (7, 4 * 65535)]
+    for _ in range(20000):
+        cases.append((int(rng.integers(0, 1 << 18)), 4 * int(rng.integers(0, 1 << 16))))
+    for n, cpr in cases:
+        assert divide_angle(n, cpr)[1] % 4 == 0, (n, cpr)
+
+
 # --- Hall -----------------------------------------------------------------------------------
 
 def test_hall_sector_order_centres_and_fault():

@@ -592,6 +592,25 @@ def test_mt_expiry_right_after_a_close(gap):
         assert out["stopped"][-1] == 1
 
 
+@pytest.mark.parametrize("ratio", [1, 3])
+def test_mt_expiry_clock_with_a_prescaled_tc(ratio):
+    """The reference expires in the clock of the tick that makes its age a whole span (not in
+    the clocks between ticks with the age at 2**w − 1): a fresh window (reference edge at 23)
+    and then no edge, an update in every clock around the expiry; before it the update reads
+    the bounded speed, from it on stopped — gateware == model, with TC at the clock and at a
+    third of it."""
+    dut = MTSpeed(clk_hz=3e6, tclk_hz=3e6 / ratio, tc_width=8, out_width=16, k_width=16,
+                  m_width=8)
+    assert dut.tclk_ratio == ratio
+    span = 2 ** dut.tc_width * ratio
+    modes = set()
+    for up in range(23 + span - 3 * ratio, 23 + span + 2 * ratio):
+        out = both(dut, [20, 23], [0, 0], [30, up], k=1000, end_cycle=up + 100)
+        assert out["fresh"].tolist() == [1, 0]
+        modes.add(int(out["stopped"][-1]))
+    assert modes == {0, 1}
+
+
 def test_mt_expiry_during_the_computation_invalidates_it():
     """A fresh window whose new reference (its last edge) expires while the division runs: the
     expiry clears the 'measurement valid' flag and the result does not set it again (it is set
