@@ -669,6 +669,71 @@ def _delay_line(m, name, n, behind, fields):
     return data.View(layout, q)
 
 
+def _shift_right(v, sh, width):
+    """``v >> sh`` (``v`` signed, ``sh`` unsigned): its low ``width`` bits and the sign above
+    them (``width + 1`` bits), as a logarithmic shifter whose largest stage comes first, so
+    that each stage is only as wide as the bits the later ones still need (``width`` plus
+    their largest shift): 5 × 2:1 multiplexers of ``P_WORD + 2``, ``WORD + 15``, … bits in
+    place of five full-width stages."""
+    sign = v[-1]
+    bits = [v[j] for j in range(len(v))]
+    for i in reversed(range(len(sh))):
+        step = 1 << i
+        need = width + step - 1                 # the later stages shift by at most step − 1
+        bits = [Mux(sh[i], bits[j + step] if j + step < len(bits) else sign, bits[j])
+                if j < len(bits) else sign for j in range(need)]
+    return Cat(*bits[:width], sign)
+
+
+def _special_and_or(m, sel, lines):
+    """The AND-OR of R's special operand, ``WORD`` bits: ``OR_k (sel[k] ? value_k : 0)`` for
+    ``lines[k] = ((base, lo, width, signed, shift), asl)``, value_k = ``base[lo:lo + width]``
+    (sign- or zero-extended) shifted left by ``shift + asl``, built bit by bit: per result
+    bit, the lines that read the same source bit share one AND (their selects ORed: e.g. the
+    configuration word and its low slices), and the terms that appear in the same set of
+    result bits (the sign bits of the 16-bit specials in bits 16 … 31) are ORed once for all
+    of them. The same function as the plain AND-OR of the lines (a rewrite of the sum of
+    products; ``sel`` one-hot or not)."""
+    bit_terms = [dict() for _ in range(WORD)]       # per result bit: source bit -> line set
+    sources = {}
+    for k, ((base, lo, width, sgn, shift), asl) in enumerate(lines):
+        for j in range(WORD):
+            src = j - shift - asl
+            if src < 0 or (src >= width and not sgn):
+                continue
+            idx = lo + min(src, width - 1)
+            sources[(id(base), idx)] = (base, idx)
+            bit_terms[j].setdefault((id(base), idx), set()).add(k)
+    sel_or = {}
+
+    def select(ks):
+        ks = frozenset(ks)
+        if ks not in sel_or:
+            s = Signal(name=f"spec_sel_{len(sel_or)}")
+            m.d.comb += s.eq(Cat(*(sel[k] for k in sorted(ks))).any())
+            sel_or[ks] = s if len(ks) > 1 else sel[next(iter(ks))]
+        return sel_or[ks]
+
+    # Terms (source bit, line set) and the result bits each appears in.
+    where = {}
+    for j, terms in enumerate(bit_terms):
+        for src, ks in terms.items():
+            where.setdefault((src, frozenset(ks)), set()).add(j)
+    groups = {}
+    for term, bits in where.items():
+        groups.setdefault(frozenset(bits), []).append(term)
+    per_bit = [[] for _ in range(WORD)]
+    for bits, terms in sorted(groups.items(), key=lambda g: (min(g[0]), len(g[0]))):
+        ands = [sources[src][0][sources[src][1]] & select(ks) for src, ks in terms]
+        if len(bits) > 1 and len(ands) > 1:
+            shared = Signal(name=f"spec_or_{min(bits)}_{max(bits)}")
+            m.d.comb += shared.eq(Cat(*ands).any())
+            ands = [shared]
+        for j in bits:
+            per_bit[j] += ands
+    return Cat(*(Cat(*t).any() if t else Const(0, 1) for t in per_bit))
+
+
 class Engine(wiring.Component):
     """The loop engine's datapath and sequencer (see the module docstring).
 
@@ -965,21 +1030,27 @@ class Engine(wiring.Component):
             for i, v in enumerate(kd_rom):
                 with m.Case(i):
                     m.d.comb += kd.eq(v)
-        ts = tab_r.data[:ft].as_signed()
-        tc = tab_r.data[ft:].as_signed()
 
         # --- Operands --------------------------------------------------------------------------------
         p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
-        specials = [Const(0), Const(0), ts, tc, kd] + [
-            Const(0) if name in self._config or name in self._config_slices
-            else getattr(self, f"s_{name}") for name in self._special_shapes]
+        # The special operands as bit fields (base value, first bit, width, signed, left shift):
+        # the AND-OR below is built bit by bit from them (``_special_and_or``).
+        kd_w = len(kd)
+        fields = [None, None, (tab_r.data, 0, ft, True, 0), (tab_r.data, ft, ft, True, 0),
+                  (kd, 0, kd_w, False, 0)]
+        for name, shape in self._special_shapes.items():
+            if name in self._config or name in self._config_slices:
+                fields.append(None)
+            else:
+                shape = Shape.cast(shape)
+                fields.append((getattr(self, f"s_{name}"), 0, shape.width, shape.signed, 0))
         if self._config:
             cfg_value = self._config_ram(m, prog, cfg_of, pc_next)
-            specials.append(cfg_value)
-            # The slices: wirings of the same read (zero-extended), one AND-OR line each.
-            specials += [Cat(Const(0, shift), cfg_value.as_unsigned()[lo:lo + bits])
-                         for _, lo, bits, shift in self._config_slices.values()]
+            fields.append((cfg_value, 0, len(cfg_value), True, 0))
+            # The slices: wirings of the same read (zero-extended).
+            fields += [(cfg_value, lo, bits, False, shift)
+                       for _, lo, bits, shift in self._config_slices.values()]
         # The special operands are selected in R (registered with the RF read) by an AND-OR
         # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
         # value shifted by the guard; a special A only), decoded from the key the ROM holds
@@ -987,13 +1058,9 @@ class Engine(wiring.Component):
         key = rom_r.data[INSTR_WIDTH:]
         sel = Signal(max(1, len(keys)))
         m.d.comb += sel.eq(Cat(*(key == k + 1 for k in range(len(keys)))))
-        terms = [Mux(sel[k], specials[i] << self._guard if asl else specials[i], 0)
-                 for k, (i, asl) in enumerate(keys)] or [Const(0)]
-        while len(terms) > 1:                   # a balanced OR tree
-            terms = [terms[j] | terms[j + 1] if j + 1 < len(terms) else terms[j]
-                     for j in range(0, len(terms), 2)]
         spec = Signal(signed(WORD))
-        m.d.comb += spec.eq(terms[0])
+        m.d.comb += spec.eq(_special_and_or(
+            m, sel, [(fields[i], self._guard if asl else 0) for i, asl in keys]))
         bspec = Signal(signed(WORD))
         with m.Switch(ir1.b):
             for i, name in enumerate(prog.bspecials):
@@ -1134,9 +1201,9 @@ class Engine(wiring.Component):
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
         m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
                      x3_nz.eq(x2e != 0)]
-        shifted = Signal(signed(P_WORD + 2))
+        shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         x4_nz = Signal()
-        m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
+        m.d.sync += [shifted.eq(_shift_right(r3, ir3.sh, WORD)), x4_nz.eq(x3_nz)]
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
         # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
         # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
