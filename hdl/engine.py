@@ -982,8 +982,7 @@ class Engine(wiring.Component):
         pc = Signal(PC_WIDTH)
         pc_next = Signal(PC_WIDTH)  # pc in the next clock
         m.d.sync += pc.eq(pc_next)
-        f_valid = Signal()          # an instruction is being fetched (pc)
-        r_valid = Signal()          # rom_r.data is an instruction in R
+        r_valid = Signal()          # rom_r.data is an instruction in R (the fetch: ``running``)
         x_valid = Signal()
         ir = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))   # the instruction in X1
         ir2 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X2
@@ -991,8 +990,7 @@ class Engine(wiring.Component):
         x3_valid = Signal()
         ir1 = data.View(INSTR_LAYOUT, rom_r.data[:INSTR_WIDTH])
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
-        m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
-                     x_valid.eq(r_valid)]
+        m.d.sync += ir.as_value().eq(rom_r.data[:INSTR_WIDTH])
         # The fields X3 uses (``sh``, ``acc``, whether the op is MUL, DIV or END), three
         # clocks after R, and those X4 uses (below), four after: delay lines in small RAMs,
         # written every clock with R's instruction (the ROM's read data, which X1's register
@@ -1012,7 +1010,7 @@ class Engine(wiring.Component):
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
         rep_k = Signal(5)
         hold = Signal()
-        m.d.comb += [hold.eq(self.running & r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+        m.d.comb += [hold.eq(r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
                      rom_r.en.eq(~hold)]
         m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
@@ -1266,7 +1264,7 @@ class Engine(wiring.Component):
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL)
-        execute = x_valid & self.running
+        execute = x_valid                   # (x_valid only while running)
         x4_valid = Signal()
         m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
         writes4 = x4_valid & ir4.writes
@@ -1338,19 +1336,23 @@ class Engine(wiring.Component):
         # --- Sequencer -------------------------------------------------------------------------
         # END stops the fetch in X1; ``end`` strobes with END in X3, when the instruction before
         # it writes back (X4): from the next clock on every result is in place.
+        # ``start`` (late: the wrapper's arbitration) enters each next state in its last LUT
+        # only: ``running`` = running ? ¬halt : start, ``pc_next`` = the start address or the
+        # running program's next pc. R and X1 are valid only while running (``r_valid`` =
+        # running and not halted a clock before, ``x_valid`` behind it): no start term (a
+        # start finds both clear) and no ``running`` term in ``execute`` and ``hold``.
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & ir3.end)
-        m.d.comb += pc_next.eq(pc)
-        with m.If(self.start & ~self.running):
-            m.d.sync += [self.running.eq(1), f_valid.eq(1), r_valid.eq(0), x_valid.eq(0)]
-            m.d.comb += pc_next.eq(self.start_pc)
-        with m.Elif(halt):
-            m.d.sync += [self.running.eq(0), f_valid.eq(0), r_valid.eq(0), x_valid.eq(0)]
-        with m.Elif(self.running):
+        m.d.sync += [self.running.eq(Mux(self.running, ~halt, self.start)),
+                     r_valid.eq(self.running & ~halt), x_valid.eq(r_valid & ~halt)]
+        pc_run = Signal(PC_WIDTH)
+        m.d.comb += pc_run.eq(pc)
+        with m.If(self.running & ~halt):
             with m.If(execute & (ir.op == Op.BR) & c):
-                m.d.comb += pc_next.eq(ir.tgt)
+                m.d.comb += pc_run.eq(ir.tgt)
             with m.Elif(~hold):
-                m.d.comb += pc_next.eq(pc + 1)
+                m.d.comb += pc_run.eq(pc + 1)
+        m.d.comb += pc_next.eq(Mux(self.start & ~self.running, self.start_pc, pc_run))
         return m
 
     def _config_ram(self, m, prog, cfg_of, pc_next):
