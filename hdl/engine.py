@@ -19,7 +19,7 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
            (rnd: not with MIN, MAX, SEL: the assembler refuses it, the gateware ignores it)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
-           ALU operation whose A is not P)
+           ALU operation with sh = 0 whose A is not P: :func:`check_flag_outputs`)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
          Y from X = P (the old P: the previous product, post-processed) → RF[dst] / out
     DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits;
@@ -64,7 +64,8 @@ __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "P
            "MUL_B",
            "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
            "HAZARD_TABLE", "WRITE_DELAY",
-           "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
+           "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1",
+           "check_flag_outputs"]
 
 #: Width of the register-file words and of the X1 ALU's operands (its sum has ``WORD + 1``
 #: bits). The current-loop program's widest register value is the PI's ``kp·E`` (``kp`` UQ(16, 8),
@@ -652,6 +653,20 @@ class Assembler:
                        outs=self.outs)
 
 
+def check_flag_outputs(who, program, out_widths):
+    """Raise ``ValueError`` unless every write of a 1-bit output (a flag: ``X ≠ 0``) in
+    ``program`` is an ALU operation (ADD … SEL) with ``sh`` = 0 whose A is not P or PQ: the
+    gateware tests the unshifted result, its ``WORD`` bits and sign, in X4."""
+    for pc, ins in enumerate(program.instrs):
+        if not ins.out or out_widths.get(program.outs[ins.out]) != 1:
+            continue
+        if ins.op not in ALU_OPS or ins.sh or (ins.asp and ins.a in (0, 1)):
+            raise ValueError(f"{who}: the 1-bit output {program.outs[ins.out]!r} at pc {pc} "
+                             f"must be written by an ALU operation (ADD ... SEL) with sh = 0 "
+                             f"whose A is not P or PQ, not {Op(ins.op).name} with sh = "
+                             f"{ins.sh}{' and A = P/PQ' if ins.asp and ins.a in (0, 1) else ''}")
+
+
 def _delay_line(m, name, n, behind, fields):
     """``fields`` (name → value) ``behind + 1`` clocks later, through a 4-word RAM ``name``
     (written every clock at ``n``, a 2-bit count of the clocks, read at ``n − behind`` through
@@ -832,6 +847,7 @@ class Engine(wiring.Component):
         if tuple(out_widths) != program.outs[1:]:
             raise ValueError(f"Engine out_widths must name {program.outs[1:]}, "
                              f"not {tuple(out_widths)}")
+        check_flag_outputs("Engine", program, out_widths)
         for name, value, lo, hi in (("width", width, 4, 32), ("guard", guard, 0, 16),
                                     ("div_bits", div_bits, 1, 24)):
             check_param("Engine", name, value, lo, hi)
@@ -1161,8 +1177,6 @@ class Engine(wiring.Component):
         m.d.sync += [d_plo.eq(p_read | pq_read), d_phi.eq(p_read),
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
-        x2e = Signal(signed(P_WORD + 1))          # the ALU result X
-        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
         x2m = Signal(signed(P_WORD + 2))          # SEL, MIN, MAX: X; else 0
         m.d.comb += x2m.eq(Mux(k_t, Mux(x2_b, b2, a2), 0))
         xp = Signal(signed(P_WORD + 1))
@@ -1183,7 +1197,6 @@ class Engine(wiring.Component):
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
         # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
-        x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
         # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
         # is short.
         rx = Signal(P_WORD + 2)
@@ -1198,10 +1211,9 @@ class Engine(wiring.Component):
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
         m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
-                     x3_nz.eq(x2e != 0)]
+]
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
-        x4_nz = Signal()
-        m.d.sync += [shifted.eq(_shift_right(r3, ir3.sh, WORD)), x4_nz.eq(x3_nz)]
+        m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
         # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
         # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
@@ -1308,7 +1320,10 @@ class Engine(wiring.Component):
                 continue                        # no register: o_data with the strobe
             reg = getattr(self, f"o_{name}")
             with m.If(we):
-                m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
+                # A 1-bit output takes X ≠ 0: the shifted value's (its WORD bits and sign:
+                # X's 33 bits), as a 1-bit output is written with sh = 0 only
+                # (:func:`check_flag_outputs`).
+                m.d.sync += reg.eq((shifted != 0) if ow == 1 else y[:ow])
 
         # The P update of a MUL, P_WORD bits (mod 2**P_WORD: the interpreter checks that P
         # fits): a carry-select adder (two half-length chains; the low half's carry picks).

@@ -416,6 +416,35 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
     assert clocks[0] > 100 * 90
 
 
+def test_flag_outputs_need_an_unshifted_alu_result():
+    """A 1-bit output is X ≠ 0 of an ALU operation with sh = 0 whose A is not P (the gateware
+    tests the unshifted value in X4): other writes are refused by the gateware and the
+    interpreter alike, with the output and the pc named."""
+    def prog(build):
+        A = Assembler(specials=("x",), bspecials=(), conds=(), outs=("ang", "f"))
+        build(A)
+        A.end()
+        return A.assemble()
+    widths = {"ang": 16, "f": 1}
+
+    def check():
+        ok = prog(lambda A: A.alu(Op.SUB, None, "s.x", 3, out="f"))
+        Engine(program=ok, special_shapes={"x": signed(16)}, out_widths=widths)
+        EngineModel(ok, out_widths=widths)
+        for build, what in (
+                (lambda A: A.alu(Op.ADD, None, "s.x", 0, sh=1, out="f"), "ADD with sh = 1"),
+                (lambda A: A.post(None, 0, rnd=False, out="f"), "ADD with sh = 0 and A = P"),
+                (lambda A: (A.mul("s.x", 1), A.mul("s.x", 1, out="f")), "MUL with sh = 0")):
+            bad = prog(build)
+            for make in (lambda: Engine(program=bad, special_shapes={"x": signed(16)},
+                                        out_widths=widths),
+                         lambda: EngineModel(bad, out_widths=widths)):
+                with pytest.raises(ValueError, match=r"1-bit output 'f' at pc \d+ must be "
+                                                     r"written by an ALU operation .*not " + what):
+                    make()
+    _built_for_signatures(check)
+
+
 def _post_path_values(rng, n):
     """``n`` values of P (signed ``P_WORD`` bits) for the post-path test: around every power
     of two (the saturation thresholds ``2**(sh + sw − 1)`` and the split at ``2**(sh + WORD)``
