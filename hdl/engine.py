@@ -1210,8 +1210,7 @@ class Engine(wiring.Component):
         r_hi1 = Signal(P_WORD + 2 - kr)
         m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
                      r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
-        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
-]
+        m.d.sync += r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m)
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
