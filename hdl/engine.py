@@ -1197,20 +1197,14 @@ class Engine(wiring.Component):
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
         # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
-        # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
-        # is short.
+        # A ripple adder (a carry-select one, two half-length chains, cost 34 LUT4 and 22
+        # carries more on the iCE40 with the engine's Fmax unchanged: AREA.md §7.66).
         rx = Signal(P_WORD + 2)
         rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
         rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        kr = (P_WORD + 2) // 2
-        r_lo = Signal(kr + 1)
-        r_hi0 = Signal(P_WORD + 2 - kr)
-        r_hi1 = Signal(P_WORD + 2 - kr)
-        m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
-                     r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
-        m.d.sync += r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m)
+        m.d.sync += r3.eq((rx + rh + rcin)[:P_WORD + 2] | x2m)
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
