@@ -1319,24 +1319,19 @@ class Engine(wiring.Component):
                 m.d.sync += reg.eq((shifted != 0) if ow == 1 else y[:ow])
 
         # The P update of a MUL, P_WORD bits (mod 2**P_WORD: the interpreter checks that P
-        # fits): a carry-select adder (two half-length chains; the low half's carry picks).
+        # fits): a ripple adder, the carry-in negating (a carry-select one, two half-length
+        # chains, cost 29 logic cells more on the iCEBreaker: AREA.md §7.66).
         pa = Signal(P_WORD)
         pb = Signal(P_WORD)
         m.d.comb += [pa.eq(Mux(ir3.acc, p, 0)), pb.eq(Mux(m_neg3, ~prod, prod))]
-        kp = P_WORD // 2
-        p_lo = Signal(kp + 1)
-        p_hi0 = Signal(P_WORD - kp)
-        p_hi1 = Signal(P_WORD - kp)
         p_sum = Signal(P_WORD)
-        m.d.comb += [p_lo.eq(pa[:kp] + pb[:kp] + m_neg3), p_hi0.eq(pa[kp:] + pb[kp:]),
-                     p_hi1.eq(pa[kp:] + pb[kp:] + 1),
-                     p_sum.eq(Cat(p_lo[:kp], Mux(p_lo[kp], p_hi1, p_hi0)))]
+        m.d.comb += p_sum.eq(pa + pb + m_neg3)
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
                 m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
         with m.If(x3_valid & ir3.mul):
-            # P ± prod: one adder, the carry-in negates; carry-select (``p_sum``, above).
+            # P ± prod: one adder, the carry-in negates (``p_sum``, above).
             m.d.sync += p.eq(p_sum)
         with m.If(x3_valid & ir3.div):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
