@@ -1207,21 +1207,18 @@ class Engine(wiring.Component):
         m.d.sync += r3.eq((rx + rh + rcin)[:P_WORD + 2] | x2m)
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
-        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
-        # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
-        # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
-        # selects (the test over ≈ 32 bits no longer in front of the write data and the
-        # R-stage bypass).
-        sat_mask = Signal(P_WORD + 2)
-        ones = Const((1 << (P_WORD + 2)) - 1, P_WORD + 2)
-        with m.Switch(ir2.sat):
-            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
-                with m.Case(code):
-                    m.d.sync += sat_mask.eq((ones << (ir2.sh + (sw - 1)))[:P_WORD + 2])
-            with m.Default():
-                m.d.sync += sat_mask.eq(0)
-        ovf4 = Signal()
-        m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
+        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal
+        # its sign, i.e. ``shifted``'s bits sw − 1 … WORD − 1 (fixed positions: tested in X4,
+        # in front of the select) and r3's bits from sh + WORD up (the shifted value's bits
+        # beyond ``shifted``): tested in X3 beside the barrel shift under a mask made in X2
+        # (``hi_mask``: r3's bit WORD + i when i ≥ sh, for a saturating instruction only),
+        # P_WORD + 2 − WORD bits in place of a mask over all of r3.
+        hw = P_WORD + 2 - WORD
+        hi_mask = Signal(hw)
+        sat2 = (ir2.sat == SAT_W) | (ir2.sat == SAT_W1)
+        m.d.sync += hi_mask.eq(Mux(sat2, (Const((1 << hw) - 1, hw) << ir2.sh)[:hw], 0))
+        ovf_hi4 = Signal()
+        m.d.sync += ovf_hi4.eq((hi_mask & (r3[WORD:] ^ r3[-1].replicate(hw))).any())
         # The fields X4 uses (and whether the op writes back): the delay line of X3's (above),
         # read three words behind.
         ir4 = _delay_line(m, "x4_delay", dl_n, 3,
@@ -1235,6 +1232,12 @@ class Engine(wiring.Component):
         m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
                                Mux(shifted[-1], -(1 << w), (1 << w) - 1),
                                Mux(shifted[-1], -(1 << (w - 1)), (1 << (w - 1)) - 1)))
+        sgn4 = shifted[-1]
+        ovf4 = Signal()
+        m.d.comb += ovf4.eq(ovf_hi4 |
+                            (((w4_sat == SAT_W) | (w4_sat == SAT_W1)) &
+                             (shifted[w:WORD] ^ sgn4.replicate(max(WORD - w, 0))).any()) |
+                            ((w4_sat == SAT_W) & (shifted[w - 1] ^ sgn4)))
         m.d.comb += y.eq(Mux(ovf4, lim, shifted))
 
         # --- Multiplier, divider step ----------------------------------------------------------
