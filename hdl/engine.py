@@ -34,9 +34,10 @@ shifted by ``asl``, or the value written back in this clock to the register read
 adder mode, condition and result select decoded and registered), X1 (operand select,
 carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
 A and B registered as they are), X2 (SEL/MIN/MAX choice beside the rounding adder, P read,
-rounding add; the product registered), X3 (barrel shift and saturation test registered; P
-update: ± product, DIV step), X4 (saturation select, write back to the RF and the output
-registers). Hence: a register written by instruction i is seen from instruction
+rounding add; the product registered), X3 (barrel shift and the saturation test's high part
+registered; P update: ± product, DIV step), X4 (the saturation test's low part and select,
+write back to the RF and the output registers). Hence: a register written by instruction i is
+seen from instruction
 i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
 fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
 sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
