@@ -1192,7 +1192,7 @@ class Engine(wiring.Component):
         rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
         m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
-                                   (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
+                                   ~(Const((1 << (P_WORD + 1)) - 1, P_WORD + 1) << ir.sh)[1:P_WORD + 1], 0)),
                      rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
                      rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
