@@ -19,7 +19,7 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
     Y    = sat(round_shift(X, sh) if rnd else X >> sh)   sat: none, signed(w) or signed(w + 1)
            (rnd: not with MIN, MAX, SEL: the assembler refuses it, the gateware ignores it)
            → RF[dst] if wen; → output register ``out`` (1-bit outputs take X ≠ 0, from an
-           ALU operation whose A is not P)
+           ALU operation with sh = 0 whose A is not P: :func:`check_flag_outputs`)
     MUL  P = (P if acc else 0) + (−1 if neg ^ c else 1) · A[:mul_a] · B[:mul_b]; and, fused,
          Y from X = P (the old P: the previous product, post-processed) → RF[dst] / out
     DIV  one restoring step: T = 2P; if T >> q ≥ B: T = T − B·2**q + 1; P = T   (q = div_bits;
@@ -34,9 +34,10 @@ shifted by ``asl``, or the value written back in this clock to the register read
 adder mode, condition and result select decoded and registered), X1 (operand select,
 carry-select ALU adder, flags, branch; MUL and DIV operands, the rounding constant, the sum,
 A and B registered as they are), X2 (SEL/MIN/MAX choice beside the rounding adder, P read,
-rounding add; the product registered), X3 (barrel shift and saturation test registered; P
-update: ± product, DIV step), X4 (saturation select, write back to the RF and the output
-registers). Hence: a register written by instruction i is seen from instruction
+rounding add; the product registered), X3 (barrel shift and the saturation test's high part
+registered; P update: ± product, DIV step), X4 (the saturation test's low part and select,
+write back to the RF and the output registers). Hence: a register written by instruction i is
+seen from instruction
 i + 4 on (``HAZARD_RF`` = ``WRITE_DELAY`` + 1; the assembler schedules straight-line code to
 fill the gap, inserts NOPs where it cannot, and checks every branch path); flags behave
 sequentially; P is written in X3, read there by MAC and DIV (sequentially) but read in X2 by
@@ -64,7 +65,8 @@ __all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "P
            "MUL_B",
            "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
            "HAZARD_TABLE", "WRITE_DELAY",
-           "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1"]
+           "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1",
+           "check_flag_outputs"]
 
 #: Width of the register-file words and of the X1 ALU's operands (its sum has ``WORD + 1``
 #: bits). The current-loop program's widest register value is the PI's ``kp·E`` (``kp`` UQ(16, 8),
@@ -652,6 +654,20 @@ class Assembler:
                        outs=self.outs)
 
 
+def check_flag_outputs(who, program, out_widths):
+    """Raise ``ValueError`` unless every write of a 1-bit output (a flag: ``X ≠ 0``) in
+    ``program`` is an ALU operation (ADD … SEL) with ``sh`` = 0 whose A is not P or PQ: the
+    gateware tests the unshifted result, its ``WORD`` bits and sign, in X4."""
+    for pc, ins in enumerate(program.instrs):
+        if not ins.out or out_widths.get(program.outs[ins.out]) != 1:
+            continue
+        if ins.op not in ALU_OPS or ins.sh or (ins.asp and ins.a in (0, 1)):
+            raise ValueError(f"{who}: the 1-bit output {program.outs[ins.out]!r} at pc {pc} "
+                             f"must be written by an ALU operation (ADD ... SEL) with sh = 0 "
+                             f"whose A is not P or PQ, not {Op(ins.op).name} with sh = "
+                             f"{ins.sh}{' and A = P/PQ' if ins.asp and ins.a in (0, 1) else ''}")
+
+
 def _delay_line(m, name, n, behind, fields):
     """``fields`` (name → value) ``behind + 1`` clocks later, through a 4-word RAM ``name``
     (written every clock at ``n``, a 2-bit count of the clocks, read at ``n − behind`` through
@@ -667,6 +683,71 @@ def _delay_line(m, name, n, behind, fields):
     m.d.comb += [wr.addr.eq(n), wr.en.eq(1), wr.data.eq(Cat(*fields.values())),
                  rd.addr.eq(n - behind)]
     return data.View(layout, q)
+
+
+def _shift_right(v, sh, width):
+    """``v >> sh`` (``v`` signed, ``sh`` unsigned): its low ``width`` bits and the sign above
+    them (``width + 1`` bits), as a logarithmic shifter whose largest stage comes first, so
+    that each stage is only as wide as the bits the later ones still need (``width`` plus
+    their largest shift): 5 × 2:1 multiplexers of ``P_WORD + 2``, ``WORD + 15``, … bits in
+    place of five full-width stages."""
+    sign = v[-1]
+    bits = [v[j] for j in range(len(v))]
+    for i in reversed(range(len(sh))):
+        step = 1 << i
+        need = width + step - 1                 # the later stages shift by at most step − 1
+        bits = [Mux(sh[i], bits[j + step] if j + step < len(bits) else sign, bits[j])
+                if j < len(bits) else sign for j in range(need)]
+    return Cat(*bits[:width], sign)
+
+
+def _special_and_or(m, sel, lines):
+    """The AND-OR of R's special operand, ``WORD`` bits: ``OR_k (sel[k] ? value_k : 0)`` for
+    ``lines[k] = ((base, lo, width, signed, shift), asl)``, value_k = ``base[lo:lo + width]``
+    (sign- or zero-extended) shifted left by ``shift + asl``, built bit by bit: per result
+    bit, the lines that read the same source bit share one AND (their selects ORed: e.g. the
+    configuration word and its low slices), and the terms that appear in the same set of
+    result bits (the sign bits of the 16-bit specials in bits 16 … 31) are ORed once for all
+    of them. The same function as the plain AND-OR of the lines (a rewrite of the sum of
+    products; ``sel`` one-hot or not)."""
+    bit_terms = [dict() for _ in range(WORD)]       # per result bit: source bit -> line set
+    sources = {}
+    for k, ((base, lo, width, sgn, shift), asl) in enumerate(lines):
+        for j in range(WORD):
+            src = j - shift - asl
+            if src < 0 or (src >= width and not sgn):
+                continue
+            idx = lo + min(src, width - 1)
+            sources[(id(base), idx)] = (base, idx)
+            bit_terms[j].setdefault((id(base), idx), set()).add(k)
+    sel_or = {}
+
+    def select(ks):
+        ks = frozenset(ks)
+        if ks not in sel_or:
+            s = Signal(name=f"spec_sel_{len(sel_or)}")
+            m.d.comb += s.eq(Cat(*(sel[k] for k in sorted(ks))).any())
+            sel_or[ks] = s if len(ks) > 1 else sel[next(iter(ks))]
+        return sel_or[ks]
+
+    # Terms (source bit, line set) and the result bits each appears in.
+    where = {}
+    for j, terms in enumerate(bit_terms):
+        for src, ks in terms.items():
+            where.setdefault((src, frozenset(ks)), set()).add(j)
+    groups = {}
+    for term, bits in where.items():
+        groups.setdefault(frozenset(bits), []).append(term)
+    per_bit = [[] for _ in range(WORD)]
+    for bits, terms in sorted(groups.items(), key=lambda g: (min(g[0]), len(g[0]))):
+        ands = [sources[src][0][sources[src][1]] & select(ks) for src, ks in terms]
+        if len(bits) > 1 and len(ands) > 1:
+            shared = Signal(name=f"spec_or_{min(bits)}_{max(bits)}")
+            m.d.comb += shared.eq(Cat(*ands).any())
+            ands = [shared]
+        for j in bits:
+            per_bit[j] += ands
+    return Cat(*(Cat(*t).any() if t else Const(0, 1) for t in per_bit))
 
 
 class Engine(wiring.Component):
@@ -767,6 +848,7 @@ class Engine(wiring.Component):
         if tuple(out_widths) != program.outs[1:]:
             raise ValueError(f"Engine out_widths must name {program.outs[1:]}, "
                              f"not {tuple(out_widths)}")
+        check_flag_outputs("Engine", program, out_widths)
         for name, value, lo, hi in (("width", width, 4, 32), ("guard", guard, 0, 16),
                                     ("div_bits", div_bits, 1, 24)):
             check_param("Engine", name, value, lo, hi)
@@ -917,8 +999,7 @@ class Engine(wiring.Component):
         pc = Signal(PC_WIDTH)
         pc_next = Signal(PC_WIDTH)  # pc in the next clock
         m.d.sync += pc.eq(pc_next)
-        f_valid = Signal()          # an instruction is being fetched (pc)
-        r_valid = Signal()          # rom_r.data is an instruction in R
+        r_valid = Signal()          # rom_r.data is an instruction in R (the fetch: ``running``)
         x_valid = Signal()
         ir = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))   # the instruction in X1
         ir2 = data.View(INSTR_LAYOUT, Signal(INSTR_WIDTH))  # the instruction in X2
@@ -926,8 +1007,7 @@ class Engine(wiring.Component):
         x3_valid = Signal()
         ir1 = data.View(INSTR_LAYOUT, rom_r.data[:INSTR_WIDTH])
         m.d.comb += [rom_r.addr.eq(pc), rf_a.addr.eq(ir1.a), rf_b.addr.eq(ir1.b)]
-        m.d.sync += [ir.as_value().eq(rom_r.data[:INSTR_WIDTH]), r_valid.eq(f_valid),
-                     x_valid.eq(r_valid)]
+        m.d.sync += ir.as_value().eq(rom_r.data[:INSTR_WIDTH])
         # The fields X3 uses (``sh``, ``acc``, whether the op is MUL, DIV or END), three
         # clocks after R, and those X4 uses (below), four after: delay lines in small RAMs,
         # written every clock with R's instruction (the ROM's read data, which X1's register
@@ -947,7 +1027,7 @@ class Engine(wiring.Component):
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
         rep_k = Signal(5)
         hold = Signal()
-        m.d.comb += [hold.eq(self.running & r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+        m.d.comb += [hold.eq(r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
                      rom_r.en.eq(~hold)]
         m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
@@ -965,21 +1045,27 @@ class Engine(wiring.Component):
             for i, v in enumerate(kd_rom):
                 with m.Case(i):
                     m.d.comb += kd.eq(v)
-        ts = tab_r.data[:ft].as_signed()
-        tc = tab_r.data[ft:].as_signed()
 
         # --- Operands --------------------------------------------------------------------------------
         p = Signal(signed(P_WORD))
         # P and PQ are read in X2 (below), not through this mux.
-        specials = [Const(0), Const(0), ts, tc, kd] + [
-            Const(0) if name in self._config or name in self._config_slices
-            else getattr(self, f"s_{name}") for name in self._special_shapes]
+        # The special operands as bit fields (base value, first bit, width, signed, left shift):
+        # the AND-OR below is built bit by bit from them (``_special_and_or``).
+        kd_w = len(kd)
+        fields = [None, None, (tab_r.data, 0, ft, True, 0), (tab_r.data, ft, ft, True, 0),
+                  (kd, 0, kd_w, False, 0)]
+        for name, shape in self._special_shapes.items():
+            if name in self._config or name in self._config_slices:
+                fields.append(None)
+            else:
+                shape = Shape.cast(shape)
+                fields.append((getattr(self, f"s_{name}"), 0, shape.width, shape.signed, 0))
         if self._config:
             cfg_value = self._config_ram(m, prog, cfg_of, pc_next)
-            specials.append(cfg_value)
-            # The slices: wirings of the same read (zero-extended), one AND-OR line each.
-            specials += [Cat(Const(0, shift), cfg_value.as_unsigned()[lo:lo + bits])
-                         for _, lo, bits, shift in self._config_slices.values()]
+            fields.append((cfg_value, 0, len(cfg_value), True, 0))
+            # The slices: wirings of the same read (zero-extended).
+            fields += [(cfg_value, lo, bits, False, shift)
+                       for _, lo, bits, shift in self._config_slices.values()]
         # The special operands are selected in R (registered with the RF read) by an AND-OR
         # over a one-hot select: one line per (special, asl) pair the program uses (asl: the
         # value shifted by the guard; a special A only), decoded from the key the ROM holds
@@ -987,13 +1073,9 @@ class Engine(wiring.Component):
         key = rom_r.data[INSTR_WIDTH:]
         sel = Signal(max(1, len(keys)))
         m.d.comb += sel.eq(Cat(*(key == k + 1 for k in range(len(keys)))))
-        terms = [Mux(sel[k], specials[i] << self._guard if asl else specials[i], 0)
-                 for k, (i, asl) in enumerate(keys)] or [Const(0)]
-        while len(terms) > 1:                   # a balanced OR tree
-            terms = [terms[j] | terms[j + 1] if j + 1 < len(terms) else terms[j]
-                     for j in range(0, len(terms), 2)]
         spec = Signal(signed(WORD))
-        m.d.comb += spec.eq(terms[0])
+        m.d.comb += spec.eq(_special_and_or(
+            m, sel, [(fields[i], self._guard if asl else 0) for i, asl in keys]))
         bspec = Signal(signed(WORD))
         with m.Switch(ir1.b):
             for i, name in enumerate(prog.bspecials):
@@ -1096,8 +1178,6 @@ class Engine(wiring.Component):
         m.d.sync += [d_plo.eq(p_read | pq_read), d_phi.eq(p_read),
                      k_s.eq(~p_read & ~pq_read & ~d_mm & ~d_sel),
                      k_t.eq(~p_read & ~pq_read & (d_mm | d_sel))]
-        x2e = Signal(signed(P_WORD + 1))          # the ALU result X
-        m.d.comb += x2e.eq(Mux(x2_b, b2, Mux(k_t, a2, s2)))
         x2m = Signal(signed(P_WORD + 2))          # SEL, MIN, MAX: X; else 0
         m.d.comb += x2m.eq(Mux(k_t, Mux(x2_b, b2, a2), 0))
         xp = Signal(signed(P_WORD + 1))
@@ -1112,46 +1192,34 @@ class Engine(wiring.Component):
         rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
         m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
-                                   (Const(1, unsigned(P_WORD)) << ir.sh)[1:] - 1, 0)),
+                                   ~(Const((1 << (P_WORD + 1)) - 1, P_WORD + 1) << ir.sh)[1:P_WORD + 1], 0)),
                      rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
                      rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
         # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
-        x3_nz = Signal()                        # 1-bit outputs take X ≠ 0 (tested in X2)
-        # A carry-select adder too: the carry-in (the sign) arrives late, the low half's chain
-        # is short.
+        # A ripple adder (a carry-select one, two half-length chains, cost 34 LUT4 and 22
+        # carries more on the iCE40 with the engine's Fmax unchanged: AREA.md §7.66).
         rx = Signal(P_WORD + 2)
         rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
         rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        kr = (P_WORD + 2) // 2
-        r_lo = Signal(kr + 1)
-        r_hi0 = Signal(P_WORD + 2 - kr)
-        r_hi1 = Signal(P_WORD + 2 - kr)
-        m.d.comb += [r_lo.eq(rx[:kr] + rh[:kr] + rcin), r_hi0.eq(rx[kr:] + rh[kr:]),
-                     r_hi1.eq(rx[kr:] + rh[kr:] + 1)]
-        m.d.sync += [r3.eq(Cat(r_lo[:kr], Mux(r_lo[kr], r_hi1, r_hi0)) | x2m),
-                     x3_nz.eq(x2e != 0)]
-        shifted = Signal(signed(P_WORD + 2))
-        x4_nz = Signal()
-        m.d.sync += [shifted.eq(r3 >> ir3.sh), x4_nz.eq(x3_nz)]
-        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal,
-        # i.e. r3's bits from sh + sw − 1 up: tested in X3 beside the barrel shift, under a
-        # mask made in X2 (set from bit sh + sw − 1 up; none without saturation); X4 only
-        # selects (the test over ≈ 32 bits no longer in front of the write data and the
-        # R-stage bypass).
-        sat_mask = Signal(P_WORD + 2)
-        ones = Const((1 << (P_WORD + 2)) - 1, P_WORD + 2)
-        with m.Switch(ir2.sat):
-            for code, sw in ((SAT_W, w), (SAT_W1, w + 1)):
-                with m.Case(code):
-                    m.d.sync += sat_mask.eq((ones << (ir2.sh + (sw - 1)))[:P_WORD + 2])
-            with m.Default():
-                m.d.sync += sat_mask.eq(0)
-        ovf4 = Signal()
-        m.d.sync += ovf4.eq((sat_mask & (r3 ^ r3[-1].replicate(P_WORD + 2))).any())
+        m.d.sync += r3.eq((rx + rh + rcin)[:P_WORD + 2] | x2m)
+        shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
+        m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
+        # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal
+        # its sign, i.e. ``shifted``'s bits sw − 1 … WORD − 1 (fixed positions: tested in X4,
+        # in front of the select) and r3's bits from sh + WORD up (the shifted value's bits
+        # beyond ``shifted``): tested in X3 beside the barrel shift under a mask made in X2
+        # (``hi_mask``: r3's bit WORD + i when i ≥ sh, for a saturating instruction only),
+        # P_WORD + 2 − WORD bits in place of a mask over all of r3.
+        hw = P_WORD + 2 - WORD
+        hi_mask = Signal(hw)
+        sat2 = (ir2.sat == SAT_W) | (ir2.sat == SAT_W1)
+        m.d.sync += hi_mask.eq(Mux(sat2, (Const((1 << hw) - 1, hw) << ir2.sh)[:hw], 0))
+        ovf_hi4 = Signal()
+        m.d.sync += ovf_hi4.eq((hi_mask & (r3[WORD:] ^ r3[-1].replicate(hw))).any())
         # The fields X4 uses (and whether the op writes back): the delay line of X3's (above),
         # read three words behind.
         ir4 = _delay_line(m, "x4_delay", dl_n, 3,
@@ -1165,6 +1233,12 @@ class Engine(wiring.Component):
         m.d.comb += lim.eq(Mux(w4_sat == SAT_W1,
                                Mux(shifted[-1], -(1 << w), (1 << w) - 1),
                                Mux(shifted[-1], -(1 << (w - 1)), (1 << (w - 1)) - 1)))
+        sgn4 = shifted[-1]
+        ovf4 = Signal()
+        m.d.comb += ovf4.eq(ovf_hi4 |
+                            (((w4_sat == SAT_W) | (w4_sat == SAT_W1)) &
+                             (shifted[w:WORD] ^ sgn4.replicate(max(WORD - w, 0))).any()) |
+                            ((w4_sat == SAT_W) & (shifted[w - 1] ^ sgn4)))
         m.d.comb += y.eq(Mux(ovf4, lim, shifted))
 
         # --- Multiplier, divider step ----------------------------------------------------------
@@ -1199,7 +1273,7 @@ class Engine(wiring.Component):
 
         is_alu = (ir.op == Op.ADD) | (ir.op == Op.SUB) | (ir.op == Op.RSUB) | \
             (ir.op == Op.MIN) | (ir.op == Op.MAX) | (ir.op == Op.SEL)
-        execute = x_valid & self.running
+        execute = x_valid                   # (x_valid only while running)
         x4_valid = Signal()
         m.d.sync += [x2_valid.eq(execute), x3_valid.eq(x2_valid), x4_valid.eq(x3_valid)]
         writes4 = x4_valid & ir4.writes
@@ -1243,27 +1317,25 @@ class Engine(wiring.Component):
                 continue                        # no register: o_data with the strobe
             reg = getattr(self, f"o_{name}")
             with m.If(we):
-                m.d.sync += reg.eq(x4_nz if ow == 1 else y[:ow])
+                # A 1-bit output takes X ≠ 0: the shifted value's (its WORD bits and sign:
+                # X's 33 bits), as a 1-bit output is written with sh = 0 only
+                # (:func:`check_flag_outputs`).
+                m.d.sync += reg.eq((shifted != 0) if ow == 1 else y[:ow])
 
         # The P update of a MUL, P_WORD bits (mod 2**P_WORD: the interpreter checks that P
-        # fits): a carry-select adder (two half-length chains; the low half's carry picks).
+        # fits): a ripple adder, the carry-in negating (a carry-select one, two half-length
+        # chains, cost 29 logic cells more on the iCEBreaker: AREA.md §7.66).
         pa = Signal(P_WORD)
         pb = Signal(P_WORD)
         m.d.comb += [pa.eq(Mux(ir3.acc, p, 0)), pb.eq(Mux(m_neg3, ~prod, prod))]
-        kp = P_WORD // 2
-        p_lo = Signal(kp + 1)
-        p_hi0 = Signal(P_WORD - kp)
-        p_hi1 = Signal(P_WORD - kp)
         p_sum = Signal(P_WORD)
-        m.d.comb += [p_lo.eq(pa[:kp] + pb[:kp] + m_neg3), p_hi0.eq(pa[kp:] + pb[kp:]),
-                     p_hi1.eq(pa[kp:] + pb[kp:] + 1),
-                     p_sum.eq(Cat(p_lo[:kp], Mux(p_lo[kp], p_hi1, p_hi0)))]
+        m.d.comb += p_sum.eq(pa + pb + m_neg3)
         with m.If(execute):
             with m.If(is_alu & ir.setf):
                 # Of the sum (MAX: B − A); N, Z of A − B are derived from them where read.
                 m.d.sync += [flag_s.eq(s[-1]), flag_zg.eq(s_zg), flag_max.eq(d_max)]
         with m.If(x3_valid & ir3.mul):
-            # P ± prod: one adder, the carry-in negates; carry-select (``p_sum``, above).
+            # P ± prod: one adder, the carry-in negates (``p_sum``, above).
             m.d.sync += p.eq(p_sum)
         with m.If(x3_valid & ir3.div):
             m.d.sync += p.eq(Mux(div_ge, Cat(Const(1, 1), t2[1:q], div_diff), t2))
@@ -1271,19 +1343,23 @@ class Engine(wiring.Component):
         # --- Sequencer -------------------------------------------------------------------------
         # END stops the fetch in X1; ``end`` strobes with END in X3, when the instruction before
         # it writes back (X4): from the next clock on every result is in place.
+        # ``start`` (late: the wrapper's arbitration) enters each next state in its last LUT
+        # only: ``running`` = running ? ¬halt : start, ``pc_next`` = the start address or the
+        # running program's next pc. R and X1 are valid only while running (``r_valid`` =
+        # running and not halted a clock before, ``x_valid`` behind it): no start term (a
+        # start finds both clear) and no ``running`` term in ``execute`` and ``hold``.
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & ir3.end)
-        m.d.comb += pc_next.eq(pc)
-        with m.If(self.start & ~self.running):
-            m.d.sync += [self.running.eq(1), f_valid.eq(1), r_valid.eq(0), x_valid.eq(0)]
-            m.d.comb += pc_next.eq(self.start_pc)
-        with m.Elif(halt):
-            m.d.sync += [self.running.eq(0), f_valid.eq(0), r_valid.eq(0), x_valid.eq(0)]
-        with m.Elif(self.running):
+        m.d.sync += [self.running.eq(Mux(self.running, ~halt, self.start)),
+                     r_valid.eq(self.running & ~halt), x_valid.eq(r_valid & ~halt)]
+        pc_run = Signal(PC_WIDTH)
+        m.d.comb += pc_run.eq(pc)
+        with m.If(self.running & ~halt):
             with m.If(execute & (ir.op == Op.BR) & c):
-                m.d.comb += pc_next.eq(ir.tgt)
+                m.d.comb += pc_run.eq(ir.tgt)
             with m.Elif(~hold):
-                m.d.comb += pc_next.eq(pc + 1)
+                m.d.comb += pc_run.eq(pc + 1)
+        m.d.comb += pc_next.eq(Mux(self.start & ~self.running, self.start_pc, pc_run))
         return m
 
     def _config_ram(self, m, prog, cfg_of, pc_next):

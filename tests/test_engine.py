@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from amaranth.hdl import Elaboratable, Module, UnusedElaboratable, signed, unsigned
 
-from foc_servo.hdl.engine import HAZARD_P, HAZARD_RF, WORD, Assembler, Engine, Op, SAT_W
+from foc_servo.hdl.engine import (HAZARD_P, HAZARD_RF, P_WORD, SAT_NONE, SAT_W, SAT_W1, WORD,
+                                  Assembler, Engine, Op)
 from foc_servo.hdl.foc import CurrentLoop
 from foc_servo.hdl.foc_engine import (DUTY_CLOCKS, OUTS, SPECIALS, EngineCurrentLoop,
                                       current_loop_program, duty_lengths, path_lengths)
@@ -413,6 +414,110 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
     simulate(dut, [testbench], name="engine")
     assert errors == []
     assert clocks[0] > 100 * 90
+
+
+def test_flag_outputs_need_an_unshifted_alu_result():
+    """A 1-bit output is X ≠ 0 of an ALU operation with sh = 0 whose A is not P (the gateware
+    tests the unshifted value in X4): other writes are refused by the gateware and the
+    interpreter alike, with the output and the pc named."""
+    def prog(build):
+        A = Assembler(specials=("x",), bspecials=(), conds=(), outs=("ang", "f"))
+        build(A)
+        A.end()
+        return A.assemble()
+    widths = {"ang": 16, "f": 1}
+
+    def check():
+        ok = prog(lambda A: A.alu(Op.SUB, None, "s.x", 3, out="f"))
+        Engine(program=ok, special_shapes={"x": signed(16)}, out_widths=widths)
+        EngineModel(ok, out_widths=widths)
+        for build, what in (
+                (lambda A: A.alu(Op.ADD, None, "s.x", 0, sh=1, out="f"), "ADD with sh = 1"),
+                (lambda A: A.post(None, 0, rnd=False, out="f"), "ADD with sh = 0 and A = P"),
+                (lambda A: (A.mul("s.x", 1), A.mul("s.x", 1, out="f")), "MUL with sh = 0")):
+            bad = prog(build)
+            for make in (lambda: Engine(program=bad, special_shapes={"x": signed(16)},
+                                        out_widths=widths),
+                         lambda: EngineModel(bad, out_widths=widths)):
+                with pytest.raises(ValueError, match=r"1-bit output 'f' at pc \d+ must be "
+                                                     r"written by an ALU operation .*not " + what):
+                    make()
+    _built_for_signatures(check)
+
+
+def _post_path_values(rng, n):
+    """``n`` values of P (signed ``P_WORD`` bits) for the post-path test: around every power
+    of two (the saturation thresholds ``2**(sh + sw − 1)`` and the split at ``2**(sh + WORD)``
+    of the gateware's saturation test) with small offsets and rounding ties, and log-uniform."""
+    lim = 1 << (P_WORD - 1)
+    out = []
+    for _ in range(n):
+        k = int(rng.integers(0, P_WORD - 1))
+        kind = rng.random()
+        if kind < 0.5:
+            v = (1 << k) + int(rng.integers(-3, 4))
+        elif kind < 0.7 and k:
+            v = (1 << k) + (1 << (k - 1)) * int(rng.integers(-1, 2)) + int(rng.integers(-1, 2))
+        else:
+            v = int(rng.integers(0, 1 << k)) if k else 0
+        v = -v - int(rng.integers(0, 2)) if rng.random() < 0.5 else v
+        out.append(max(-lim, min(lim - 1, v)))
+    return out
+
+
+def test_engine_hdl_post_path_matches_interpreter_cycle_by_cycle():
+    """The post path (rounding add, barrel shift, saturation) of the gateware against the
+    interpreter, every write back cycle by cycle: P near every power of two up to P_WORD bits
+    (set exactly by a MUL and a MAC) through posts of every shift 0 … 31, floor and rounding,
+    both saturation widths (and no saturation where the result fits WORD), and the ALU's
+    33-bit sum with shifts 0 … 3 saturated. The programs use only some of these shifts and
+    saturation thresholds: this covers the rest of the shifter and of the saturation test."""
+    A = Assembler(specials=("y1", "y2", "a", "b"), bspecials=("y1", "y2", "b"), conds=(),
+                  outs=("ang",))
+    A.mul(1 << 17, "b.y1")                          # P = 2**17 · (t >> 17) + (t mod 2**17)
+    A.mac(1, "b.y2")
+    i = 0
+    for sat in (SAT_W, SAT_W1, SAT_NONE):
+        for rnd in (False, True):
+            for sh in range(32) if sat != SAT_NONE else range(P_WORD - WORD, 32):
+                A.post(f"r.o{i % 8}", sh, rnd=rnd, sat=sat)
+                i += 1
+    for op in (Op.ADD, Op.SUB):
+        for sat in (SAT_W, SAT_W1):
+            for rnd in (False, True):
+                for sh in range(4):
+                    A.alu(op, f"r.o{i % 8}", "s.a", "b.b", sh=sh, rnd=rnd, sat=sat)
+                    i += 1
+    A.end()
+    prog = A.assemble()
+    shapes = {"y1": signed(28), "y2": signed(28), "a": signed(32), "b": signed(32)}
+    dut = Engine(program=prog, special_shapes=shapes, out_widths={"ang": 16})
+    model = EngineModel(prog, out_widths={"ang": 16})
+    rng = np.random.default_rng(16)
+    ps = _post_path_values(rng, 60)
+    words = [int(rng.choice([-1, 1])) * ((1 << int(rng.integers(0, 32))) + int(rng.integers(-2, 3)))
+             for _ in range(2 * len(ps))]
+    words = [max(-(1 << 31), min((1 << 31) - 1, v)) for v in words]
+    errors = []
+
+    async def testbench(ctx):
+        for k, t in enumerate(ps):
+            spec = {"y1": t >> 17, "y2": t & ((1 << 17) - 1), "a": words[2 * k],
+                    "b": words[2 * k + 1]}
+            for name, val in spec.items():
+                ctx.set(getattr(dut, f"s_{name}"), val)
+            trace = model.run(spec, {})
+            ctx.set(dut.start, 1)
+            await ctx.tick()
+            ctx.set(dut.start, 0)
+            error, _ = await follow_trace(ctx, dut, trace)
+            if error is not None:
+                errors.append((k, t, *error))
+                return
+            await ctx.tick()
+
+    simulate(dut, [testbench], name="engine_post")
+    assert errors == []
 
 
 # --- EngineCurrentLoop ---------------------------------------------------------------------------

@@ -16,7 +16,7 @@ would overflow raises :exc:`OverflowError` here instead of wrapping there.
 import collections
 
 from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD,
-                           P_WORD, WRITE_DELAY, Op)
+                           P_WORD, WRITE_DELAY, Op, check_flag_outputs)
 from ...hdl.rotator import RotatorParams
 
 __all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedModel", "engine_fields",
@@ -57,6 +57,7 @@ class EngineModel:
         self.program = program
         self.instrs = program.instrs
         self.out_widths = dict(out_widths)
+        check_flag_outputs("EngineModel", program, self.out_widths)
         self.width = width
         self.guard = guard
         self.div_bits = div_bits
