@@ -645,10 +645,9 @@ class RegisterFile(wiring.Component):
                 m.d.sync += port.eq(0)
 
         # t: the writes (address compared in full); the index, block and window hits registered.
-        # With flip-flop staging ``sel`` is read only in t + 1 of an access (``pending``), and
-        # the master holds ``addr`` from t to the ack: it is loaded in every clock, without
-        # ``access`` (the bus handshake) in front of its flip-flops' enable (ECP5 Fmax,
-        # docs/AREA.md §7.58); the RAM staging also reads it between accesses.
+        # The word select ``sel`` is loaded with the access, and only with block-RAM staging:
+        # flip-flop staging reads the select only as ``known`` and ``read_only``, registered
+        # from the index directly (below).
         def load_sel():
             # The code of every word's index, the no-word code for the other indexes of the
             # map's blocks, and any code for the indexes of other blocks (blk_ok low: the code
