@@ -25,3 +25,12 @@ async def follow_trace(ctx, dut, trace, *, limit=400):
             return (i, want, got), cyc
         i += 1
     return None, cyc
+
+
+async def start_and_follow(ctx, dut, trace, *, limit=400):
+    """Pulse ``dut.start`` for one clock, then :func:`follow_trace`: one engine run checked
+    against the interpreter's ``trace``; returns what :func:`follow_trace` returns."""
+    ctx.set(dut.start, 1)
+    await ctx.tick()
+    ctx.set(dut.start, 0)
+    return await follow_trace(ctx, dut, trace, limit=limit)

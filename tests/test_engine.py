@@ -23,7 +23,7 @@ from foc_servo.sim.models.rotator import rotate_ideal
 from foc_servo.sim.models.svpwm import dcbus_gain
 from foc_servo.sim.verify import foc as verify_foc
 
-from engine_trace import follow_trace
+from engine_trace import start_and_follow
 
 
 def _engine_vec(vec):
@@ -398,10 +398,7 @@ def test_engine_hdl_matches_interpreter_cycle_by_cycle():
             for name, val in conds.items():
                 ctx.set(getattr(dut, f"c_{name}"), int(val))
             trace = model.run(spec, conds)
-            ctx.set(dut.start, 1)
-            await ctx.tick()
-            ctx.set(dut.start, 0)
-            error, cyc = await follow_trace(ctx, dut, trace)
+            error, cyc = await start_and_follow(ctx, dut, trace)
             if error is not None:
                 errors.append((k, *error))
                 return
@@ -507,10 +504,7 @@ def test_engine_hdl_post_path_matches_interpreter_cycle_by_cycle():
             for name, val in spec.items():
                 ctx.set(getattr(dut, f"s_{name}"), val)
             trace = model.run(spec, {})
-            ctx.set(dut.start, 1)
-            await ctx.tick()
-            ctx.set(dut.start, 0)
-            error, _ = await follow_trace(ctx, dut, trace)
+            error, _ = await start_and_follow(ctx, dut, trace)
             if error is not None:
                 errors.append((k, t, *error))
                 return

@@ -209,7 +209,7 @@ def test_engine_mt_on_the_gateware_engine_cycle_by_cycle():
     from foc_servo.sim.harness import simulate as hdl_simulate
     from foc_servo.sim.models.engine import _complete
 
-    from engine_trace import follow_trace
+    from engine_trace import start_and_follow
 
     prog = PROGRAMS["straight"]
     dut = Engine(program=prog, special_shapes=MT_SHAPES, out_widths=MT_OUTS)
@@ -229,10 +229,7 @@ def test_engine_mt_on_the_gateware_engine_cycle_by_cycle():
             spec, _ = _complete(prog, spec, {})
             for name in MT_SHAPES:
                 ctx.set(getattr(dut, f"s_{name}"), spec[name])
-            ctx.set(dut.start, 1)
-            await ctx.tick()
-            ctx.set(dut.start, 0)
-            error, _ = await follow_trace(ctx, dut, model.trace)
+            error, _ = await start_and_follow(ctx, dut, model.trace)
             if error is not None:
                 errors.append((n, *error))
                 return

@@ -11,7 +11,7 @@ from foc_servo.hdl.engine import Op
 from foc_servo.sim.models.engine import EngineLoopModel, EngineSpeedModel
 from foc_servo.sim.models.servo import SpeedLoopModel
 
-from engine_trace import follow_trace
+from engine_trace import start_and_follow
 
 from amaranth.hdl import signed
 
@@ -265,10 +265,7 @@ def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle()
             for name, val in conds.items():
                 ctx.set(getattr(dut, f"c_{name}"), int(val))
             ctx.set(dut.start_pc, start)
-            ctx.set(dut.start, 1)
-            await ctx.tick()
-            ctx.set(dut.start, 0)
-            error, _ = await follow_trace(ctx, dut, trace)
+            error, _ = await start_and_follow(ctx, dut, trace)
             if error is not None:
                 errors.append((k, kind, *error))
                 return
