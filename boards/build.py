@@ -103,6 +103,12 @@ TRIP_REGISTER = {"ice40": False, "ecp5": True, "xc7": True, "xc6s": True}
 #: docs/AREA.md §7.70). The same captures either way.
 SCOPE_DOWN_COUNTS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(timer_clamp=…)`` per FPGA family: the dead-time compensation's clamp in the PWM
+#: timer's shadow and active registers on the iCE40 (they pack with their LUTs: −N logic cells
+#: on the iCEBreaker, docs/AREA.md §7.72); in the compensation elsewhere (the netlists of
+#: before). The same levels either way.
+TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -350,6 +356,7 @@ class BoardTop(Elaboratable):
                         uv_arm_chain=UV_ARM_CHAIN[self._board.family],
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
+                        timer_clamp=TIMER_CLAMP[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)

@@ -117,7 +117,9 @@ class DeadTimeComp(wiring.Component):
 
     latency = 0
 
-    def __init__(self, *, width=16, count_width=16, clocks_width=8, shift_width=4):
+    def __init__(self, *, width=16, count_width=16, clocks_width=8, shift_width=4, clamp=True):
+        if not isinstance(clamp, bool):
+            raise TypeError(f"DeadTimeComp clamp must be a bool, not {clamp!r}")
         for name, value, lo, hi in (("width", width, 8, 23), ("count_width", count_width, 4, 24),
                                     ("clocks_width", clocks_width, 1, 16),
                                     ("shift_width", shift_width, 1, 5)):
@@ -126,12 +128,14 @@ class DeadTimeComp(wiring.Component):
         self._count_width = count_width
         self._clocks_width = clocks_width
         self._shift_width = shift_width
+        self._clamp = clamp
         duties = data.StructLayout({p: unsigned(count_width) for p in "abc"})
+        sums = data.StructLayout({p: signed(count_width + 2) for p in "abc"})
         super().__init__({
             "phase": In(stream.Signature(data.StructLayout({p: signed(width) for p in "abc"}),
                                          always_ready=True)),
             "i": In(stream.Signature(duties)),
-            "o": Out(stream.Signature(duties)),
+            "o": Out(stream.Signature(duties if clamp else sums)),
             "symmetric": In(1),
             "clocks": In(unsigned(clocks_width)),
             "shift": In(unsigned(shift_width)),
@@ -142,6 +146,7 @@ class DeadTimeComp(wiring.Component):
     count_width = property(lambda self: self._count_width)
     clocks_width = property(lambda self: self._clocks_width)
     shift_width = property(lambda self: self._shift_width)
+    clamp = property(lambda self: self._clamp)
 
     @property
     def comp_latency(self):
@@ -221,12 +226,13 @@ class DeadTimeComp(wiring.Component):
             # (not to the full scale: the timer's, module docstring). The upper clamp looks at
             # the bits above count_width (a LUT, no carry chain).
             total = Signal(signed(self._count_width + 2), name=f"total_{p}")
-            m.d.comb += [
-                total.eq(self.i.payload[p] + self.comp[p]),
-                self.o.payload[p].eq(Mux(total[-1], 0,
-                                         Mux(total[cw_duty:].any(), (1 << cw_duty) - 1,
-                                             total[:cw_duty]))),
-            ]
+            m.d.comb += total.eq(self.i.payload[p] + self.comp[p])
+            if not self._clamp:
+                m.d.comb += self.o.payload[p].eq(total)     # the timer clamps (``clamp``)
+                continue
+            m.d.comb += self.o.payload[p].eq(Mux(total[-1], 0,
+                                                 Mux(total[cw_duty:].any(), (1 << cw_duty) - 1,
+                                                     total[:cw_duty])))
         m.d.comb += [
             self.o.valid.eq(self.i.valid),
             self.i.ready.eq(self.o.ready),

@@ -620,8 +620,10 @@ class PWMTimer(wiring.Component):
         ``N < 4`` or ``2·N ≥ 2**count_width``.
     """
 
-    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16):
+    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16, signed_duty=False):
         clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
+        if not isinstance(signed_duty, bool):
+            raise TypeError(f"PWMTimer signed_duty must be a bool, not {signed_duty!r}")
         pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
         check_param("PWMTimer", "count_width", count_width, 4, 24)
         n = pwm_half_period(clk_hz, pwm_hz)
@@ -636,8 +638,11 @@ class PWMTimer(wiring.Component):
         self._pwm_hz = pwm_hz
         self._count_width = count_width
         self._n = n
+        self._signed_duty = signed_duty
+        duties = (data.StructLayout({p: signed(count_width + 2) for p in "abc"}) if signed_duty
+                  else _duty_layout(count_width))
         super().__init__({
-            "duty": In(stream.Signature(_duty_layout(count_width))),
+            "duty": In(stream.Signature(duties)),
             "symmetric": In(1),
             "full_scale": Out(unsigned(count_width)),
             "sample_custom": In(1),
@@ -652,6 +657,7 @@ class PWMTimer(wiring.Component):
     pwm_hz = property(lambda self: self._pwm_hz)
     count_width = property(lambda self: self._count_width)
     half_period = property(lambda self: self._n)
+    signed_duty = property(lambda self: self._signed_duty)
 
     @property
     def period(self):
@@ -680,14 +686,41 @@ class PWMTimer(wiring.Component):
         sample = Signal()                       # pos = the previous clock's target
 
         m.d.comb += self.duty.ready.eq(1)
-        with m.If(self.duty.valid):
-            m.d.sync += [shadow[p].eq(sat(self.duty.payload[p])) for p in "abc"]
-        m.d.sync += [pos.eq(Mux(last, 0, pos + 1)), first.eq(last)]
-        with m.If(last):
-            # A write on the boundary clock itself still makes this period.
-            m.d.sync += [active[p].eq(Mux(self.duty.valid, sat(self.duty.payload[p]), shadow[p]))
-                         for p in "abc"]
-            m.d.sync += sym.eq(self.symmetric)
+        if not self._signed_duty:
+            with m.If(self.duty.valid):
+                m.d.sync += [shadow[p].eq(sat(self.duty.payload[p])) for p in "abc"]
+            m.d.sync += [pos.eq(Mux(last, 0, pos + 1)), first.eq(last)]
+            with m.If(last):
+                # A write on the boundary clock itself still makes this period.
+                m.d.sync += [active[p].eq(Mux(self.duty.valid, sat(self.duty.payload[p]),
+                                              shadow[p])) for p in "abc"]
+                m.d.sync += sym.eq(self.symmetric)
+        else:
+            # Signed duties (``signed_duty``): below 0 act as 0, from 2**kw up as all ones.
+            # Two select bits a phase, (force, value) = (0, 0) hold the shadow, (0, 1) take the
+            # duty's bit, (1, v) all v: the shadow's LUT takes 3 inputs (the selects and the
+            # duty's bit; valid is its enable), the active register's 4 (and the shadow's bit),
+            # so neither has a LUT output shared with the other: each flip-flop packs with its
+            # LUT (iCEBreaker −N logic cells, docs/AREA.md §7.72).
+            for p in "abc":
+                d = self.duty.payload[p]
+                neg = d[-1]
+                over = d[kw:-1].any()
+                keep = {"keep": 1}
+                take_force = Signal(name=f"take_force_{p}", attrs=keep)
+                take_value = Signal(name=f"take_value_{p}", attrs=keep)
+                m.d.comb += [take_force.eq(self.duty.valid & (neg | over)),
+                             take_value.eq(self.duty.valid & ~neg)]
+                with m.If(self.duty.valid):
+                    m.d.sync += shadow[p].eq(Mux(neg, 0, Mux(over, (1 << kw) - 1, d[:kw])))
+                with m.If(last):
+                    # A write on the boundary clock itself still makes this period
+                    # (take_force | take_value is valid).
+                    m.d.sync += active[p].eq(Mux(take_force, take_value.replicate(kw),
+                                                 Mux(take_value, d[:kw], shadow[p])))
+            m.d.sync += [pos.eq(Mux(last, 0, pos + 1)), first.eq(last)]
+            with m.If(last):
+                m.d.sync += sym.eq(self.symmetric)
 
         # The level of a phase with compare c is `k ≤ c` for one counter k shared by the three
         # phases: asymmetric k = pos + 1 (1 … 2N; high for pos < c), symmetric the triangle

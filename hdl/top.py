@@ -475,6 +475,12 @@ class Top(wiring.Component):
         :class:`~.scope.Scope` ``down_counts``: the scope's pre-trigger fill and post-trigger
         samples counted down to zero (the same captures; the iCE40's choice and the default,
         fewer iCE40 cells; ``False`` fewer LUT6 on the Spartan-7).
+    timer_clamp : bool
+        The dead-time compensation's clamp in the PWM timer: :class:`~.deadtime_comp.DeadTimeComp`
+        ``clamp=False`` passes its unclamped sums to :class:`~.svpwm.PWMTimer`
+        ``signed_duty=True`` (the same levels; the iCE40's choice and the default: the timer's
+        shadow and active flip-flops pack with their LUTs; ``False`` clamped in the compensation,
+        the ECP5's and the Spartan-7's netlist of before, docs/AREA.md §7.72).
     trip_register : bool
         :class:`~.protect.Protection` ``trip_register``: ``present``'s OR in a flip-flop of
         its own (the same trip; the ECP5 board's choice, for its Fmax; default ``False``, the
@@ -528,7 +534,7 @@ class Top(wiring.Component):
         The parameter.
     current_loop, scope_ram, regs_staging : str
         The parameters.
-    uv_arm_chain, trip_register, link_read_hold, scope_down_counts : bool
+    uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -548,7 +554,8 @@ class Top(wiring.Component):
                  sclk_hz=25e6, max_words=16, resets=None, mul_width=MUL_WIDTH,
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
-                 trip_register=False, link_read_hold=False, scope_down_counts=True):
+                 trip_register=False, link_read_hold=False, scope_down_counts=True,
+                 timer_clamp=True):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -678,7 +685,8 @@ class Top(wiring.Component):
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width,
                               strobed=self._ram_counters, read_hold=link_read_hold)
-        self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH)
+        self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
+                               signed_duty=timer_clamp)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
@@ -699,7 +707,7 @@ class Top(wiring.Component):
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
-                                 shift_width=regmap["dtc_band"].width)
+                                 shift_width=regmap["dtc_band"].width, clamp=not timer_clamp)
         # (the decoder's configuration after reset: the registers', which give no change strobe)
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
@@ -784,6 +792,7 @@ class Top(wiring.Component):
     uv_arm_chain = property(lambda self: self._protect.uv_arm_chain)
     trip_register = property(lambda self: self._protect.trip_register)
     scope_down_counts = property(lambda self: self._scope.down_counts)
+    timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
