@@ -36,6 +36,11 @@ def test_deadtime_comp_parameter_validation(kwargs, message):
         gc.collect()
 
 
+def test_deadtime_comp_clamp_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^DeadTimeComp clamp must be a bool, not 1$"):
+        DeadTimeComp(clamp=1)
+
+
 @pytest.mark.filterwarnings("ignore::amaranth.hdl.UnusedElaboratable")  # attributes only
 def test_deadtime_comp_attributes_and_verilog():
     dut = DeadTimeComp()
@@ -126,14 +131,23 @@ def model_of(stim, shift_width=4, count_width=16):
     (3, {"width": 12, "count_width": 10, "clocks_width": 5, "shift_width": 3}),
     (4, {"width": 23, "count_width": 24, "clocks_width": 16, "shift_width": 5}),
     (5, {"width": 8, "count_width": 12, "clocks_width": 9, "shift_width": 2}),  # w − 1 < C
+    # clamp=False (the iCE40's form): o is the sum duty + comp unclamped, signed(count_width + 2)
+    (6, {"clamp": False}),
+    (7, {"width": 12, "count_width": 10, "clocks_width": 5, "shift_width": 3, "clamp": False}),
 ])
 def test_deadtime_comp_matches_model_bit_for_bit(seed, params):
     rng = np.random.default_rng(seed)
-    stim = random_stim(rng, 3000, **params)
+    gen = {k: v for k, v in params.items() if k != "clamp"}
+    clamp = params.get("clamp", True)
+    stim = random_stim(rng, 3000, **gen)
     comp, out, valid = run_dut(stim, **params)
     m_comp, m_out = model_of(stim, params.get("shift_width", 4), params.get("count_width", 16))
     np.testing.assert_array_equal(comp, m_comp)
-    np.testing.assert_array_equal(out, m_out)
+    np.testing.assert_array_equal(out, m_out if clamp else stim["duty"] + m_comp)
+    if not clamp:
+        top = (1 << params.get("count_width", 16)) - 1
+        assert np.any(out < 0) and np.any(out > top)       # both beyond the clamps
+        return
     np.testing.assert_array_equal(valid, stim["duty_valid"])
     # The stimulus reached the interesting cases: saturated, linear, both clamps of o.
     v = stim["phase_valid"] == 1

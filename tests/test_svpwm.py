@@ -454,6 +454,11 @@ def record_timer(dut, clocks, actions):
     return np.array(rec)
 
 
+def test_pwm_timer_signed_duty_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^PWMTimer signed_duty must be a bool, not 1$"):
+        PWMTimer(signed_duty=1)
+
+
 def test_pwm_timer_mid_period_duty_writes_wait_for_the_boundary():
     dut = PWMTimer(clk_hz=1e6, pwm_hz=50e3)                # N = 10, period 20 clocks
     n, per = dut.half_period, dut.period
@@ -494,18 +499,25 @@ def test_pwm_timer_mid_period_duty_writes_wait_for_the_boundary():
     (1.1e6, 100e3, 5),      # N = 6 (5.5 rounds up), compares from 2**4 up saturate
     (1e6, 19e3, 8),         # N = 26
 ])
-def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_width):
+@pytest.mark.parametrize("signed_duty", [False, True])
+def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_width,
+                                                         signed_duty):
     """Levels clock by clock against :func:`model.pwm_levels` of the period's active compares
     and mode, under random duty writes (often on the boundary clock, values at every edge:
     0, 1, N − 1 … N + 1, 2N − 1 … 2N + 1, the counter's and the port's largest) and random
-    mode changes; ``period_start`` and ``position`` too."""
-    dut = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=count_width)
+    mode changes; ``period_start`` and ``position`` too. ``signed_duty`` (the iCE40's form, the
+    dead-time compensation's sums unclamped): also duties below 0 (acting as 0) and from
+    2**count_width up to the port's largest, signed(count_width + 2)."""
+    dut = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=count_width,
+                   signed_duty=signed_duty)
     n, per = dut.half_period, dut.period
     top = (1 << count_width) - 1
     kw = (2 * n).bit_length()
+    lo, hi = (-(2 << count_width), (2 << count_width) - 1) if signed_duty else (0, top)
     edges = sorted({v for v in (0, 1, n - 1, n, n + 1, 2 * n - 1, 2 * n, 2 * n + 1,
-                                (1 << kw) - 1, 1 << kw, top) if 0 <= v <= top})
-    rng = np.random.default_rng(count_width)
+                                (1 << kw) - 1, 1 << kw, top, top + 1, -1, -2, -n, -(1 << kw),
+                                lo, hi) if lo <= v <= hi})
+    rng = np.random.default_rng(count_width + 100 * signed_duty)
     clocks = 30 * per
     actions, valid, duty, sym_in = {}, np.zeros(clocks, int), np.zeros((clocks, 3), int), []
     sym = 0
@@ -517,6 +529,7 @@ def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_w
         boundary = t % per == per - 1
         if rng.random() < (0.5 if boundary else 0.08):
             d = [int(rng.choice(edges)) if rng.random() < 0.4 else
+                 int(rng.integers(lo, hi + 1)) if signed_duty and rng.random() < 0.2 else
                  int(rng.integers(0, min(top, 2 * n + 1) + 1)) for _ in range(3)]
             valid[t], duty[t] = 1, d
             act += [(dut.duty.payload, dict(zip("abc", d))), (dut.duty.valid, 1)]
@@ -534,7 +547,7 @@ def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_w
         for ph in range(3):
             want[t, ph] = model.pwm_levels(active[ph], n, bool(mode))[pos]
         if valid[t]:
-            shadow = list(duty[t])
+            shadow = [max(int(x), 0) for x in duty[t]]
         if pos == per - 1:
             active, mode = list(shadow), sym_in[t]
     np.testing.assert_array_equal(rec[:, :3], want)
