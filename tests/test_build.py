@@ -28,7 +28,7 @@ from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratabl
 from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    SCOPE_DOWN_COUNTS, TRIP_REGISTER, BoardTop, _tool, build,
+                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop, _tool, build,
                                     pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
@@ -273,6 +273,18 @@ def test_board_top_scope_down_counts_is_the_families(name, down):
                      lambda top: (top.top.scope_down_counts, top.top._scope.down_counts))
     assert facts == (down, down)
     assert SCOPE_DOWN_COUNTS[get_board(name).family] is down
+
+
+@pytest.mark.parametrize("name, clamp", [("icebreaker", True), ("ulx3s", False),
+                                         ("arty_s7", False), ("atlys", False)])
+def test_board_top_timer_clamp_is_the_families(name, clamp):
+    """The dead-time compensation's clamp in the PWM timer on the iCE40 only (its cells; the
+    other netlists as before, docs/AREA.md §7.72)."""
+    facts = _inspect(lambda: BoardTop(name),
+                     lambda top: (top.top.timer_clamp, top.top._timer.signed_duty,
+                                  top.top._dtc.clamp))
+    assert facts == (clamp, clamp, not clamp)
+    assert TIMER_CLAMP[get_board(name).family] is clamp
 
 
 @pytest.mark.parametrize("kwargs, loop", [({}, "pipelined"), ({"current_loop": "pipelined"},

@@ -279,3 +279,77 @@ def test_deadtime_comp_plant_1000_rpm_not_worse():
                       np.std(i_q[w]))
     on, off = errs["on"], errs["off"]
     assert on[0] < 0.6 * off[0] and on[1] < 0.3 * off[1] and on[2] <= off[2], errs
+
+
+# --- the iCE40's form: the clamp in the timer (Top(timer_clamp)) ---------------------------------
+
+@pytest.mark.parametrize("seed, count_width, clk_hz, pwm_hz", [
+    (1, 8, 1e6, 25e3),          # N = 20: compares from 2**6 up saturate, sums up to 2 * 255
+    (2, 16, 1e6, 50e3),         # N = 10, the Top's count width
+    (3, 6, 0.8e6, 100e3),       # N = 4: the level counter 4 bits, sums from 2**6 up
+])
+def test_deadtime_comp_unclamped_into_a_signed_timer_gives_the_same_levels(seed, count_width,
+                                                                           clk_hz, pwm_hz):
+    """``DeadTimeComp(clamp=False)`` into ``PWMTimer(signed_duty=True)`` (the iCE40's form)
+    against ``DeadTimeComp()`` into ``PWMTimer()``, side by side on one stimulus: the same
+    ``pwm`` levels, ``comp``, ``period_start`` and ``sample`` in every clock, with sums below 0,
+    above the counter's and the port's range, and duty writes often on the period's last clock."""
+    from amaranth.hdl import Module
+    from foc_servo.hdl.svpwm import PWMTimer
+    pairs = []
+    m = Module()
+    for clamp in (True, False):
+        dtc = DeadTimeComp(width=12, count_width=count_width, clocks_width=8, shift_width=2,
+                           clamp=clamp)
+        timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=count_width,
+                         signed_duty=not clamp)
+        m.submodules[f"dtc_{clamp}"], m.submodules[f"timer_{clamp}"] = dtc, timer
+        m.d.comb += [timer.duty.valid.eq(dtc.o.valid), timer.duty.payload.eq(dtc.o.payload),
+                     dtc.o.ready.eq(timer.duty.ready)]
+        pairs.append((dtc, timer))
+    per = pairs[0][1].period
+    rng = np.random.default_rng(seed)
+    t_len = 60 * per
+    top = (1 << count_width) - 1
+    edges = [0, 1, 2, per // 2, per - 1, per, per + 1, top - 1, top]
+    seen = {"low": 0, "high": 0}
+    rec = {False: [], True: []}
+
+    async def testbench(ctx):
+        sym = 0
+        for t in range(t_len):
+            if rng.random() < 0.02:
+                sym ^= 1
+            boundary = t % per == per - 1
+            phase = {p: int(rng.integers(-2048, 2048)) if rng.random() < 0.7 else
+                     int(rng.choice([-2048, -1, 0, 2047])) for p in "abc"}
+            duty = {p: int(rng.choice(edges)) if rng.random() < 0.5 else
+                    int(rng.integers(0, top + 1)) for p in "abc"}
+            pv = int(rng.random() < 0.1)
+            dv = int(rng.random() < (0.5 if boundary else 0.1))
+            clocks = int(rng.choice([0, 1, 5, 255])) if rng.random() < 0.3 else \
+                int(rng.integers(0, 256))
+            shift = int(rng.integers(0, 4))
+            for dtc, timer in pairs:
+                ctx.set(dtc.phase.valid, pv)
+                ctx.set(dtc.phase.payload, phase)
+                ctx.set(dtc.i.valid, dv)
+                ctx.set(dtc.i.payload, duty)
+                for sig, v in ((dtc.symmetric, sym), (timer.symmetric, sym),
+                               (dtc.clocks, clocks), (dtc.shift, shift)):
+                    ctx.set(sig, v)
+            for dtc, timer in pairs:
+                p, c = ctx.get(timer.pwm), ctx.get(dtc.comp)
+                rec[dtc.clamp].append((p.a, p.b, p.c, c.a, c.b, c.c, ctx.get(timer.period_start),
+                                       ctx.get(timer.sample)))
+            if dv:
+                raw = ctx.get(pairs[1][0].o.payload)
+                for p in "abc":
+                    seen["low"] += raw[p] < 0
+                    seen["high"] += raw[p] > top
+            await ctx.tick()
+
+    simulate(m, [testbench], name="test_dtc_timer_clamp")
+    np.testing.assert_array_equal(np.array(rec[False]), np.array(rec[True]))
+    levels = np.array(rec[True])[:, :3]
+    assert seen["low"] > 10 and seen["high"] > 10 and 0.1 < levels.mean() < 0.9
