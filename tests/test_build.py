@@ -28,8 +28,8 @@ from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratabl
 from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop, _tool, build,
-                                    pll_config, prepare, synthesis_verilog)
+                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
+                                    _tool, build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
