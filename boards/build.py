@@ -104,9 +104,9 @@ TRIP_REGISTER = {"ice40": False, "ecp5": True, "xc7": True, "xc6s": True}
 SCOPE_DOWN_COUNTS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``Top(timer_clamp=…)`` per FPGA family: the dead-time compensation's clamp in the PWM
-#: timer's shadow and active registers on the iCE40 (they pack with their LUTs: −N logic cells
-#: on the iCEBreaker, docs/AREA.md §7.72); in the compensation elsewhere (the netlists of
-#: before). The same levels either way.
+#: timer's shadow and active registers on the iCE40 (their flip-flops pack with their LUTs: the
+#: timer 242 → 209 logic cells on the iCEBreaker, docs/AREA.md §7.72); in the compensation
+#: elsewhere (the netlists of before). The same levels either way.
 TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from

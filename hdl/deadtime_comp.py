@@ -76,6 +76,12 @@ class DeadTimeComp(wiring.Component):
         Width of ``clocks``, 1 … 16.
     shift_width : int
         Width of ``shift``, 1 … 5.
+    clamp : bool
+        ``True`` (default): ``o`` is clamped to ``[0, 2**count_width − 1]``. ``False``: ``o`` is
+        the sum ``i + comp`` unclamped, ``signed(count_width + 2)``, for
+        :class:`~.svpwm.PWMTimer` ``signed_duty=True``, which clamps it in its shadow and active
+        registers' LUTs (the iCE40's form, ``Top(timer_clamp)``: the same levels; docs/AREA.md
+        §7.72).
 
     Members
     -------
@@ -87,7 +93,8 @@ class DeadTimeComp(wiring.Component):
     o : Out(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(count_width)})))
         Corrected duties (for ``PWMTimer.duty``): ``clamp(i + comp, 0, 2**count_width − 1)``
         per phase (the timer clamps to its full scale, module docstring),
-        combinational, as are ``o.valid = i.valid`` and ``i.ready = o.ready``.
+        combinational, as are ``o.valid = i.valid`` and ``i.ready = o.ready``. With
+        ``clamp=False``: ``i + comp``, ``signed(count_width + 2)`` fields.
     symmetric : In(1)
         1: centre-aligned PWM (high time 2·compare); latched with each ``phase`` transfer.
     clocks : In(unsigned(clocks_width))
@@ -112,7 +119,7 @@ class DeadTimeComp(wiring.Component):
     Raises
     ------
     TypeError
-        A parameter of the wrong type or outside its range.
+        A parameter of the wrong type or outside its range (``clamp`` not a bool).
     """
 
     latency = 0

@@ -564,7 +564,8 @@ class PWMTimer(wiring.Component):
       i.e. ``2·c`` clocks centred on the middle of the period (``c ∈ 0 … N``, full scale ``N``);
     * asymmetric (edge-aligned sawtooth): for ``pos < c`` (``c ∈ 0 … 2N``, full scale ``2N``).
 
-    Compares above the full scale saturate to it. ``duty`` writes go to shadow registers at any
+    Compares above the full scale saturate to it (and, with ``signed_duty``, those below 0 act
+    as 0). ``duty`` writes go to shadow registers at any
     time; at the period boundary (``pos = 2N−1 → 0``) the shadowed duties and the ``symmetric``
     bit become active together, so a write never changes the current period.
 
@@ -576,11 +577,17 @@ class PWMTimer(wiring.Component):
         PWM (switching) frequency, Hz; the actual one is :attr:`pwm_hz_actual`.
     count_width : int
         Width of the compares and of ``sample_point``, 4 … 24 bits; ``2·N`` must fit in it.
+    signed_duty : bool
+        ``True``: the compares are ``signed(count_width + 2)`` (the unclamped sums of
+        :class:`~.deadtime_comp.DeadTimeComp` ``clamp=False``) and those below 0 act as 0: the
+        clamp in the shadow's and the active register's LUTs (the iCE40's form,
+        ``Top(timer_clamp)``; the same levels as the clamped sums). Default ``False``.
 
     Members
     -------
     duty : In(stream.Signature(data.StructLayout({"a", "b", "c": unsigned(count_width)})))
-        Compares for the next period (``duty.ready`` is always high).
+        Compares for the next period (``duty.ready`` is always high); ``signed(count_width + 2)``
+        fields with ``signed_duty``.
     symmetric : In(1)
         Configuration bit (paper Fig. 7): 1 centre-aligned, 0 asymmetric; loaded at the boundary.
     full_scale : Out(unsigned(count_width))
@@ -615,7 +622,7 @@ class PWMTimer(wiring.Component):
     Raises
     ------
     TypeError
-        A parameter of the wrong type.
+        A parameter of the wrong type (``signed_duty`` not a bool).
     ValueError
         ``N < 4`` or ``2·N ≥ 2**count_width``.
     """
@@ -701,7 +708,9 @@ class PWMTimer(wiring.Component):
             # duty's bit, (1, v) all v: the shadow's LUT takes 3 inputs (the selects and the
             # duty's bit; valid is its enable), the active register's 4 (and the shadow's bit),
             # so neither has a LUT output shared with the other: each flip-flop packs with its
-            # LUT (iCEBreaker −N logic cells, docs/AREA.md §7.72).
+            # LUT (iCEBreaker: the timer 242 → 209 logic cells, docs/AREA.md §7.72). The selects
+            # are kept wires: without them abc reuses the shadow's LUT in the active one's (a
+            # LUT output with two loads, so the shadow flip-flop alone again).
             for p in "abc":
                 d = self.duty.payload[p]
                 neg = d[-1]
