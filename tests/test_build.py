@@ -242,49 +242,35 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
     assert MUL_WIDTH[get_board(name).family] == mul_width
 
 
-@pytest.mark.parametrize("name, hold", [("icebreaker", False), ("ulx3s", True),
-                                        ("arty_s7", False), ("atlys", False)])
-def test_board_top_link_read_hold_is_the_families(name, hold):
-    """The host link's registered frame-buffer read address on the ECP5 only (its Fmax; the
-    iCE40's cells the other way, docs/AREA.md §7.62)."""
-    facts = _inspect(lambda: BoardTop(name),
-                     lambda top: (top.top.link_read_hold, top.top._link.core.read_hold))
-    assert facts == (hold, hold)
-    assert LINK_READ_HOLD[get_board(name).family] is hold
+#: The forms ``boards.build`` selects per FPGA family: the Top's parameter, its table, the value
+#: on the iCEBreaker, ULX3S, Arty S7 and Atlys, and the facts that show it reached the block.
+#: The host link's registered frame-buffer read address on the ECP5 only (its Fmax; the iCE40's
+#: cells the other way, docs/AREA.md §7.62); the protection's OR of its causes in a flip-flop of
+#: its own but on the iCE40 (the ECP5's Fmax; the iCE40's cells the other way, the Spartans'
+#: LUT6 unchanged, §7.70); the scope's down-counters on the iCE40 only (its cells; the
+#: Spartan-7's LUT6 the other way, §7.70); the dead-time compensation's clamp in the PWM timer
+#: on the iCE40 only (its cells; the other netlists as before, §7.72).
+FAMILY_FORMS = [
+    ("link_read_hold", LINK_READ_HOLD, (False, True, False, False),
+     lambda top: (top.link_read_hold, top._link.core.read_hold)),
+    ("trip_register", TRIP_REGISTER, (False, True, True, True),
+     lambda top: (top.trip_register, top._protect.trip_register)),
+    ("scope_down_counts", SCOPE_DOWN_COUNTS, (True, False, False, False),
+     lambda top: (top.scope_down_counts, top._scope.down_counts)),
+    ("timer_clamp", TIMER_CLAMP, (True, False, False, False),
+     lambda top: (top.timer_clamp, top._timer.signed_duty, not top._dtc.clamp)),
+]
 
 
-@pytest.mark.parametrize("name, register", [("icebreaker", False), ("ulx3s", True),
-                                            ("arty_s7", True), ("atlys", True)])
-def test_board_top_trip_register_is_the_families(name, register):
-    """The protection's OR of its causes in a flip-flop of its own but on the iCE40 (the ECP5's
-    Fmax; the iCE40's cells the other way, the Spartan's LUT6 unchanged: docs/AREA.md §7.70)."""
-    facts = _inspect(lambda: BoardTop(name),
-                     lambda top: (top.top.trip_register, top.top._protect.trip_register))
-    assert facts == (register, register)
-    assert TRIP_REGISTER[get_board(name).family] is register
-
-
-@pytest.mark.parametrize("name, down", [("icebreaker", True), ("ulx3s", False),
-                                        ("arty_s7", False), ("atlys", False)])
-def test_board_top_scope_down_counts_is_the_families(name, down):
-    """The scope's down-counters on the iCE40 only (its cells; the Spartan-7's LUT6 the other
-    way, docs/AREA.md §7.70)."""
-    facts = _inspect(lambda: BoardTop(name),
-                     lambda top: (top.top.scope_down_counts, top.top._scope.down_counts))
-    assert facts == (down, down)
-    assert SCOPE_DOWN_COUNTS[get_board(name).family] is down
-
-
-@pytest.mark.parametrize("name, clamp", [("icebreaker", True), ("ulx3s", False),
-                                         ("arty_s7", False), ("atlys", False)])
-def test_board_top_timer_clamp_is_the_families(name, clamp):
-    """The dead-time compensation's clamp in the PWM timer on the iCE40 only (its cells; the
-    other netlists as before, docs/AREA.md §7.72)."""
-    facts = _inspect(lambda: BoardTop(name),
-                     lambda top: (top.top.timer_clamp, top.top._timer.signed_duty,
-                                  top.top._dtc.clamp))
-    assert facts == (clamp, clamp, not clamp)
-    assert TIMER_CLAMP[get_board(name).family] is clamp
+@pytest.mark.parametrize("param, table, values, facts", FAMILY_FORMS,
+                         ids=[form[0] for form in FAMILY_FORMS])
+@pytest.mark.parametrize("index, name",
+                         list(enumerate(("icebreaker", "ulx3s", "arty_s7", "atlys"))))
+def test_board_top_family_forms(param, table, values, facts, index, name):
+    """Each family-selected form is the board family's, in the Top and in its block."""
+    found = _inspect(lambda: BoardTop(name), lambda top: facts(top.top))
+    assert found == (values[index],) * len(found)
+    assert table[get_board(name).family] is values[index]
 
 
 @pytest.mark.parametrize("kwargs, loop", [({}, "pipelined"), ({"current_loop": "pipelined"},
