@@ -57,7 +57,7 @@ from amaranth.hdl import Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_param
+from .fixed import check_bool, check_param
 
 __all__ = ["DeadTimeComp"]
 
@@ -125,8 +125,7 @@ class DeadTimeComp(wiring.Component):
     latency = 0
 
     def __init__(self, *, width=16, count_width=16, clocks_width=8, shift_width=4, clamp=True):
-        if not isinstance(clamp, bool):
-            raise TypeError(f"DeadTimeComp clamp must be a bool, not {clamp!r}")
+        check_bool("DeadTimeComp", "clamp", clamp)
         for name, value, lo, hi in (("width", width, 8, 23), ("count_width", count_width, 4, 24),
                                     ("clocks_width", clocks_width, 1, 16),
                                     ("shift_width", shift_width, 1, 5)):

@@ -33,7 +33,7 @@ from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value, signed,
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_param
+from .fixed import check_bool, check_param
 from .divider import Divider
 from .dsp import MUL_WIDTH, check_mul_width, partial_products, partial_sum, saturate_bits
 
@@ -629,8 +629,7 @@ class PWMTimer(wiring.Component):
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16, signed_duty=False):
         clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
-        if not isinstance(signed_duty, bool):
-            raise TypeError(f"PWMTimer signed_duty must be a bool, not {signed_duty!r}")
+        check_bool("PWMTimer", "signed_duty", signed_duty)
         pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
         check_param("PWMTimer", "count_width", count_width, 4, 24)
         n = pwm_half_period(clk_hz, pwm_hz)
