@@ -115,6 +115,14 @@ TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: logic cells on the iCEBreaker the other way). The same replies and accesses either way.
 LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(prot_limits=…)`` per FPGA family (where the board stages its registers in block RAM,
+#: which the form needs): the protection's limits in a limit RAM mirrored from the register
+#: file's staging RAM and one comparator stepping through the sampled causes on the iCE40
+#: (no limit flip-flops, one carry chain for six: docs/AREA.md §7.77; a sampled cause reaches
+#: the gates 1 … 7 clocks later, the pins as before); the limit ports and a comparator per
+#: cause elsewhere (the netlists of before).
+PROT_LIMITS = {"ice40": "ram", "ecp5": "ports", "xc7": "ports", "xc6s": "ports"}
+
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
 #: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
@@ -357,7 +365,9 @@ class BoardTop(Elaboratable):
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
-                        link_read_hold=LINK_READ_HOLD[self._board.family])
+                        link_read_hold=LINK_READ_HOLD[self._board.family],
+                        prot_limits=(PROT_LIMITS[self._board.family]
+                                     if self._board.regs_staging == "bram" else "ports"))
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

@@ -31,11 +31,14 @@ low. To clear an under-voltage trip while the bus is still low (bus switched off
 
 from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value, signed, unsigned
 from amaranth.lib import data, stream, wiring
+from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
 
-from .fixed import abs_exceeds, check_bool, check_param, shape_range
+from .bus import WordWriteSignature
+from .fixed import abs_exceeds, check_bool, check_choice, check_param, shape_range
 
-__all__ = ["FAULTS", "FAULT_LAYOUT", "Protection", "udc_compares"]
+__all__ = ["FAULTS", "FAULT_LAYOUT", "LIMITS", "LIMIT_FORMS", "STEPS", "Protection",
+           "step_compare", "udc_compares"]
 
 #: Cause names, in bit order of :data:`FAULT_LAYOUT` (bit 0 first).
 FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator",
@@ -43,6 +46,20 @@ FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcu
 
 #: One flag per cause.
 FAULT_LAYOUT = data.StructLayout({name: 1 for name in FAULTS})
+
+#: Values of ``Protection(limits=...)``.
+LIMIT_FORMS = ("ports", "ram")
+
+#: ``limits="ram"``: the limits' words of the limit RAM, in ``limit_wr.index`` order.
+LIMITS = ("oc_limit", "ov_limit", "uv_limit", "os_limit")
+
+#: ``limits="ram"``: the sequential compare's steps, in priority order: ``(name, sample,
+#: limit)`` (the held verdict it sets, the stream whose sample requests it, the limit word it
+#: reads). ``uv`` is ``udc < uv_limit`` (the under-voltage verdict), ``arm`` ``udc > uv_limit``
+#: (the arming).
+STEPS = (("oc_a", "i", "oc_limit"), ("oc_b", "i", "oc_limit"), ("oc_c", "i", "oc_limit"),
+         ("ov", "udc", "ov_limit"), ("uv", "udc", "uv_limit"), ("arm", "udc", "uv_limit"),
+         ("os", "speed", "os_limit"))
 
 
 def _ordered(x):
@@ -86,6 +103,46 @@ def udc_compares(m, udc, ov_limit, uv_limit, *, arm_chain=False):
     return above(ov_limit), below, ~below & ~uv_diff[:w].all()
 
 
+def step_compare(go, i, udc, speed, limit):
+    """``Protection(limits="ram")``'s one comparator: the verdict of the step that ``go``
+    selects (a dict of one bit per name of :data:`STEPS`, at most one high) on the currents
+    ``i`` (a, b, c), ``udc`` and ``speed`` against ``limit``, the limit RAM's word (``n`` bits,
+    as :meth:`Protection.stored_limit` stores it).
+
+    One carry chain, the carry out of ``L + X + cin`` on ``n`` bits: for ``|v| > limit`` (the
+    currents, the speed) :func:`~.fixed.abs_exceeds`' ``~(v XOR sign)`` with ones above ``v``'s
+    magnitude bits and ``cin = ~sign`` (verdict: no carry); for U_dc the inverted offset-binary
+    code (``udc`` extended to ``n`` bits, a signed one with its top bit flipped, as the RAM holds
+    the U_dc limits) with ``cin = 1`` for ``udc > limit`` (over-voltage, arming; verdict: no
+    carry) and ``cin = 0`` for ``udc < limit`` (under-voltage: carry), :func:`udc_compares`'
+    forms. The ``abs_compare`` proof shows every step equal to the plain compare."""
+    limit = Value.cast(limit)
+    udc = Value.cast(udc)
+    speed = Value.cast(speed)
+    n = len(limit)
+    cw, sw, uw = len(Value.cast(i.a)), len(speed), len(udc)
+    g_i = go["oc_a"] | go["oc_b"] | go["oc_c"]
+    g_u = go["ov"] | go["uv"] | go["arm"]
+    g_s = go["os"]
+    phase = Mux(go["oc_a"], i.a, Mux(go["oc_b"], i.b, i.c))
+    s_i, s_s = phase[-1], speed[-1]
+
+    def bits(v, sign, width):
+        """``~(v XOR sign)`` below ``v``'s top bit, ones above (abs_exceeds' ``~u``)."""
+        return [~(v[j] ^ sign) if j < width - 1 else Const(1, 1) for j in range(n)]
+
+    x_i = bits(phase, s_i, cw)
+    x_s = bits(speed, s_s, sw)
+    if udc.shape().signed:      # ~(udc sign-extended to n bits, its top bit flipped)
+        x_u = [~udc[j] if j < uw - 1 else ~udc[-1] for j in range(n - 1)] + [udc[-1]]
+    else:
+        x_u = [~udc[j] if j < uw else Const(1, 1) for j in range(n)]
+    x = Cat(Mux(g_i, x_i[j], Mux(g_u, x_u[j], x_s[j])) for j in range(n))
+    cin = Mux(g_i, ~s_i, Mux(g_s, ~s_s, ~go["uv"]))
+    carry = (Cat(cin, limit) + Cat(Const(1, 1), x))[n + 1]
+    return carry ^ ~go["uv"]
+
+
 class Protection(wiring.Component):
     """Fault detection and latched trip with a first-cause and all-causes register.
 
@@ -110,6 +167,32 @@ class Protection(wiring.Component):
         ``False``: the OR of ``present``'s flip-flops (the iCE40's: each of them then packs
         with the LUT of its term, which no longer also feeds the OR, docs/AREA.md §7.70).
         The same outputs either way.
+    limits : str
+        Where the four limits live and how the sampled causes are compared (:data:`LIMIT_FORMS`):
+        ``"ports"`` (default) the ``oc_limit`` … ``os_limit`` ports, a comparator per cause, each
+        sample compared in its ``valid`` clock; ``"ram"`` (the iCE40's form, docs/AREA.md §7.77)
+        a small RAM written through ``limit_wr`` and **one** comparator that steps through the
+        requested compares one per clock (the class's "Sequential compare" below): a sampled
+        cause is then seen a few clocks later, the pin causes as before.
+    limit_init : sequence of 4 int or None
+        ``limits="ram"``: the limit RAM's initial words (:data:`LIMITS` order, in the format
+        ``limit_wr`` carries); ``None``: the ports' reset values (never trip).
+
+    Sequential compare (``limits="ram"``)
+    -------------------------------------
+    A valid sample requests its compares (:data:`STEPS`: ``i`` the three over-currents,
+    ``udc`` over-voltage, under-voltage and the arming, ``speed`` over-speed); every clock
+    without a ``limit_wr`` write the first requested step in :data:`STEPS` order (this clock's
+    requests included) is taken: its limit word is read from the RAM in that clock, and in the
+    next the one comparator compares it with the step's operand, which must still be on the
+    payload (the Top's are registers that hold for a PWM period), and its verdict acts as the
+    parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` one
+    clock after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
+    later than the parallel form's (the first over-current 1, the third 3; all seven requested
+    at once: the over-speed 7 clocks later), a second sample of a stream arriving before its
+    steps are taken is compared in their place (the first one's verdict is never seen), and a
+    limit written in clock ``w`` is used by the steps taken from ``w + 1`` on. The under-voltage
+    and arming steps read the under-voltage limit in their own clocks.
 
     Members
     -------
@@ -126,6 +209,10 @@ class Protection(wiring.Component):
     encoder_illegal, hall_invalid, encoder_hall : In(1)
         Flags from the encoder / Hall front end (1-clock pulses or levels): illegal quadrature
         transition, invalid Hall code, encoder/Hall plausibility failure.
+    limit_wr : In(WordWriteSignature(4))
+        Only with ``limits="ram"`` (in place of the four limit ports): a write of limit word
+        ``index`` (:data:`LIMITS`) with ``data``, the limit as a 32-bit word, a signed one
+        sign-extended (the register file's read format); the RAM holds it from the next clock.
     oc_limit : In(unsigned(w), init=2**w − 1)
         Over-current threshold on ``|i_x|`` (same scale as ``i``); the reset value never trips.
     ov_limit, uv_limit : In(udc_shape, init=max / min code)
@@ -155,7 +242,12 @@ class Protection(wiring.Component):
     Attributes
     ----------
     latency : int
-        Clocks from a fault input (or a valid sample beyond its limit) to ``trip``: 1.
+        Clocks from a fault input (or, with ``limits="ports"``, a valid sample beyond its limit)
+        to ``trip``: 1.
+    step_latency : dict
+        ``limits="ram"``: per sampled cause, the clocks from its valid sample alone (no other
+        step requested, no limit write) to ``trip``: ``latency`` + 1 + the steps before it in
+        :data:`STEPS` requested by the same sample; ``limits="ports"``: ``latency`` for each.
 
     Raises
     ------
@@ -166,11 +258,12 @@ class Protection(wiring.Component):
     latency = 1
 
     def __init__(self, *, current_width=16, udc_shape=signed(16), speed_width=16,
-                 uv_arm_chain=False, trip_register=True):
+                 uv_arm_chain=False, trip_register=True, limits="ports", limit_init=None):
         for name, value in (("current_width", current_width), ("speed_width", speed_width)):
             check_param("Protection", name, value, 4, 32)
         self._uv_arm_chain = check_bool("Protection", "uv_arm_chain", uv_arm_chain)
         self._trip_register = check_bool("Protection", "trip_register", trip_register)
+        self._limits = check_choice("Protection", "limits", limits, LIMIT_FORMS)
         if not isinstance(udc_shape, Shape) or not 2 <= udc_shape.width <= 32:
             raise TypeError(f"Protection udc_shape must be a Shape of 2 to 32 bits such as "
                             f"signed(16), not {udc_shape!r}")
@@ -178,6 +271,28 @@ class Protection(wiring.Component):
         self._udc_shape = udc_shape
         self._speed_width = speed_width
         u_lo, u_hi = shape_range(udc_shape)
+        resets = ((1 << current_width) - 1, u_hi & 0xFFFF_FFFF, u_lo & 0xFFFF_FFFF,
+                  (1 << speed_width) - 1)
+        if limit_init is None:
+            limit_init = resets
+        elif limits != "ram":
+            raise ValueError(f"Protection limit_init applies only to limits='ram', "
+                             f"not limits={limits!r}")
+        elif (not isinstance(limit_init, (tuple, list)) or len(limit_init) != len(LIMITS)
+              or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 32
+                         for v in limit_init)):
+            raise TypeError(f"Protection limit_init must be 4 integers from 0 to 2**32 - 1 "
+                            f"(the words of {', '.join(LIMITS)}), not {limit_init!r}")
+        self._limit_init = tuple(limit_init)
+        if limits == "ram":
+            lim_members = {"limit_wr": In(WordWriteSignature(len(LIMITS)))}
+        else:
+            lim_members = {
+                "oc_limit": In(unsigned(current_width), init=(1 << current_width) - 1),
+                "ov_limit": In(udc_shape, init=u_hi),
+                "uv_limit": In(udc_shape, init=u_lo),
+                "os_limit": In(unsigned(speed_width), init=(1 << speed_width) - 1),
+            }
         super().__init__({
             "fault_n": In(1, init=1),
             "oc_comp": In(1),
@@ -188,11 +303,10 @@ class Protection(wiring.Component):
             "encoder_illegal": In(1),
             "hall_invalid": In(1),
             "encoder_hall": In(1),
-            "oc_limit": In(unsigned(current_width), init=(1 << current_width) - 1),
-            "ov_limit": In(udc_shape, init=u_hi),
-            "uv_limit": In(udc_shape, init=u_lo),
+            **{k: v for k, v in lim_members.items() if k in ("oc_limit", "ov_limit",
+                                                               "uv_limit", "limit_wr")},
             "uv_enable": In(1),
-            "os_limit": In(unsigned(speed_width), init=(1 << speed_width) - 1),
+            **{k: v for k, v in lim_members.items() if k == "os_limit"},
             "mask": In(FAULT_LAYOUT, init={name: 1 for name in FAULTS}),
             "clear": In(1),
             "trip": Out(1),
@@ -207,11 +321,28 @@ class Protection(wiring.Component):
     speed_width = property(lambda self: self._speed_width)
     uv_arm_chain = property(lambda self: self._uv_arm_chain)
     trip_register = property(lambda self: self._trip_register)
+    limits = property(lambda self: self._limits)
+    limit_init = property(lambda self: self._limit_init)
+
+    @property
+    def step_latency(self):
+        """Per sampled cause: clocks from its valid sample alone to ``trip`` (class docstring)."""
+        causes = {"oc_a": "overcurrent_a", "oc_b": "overcurrent_b", "oc_c": "overcurrent_c",
+                  "ov": "overvoltage", "uv": "undervoltage", "os": "overspeed"}
+        if self._limits == "ports":
+            return {c: self.latency for c in causes.values()}
+        out = {}
+        for k, (name, src, _) in enumerate(STEPS):
+            if name in causes:
+                before = sum(1 for s in STEPS[:k] if s[1] == src)
+                out[causes[name]] = self.latency + 1 + before
+        return out
 
     def elaborate(self, platform):
         m = Module()
 
-        # Sampled causes: the verdict of the current sample, else the held one.
+        # Sampled causes: the verdict of the current sample (its compare clock), else the
+        # held one.
         def sampled(name, valid, verdict):
             held = Signal(name=f"held_{name}")
             now = Signal(name=f"now_{name}")
@@ -220,26 +351,36 @@ class Protection(wiring.Component):
             return now
 
         i = self.i.payload
-        udc_over, udc_below, udc_above = udc_compares(m, self.udc.payload, self.ov_limit,
-                                                      self.uv_limit,
-                                                      arm_chain=self._uv_arm_chain)
+        if self._limits == "ram":
+            go, verdict = self._sequential(m)
+            test = {name: (go[k], verdict) for k, (name, _, _) in enumerate(STEPS)}
+            udc_arm = go[[s[0] for s in STEPS].index("arm")] & verdict
+        else:
+            udc_over, udc_below, udc_above = udc_compares(m, self.udc.payload, self.ov_limit,
+                                                          self.uv_limit,
+                                                          arm_chain=self._uv_arm_chain)
+            test = {"oc_a": (self.i.valid, abs_exceeds(i.a, self.oc_limit)),
+                    "oc_b": (self.i.valid, abs_exceeds(i.b, self.oc_limit)),
+                    "oc_c": (self.i.valid, abs_exceeds(i.c, self.oc_limit)),
+                    "ov": (self.udc.valid, udc_over), "uv": (self.udc.valid, udc_below),
+                    "os": (self.speed.valid, abs_exceeds(self.speed.payload, self.os_limit))}
+            udc_arm = self.udc.valid & udc_above
         armed = Signal()
         with m.If(~self.uv_enable):
             m.d.sync += armed.eq(0)
-        with m.Elif(self.udc.valid & udc_above):
+        with m.Elif(udc_arm):
             m.d.sync += armed.eq(1)
         m.d.comb += self.uv_armed.eq(armed)
 
         cause = {
             "external": ~self.fault_n,
-            "overcurrent_a": sampled("oc_a", self.i.valid, abs_exceeds(i.a, self.oc_limit)),
-            "overcurrent_b": sampled("oc_b", self.i.valid, abs_exceeds(i.b, self.oc_limit)),
-            "overcurrent_c": sampled("oc_c", self.i.valid, abs_exceeds(i.c, self.oc_limit)),
+            "overcurrent_a": sampled("oc_a", *test["oc_a"]),
+            "overcurrent_b": sampled("oc_b", *test["oc_b"]),
+            "overcurrent_c": sampled("oc_c", *test["oc_c"]),
             "overcurrent_comparator": self.oc_comp,
-            "overvoltage": sampled("ov", self.udc.valid, udc_over),
-            "undervoltage": self.uv_enable & armed & sampled("uv", self.udc.valid, udc_below),
-            "overspeed": sampled("os", self.speed.valid,
-                                 abs_exceeds(self.speed.payload, self.os_limit)),
+            "overvoltage": sampled("ov", *test["ov"]),
+            "undervoltage": self.uv_enable & armed & sampled("uv", *test["uv"]),
+            "overspeed": sampled("os", *test["os"]),
             "encoder": self.encoder_illegal,
             "hall": self.hall_invalid,
             "encoder_hall": self.encoder_hall,
@@ -278,3 +419,66 @@ class Protection(wiring.Component):
             self.seen.eq(seen),
         ]
         return m
+
+    def _chain_width(self):
+        """``limits="ram"``: the one comparator's width: the widest compare's."""
+        return max(self._current_width, self._udc_shape.width, self._speed_width)
+
+    def stored_limit(self, index, word):
+        """``limits="ram"``: the limit RAM's word for ``limit_wr`` word ``word`` at ``index``:
+        its low :meth:`_chain_width` bits, the top one inverted for a U_dc limit of a signed
+        ``udc_shape`` (offset binary, as :func:`udc_compares` orders the codes)."""
+        n = self._chain_width()
+        flip = self._udc_shape.signed and LIMITS[index] in ("ov_limit", "uv_limit")
+        return (word & ((1 << n) - 1)) ^ (flip << (n - 1))
+
+    def _sequential(self, m):
+        """``limits="ram"``: the limit RAM, the step sequencer and the one comparator (class
+        docstring, "Sequential compare"). Returns ``(go, verdict)``: ``go`` one bit per step
+        of :data:`STEPS`, high in its compare clock, and that compare's verdict
+        (:func:`step_compare`)."""
+        n = self._chain_width()
+        u_signed = self._udc_shape.signed
+        wr = self.limit_wr
+        mem = Memory(shape=n, depth=len(LIMITS),
+                     init=[self.stored_limit(k, w) for k, w in enumerate(self._limit_init)],
+                     attrs={"ram_style": "block", "no_rw_check": 1})
+        m.submodules.limits = mem
+        wp = mem.write_port()
+        # The read port asynchronous with a register behind it, which yosys merges into the
+        # block RAM's synchronous port (an Amaranth synchronous port would ask for the old
+        # word in a write clock, which yosys emulates with flip-flops and multiplexers): no
+        # step is taken in a write clock (the sequencer waits), so its word is never used
+        # (``no_rw_check``).
+        rp = mem.read_port(domain="comb")
+        rd_data = Signal(n, name="limit_rd", reset_less=True)
+        m.d.sync += rd_data.eq(rp.data)
+        flip = Const(0, 1)
+        if u_signed:
+            flip = (wr.index == LIMITS.index("ov_limit")) | (wr.index == LIMITS.index("uv_limit"))
+        m.d.comb += [wp.en.eq(wr.valid), wp.addr.eq(wr.index),
+                     wp.data.eq(Cat(wr.data[:n - 1], wr.data[n - 1] ^ flip))]
+
+        # The sequencer: requests, the first one taken in each clock without a write.
+        names = [s[0] for s in STEPS]
+        valid = {"i": self.i.valid, "udc": self.udc.valid, "speed": self.speed.valid}
+        req = Cat(valid[src] for _, src, _ in STEPS)
+        pend = Signal(len(STEPS), name="step_pend")
+        want = Signal(len(STEPS), name="step_want")
+        pick = Signal(len(STEPS), name="step_pick")
+        go = Signal(len(STEPS), name="step_go")
+        m.d.comb += want.eq(pend | req)
+        for k in range(len(STEPS)):
+            first = want[k] if k == 0 else want[k] & ~want[:k].any()
+            m.d.comb += pick[k].eq(first & ~wr.valid)
+        m.d.sync += [pend.eq(want & ~pick), go.eq(pick)]
+        word = [LIMITS.index(lim) for _, _, lim in STEPS]
+        m.d.comb += rp.addr.eq(Cat(Cat(pick[k] for k in range(len(STEPS)) if word[k] >> b & 1)
+                                   .any() for b in range(len(rp.addr))))
+
+        # The step's compare in its compare clock (``go``), on the payloads then.
+        verdict = Signal(name="cmp_verdict")
+        m.d.comb += verdict.eq(step_compare({name: go[k] for k, name in enumerate(names)},
+                                            self.i.payload, self.udc.payload,
+                                            self.speed.payload, rd_data))
+        return go, verdict

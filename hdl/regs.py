@@ -89,6 +89,16 @@ while the walk's words are on the port (from the reset clock to the last one, in
 consumer that must not start a computation the walk's writes would land in (the speed loop,
 :class:`~.top.Top`).
 
+Mirrored registers (``staging="bram"``, ``mirror``; docs/AREA.md §7.77). The immediate
+(unshadowed) ``rw`` registers named in ``mirror`` have no flip-flops here either: the staging
+RAM's writes of their words (a host write's ``t + 1``, the reset walk's load) are on the
+``mirror`` port (:class:`~.bus.WordWriteSignature`: ``valid``, ``index`` the word's position
+among the mirrored words, ``data`` the word in its read format), so a consumer RAM written from
+it holds each value **one clock later** than the flip-flops would have (from ``t + 2``; the
+flip-flops: from ``t + 1``), and after a domain reset gets the reset values from the walk (as
+with ``export``). A write access is never taken in a copy's or the walk's load clocks, so the
+port shows only these writes.
+
 Derived active values (``staging="bram"``, ``derived``; docs/AREA.md, "Session 12: register
 file"). With the staging RAM holding what the host wrote (reads return it), the active flip-flops
 of a register need only hold what its consumer uses: :class:`Derived` gives that as a function of
@@ -338,6 +348,10 @@ class RegisterFile(wiring.Component):
         copy clock, ``"bram"``): a consumer need not keep a copy of the register to see it
         change. A domain reset (the reset values loaded at once) gives no strobe. Default
         ``()``.
+    mirror : tuple of str
+        ``staging="bram"`` only: immediate (unshadowed) ``rw`` registers whose active value is
+        not held here: the staging RAM's writes of their words go out on the ``mirror`` port
+        (module docstring, "Mirrored registers"); they have no Out member. Default ``()``.
     derived : mapping of str to Derived
         ``staging="bram"`` only: one-word ``rw`` registers (no enum or fields, not exported)
         whose Out member holds :class:`Derived` ``value(raw)`` (its ``shape``, ``init``
@@ -363,6 +377,9 @@ class RegisterFile(wiring.Component):
     export : Out(WordWriteSignature(len(export_words)))
         Only with ``export``: the exported active words as RAM writes (``valid``, ``index``,
         ``data``), in the clocks the module docstring gives.
+    mirror : Out(WordWriteSignature(len(mirror_words)))
+        Only with ``mirror``: the staging RAM's writes of the mirrored words (``index``: the
+        position in :attr:`mirror_words`).
     export_walk : Out(1, init=1)
         Only with ``export``: high from a reset (and power-up) up to and including the clock
         the reset walk puts its last word on the port: the exported words are being rewritten;
@@ -413,6 +430,12 @@ class RegisterFile(wiring.Component):
         :func:`export_words`: ``(addr, register, k)`` per ``export.index``.
     export_init : list of int
         :func:`export_init`: the exported words' reset values (a consumer RAM's init).
+    mirrored : tuple of str
+        The ``mirror`` parameter.
+    mirror_words : list
+        ``(addr, register, k)`` per ``mirror.index`` (:func:`export_words` of ``mirror``).
+    mirror_init : list of int
+        The mirrored words' reset values (a consumer RAM's init, as :attr:`export_init`).
 
     Raises
     ------
@@ -434,7 +457,7 @@ class RegisterFile(wiring.Component):
     latency = 2
 
     def __init__(self, regmap=REGMAP, *, staging="ff", copy_last=(), export=(),
-                 status_ram=(), changed=(), derived=None, counters=()):
+                 status_ram=(), changed=(), derived=None, counters=(), mirror=()):
         if not isinstance(regmap, RegMap):
             raise TypeError(f"RegisterFile regmap must be a RegMap, not {regmap!r}")
         check_choice("RegisterFile", "staging", staging, STAGINGS)
@@ -444,6 +467,8 @@ class RegisterFile(wiring.Component):
                                lambda r: r.access is Access.RW and r.shadow is not None),
                  "export": (export, "shadowed rw", True,
                             lambda r: r.access is Access.RW and r.shadow is not None),
+                 "mirror": (mirror, "immediate rw", True,
+                            lambda r: r.access is Access.RW and r.shadow is None),
                  "status_ram": (status_ram, "one-word ro", False,
                                 lambda r: r.access is Access.RO and r.words == 1),
                  "changed": (changed, "unexported one-word shadowed rw", False,
@@ -476,9 +501,11 @@ class RegisterFile(wiring.Component):
         for name in derived:
             r = regmap[name] if name in regmap else None
             if (r is None or r.access is not Access.RW or r.words != 1 or r.enum is not None
-                    or r.fields is not None or name in export or name in changed):
+                    or r.fields is not None or name in export or name in changed
+                    or name in mirror):
                 raise ValueError(f"RegisterFile derived must name one-word rw registers without "
-                                 f"enum or fields, not exported or in changed, not {name!r}")
+                                 f"enum or fields, not exported, mirrored or in changed, "
+                                 f"not {name!r}")
         if derived and staging != "bram":
             raise ValueError(f"RegisterFile derived applies only to staging='bram', "
                              f"not staging={staging!r}")
@@ -497,6 +524,8 @@ class RegisterFile(wiring.Component):
         self._copy_last = copy_last
         self._export = export
         self._export_words = export_words(regmap, export)
+        self._mirror = mirror
+        self._mirror_words = export_words(regmap, mirror)
         self._slots = staging_slots(regmap, copy_last) if staging == "bram" else []
         self._copied = len(self._slots)
         if staging == "bram" and not self._slots:
@@ -527,6 +556,8 @@ class RegisterFile(wiring.Component):
         if export:
             members["export"] = Out(WordWriteSignature(len(self._export_words)))
             members["export_walk"] = Out(1, init=1)
+        if mirror:
+            members["mirror"] = Out(WordWriteSignature(len(self._mirror_words)))
         if status_ram:
             r0 = regmap[status_ram[0]]
             members["status_rd"] = In(ReadPort.Signature(
@@ -536,7 +567,8 @@ class RegisterFile(wiring.Component):
                 if r.name in self._derived:     # (the consumer's operand, Derived)
                     d = self._derived[r.name]
                     members[r.name] = Out(d.shape, init=d.const(r.bits(r.reset)))
-                elif r.name not in export:      # (exported: the consumer's RAM holds it)
+                elif r.name not in export and r.name not in mirror:
+                    # (exported, mirrored: the consumer's RAM holds it)
                     members[r.name] = Out(r.shape, init=r.init)
             elif r.access is Access.RO and r.name in counters:
                 members[f"{r.name}_inc"] = In(1)
@@ -561,6 +593,9 @@ class RegisterFile(wiring.Component):
     derived = property(lambda self: dict(self._derived))
     export_words = property(lambda self: list(self._export_words))
     export_init = property(lambda self: export_init(self._regmap, self._export))
+    mirrored = property(lambda self: self._mirror)
+    mirror_words = property(lambda self: list(self._mirror_words))
+    mirror_init = property(lambda self: export_init(self._regmap, self._mirror))
     slots = property(lambda self: len(self._slots))
     commit_clocks = property(lambda self: self._copied + 1)
     commit_latency = commit_clocks
@@ -620,8 +655,8 @@ class RegisterFile(wiring.Component):
         held = {}
         for r in self._regmap:
             port = getattr(self, r.name, None)
-            if r.access is Access.RW and r.shadow is not None and bram:
-                held[r.name] = None             # in the staging RAM
+            if r.access is Access.RW and (r.shadow is not None or r.name in self._mirror) and bram:
+                held[r.name] = None             # in the staging RAM (mirrored: and the port)
             elif r.access is Access.RW and r.shadow is not None:
                 staged = Signal(unsigned(r.width), init=r.bits(r.reset), name=f"{r.name}_staged")
                 held[r.name] = staged
@@ -976,6 +1011,16 @@ class RegisterFile(wiring.Component):
             wr.data.eq(Mux(load_walk | inc_wr, walk_data, w_fmt)),
             wr.en.eq((load & load_walk) | wr_pend | inc_wr),
         ]
+        if self._mirror:
+            # The staging RAM's writes of the mirrored slots (a write's t + 1, a walk's load):
+            # the slot's mirror index looked up from the write address.
+            mirror_of = {self._slot_of[a]: j for j, (a, _, _) in enumerate(self._mirror_words)}
+            hit_c = Signal(name="mirror_hit")
+            with m.Switch(wr.addr):
+                for i, j in sorted(mirror_of.items()):
+                    with m.Case(i):
+                        m.d.comb += [hit_c.eq(1), self.mirror.index.eq(j)]
+            m.d.comb += [self.mirror.valid.eq(wr.en & hit_c), self.mirror.data.eq(wr.data)]
         return {"hold": hold, "rd_data": rd_data, "pend": pend, "hit": hit, "staged": staged}
 
     def _sel_code(self, addr, r):

@@ -220,7 +220,7 @@ from .foc_engine import EngineCurrentLoop
 from .gates import Gates
 from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
-from .protect import FAULTS, Protection
+from .protect import FAULTS, LIMIT_FORMS, LIMITS, Protection
 from .regmap import (LINK_COUNTERS, LOOP_FLAG_FIELDS, MT_EDGES, MT_EDGES_PER_LINE, Access, Scales,
                      build_regmap, mt_k_for)
 from .regs import STAGINGS as REGS_STAGINGS
@@ -236,6 +236,10 @@ __all__ = ["Top", "LeadAngle", "regmap_address_map"]
 COUNT_WIDTH = 16
 #: Synchroniser flops on ``fault_n`` and ``oc_comp``.
 SYNC_STAGES = 2
+
+#: ``prot_limits="ram"``: the registers mirrored into the protection's limit RAM, in its word
+#: order (:data:`~.protect.LIMITS`).
+PROT_LIMITS = tuple(f"prot_{name}" for name in LIMITS)
 #: Values of ``Top(current_loop=...)``: :class:`~.foc.CurrentLoop`,
 #: :class:`~.foc_engine.EngineCurrentLoop`.
 CURRENT_LOOPS = ("pipelined", "engine")
@@ -489,6 +493,15 @@ class Top(wiring.Component):
         :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
         registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
         default ``False``, fewer iCE40 cells).
+    prot_limits : str
+        :class:`~.protect.Protection` ``limits``: ``"ports"`` (default) the protection's limits
+        are the register file's flip-flops, one comparator per sampled cause; ``"ram"`` (needs
+        ``regs_staging="bram"``; the iCE40's choice, docs/AREA.md §7.77) they are mirrored
+        from the register file's staging RAM writes (``RegisterFile(mirror=...)``) into the
+        protection's limit RAM and compared one step per clock: a sampled cause (over-current,
+        over-/under-voltage, over-speed) then reaches the gates 1 … 7 clocks later
+        (:attr:`Protection.step_latency`; the pin causes as before) and a limit write acts one
+        clock later.
 
     Members
     -------
@@ -555,7 +568,7 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True):
+                 timer_clamp=True, prot_limits="ports"):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -605,6 +618,10 @@ class Top(wiring.Component):
         check_choice("Top", "current_loop", current_loop, CURRENT_LOOPS)
         check_choice("Top", "scope_ram", scope_ram, SCOPE_RAMS)
         check_choice("Top", "regs_staging", regs_staging, REGS_STAGINGS)
+        check_choice("Top", "prot_limits", prot_limits, LIMIT_FORMS)
+        if prot_limits == "ram" and regs_staging != "bram":
+            raise ValueError(f"Top prot_limits='ram' needs regs_staging='bram' (the limits are "
+                             f"mirrored from its staging RAM), not regs_staging={regs_staging!r}")
         check_choice("Top", "speed_loop", speed_loop, SPEED_LOOPS)
         if speed_loop == "engine" and (current_loop, regs_staging) != ("engine", "bram"):
             raise ValueError(f"Top speed_loop='engine' needs current_loop='engine' and "
@@ -665,6 +682,7 @@ class Top(wiring.Component):
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
+                                  **({"mirror": PROT_LIMITS} if prot_limits == "ram" else {}),
                                   derived=({n: Derived(*op) for n, op in self._operands.items()}
                                            if regs_staging == "bram" else None))
         # The RAM counters lose no count if commits and the top's counts (one per PWM period
@@ -752,7 +770,9 @@ class Top(wiring.Component):
         # θ_lead: LeadAngle beside the pipelined loop; the engine computes it in its program.
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain,
-                                   trip_register=trip_register)
+                                   trip_register=trip_register, limits=prot_limits,
+                                   **({"limit_init": tuple(self._regs.mirror_init)}
+                                      if prot_limits == "ram" else {}))
         self._gates = Gates()
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
@@ -791,6 +811,7 @@ class Top(wiring.Component):
     regs_staging = property(lambda self: self._regs.staging)
     uv_arm_chain = property(lambda self: self._protect.uv_arm_chain)
     trip_register = property(lambda self: self._protect.trip_register)
+    prot_limits = property(lambda self: self._protect.limits)
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
@@ -1031,11 +1052,10 @@ class Top(wiring.Component):
             enc.hall_tolerance.eq(regs.prot_eh_tolerance),
             enc.hall_misses.eq(regs.prot_eh_misses),
 
-            prot.oc_limit.eq(regs.prot_oc_limit),
-            prot.ov_limit.eq(regs.prot_ov_limit),
-            prot.uv_limit.eq(regs.prot_uv_limit),
+            *([prot.oc_limit.eq(regs.prot_oc_limit), prot.ov_limit.eq(regs.prot_ov_limit),
+               prot.uv_limit.eq(regs.prot_uv_limit)] if prot.limits == "ports" else []),
             prot.uv_enable.eq(regs.prot_uv_enable),
-            prot.os_limit.eq(regs.prot_os_limit),
+            *([prot.os_limit.eq(regs.prot_os_limit)] if prot.limits == "ports" else []),
             _raw(prot.mask).eq(_raw(regs.prot_mask)),      # same FAULTS bit order (checked below)
             prot.clear.eq(regs.clear_faults),
 
@@ -1060,6 +1080,11 @@ class Top(wiring.Component):
                              servo.speed_config.index.eq(exp.index - k),
                              servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
+        if prot.limits == "ram":
+            # The limits mirrored from the register file's staging RAM (one clock after the
+            # flip-flops would have changed) into the protection's limit RAM.
+            assert [r.name for _, r, _ in regs.mirror_words] == list(PROT_LIMITS)
+            wiring.connect(m, regs=regs.mirror, protect=prot.limit_wr)
         # The scope's channel selects: the codes clamped (_operands).
         for c in range(scope.channels):
             m.d.comb += scope.sel[c].eq(operand(f"scope_chan{c}"))

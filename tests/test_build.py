@@ -28,8 +28,9 @@ from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratabl
 from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
-                                    _tool, build, pll_config, prepare, synthesis_verilog)
+                                    PROT_LIMITS, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER,
+                                    BoardTop, _tool, build, pll_config, prepare,
+                                    synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -259,6 +260,8 @@ FAMILY_FORMS = [
      lambda top: (top.scope_down_counts, top._scope.down_counts)),
     ("timer_clamp", TIMER_CLAMP, (True, False, False, False),
      lambda top: (top.timer_clamp, top._timer.signed_duty, not top._dtc.clamp)),
+    ("prot_limits", PROT_LIMITS, ("ram", "ports", "ports", "ports"),
+     lambda top: (top.prot_limits, top._protect.limits)),
 ]
 
 

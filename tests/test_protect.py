@@ -8,9 +8,10 @@ from amaranth.hdl import Const, Value, signed, unsigned
 
 import foc_servo.sim.verify.protect as verify_protect
 from foc_servo.hdl.fixed import abs_exceeds, shape_range
-from foc_servo.hdl.protect import FAULTS, Protection
+from foc_servo.hdl.protect import FAULTS, LIMITS, STEPS, Protection
 from foc_servo.sim.harness import simulate
-from foc_servo.sim.models.protect import INPUTS, pack_flags, protect_np, unpack_flags
+from foc_servo.sim.models.protect import (INPUTS, RAM_INPUTS, pack_flags, protect_np,
+                                          unpack_flags)
 
 DEFAULTS = {"fault_n": 1, "oc_comp": 0, "i_valid": 0, "a": 0, "b": 0, "c": 0, "udc_valid": 0,
             "udc": 20000, "speed_valid": 0, "speed": 0, "encoder_illegal": 0, "hall_invalid": 0,
@@ -76,9 +77,25 @@ def flags(*names):
                                   r"such as signed\(16\), not unsigned\(40\)$"),
     ({"uv_arm_chain": 1}, r"^Protection uv_arm_chain must be a bool, not 1$"),
     ({"trip_register": None}, r"^Protection trip_register must be a bool, not None$"),
+    ({"limits": 1}, r"^Protection limits must be a string, one of 'ports', 'ram', not 1$"),
+    ({"limits": "ram", "limit_init": (1, 2, 3)},
+     r"^Protection limit_init must be 4 integers from 0 to 2\*\*32 - 1 \(the words of "
+     r"oc_limit, ov_limit, uv_limit, os_limit\), not \(1, 2, 3\)$"),
+    ({"limits": "ram", "limit_init": (1, 2, 3, 1 << 32)},
+     r"^Protection limit_init must be 4 integers .*, not \(1, 2, 3, 4294967296\)$"),
 ])
 def test_protect_parameter_validation(kwargs, message):
     with pytest.raises(TypeError, match=message):
+        Protection(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"limits": "rom"}, r"^Protection limits must be one of 'ports', 'ram', not 'rom'$"),
+    ({"limit_init": (0, 0, 0, 0)},
+     r"^Protection limit_init applies only to limits='ram', not limits='ports'$"),
+])
+def test_protect_parameter_values(kwargs, message):
+    with pytest.raises(ValueError, match=message):
         Protection(**kwargs)
 
 
@@ -292,3 +309,101 @@ def test_abs_exceeds_exhaustive_mixed_widths(v_width, limit_width):
     sim.add_testbench(testbench)
     sim.run()
     assert seen == [int(abs(a) > b) for a, b in cases]
+
+
+# --- limits="ram": the limit RAM and the sequential compare (docs/AREA.md §7.77) -------------
+
+def test_protect_ram_latency_each_input():
+    """The pins as in the parallel form (1 clock to ``trip``); each sampled cause 1 + the steps
+    before it later (``step_latency``: the first over-current 2, the third 4)."""
+    dut = Protection(limits="ram")
+    latency = verify_protect.measure_latency(limits="ram")
+    pins = set(FAULTS) - set(dut.step_latency)
+    assert latency == {**{name: 1 for name in pins}, **dut.step_latency}
+    assert dut.step_latency == {"overcurrent_a": 2, "overcurrent_b": 3, "overcurrent_c": 4,
+                                "overvoltage": 2, "undervoltage": 3, "overspeed": 2}
+
+
+@pytest.mark.parametrize("trip_register", [True, False])
+def test_protect_ram_random_fault_sequences_vs_model(trip_register):
+    """The iCE40's form: every output in every clock against the model (its limit RAM and
+    step sequencer), the limits written through ``limit_wr`` (segments' four words in four
+    clocks, random rewrites: steps wait for them)."""
+    result = verify_protect.run(6000, seed=3, trip_register=trip_register, limits="ram")
+    assert result["mismatches"] == 0, result
+    assert result["trips"] > 20 and result["clears"] > 20
+    assert result["fault_latency_clk_max"] == 4
+
+
+def _ram_case_cols(cases, udc_cases):
+    """Columns (RAM_INPUTS) that, per case, write the four limits, then take one sample of
+    every stream (the currents a, b, c = v, −v, v; U_dc u; speed v) and hold it for 8 clocks
+    with ``clear`` high: every step compared once per case, on limits just written."""
+    steps = []
+    for (v, lim), (u, ulim) in zip(cases, udc_cases):
+        words = (lim, ulim & 0xFFFF_FFFF, ulim & 0xFFFF_FFFF, lim)
+        for k in range(len(LIMITS)):
+            steps.append({"lim_valid": 1, "lim_index": k, "lim_data": words[k],
+                          "uv_enable": 1})
+        sample = {"a": v, "b": -v if -v <= 15 else v, "c": v, "udc": u, "speed": v,
+                  "uv_enable": 1, "clear": 1}
+        steps.append({**sample, "i_valid": 1, "udc_valid": 1, "speed_valid": 1})
+        steps += [sample] * 8
+    default = {**DEFAULTS, "lim_valid": 0, "lim_index": 0, "lim_data": 0}
+    return {k: np.array([st.get(k, default[k]) for st in steps], dtype=np.int64)
+            for k in RAM_INPUTS}
+
+
+@pytest.mark.parametrize("udc_shape", [signed(4), unsigned(3)])
+def test_protect_ram_compares_exhaustive_small_width(udc_shape):
+    """The one comparator of every step (:func:`~foc_servo.hdl.protect.step_compare`): every
+    5-bit current and speed against every 5-bit limit (the most negative value included), and
+    every U_dc code against every U_dc limit (over-voltage, under-voltage, arming), each on a
+    limit just written, against the model clock by clock; the model's verdicts are Python's
+    ``abs(v) > limit`` and plain compares."""
+    n = 5
+    dut = Protection(current_width=n, speed_width=n, udc_shape=udc_shape, limits="ram")
+    cases = [(v, lim) for v in range(-(1 << (n - 1)), 1 << (n - 1)) for lim in range(1 << n)]
+    lo, hi = shape_range(udc_shape)
+    upairs = [(u, lim) for u in range(lo, hi + 1) for lim in range(lo, hi + 1)]
+    rng = np.random.default_rng(5)
+    udc_cases = [upairs[k] for k in rng.integers(0, len(upairs), size=len(cases))]
+    udc_cases[:len(upairs)] = upairs
+    result, exp, _ = verify_protect.compare(dut, _ram_case_cols(cases, udc_cases))
+    assert result["mismatches"] == 0, result
+    bits = exp["present"]
+    for name in ("overcurrent_a", "overcurrent_b", "overspeed", "overvoltage", "undervoltage"):
+        assert ((bits & flags(name)) != 0).sum() > 50, name
+    assert exp["uv_armed"].sum() > 1000
+
+
+def test_protect_ram_steps_wait_for_writes_and_share_the_comparator():
+    """A sample's steps in STEPS order, one per clock, none in a ``limit_wr`` clock; a limit
+    written in clock w is used by the steps taken after w (against the model)."""
+    base = {"lim_valid": 0, "lim_index": 0, "lim_data": 0}
+    held = {"a": 1001, "b": 999, "c": -1001, "speed": -1001, "udc": 30001}
+    steps = [{**base, "lim_valid": 1, "lim_index": k, "lim_data": v}
+             for k, v in ((0, 1000), (1, 30000), (3, 1000))]
+    steps += [{**base, **held, "i_valid": 1, "speed_valid": 1, "udc_valid": 1}]      # clock 3
+    steps += [{**base, **held, "lim_valid": int(k in (1, 2)), "lim_index": 0,
+               "lim_data": 1001} for k in range(12)]    # oc_limit 1001 written in 5 and 6
+    default = {**DEFAULTS, **base}
+    cols = {k: np.array([st.get(k, default[k]) for st in steps], dtype=np.int64)
+            for k in RAM_INPUTS}
+    result, exp, _ = verify_protect.compare(Protection(limits="ram"), cols)
+    assert result["mismatches"] == 0, result
+    seen = [unpack_flags(p) for p in exp["present"]]
+    # oc_a taken in 3 (present in 5), oc_b in 4, none in 5 and 6, oc_c in 7 (limit 1001: not
+    # over), ov in 8 (present in 10), uv 9, arm 10, os 11 (present in 13)
+    assert seen[4] == () and seen[5] == ("overcurrent_a",)
+    assert "overvoltage" not in seen[9] and "overvoltage" in seen[10]
+    assert "overspeed" not in seen[12] and "overspeed" in seen[13]
+    assert not any("overcurrent_c" in f or "overcurrent_b" in f for f in seen)
+
+
+def test_protect_ram_model_steps_are_the_documented_order():
+    """STEPS: the three currents, then U_dc's over-voltage, under-voltage and arming, then the
+    speed (the order the class docstring and the latencies state)."""
+    assert [s[0] for s in STEPS] == ["oc_a", "oc_b", "oc_c", "ov", "uv", "arm", "os"]
+    assert [s[2] for s in STEPS] == ["oc_limit"] * 3 + ["ov_limit", "uv_limit", "uv_limit",
+                                                         "os_limit"]

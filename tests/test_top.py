@@ -176,6 +176,11 @@ def _signed(word, bits=32):
     ({"regs_staging": "bram", "pwm_hz": 1.25e6}, ValueError,
      r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
      r"not 40 clocks$"),
+    ({"prot_limits": "flops"}, ValueError,
+     r"^Top prot_limits must be one of 'ports', 'ram', not 'flops'$"),
+    ({"prot_limits": "ram"}, ValueError,
+     r"^Top prot_limits='ram' needs regs_staging='bram' \(the limits are mirrored from its "
+     r"staging RAM\), not regs_staging='ff'$"),
 ])
 def test_top_parameter_validation(kwargs, exc, msg):
     with pytest.raises(exc, match=msg):
@@ -550,8 +555,12 @@ def test_regs_staging_threaded_from_top_and_board():
         gc.collect()
 
 
-def test_top_fault_n_low_forces_all_gates_off_within_fault_latency():
-    top = Top(pwm_hz=PWM, baud=BAUD)
+@pytest.mark.parametrize("kwargs", [{}, {"regs_staging": "bram", "prot_limits": "ram"}],
+                         ids=["ports", "ram"])
+def test_top_fault_n_low_forces_all_gates_off_within_fault_latency(kwargs):
+    """The pin's fault_latency (4 clocks) in both forms of the protection's limits (the
+    iCE40's sequential compare changes only the sampled causes' timing)."""
+    top = Top(pwm_hz=PWM, baud=BAUD, **kwargs)
     bench = _Bench(top, BAUD)
     host = _Host(bench)
     seen = {}
@@ -1078,6 +1087,49 @@ def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
     t = fast[0]
     assert not os_[:t + 1 + Protection.latency].any()
     assert os_[t + 1 + Protection.latency]
+
+
+def test_top_prot_limits_ram_overspeed_from_a_host_write():
+    """``prot_limits="ram"`` (the iCE40's): a host write of ``prot_os_limit`` reaches the
+    protection's limit RAM through the register file's mirror port (one write, in the clock
+    after the access); the overspeed fault rises ``1 + step_latency["overspeed"]`` clocks after
+    the first M/T result above the limit after it (one clock more than the limit ports'
+    ``1 + Protection.latency``), and not before."""
+    top = Top(pwm_hz=250e3, baud=BAUD, regs_staging="bram", prot_limits="ram")
+    bench = _Bench(top, BAUD)
+    host = _Host(bench)
+    prot, mt, regs = top._protect, top._mt, top._regs
+    rec = []
+    done = []
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        ctx.set(top.fault_n, 1)
+        await host.write(ctx, _addr(top, "prot_os_limit"), 1 << 28)   # N_FS/8
+        await host.tick(ctx, 1500)
+        done.append(1)
+
+    async def recorder(ctx):
+        while not done:
+            rec.append((ctx.get(mt.o.valid), ctx.get(mt.o.payload.speed),
+                        ctx.get(prot.present.overspeed), ctx.get(regs.mirror.valid),
+                        ctx.get(regs.mirror.index), ctx.get(regs.mirror.data)))
+            await ctx.tick()
+
+    simulate(bench, [testbench, recorder], [_encoder_process(top, 25)], name="test_top_prot_ram")
+    valid, speed, os_, m_valid, m_index, m_data = (np.array(c) for c in zip(*rec))
+    writes = np.flatnonzero(m_valid)
+    # the power-up walk's four words, then the host's one
+    assert [(int(m_index[t]), int(m_data[t])) for t in writes] == [
+        (0, 0xFFFF), (1, 0x7FFF), (2, 0xFFFF8000), (3, 0xFFFF_FFFF), (3, 1 << 28)]
+    w = writes[-1]
+    fast = [t for t in np.flatnonzero(valid) if speed[t] > 1 << 28 and t > w]
+    assert fast, "M/T must measure a speed above the limit"
+    t = fast[0]
+    late = 1 + prot.step_latency["overspeed"]
+    assert late == 3
+    assert not os_[:t + late].any()
+    assert os_[t + late]
 
 
 def test_top_current_loop_latches_the_servo_references_a_clock_late():

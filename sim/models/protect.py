@@ -2,19 +2,27 @@
 """Bit-true, cycle-true golden model of :class:`foc_servo.hdl.protect.Protection`.
 
 The latch is sequential, so the model steps clock by clock (a plain Python loop over int64
-arrays); the comparisons are vectorised first.
+arrays); the comparisons are vectorised first. Both forms of the limits (``limits="ports"``:
+a comparator per cause; ``"ram"``: the limit RAM and the sequential compare, the class
+docstring's "Sequential compare").
 """
 
 import numpy as np
+from amaranth.hdl import signed
 
-from ...hdl.protect import FAULTS
+from ...hdl.protect import FAULTS, LIMITS, STEPS
 
-__all__ = ["INPUTS", "protect_np", "pack_flags", "unpack_flags"]
+__all__ = ["INPUTS", "RAM_INPUTS", "protect_np", "pack_flags", "unpack_flags"]
 
 #: Per-clock input columns of :func:`protect_np` (registers are columns too).
 INPUTS = ("fault_n", "oc_comp", "i_valid", "a", "b", "c", "udc_valid", "udc", "speed_valid",
           "speed", "encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
           "uv_limit", "uv_enable", "os_limit", "mask", "clear")
+
+#: The columns with ``limits="ram"``: the limit write port (``lim_valid``, ``lim_index``,
+#: ``lim_data``: the 32-bit word, unsigned) in place of the four limits.
+RAM_INPUTS = tuple(k for k in INPUTS if k not in LIMITS) + ("lim_valid", "lim_index",
+                                                            "lim_data")
 
 _BIT = {name: 1 << k for k, name in enumerate(FAULTS)}
 
@@ -29,14 +37,20 @@ def unpack_flags(value):
     return tuple(n for n in FAULTS if int(value) & _BIT[n])
 
 
-def protect_np(cols):
+def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), speed_width=16,
+               limit_init=None):
     """Outputs of the protection block, clock by clock.
 
     Parameters
     ----------
     cols : dict of array-like
-        One entry per name in :data:`INPUTS`, each as long as the run: the inputs as set during
-        each clock (``mask`` as an integer of flags; currents, U_dc and speed as signed integers).
+        One entry per name in :data:`INPUTS` (``limits="ram"``: :data:`RAM_INPUTS`), each as
+        long as the run: the inputs as set during each clock (``mask`` as an integer of flags;
+        currents, U_dc and speed as signed integers).
+    limits : str
+        The block's form (``Protection(limits=...)``).
+    current_width, udc_shape, speed_width, limit_init
+        ``limits="ram"``: the block's parameters (the limit RAM's width and initial words).
 
     Returns
     -------
@@ -44,6 +58,8 @@ def protect_np(cols):
         ``trip``, ``present``, ``first``, ``seen`` (flag integers) and ``uv_armed``, as seen
         during each clock (the state before that clock's edge), starting from reset.
     """
+    if limits == "ram":
+        return _protect_ram(cols, current_width, udc_shape, speed_width, limit_init)
     c = {k: np.asarray(cols[k], dtype=np.int64) for k in INPUTS}
     n = c["fault_n"].size
     # Verdicts of each sample (vectorised); meaningful only where the sample is valid.
@@ -121,3 +137,114 @@ def protect_np(cols):
     out["seen"][:] = o_seen
     out["uv_armed"][:] = o_armed
     return out
+
+
+def _limit_value(word, index, width, udc_signed):
+    """The limit the RAM word ``word`` (``limit_wr.data``) at ``index`` stands for in the
+    ``width``-bit comparator: its low ``width`` bits, as a signed value for a U_dc limit of a
+    signed U_dc."""
+    v = int(word) & ((1 << width) - 1)
+    if udc_signed and LIMITS[index] in ("ov_limit", "uv_limit") and v >> (width - 1):
+        v -= 1 << width
+    return v
+
+
+def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init):
+    """:func:`protect_np` for ``limits="ram"``: the limit RAM (written at the end of a
+    ``lim_valid`` clock) and the step sequencer (requests, the first requested step taken in a
+    clock without a write, its word read then and compared in the next clock on the payloads
+    of that clock)."""
+    n_bits = max(current_width, udc_shape.width, speed_width)
+    u_signed = udc_shape.signed
+    if limit_init is None:
+        lo = -(1 << (udc_shape.width - 1)) if u_signed else 0
+        hi = (1 << (udc_shape.width - 1)) - 1 if u_signed else (1 << udc_shape.width) - 1
+        limit_init = ((1 << current_width) - 1, hi & 0xFFFF_FFFF, lo & 0xFFFF_FFFF,
+                      (1 << speed_width) - 1)
+    ram = [_limit_value(w, k, n_bits, u_signed) for k, w in enumerate(limit_init)]
+    c = {k: np.asarray(cols[k], dtype=np.int64).tolist() for k in RAM_INPUTS}
+    n = len(c["fault_n"])
+    names = [s[0] for s in STEPS]
+    src_valid = {"i": "i_valid", "udc": "udc_valid", "speed": "speed_valid"}
+    word = [LIMITS.index(lim) for _, _, lim in STEPS]
+    out = {k: [0] * n for k in ("trip", "present", "first", "seen", "uv_armed")}
+    held = {"oc_a": 0, "oc_b": 0, "oc_c": 0, "ov": 0, "uv": 0, "os": 0}
+    pend = [0] * len(STEPS)
+    go = None                       # the step compared in this clock, and its limit
+    go_limit = 0
+    armed = latched = present = first = seen = 0
+    b = _BIT
+    for t in range(n):
+        out["trip"][t] = int(latched or present != 0)
+        out["present"][t], out["first"][t], out["seen"][t] = present, first, seen
+        out["uv_armed"][t] = armed
+
+        # This clock's compare (the step taken in the last clock).
+        now = dict(held)
+        arm_now = 0
+        if go is not None:
+            name = names[go]
+            lim = go_limit
+            if name.startswith("oc_"):
+                verdict = abs(c[name[-1]][t]) > lim
+            elif name == "os":
+                verdict = abs(c["speed"][t]) > lim
+            elif name == "ov":
+                verdict = c["udc"][t] > lim
+            elif name == "uv":
+                verdict = c["udc"][t] < lim
+            else:                   # arm
+                verdict = c["udc"][t] > lim
+            if name == "arm":
+                arm_now = int(verdict)
+            else:
+                now[name] = int(verdict)
+        uv_en = c["uv_enable"][t]
+        cause = 0
+        if not c["fault_n"][t]:
+            cause |= b["external"]
+        for p in "abc":
+            if now[f"oc_{p}"]:
+                cause |= b[f"overcurrent_{p}"]
+        if c["oc_comp"][t]:
+            cause |= b["overcurrent_comparator"]
+        if now["ov"]:
+            cause |= b["overvoltage"]
+        if uv_en and armed and now["uv"]:
+            cause |= b["undervoltage"]
+        if now["os"]:
+            cause |= b["overspeed"]
+        if c["encoder_illegal"][t]:
+            cause |= b["encoder"]
+        if c["hall_invalid"][t]:
+            cause |= b["hall"]
+        if c["encoder_hall"][t]:
+            cause |= b["encoder_hall"]
+
+        # The sequencer: this clock's requests, the first one taken unless the RAM is written.
+        want = [pend[k] or c[src_valid[s[1]]][t] for k, s in enumerate(STEPS)]
+        pick = None
+        if not c["lim_valid"][t]:
+            pick = next((k for k in range(len(STEPS)) if want[k]), None)
+
+        # The clock edge.
+        if c["clear"][t] and present == 0:
+            latched, first, seen = 0, 0, 0
+        elif present:
+            if not latched:
+                first = present
+            latched, seen = 1, seen | present
+        if not uv_en:
+            armed = 0
+        elif arm_now:
+            armed = 1
+        held = now
+        present = cause & c["mask"][t]
+        pend = [int(want[k] and k != pick) for k in range(len(STEPS))]
+        go = pick
+        if pick is not None:
+            go_limit = ram[word[pick]]
+        if c["lim_valid"][t]:
+            k = c["lim_index"][t]
+            ram[k] = _limit_value(c["lim_data"][t], k, n_bits, u_signed)
+    return {k: np.asarray(v, dtype=np.int64) for k, v in out.items()}

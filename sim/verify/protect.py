@@ -14,11 +14,11 @@ from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import Out
 
 from ...hdl.fixed import shape_range
-from ...hdl.protect import FAULT_LAYOUT, FAULTS, Protection
+from ...hdl.protect import FAULT_LAYOUT, FAULTS, LIMITS, Protection
 from ..harness import Progress, pack_words, simulate
-from ..models.protect import INPUTS, protect_np
+from ..models.protect import INPUTS, RAM_INPUTS, protect_np
 
-__all__ = ["run", "stimulus", "measure_latency"]
+__all__ = ["compare", "run", "stimulus", "measure_latency"]
 
 _OUT_LAYOUT = data.StructLayout({"trip": 1, "present": FAULT_LAYOUT, "first": FAULT_LAYOUT,
                                  "seen": FAULT_LAYOUT, "uv_armed": 1})
@@ -34,7 +34,8 @@ def _episodes(rng, n, rate, mean_len):
     return x
 
 
-def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_width=16):
+def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_width=16,
+             limits="ports"):
     """Seeded per-clock inputs for ``count`` clocks: random fault sequences.
 
     Registers change in segments of 200 … 2000 clocks (limits over their whole range, often
@@ -44,10 +45,16 @@ def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_wid
     samples in 20 % (drifting in and out of the window), speed samples in 5 %; invalid samples
     carry junk that must be ignored; ``clear`` in 1 clock of 30.
 
+    ``limits="ram"``: the limits as writes of the limit port (:data:`RAM_INPUTS`): a segment's
+    four in four consecutive clocks from its start, in a random order, and a random rewrite in
+    1 clock of 300; a sample's payload is held for 8 clocks after its ``valid`` (the steps
+    compare it then; the Top's payloads are registers), junk after that.
+
     Returns
     -------
     dict of int64 arrays
-        One per name in :data:`foc_servo.sim.models.protect.INPUTS`.
+        One per name in :data:`foc_servo.sim.models.protect.INPUTS` (``limits="ram"``:
+        :data:`~foc_servo.sim.models.protect.RAM_INPUTS`).
     """
     rng = np.random.default_rng([seed, 11])
     n = count
@@ -106,17 +113,59 @@ def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_wid
     cols["udc_valid"] = (rng.random(n) < 0.2).astype(np.int64)
     cols["speed_valid"] = (rng.random(n) < 0.05).astype(np.int64)
     cols["clear"] = (rng.random(n) < 1 / 30).astype(np.int64)
-    # Junk in the clocks without a valid sample.
+    # Junk in the clocks without a valid sample (limits="ram": from 8 clocks after it).
     for key, valid, (lo, hi) in (("a", "i_valid", (i_lo, i_hi)), ("b", "i_valid", (i_lo, i_hi)),
                                  ("c", "i_valid", (i_lo, i_hi)), ("udc", "udc_valid", (u_lo, u_hi)),
                                  ("speed", "speed_valid", (s_lo, s_hi))):
         junk = cols[valid] == 0
+        if limits == "ram":
+            last = -100
+            for t in range(n):
+                if cols[valid][t]:
+                    last = t
+                elif t - last <= 8:
+                    cols[key][t] = cols[key][last]
+                    junk[t] = False
         cols[key][junk] = rng.integers(lo, hi + 1, size=int(junk.sum()))
+    if limits == "ram":
+        cols = _limit_writes(rng, cols)
     return cols
+
+
+def _limit_writes(rng, cols):
+    """``cols`` (:data:`INPUTS`) with the four limit columns replaced by limit-port writes
+    (:func:`stimulus`'s ``limits="ram"``)."""
+    n = len(cols["fault_n"])
+    out = {k: cols[k] for k in RAM_INPUTS if k in cols}
+    valid = np.zeros(n, dtype=np.int64)
+    index = np.zeros(n, dtype=np.int64)
+    data = np.zeros(n, dtype=np.int64)
+    starts = [0] + [t for t in range(1, n)
+                    if any(cols[k][t] != cols[k][t - 1] for k in LIMITS)]
+    for s0 in starts:
+        for j, k in enumerate(rng.permutation(len(LIMITS)).tolist()):
+            t = s0 + j
+            if t < n:
+                valid[t], index[t] = 1, k
+                data[t] = int(cols[LIMITS[k]][s0]) & 0xFFFF_FFFF
+    for t in np.flatnonzero(rng.random(n) < 1 / 300).tolist():
+        if not valid[t]:
+            k = int(rng.integers(0, len(LIMITS)))
+            back = max([s0 for s0 in starts if s0 <= t])
+            valid[t], index[t], data[t] = 1, k, int(cols[LIMITS[k]][back]) & 0xFFFF_FFFF
+    out["lim_valid"], out["lim_index"], out["lim_data"] = valid, index, data
+    return out
 
 
 def _in_layout(dut):
     w, sw, us = dut.current_width, dut.speed_width, dut.udc_shape
+    if dut.limits == "ram":
+        return data.StructLayout({
+            "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
+            "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
+            "encoder_illegal": 1, "hall_invalid": 1, "encoder_hall": 1, "uv_enable": 1,
+            "mask": FAULT_LAYOUT, "clear": 1, "lim_valid": 1, "lim_index": 2, "lim_data": 32,
+        })
     return data.StructLayout({
         "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
         "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
@@ -170,11 +219,15 @@ class _ProtectBench(wiring.Component):
             dut.encoder_illegal.eq(running & s.encoder_illegal),
             dut.hall_invalid.eq(running & s.hall_invalid),
             dut.encoder_hall.eq(running & s.encoder_hall),
-            dut.oc_limit.eq(s.oc_limit), dut.ov_limit.eq(s.ov_limit),
-            dut.uv_limit.eq(s.uv_limit), dut.uv_enable.eq(s.uv_enable),
-            dut.os_limit.eq(s.os_limit), dut.mask.eq(s.mask),
+            dut.uv_enable.eq(s.uv_enable), dut.mask.eq(s.mask),
             dut.clear.eq(running & s.clear),
         ]
+        if dut.limits == "ram":
+            m.d.comb += [dut.limit_wr.valid.eq(running & s.lim_valid),
+                         dut.limit_wr.index.eq(s.lim_index), dut.limit_wr.data.eq(s.lim_data)]
+        else:
+            m.d.comb += [dut.oc_limit.eq(s.oc_limit), dut.ov_limit.eq(s.ov_limit),
+                         dut.uv_limit.eq(s.uv_limit), dut.os_limit.eq(s.os_limit)]
         got = Signal(_OUT_LAYOUT)
         m.d.comb += [got.trip.eq(dut.trip), got.present.eq(dut.present),
                      got.first.eq(dut.first), got.seen.eq(dut.seen),
@@ -192,22 +245,33 @@ def measure_latency(**params):
     For each cause, from a cleared latch with every limit set to a mid-range value (and the
     under-voltage check armed), the fault is applied in one clock (a pin, or one valid sample
     beyond its limit) and the clocks are counted until ``trip`` is seen high; then the fault is
-    removed and the latch cleared. Returns a dict cause → clocks.
+    removed and the latch cleared. Returns a dict cause → clocks. (``limits="ram"``: the
+    limits written through ``limit_wr`` first; a sample's payload held until the next.)
     """
     dut = Protection(**params)
     result = {}
+    # Clocks for a sample's verdicts to settle (the steps of limits="ram").
+    settle = 1 if dut.limits == "ports" else 6
 
     async def testbench(ctx):
-        ctx.set(dut.oc_limit, 1000)
-        ctx.set(dut.ov_limit, 30000)
-        ctx.set(dut.uv_limit, 10000)
-        ctx.set(dut.os_limit, 1000)
+        if dut.limits == "ram":
+            for k, v in enumerate((1000, 30000, 10000, 1000)):
+                ctx.set(dut.limit_wr.valid, 1)
+                ctx.set(dut.limit_wr.index, k)
+                ctx.set(dut.limit_wr.data, v)
+                await ctx.tick()
+            ctx.set(dut.limit_wr.valid, 0)
+        else:
+            ctx.set(dut.oc_limit, 1000)
+            ctx.set(dut.ov_limit, 30000)
+            ctx.set(dut.uv_limit, 10000)
+            ctx.set(dut.os_limit, 1000)
         ctx.set(dut.uv_enable, 1)
         ctx.set(dut.udc.payload, 20000)            # arm the under-voltage check
         ctx.set(dut.udc.valid, 1)
         await ctx.tick()
         ctx.set(dut.udc.valid, 0)
-        await ctx.tick()
+        await ctx.tick().repeat(settle)
         assert ctx.get(dut.uv_armed) and not ctx.get(dut.trip)
 
         def apply(name, on):
@@ -248,7 +312,7 @@ def measure_latency(**params):
             await ctx.tick()
             for s in (dut.i.valid, dut.udc.valid, dut.speed.valid):
                 ctx.set(s, 0)
-            await ctx.tick()
+            await ctx.tick().repeat(settle)
             ctx.set(dut.clear, 1)
             await ctx.tick()
             ctx.set(dut.clear, 0)
@@ -259,24 +323,15 @@ def measure_latency(**params):
     return result
 
 
-def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=signed(16),
-        speed_width=16, trip_register=True):
-    """Simulate :class:`Protection` for ``count`` clocks of random fault sequences and compare
-    every output in every clock with the golden model; measure each input's trip latency.
-
-    Returns
-    -------
-    dict
-        ``mismatches`` (clocks with any output different), ``vectors`` (= ``clocks``),
-        ``clocks``, ``sim_s``, ``clocks_per_s``, ``trips`` (latch set events in the run),
-        ``clears`` (successful clears), ``first_mismatch``, ``trip_latency_clk`` (cause →
-        clocks), ``fault_latency_clk_max`` (their maximum; the gate stage adds 1 more).
-    ``trip_register``: :class:`Protection`'s (the ECP5's form, or ``False`` the iCE40's).
-    """
-    params = dict(current_width=current_width, udc_shape=udc_shape, speed_width=speed_width)
-    dut = Protection(**params, trip_register=trip_register)
-    cols = stimulus(count, seed=seed, **params)
-    exp = protect_np(cols)
+def compare(dut, cols, *, progress=False):
+    """Drive ``dut`` (a :class:`Protection`) with the per-clock columns ``cols`` (the model's
+    :data:`INPUTS`, or :data:`RAM_INPUTS` for ``limits="ram"``) and compare every output in
+    every clock with :func:`protect_np`. Returns ``({"mismatches", "first_mismatch"}, the
+    model's outputs, simulated seconds)``."""
+    count = len(cols["fault_n"])
+    exp = protect_np(cols, limits=dut.limits, current_width=dut.current_width,
+                     udc_shape=dut.udc_shape, speed_width=dut.speed_width,
+                     limit_init=dut.limit_init)
     layout = _in_layout(dut)
     bench = _ProtectBench(dut, pack_words(layout, cols, count), layout,
                           pack_words(_OUT_LAYOUT, exp, count))
@@ -290,7 +345,31 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
 
     sim_s = simulate(bench, [testbench], name="protect")
     prog.close()
-    latency = measure_latency(**params, trip_register=trip_register)
+    first = result["first_mismatch"]
+    result["first_mismatch"] = None if first == 0xFFFF_FFFF else int(first)
+    return result, exp, sim_s
+
+
+def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=signed(16),
+        speed_width=16, trip_register=True, limits="ports"):
+    """Simulate :class:`Protection` for ``count`` clocks of random fault sequences and compare
+    every output in every clock with the golden model; measure each input's trip latency.
+
+    Returns
+    -------
+    dict
+        ``mismatches`` (clocks with any output different), ``vectors`` (= ``clocks``),
+        ``clocks``, ``sim_s``, ``clocks_per_s``, ``trips`` (latch set events in the run),
+        ``clears`` (successful clears), ``first_mismatch``, ``trip_latency_clk`` (cause →
+        clocks), ``fault_latency_clk_max`` (their maximum; the gate stage adds 1 more).
+    ``trip_register``, ``limits``: :class:`Protection`'s (the ECP5's forms, or ``False`` and
+    ``"ram"`` the iCE40's).
+    """
+    params = dict(current_width=current_width, udc_shape=udc_shape, speed_width=speed_width)
+    dut = Protection(**params, trip_register=trip_register, limits=limits)
+    cols = stimulus(count, seed=seed, **params, limits=limits)
+    result, exp, sim_s = compare(dut, cols, progress=progress)
+    latency = measure_latency(**params, trip_register=trip_register, limits=limits)
     trip = exp["trip"]
     first = result["first_mismatch"]
     values = [v for v in latency.values() if v is not None]
@@ -302,7 +381,7 @@ def run(count=100_000, *, seed=0, progress=False, current_width=16, udc_shape=si
         "clocks_per_s": count / sim_s if sim_s > 0 else float("inf"),
         "trips": int(np.sum((trip[1:] == 1) & (trip[:-1] == 0))),
         "clears": int(np.sum((trip[1:] == 0) & (trip[:-1] == 1))),
-        "first_mismatch": None if first == 0xFFFF_FFFF else int(first),
+        "first_mismatch": first,
         "trip_latency_clk": latency,
         "fault_latency_clk_max": (max(values) if len(values) == len(latency) else None),
     }

@@ -298,11 +298,15 @@ class ExportBench(Elaboratable):
     both, the RAM's words, the reference's exported registers); ``late`` delays the RAM's
     write by a clock (a broken consumer, for the test that the comparison can fail)."""
 
-    def __init__(self, regmap=REGMAP, *, export, copy_last=(), late=False):
+    def __init__(self, regmap=REGMAP, *, export, copy_last=(), late=False, mirror=False):
         self.regmap = regmap
-        self.dut = RegisterFile(regmap, staging="bram", copy_last=copy_last, export=export)
+        # (mirror: ``export`` names the registers of ``RegisterFile(mirror=...)`` instead, the
+        # consumer RAM written from its ``mirror`` port)
+        self.mirror = mirror
+        self.dut = RegisterFile(regmap, staging="bram", copy_last=copy_last,
+                                **{"mirror" if mirror else "export": export})
         self.ref = RegisterFile(regmap, staging="bram", copy_last=copy_last)
-        self.words = self.dut.export_words
+        self.words = self.dut.mirror_words if mirror else self.dut.export_words
         self.late = late
         ro = [r for r in regmap if r.access is Access.RO]
         self.stim_fields = Bench._fields([("addr", 16), ("we", 1), ("w_data", 32), ("stb", 1),
@@ -324,10 +328,11 @@ class ExportBench(Elaboratable):
         rst = Signal()
         m.submodules.dut = ResetInserter(rst)(self.dut)
         m.submodules.ref = ResetInserter(rst)(self.ref)
-        ram = Memory(shape=32, depth=len(self.words), init=self.dut.export_init)
+        ram = Memory(shape=32, depth=len(self.words),
+                     init=self.dut.mirror_init if self.mirror else self.dut.export_init)
         m.submodules.ram = ram
         wr = ram.write_port()
-        port = self.dut.export
+        port = self.dut.mirror if self.mirror else self.dut.export
         if self.late:
             for name in ("valid", "index", "data"):
                 late = Signal.like(getattr(port, name), name=f"late_{name}")
@@ -361,13 +366,17 @@ class ExportBench(Elaboratable):
 
 
 def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commit_p=0.02,
-               rst_p=0.002, late=False):
+               rst_p=0.002, late=False, mirror=False):
     """Random host traffic, frames, commits and resets (as :func:`run`) into a register file
     with ``export`` and one without: every clock the consumer RAM written from the export port
     must hold what the other's flip-flops hold (the exported registers' words in their read
     format), except for a word between a reset and its rewrite by the reset walk (the
     flip-flops take the reset value in the reset clock, the RAM from the walk: counted in
     ``excused``); the two files' ``ack`` and ``r_data`` must agree too.
+
+    ``mirror``: ``export`` names immediate registers, mirrored instead (``RegisterFile(mirror=
+    ...)``): the RAM written from the ``mirror`` port must hold in every clock what the
+    flip-flops held in the clock before (one clock late, the documented difference).
 
     Returns
     -------
@@ -377,14 +386,14 @@ def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commi
         ``excused`` (word-clocks excused after a reset), ``first_mismatch``.
     """
     rng = random.Random(seed)
-    bench = ExportBench(regmap, export=export, copy_last=copy_last, late=late)
+    bench = ExportBench(regmap, export=export, copy_last=copy_last, late=late, mirror=mirror)
     accesses = _accesses(regmap, count, rng)
     ro_regs = [r for r in regmap if r.access is Access.RO]
     words = bench.words
     # The walk writes exported word j (slot i) in clock 2 + i after the reset clock: excused
     # until then (clocks 1 … 2 + i after the reset clock).
     slot_of = {a: i for i, (a, _, _) in enumerate(bench.dut._slots)}
-    rewrite = [2 + slot_of[a] for a, _, _ in words]
+    rewrite = [2 + slot_of[a] + (1 if mirror else 0) for a, _, _ in words]
     fig = dict(mismatches=0, clocks=0, changes=0, commits=0, resets=0, excused=0,
                first_mismatch=None)
 
@@ -396,7 +405,8 @@ def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commi
                                            rst_p=rst_p), ro_regs, rng):
             ctx.set(bench.stim, bench.pack(bench.stim_fields, cyc))
             got = bench.unpack(bench.out_fields, ctx.get(bench.outs))
-            want = [r.read_word(got[r.name], k) for _, r, k in words]
+            now = [r.read_word(got[r.name], k) for _, r, k in words]
+            want = prev if mirror and prev is not None else now
             bad = [j for j, (a, r, k) in enumerate(words)
                    if got[f"ram{j}"] != want[j]
                    and not (since_rst is not None and since_rst <= rewrite[j])]
@@ -410,8 +420,8 @@ def run_export(count=5000, *, seed=0, regmap=REGMAP, export, copy_last=(), commi
                         f"{[(words[j][1].name, got[f'ram{j}'], want[j]) for j in bad]}, "
                         f"ack {got['ack']}/{got['ref_ack']}, "
                         f"r_data {got['r_data']:#x}/{got['ref_r_data']:#x}")
-            fig["changes"] += prev is not None and want != prev
-            prev = want
+            fig["changes"] += prev is not None and now != prev
+            prev = now
             seen["ack"] = got["ack"]
             fig["resets"] += cyc["rst"]
             fig["commits"] += cyc["commit"] and not cyc["lock"] and not cyc["rst"]
