@@ -49,7 +49,8 @@ from ..hdl.foc import CurrentLoop
 from ..hdl.gates import Gates
 from ..hdl.hostlink import LinkCore
 from ..hdl.pi import PI
-from ..hdl.protect import FAULTS, Protection, udc_compares
+from ..hdl.protect import (FAULTS, LIMITS, STEPS, Protection, step_compare, store_limit,
+                           udc_compares)
 from ..hdl.regmap import REGMAP, Access, RegMap
 from ..hdl.regs import RegisterFile, ram_slots, staging_slots
 from ..hdl.servo import Servo
@@ -227,16 +228,26 @@ class FaultSpec(Elaboratable):
     trip_register : bool
         :class:`~foc_servo.hdl.protect.Protection`'s ``trip_register`` (``True``, the default
         and the ECP5's; ``False`` the iCE40's: the OR of ``present``'s flip-flops).
+    limits : str
+        :class:`~foc_servo.hdl.protect.Protection`'s ``limits`` (``"ports"``, the default;
+        ``"ram"`` the iCE40's: the limit RAM, written through ``limit_wr`` with ``AnySeq``, and
+        the sequential compare). The spec then takes a sampled verdict in the clock the block
+        compares its step (its ``step_go``), with the block's comparator function
+        (:func:`~foc_servo.hdl.protect.step_compare`, equal to the plain compares by the
+        ``abs_compare`` proof) on that clock's payload and the limit word the block read from
+        its RAM (``limit_rd``): the properties hold from that clock, the pin causes' from their
+        own as before.
     """
 
-    def __init__(self, *, broken=False, trip_register=True):
+    def __init__(self, *, broken=False, trip_register=True, limits="ports"):
         self.broken = broken
         self.trip_register = trip_register
+        self.limits = limits
 
     def elaborate(self, platform):
         m = Module()
         prot = Protection(current_width=16, udc_shape=signed(16), speed_width=32,
-                          trip_register=self.trip_register)
+                          trip_register=self.trip_register, limits=self.limits)
         gates = Gates()
         m.submodules.protect, internal = elaborate_with_internals(prot, platform)
         m.submodules.gates = gates
@@ -262,24 +273,36 @@ class FaultSpec(Elaboratable):
         # every sampled cause: 1.6 s → 177 s, and > 600 s for the broken variant's BMC.
         # The same holds for the U_dc verdicts (`udc_compares`, also in `abs_compare`).
         over = abs_exceeds
-        udc_over, udc_below, udc_above = udc_compares(m, prot.udc.payload, prot.ov_limit,
-                                                      prot.uv_limit)
-
         i, speed = prot.i.payload, prot.speed.payload
         armed = Signal()
+        if self.limits == "ram":
+            # The block's step strobes and limit word; each step's verdict by its comparator.
+            go_bits, word = internal["step_go"], internal["limit_rd"]
+            go = {name: go_bits[k] for k, (name, _, _) in enumerate(STEPS)}
+
+            def verdict(name):
+                return step_compare({n: Const(int(n == name), 1) for n in go}, i,
+                                    prot.udc.payload, speed, word)
+            sampled = {name: (go[name], verdict(name))
+                       for name in ("oc_a", "oc_b", "oc_c", "ov", "uv", "os")}
+            arm = go["arm"] & verdict("arm")
+        else:
+            udc_over, udc_below, udc_above = udc_compares(m, prot.udc.payload, prot.ov_limit,
+                                                          prot.uv_limit)
+            sampled = {
+                "oc_a": (prot.i.valid, over(i.a, prot.oc_limit)),
+                "oc_b": (prot.i.valid, over(i.b, prot.oc_limit)),
+                "oc_c": (prot.i.valid, over(i.c, prot.oc_limit)),
+                "ov": (prot.udc.valid, udc_over),
+                "uv": (prot.udc.valid, udc_below),
+                "os": (prot.speed.valid, over(speed, prot.os_limit)),
+            }
+            arm = prot.udc.valid & udc_above
         with m.If(~prot.uv_enable):
             m.d.sync += armed.eq(0)
-        with m.Elif(prot.udc.valid & udc_above):
+        with m.Elif(arm):
             m.d.sync += armed.eq(1)
 
-        sampled = {
-            "oc_a": (prot.i.valid, over(i.a, prot.oc_limit)),
-            "oc_b": (prot.i.valid, over(i.b, prot.oc_limit)),
-            "oc_c": (prot.i.valid, over(i.c, prot.oc_limit)),
-            "ov": (prot.udc.valid, udc_over),
-            "uv": (prot.udc.valid, udc_below),
-            "os": (prot.speed.valid, over(speed, prot.os_limit)),
-        }
         last, now = {}, {}
         for name, (valid, verdict) in sampled.items():
             last[name], now[name] = held(name, valid, verdict)
@@ -330,15 +353,21 @@ class AbsCompareSpec(Elaboratable):
     against ``Mux(v < 0, −v, v) > limit`` formed two bits wider, at 16 and 32 bits; and
     :func:`~foc_servo.hdl.protect.udc_compares` (the bus-voltage verdicts on two chains, and on
     three with ``arm_chain``) against ``udc > ov_limit``, ``udc < uv_limit``, ``udc > uv_limit``
-    at ``signed(16)``.
+    at ``signed(16)``; and ``Protection(limits="ram")``'s one comparator
+    (:func:`~foc_servo.hdl.protect.step_compare`) for each of its steps, on the limit RAM's word
+    of any ``limit_wr`` word (:meth:`~foc_servo.hdl.protect.Protection.stored_limit`: a U_dc
+    limit with its top bit flipped) at the Top's widths (currents 16 bit, U_dc ``signed(16)``,
+    speed 32 bit, the word 32 bit): ``|i_x| > word``, ``udc > word``, ``udc < word``, ``udc >
+    word`` (the word signed for U_dc), ``|speed| > word``.
     :class:`FaultSpec` states its causes with these functions; this proof makes that the
     documented definition.
 
     Parameters
     ----------
     broken : bool
-        Compare ``~v > limit`` for ``v < 0`` (off by one: misses ``|v| = limit + 1``), and take
-        ``udc > uv_limit`` as ``udc ≥ uv_limit`` (the equality dropped).
+        Compare ``~v > limit`` for ``v < 0`` (off by one: misses ``|v| = limit + 1``), take
+        ``udc > uv_limit`` as ``udc ≥ uv_limit`` (the equality dropped), and give the sequential
+        comparator a U_dc limit word without its top bit flipped.
     """
 
     def __init__(self, *, broken=False):
@@ -366,7 +395,38 @@ class AbsCompareSpec(Elaboratable):
                          Assert(below == (udc < uv), f"abs_compare: udc < uv_limit{form}"),
                          Assert(above == (udc > uv), f"abs_compare: udc > uv_limit{form}"),
                          Cover(above & (udc == uv + 1))]
+        # Protection(limits="ram"): the one comparator, each step on its own copy of the inputs.
+        for k, (name, _, lim) in enumerate(STEPS):
+            i = {p: Signal(signed(16), name=f"{name}_i{p}") for p in "abc"}
+            sudc = Signal(signed(16), name=f"{name}_udc")
+            spd = Signal(signed(32), name=f"{name}_speed")
+            w = Signal(32, name=f"{name}_word")
+            m.d.comb += [*(x.eq(AnySeq(x.shape())) for x in (*i.values(), sudc, spd)),
+                         w.eq(AnySeq(32))]
+            # the RAM's word (Protection.stored_limit): w XOR store_limit(index, 0, ...)
+            flip = 0 if self.broken else store_limit(LIMITS.index(lim), 0, 32, True)
+            got = step_compare({n: Const(int(n == name), 1) for n, _, _ in STEPS},
+                               _Currents(i), sudc, spd, w ^ flip)
+            ws = w.as_signed()
+            want = {"oc_a": _mag(m, i["a"], name) > w, "oc_b": _mag(m, i["b"], name) > w,
+                    "oc_c": _mag(m, i["c"], name) > w, "ov": sudc > ws, "uv": sudc < ws,
+                    "arm": sudc > ws, "os": _mag(m, spd, name) > w}[name]
+            m.d.comb += Assert(got == want, f"abs_compare: step {name} of the sequential compare")
         return m
+
+
+class _Currents:
+    """The ``a``, ``b``, ``c`` of :func:`~foc_servo.hdl.protect.step_compare`'s currents."""
+
+    def __init__(self, values):
+        self.a, self.b, self.c = values["a"], values["b"], values["c"]
+
+
+def _mag(m, v, tag):
+    """``|v|`` two bits wider than ``v`` (the plain magnitude), as a signal of ``m``."""
+    mag = Signal(signed(len(v) + 2), name=f"{tag}_mag{len(v)}_{v.name}")
+    m.d.comb += mag.eq(Mux(v < 0, -v, v))
+    return mag
 
 
 # --- 3. PI limits and integrator --------------------------------------------------------------
@@ -994,9 +1054,13 @@ PROOFS = {p.name: p for p in (
     Proof("fault_or", functools.partial(FaultSpec, trip_register=False), 4, 8,
           "Protection(trip_register=False), the iCE40's trip (the OR of present's flip-flops): "
           "the same properties"),
+    Proof("fault_ram", functools.partial(FaultSpec, trip_register=False, limits="ram"), 4, 8,
+          "Protection(trip_register=False, limits='ram'), the iCE40's (the limit RAM and the "
+          "sequential compare): the same properties, a sampled cause from its compare clock"),
     Proof("abs_compare", AbsCompareSpec, 1, 1,
           "Protection's comparators: |v| > limit equal to the magnitude compare (16 and 32 "
-          "bit), the U_dc verdicts to the plain compares"),
+          "bit), the U_dc verdicts to the plain compares, each step of the sequential "
+          "compare (limits='ram') to its plain compare"),
     Proof("pi", PISpec, 5, 10,
           "current-loop PI: output within its limits, integrator within them, never wrapping"),
     Proof("pi_speed", functools.partial(PISpec, loop=Servo), 5, 10,

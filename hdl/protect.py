@@ -38,7 +38,7 @@ from .bus import WordWriteSignature
 from .fixed import abs_exceeds, check_bool, check_choice, check_param, shape_range
 
 __all__ = ["FAULTS", "FAULT_LAYOUT", "LIMITS", "LIMIT_FORMS", "STEPS", "Protection",
-           "step_compare", "udc_compares"]
+           "step_compare", "store_limit", "udc_compares"]
 
 #: Cause names, in bit order of :data:`FAULT_LAYOUT` (bit 0 first).
 FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator",
@@ -101,6 +101,14 @@ def udc_compares(m, udc, ov_limit, uv_limit, *, arm_chain=False):
     if arm_chain:
         return above(ov_limit), below, above(uv_limit)
     return above(ov_limit), below, ~below & ~uv_diff[:w].all()
+
+
+def store_limit(index, word, width, udc_signed):
+    """The limit RAM's word (``width`` bits) for ``limit_wr`` word ``word`` at ``index``
+    (:data:`LIMITS`): its low ``width`` bits, the top one inverted for a U_dc limit of a signed
+    U_dc (offset binary, as :func:`udc_compares` orders the codes)."""
+    flip = udc_signed and LIMITS[index] in ("ov_limit", "uv_limit")
+    return (word & ((1 << width) - 1)) ^ (flip << (width - 1))
 
 
 def step_compare(go, i, udc, speed, limit):
@@ -428,9 +436,7 @@ class Protection(wiring.Component):
         """``limits="ram"``: the limit RAM's word for ``limit_wr`` word ``word`` at ``index``:
         its low :meth:`_chain_width` bits, the top one inverted for a U_dc limit of a signed
         ``udc_shape`` (offset binary, as :func:`udc_compares` orders the codes)."""
-        n = self._chain_width()
-        flip = self._udc_shape.signed and LIMITS[index] in ("ov_limit", "uv_limit")
-        return (word & ((1 << n) - 1)) ^ (flip << (n - 1))
+        return store_limit(index, word, self._chain_width(), self._udc_shape.signed)
 
     def _sequential(self, m):
         """``limits="ram"``: the limit RAM, the step sequencer and the one comparator (class

@@ -24,6 +24,7 @@ CAUGHT_BY = {
     "deadtime": r"deadtime: phase [abc] turned on after less than the dead time off",
     "fault": r"fault bound: a gate on 3 clocks after a fault",
     "fault_or": r"fault bound: a gate on 3 clocks after a fault",
+    "fault_ram": r"fault bound: a gate on 3 clocks after a fault",
     "abs_compare": r"abs_compare: \|v\| > limit at (16|32) bit",
     "pi": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "pi_speed": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
@@ -33,7 +34,7 @@ CAUGHT_BY = {
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
     "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }
-QUICK = ("deadtime", "fault", "fault_or", "abs_compare")
+QUICK = ("deadtime", "fault", "fault_or", "fault_ram", "abs_compare")
 SLOW = tuple(name for name in PROOFS if name not in QUICK)
 
 
