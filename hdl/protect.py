@@ -135,17 +135,30 @@ def step_compare(go, i, udc, speed, limit):
     phase = Mux(go["oc_a"], i.a, Mux(go["oc_b"], i.b, i.c))
     s_i, s_s = phase[-1], speed[-1]
 
-    def bits(v, sign, width):
-        """``~(v XOR sign)`` below ``v``'s top bit, ones above (abs_exceeds' ``~u``)."""
-        return [~(v[j] ^ sign) if j < width - 1 else Const(1, 1) for j in range(n)]
-
-    x_i = bits(phase, s_i, cw)
-    x_s = bits(speed, s_s, sw)
-    if udc.shape().signed:      # ~(udc sign-extended to n bits, its top bit flipped)
-        x_u = [~udc[j] if j < uw - 1 else ~udc[-1] for j in range(n - 1)] + [udc[-1]]
+    # X = ~(V XOR t): V the step's operand extended to n bits (a current or the speed
+    # sign-extended, so that X is ones above its magnitude bits; U_dc in offset binary), t its
+    # sign for a magnitude compare (abs_exceeds' ~(v XOR s)), 0 for U_dc.
+    p_ext = phase.as_signed()
+    s_ext = speed.as_signed()
+    if udc.shape().signed:      # sign-extended to n bits, the top bit flipped
+        u_ext = [udc[j] if j < uw else udc[-1] for j in range(n - 1)] + [~udc[-1]]
     else:
-        x_u = [~udc[j] if j < uw else Const(1, 1) for j in range(n)]
-    x = Cat(Mux(g_i, x_i[j], Mux(g_u, x_u[j], x_s[j])) for j in range(n))
+        u_ext = [udc[j] if j < uw else Const(0, 1) for j in range(n)]
+    t_lo = Mux(g_i, s_i, g_s & s_s)
+    # Where the current and U_dc are both extension bits, X is 1 for a current and ~V for
+    # U_dc's (constant but for its sign): V from the speed or that constant, the U_dc sign in
+    # t (one LUT4 a bit: g_i, g_u, the speed bit, t_hi).
+    t_hi = Mux(g_u, udc[-1] if udc.shape().signed else 0, s_s)
+    xs = []
+    for j in range(n):
+        sj = s_ext[min(j, sw - 1)]
+        if j >= cw - 1 and j >= uw - 1 + (0 if udc.shape().signed else 1):
+            const = 1 if udc.shape().signed and j == n - 1 else 0    # (the flipped top bit)
+            xs.append(g_i | ~(Mux(g_u, const, sj) ^ t_hi))
+        else:
+            pj = p_ext[min(j, cw - 1)]
+            xs.append(~(Mux(g_i, pj, Mux(g_u, u_ext[j], sj)) ^ t_lo))
+    x = Cat(xs)
     cin = Mux(g_i, ~s_i, Mux(g_s, ~s_s, ~go["uv"]))
     carry = (Cat(cin, limit) + Cat(Const(1, 1), x))[n + 1]
     return carry ^ ~go["uv"]
