@@ -27,6 +27,12 @@ reset would trip at once. The check is armed by the first valid U_dc sample abov
 while ``uv_enable`` is high, and disarmed (its cause dropped at once) whenever ``uv_enable`` is
 low. To clear an under-voltage trip while the bus is still low (bus switched off), drop
 ``uv_enable`` first.
+
+With ``limits="ram"`` (the iCE40's form, docs/AREA.md §7.77) the four limits live in a small
+RAM and one comparator takes the sampled causes' compares one per clock (the class's
+"Sequential compare"): a sampled cause is then seen 1 … 3 clocks later than above (more if
+several streams' samples or limit writes meet: :attr:`Protection.step_latency`); the pin
+causes keep their timing.
 """
 
 from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value, signed, unsigned
@@ -207,13 +213,15 @@ class Protection(wiring.Component):
     requests included) is taken: its limit word is read from the RAM in that clock, and in the
     next the one comparator compares it with the step's operand, which must still be on the
     payload (the Top's are registers that hold for a PWM period), and its verdict acts as the
-    parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` one
-    clock after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
+    parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` two
+    clocks after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
     later than the parallel form's (the first over-current 1, the third 3; all seven requested
-    at once: the over-speed 7 clocks later), a second sample of a stream arriving before its
-    steps are taken is compared in their place (the first one's verdict is never seen), and a
-    limit written in clock ``w`` is used by the steps taken from ``w + 1`` on. The under-voltage
-    and arming steps read the under-voltage limit in their own clocks.
+    at once: the over-speed 7 clocks later); a step compares the payload of its compare clock
+    (a second sample of a stream before its steps are taken is compared in their place, the
+    first one's verdict never seen; samples of a stream less than 7 clocks apart can keep the
+    later steps waiting); a limit written in clock ``w`` is used by the steps taken from
+    ``w + 1`` on. The under-voltage and arming steps read the under-voltage limit in their own
+    clocks.
 
     Members
     -------

@@ -189,6 +189,16 @@ sample it accepted (its ``udc`` output, the protection's too), a clock after the
 ``o.valid``; a sample the loop drops (an overrun) does not change it (before session 12 the
 ADC held the code of every conversion in a register of its own, 16 FF).
 
+**Protection limits in RAM** (``prot_limits="ram"``, with ``regs_staging="bram"``: the
+iCEBreaker, docs/AREA.md §7.77): the register file holds no flip-flops for ``prot_oc_limit``,
+``prot_ov_limit``, ``prot_uv_limit`` and ``prot_os_limit`` (:data:`PROT_LIMITS`); its staging
+RAM's writes of them (a host write's ``t + 1``, the reset walk) go through its ``mirror`` port
+into the protection's limit RAM (``Protection(limits="ram")``), so a limit write acts one
+clock later than the flip-flops did, and the protection compares the sampled causes one per
+clock on one comparator: an over-current, over-/under-voltage or over-speed verdict reaches
+``trip`` :attr:`~.protect.Protection.step_latency` clocks after its sample (2 … 4; the limit
+ports' form: 1), the pin causes as before (:attr:`fault_latency`).
+
 A driver fault (``fault_n`` low) reaches the gates in :attr:`Top.fault_latency` clocks: 2 clocks
 of synchroniser, 1 in :class:`~.protect.Protection` (``present`` register, ``trip`` follows
 combinationally), 1 in :class:`~.gates.Gates` (registered outputs). Only the gates and the
