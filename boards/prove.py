@@ -231,12 +231,12 @@ class FaultSpec(Elaboratable):
     limits : str
         :class:`~foc_servo.hdl.protect.Protection`'s ``limits`` (``"ports"``, the default;
         ``"ram"`` the iCE40's: the limit RAM, written through ``limit_wr`` with ``AnySeq``, and
-        the sequential compare). The spec then takes a sampled verdict in the clock the block
-        compares its step (its ``step_go``), with the block's comparator function
-        (:func:`~foc_servo.hdl.protect.step_compare`, equal to the plain compares by the
-        ``abs_compare`` proof) on that clock's payload and the limit word the block read from
-        its RAM (``limit_rd``): the properties hold from that clock, the pin causes' from their
-        own as before.
+        the sequential compare; ``"ram16"`` likewise with one block RAM). The spec then takes a
+        sampled verdict in the clock the block compares its step (its ``step_go``), with the
+        block's comparator function (:func:`~foc_servo.hdl.protect.step_compare`, equal to the
+        plain compares by the ``abs_compare`` proof) on that clock's payload and the limit word
+        the block read from its RAM (``limit_rd``; ``"ram16"`` with ``limit_os_hi``): the
+        properties hold from that clock, the pin causes' from their own as before.
     """
 
     def __init__(self, *, broken=False, trip_register=True, limits="ports"):
@@ -275,14 +275,17 @@ class FaultSpec(Elaboratable):
         over = abs_exceeds
         i, speed = prot.i.payload, prot.speed.payload
         armed = Signal()
-        if self.limits == "ram":
+        if self.limits != "ports":
             # The block's step strobes and limit word; each step's verdict by its comparator.
             go_bits, word = internal["step_go"], internal["limit_rd"]
+            split = None
+            if self.limits == "ram16":
+                word, split = Cat(word, internal["limit_os_hi"]), len(word)
             go = {name: go_bits[k] for k, (name, _, _) in enumerate(STEPS)}
 
             def verdict(name):
                 return step_compare({n: Const(int(n == name), 1) for n in go}, i,
-                                    prot.udc.payload, speed, word)
+                                    prot.udc.payload, speed, word, split=split)
             sampled = {name: (go[name], verdict(name))
                        for name in ("oc_a", "oc_b", "oc_c", "ov", "uv", "os")}
             arm = go["arm"] & verdict("arm")
@@ -395,23 +398,31 @@ class AbsCompareSpec(Elaboratable):
                          Assert(below == (udc < uv), f"abs_compare: udc < uv_limit{form}"),
                          Assert(above == (udc > uv), f"abs_compare: udc > uv_limit{form}"),
                          Cover(above & (udc == uv + 1))]
-        # Protection(limits="ram"): the one comparator, each step on its own copy of the inputs.
-        for k, (name, _, lim) in enumerate(STEPS):
-            i = {p: Signal(signed(16), name=f"{name}_i{p}") for p in "abc"}
-            sudc = Signal(signed(16), name=f"{name}_udc")
-            spd = Signal(signed(32), name=f"{name}_speed")
-            w = Signal(32, name=f"{name}_word")
-            m.d.comb += [*(x.eq(AnySeq(x.shape())) for x in (*i.values(), sudc, spd)),
-                         w.eq(AnySeq(32))]
-            # the RAM's word (Protection.stored_limit): w XOR store_limit(index, 0, ...)
-            flip = 0 if self.broken else store_limit(LIMITS.index(lim), 0, 32, True)
-            got = step_compare({n: Const(int(n == name), 1) for n, _, _ in STEPS},
-                               _Currents(i), sudc, spd, w ^ flip)
-            ws = w.as_signed()
-            want = {"oc_a": _mag(m, i["a"], name) > w, "oc_b": _mag(m, i["b"], name) > w,
-                    "oc_c": _mag(m, i["c"], name) > w, "ov": sudc > ws, "uv": sudc < ws,
-                    "arm": sudc > ws, "os": _mag(m, spd, name) > w}[name]
-            m.d.comb += Assert(got == want, f"abs_compare: step {name} of the sequential compare")
+        # Protection(limits="ram"): the one comparator, each step on its own copy of the inputs;
+        # "ram16": the currents' and U_dc's limits the word's low 16 bits (split).
+        for split in (None, 16):
+            form = "" if split is None else " (ram16)"
+            for k, (name, _, lim) in enumerate(STEPS):
+                tag = name + ("" if split is None else "_16")
+                i = {p: Signal(signed(16), name=f"{tag}_i{p}") for p in "abc"}
+                sudc = Signal(signed(16), name=f"{tag}_udc")
+                spd = Signal(signed(32), name=f"{tag}_speed")
+                w = Signal(32, name=f"{tag}_word")
+                m.d.comb += [*(x.eq(AnySeq(x.shape())) for x in (*i.values(), sudc, spd)),
+                             w.eq(AnySeq(32))]
+                # the comparator's limit (Protection.stored_limit): w XOR store_limit(index,
+                # 0, ...), its U_dc flip at bit 31 or (split) at bit 15
+                bit = 32 if split is None or lim == "os_limit" else split
+                flip = 0 if self.broken else store_limit(LIMITS.index(lim), 0, bit, True)
+                got = step_compare({n: Const(int(n == name), 1) for n, _, _ in STEPS},
+                                   _Currents(i), sudc, spd, w ^ flip, split=split)
+                lw = w if bit == 32 else w[:bit]
+                ws = lw.as_signed()
+                want = {"oc_a": _mag(m, i["a"], tag) > lw, "oc_b": _mag(m, i["b"], tag) > lw,
+                        "oc_c": _mag(m, i["c"], tag) > lw, "ov": sudc > ws, "uv": sudc < ws,
+                        "arm": sudc > ws, "os": _mag(m, spd, tag) > lw}[name]
+                m.d.comb += Assert(got == want,
+                                   f"abs_compare: step {name} of the sequential compare{form}")
         return m
 
 
@@ -1057,6 +1068,9 @@ PROOFS = {p.name: p for p in (
     Proof("fault_ram", functools.partial(FaultSpec, trip_register=False, limits="ram"), 4, 8,
           "Protection(trip_register=False, limits='ram'), the iCE40's (the limit RAM and the "
           "sequential compare): the same properties, a sampled cause from its compare clock"),
+    Proof("fault_ram16", functools.partial(FaultSpec, trip_register=False, limits="ram16"), 4,
+          8, "Protection(trip_register=False, limits='ram16'): one block RAM, the over-speed "
+          "limit's upper half in flip-flops: the same properties"),
     Proof("abs_compare", AbsCompareSpec, 1, 1,
           "Protection's comparators: |v| > limit equal to the magnitude compare (16 and 32 "
           "bit), the U_dc verdicts to the plain compares, each step of the sequential "

@@ -54,7 +54,7 @@ FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcu
 FAULT_LAYOUT = data.StructLayout({name: 1 for name in FAULTS})
 
 #: Values of ``Protection(limits=...)``.
-LIMIT_FORMS = ("ports", "ram")
+LIMIT_FORMS = ("ports", "ram", "ram16")
 
 #: ``limits="ram"``: the limits' words of the limit RAM, in ``limit_wr.index`` order.
 LIMITS = ("oc_limit", "ov_limit", "uv_limit", "os_limit")
@@ -117,7 +117,7 @@ def store_limit(index, word, width, udc_signed):
     return (word & ((1 << width) - 1)) ^ (flip << (width - 1))
 
 
-def step_compare(go, i, udc, speed, limit):
+def step_compare(go, i, udc, speed, limit, *, split=None):
     """``Protection(limits="ram")``'s one comparator: the verdict of the step that ``go``
     selects (a dict of one bit per name of :data:`STEPS`, at most one high) on the currents
     ``i`` (a, b, c), ``udc`` and ``speed`` against ``limit``, the limit RAM's word (``n`` bits,
@@ -129,11 +129,16 @@ def step_compare(go, i, udc, speed, limit):
     code (``udc`` extended to ``n`` bits, a signed one with its top bit flipped, as the RAM holds
     the U_dc limits) with ``cin = 1`` for ``udc > limit`` (over-voltage, arming; verdict: no
     carry) and ``cin = 0`` for ``udc < limit`` (under-voltage: carry), :func:`udc_compares`'
-    forms. The ``abs_compare`` proof shows every step equal to the plain compare."""
+    forms. The ``abs_compare`` proof shows every step equal to the plain compare.
+
+    ``split`` (``limits="ram16"``): the currents' and U_dc's compares on the low ``split`` bits
+    only (U_dc's offset binary at bit ``split − 1``); above them ``X = ~limit`` (the carry
+    passes through) but for the speed's, which takes all ``n`` bits."""
     limit = Value.cast(limit)
     udc = Value.cast(udc)
     speed = Value.cast(speed)
     n = len(limit)
+    top = n if split is None else split         # the currents' and U_dc's compare width
     cw, sw, uw = len(Value.cast(i.a)), len(speed), len(udc)
     g_i = go["oc_a"] | go["oc_b"] | go["oc_c"]
     g_u = go["ov"] | go["uv"] | go["arm"]
@@ -147,9 +152,9 @@ def step_compare(go, i, udc, speed, limit):
     p_ext = phase.as_signed()
     s_ext = speed.as_signed()
     if udc.shape().signed:      # sign-extended to n bits, the top bit flipped
-        u_ext = [udc[j] if j < uw else udc[-1] for j in range(n - 1)] + [~udc[-1]]
+        u_ext = [udc[j] if j < uw else udc[-1] for j in range(top - 1)] + [~udc[-1]]
     else:
-        u_ext = [udc[j] if j < uw else Const(0, 1) for j in range(n)]
+        u_ext = [udc[j] if j < uw else Const(0, 1) for j in range(top)]
     t_lo = Mux(g_i, s_i, g_s & s_s)
     # Where the current and U_dc are both extension bits, X is 1 for a current and ~V for
     # U_dc's (constant but for its sign): V from the speed or that constant, the U_dc sign in
@@ -158,8 +163,10 @@ def step_compare(go, i, udc, speed, limit):
     xs = []
     for j in range(n):
         sj = s_ext[min(j, sw - 1)]
-        if j >= cw - 1 and j >= uw - 1 + (0 if udc.shape().signed else 1):
-            const = 1 if udc.shape().signed and j == n - 1 else 0    # (the flipped top bit)
+        if j >= top:            # (split: the speed's bits, else the carry passes)
+            xs.append(Mux(g_s, ~(sj ^ s_s), ~limit[j]))
+        elif j >= cw - 1 and j >= uw - 1 + (0 if udc.shape().signed else 1):
+            const = 1 if udc.shape().signed and j == top - 1 else 0  # (the flipped top bit)
             xs.append(g_i | ~(Mux(g_u, const, sj) ^ t_hi))
         else:
             pj = p_ext[min(j, cw - 1)]
@@ -200,9 +207,11 @@ class Protection(wiring.Component):
         sample compared in its ``valid`` clock; ``"ram"`` (the iCE40's form, docs/AREA.md §7.77)
         a small RAM written through ``limit_wr`` and **one** comparator that steps through the
         requested compares one per clock (the class's "Sequential compare" below): a sampled
-        cause is then seen a few clocks later, the pin causes as before.
+        cause is then seen a few clocks later, the pin causes as before; ``"ram16"`` the same
+        with a RAM as wide as the currents and U_dc (one iCE40 block RAM, not two) and the
+        over-speed limit's upper bits in flip-flops (:attr:`ram_width`).
     limit_init : sequence of 4 int or None
-        ``limits="ram"``: the limit RAM's initial words (:data:`LIMITS` order, in the format
+        ``limits="ram"`` / ``"ram16"``: the limit RAM's initial words (:data:`LIMITS` order, in the format
         ``limit_wr`` carries); ``None``: the ports' reset values (never trip).
 
     Sequential compare (``limits="ram"``)
@@ -239,7 +248,7 @@ class Protection(wiring.Component):
         Flags from the encoder / Hall front end (1-clock pulses or levels): illegal quadrature
         transition, invalid Hall code, encoder/Hall plausibility failure.
     limit_wr : In(WordWriteSignature(4))
-        Only with ``limits="ram"`` (in place of the four limit ports): a write of limit word
+        Only with ``limits="ram"`` / ``"ram16"`` (in place of the four limit ports): a write of limit word
         ``index`` (:data:`LIMITS`) with ``data``, the limit as a 32-bit word, a signed one
         sign-extended (the register file's read format); the RAM holds it from the next clock.
     oc_limit : In(unsigned(w), init=2**w − 1)
@@ -304,8 +313,8 @@ class Protection(wiring.Component):
                   (1 << speed_width) - 1)
         if limit_init is None:
             limit_init = resets
-        elif limits != "ram":
-            raise ValueError(f"Protection limit_init applies only to limits='ram', "
+        elif limits == "ports":
+            raise ValueError(f"Protection limit_init applies only to limits='ram' or 'ram16', "
                              f"not limits={limits!r}")
         elif (not isinstance(limit_init, (tuple, list)) or len(limit_init) != len(LIMITS)
               or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 1 << 32
@@ -313,7 +322,7 @@ class Protection(wiring.Component):
             raise TypeError(f"Protection limit_init must be 4 integers from 0 to 2**32 - 1 "
                             f"(the words of {', '.join(LIMITS)}), not {limit_init!r}")
         self._limit_init = tuple(limit_init)
-        if limits == "ram":
+        if limits != "ports":
             lim_members = {"limit_wr": In(WordWriteSignature(len(LIMITS)))}
         else:
             lim_members = {
@@ -380,7 +389,7 @@ class Protection(wiring.Component):
             return now
 
         i = self.i.payload
-        if self._limits == "ram":
+        if self._limits != "ports":
             go, verdict = self._sequential(m)
             test = {name: (go[k], verdict) for k, (name, _, _) in enumerate(STEPS)}
             udc_arm = go[[s[0] for s in STEPS].index("arm")] & verdict
@@ -453,11 +462,26 @@ class Protection(wiring.Component):
         """``limits="ram"``: the one comparator's width: the widest compare's."""
         return max(self._current_width, self._udc_shape.width, self._speed_width)
 
+    @property
+    def ram_width(self):
+        """``limits="ram"`` / ``"ram16"``: the limit RAM's width (the comparator's, or with
+        ``"ram16"`` the currents' and U_dc's: the over-speed limit's bits above it are
+        flip-flops); ``None`` with ``"ports"``."""
+        if self._limits == "ports":
+            return None
+        n = self._chain_width()
+        if self._limits == "ram":
+            return n
+        return min(n, max(self._current_width, self._udc_shape.width))
+
     def stored_limit(self, index, word):
-        """``limits="ram"``: the limit RAM's word for ``limit_wr`` word ``word`` at ``index``:
-        its low :meth:`_chain_width` bits, the top one inverted for a U_dc limit of a signed
-        ``udc_shape`` (offset binary, as :func:`udc_compares` orders the codes)."""
-        return store_limit(index, word, self._chain_width(), self._udc_shape.signed)
+        """``limits="ram"`` / ``"ram16"``: the limit the comparator sees for ``limit_wr`` word
+        ``word`` at ``index``: its low :meth:`_chain_width` bits (``"ram16"``: the low
+        :attr:`ram_width` bits but the over-speed limit's), the top one inverted for a U_dc
+        limit of a signed ``udc_shape`` (offset binary, as :func:`udc_compares` orders the
+        codes)."""
+        width = self._chain_width() if LIMITS[index] == "os_limit" else self.ram_width
+        return store_limit(index, word, width, self._udc_shape.signed)
 
     def _sequential(self, m):
         """``limits="ram"``: the limit RAM, the step sequencer and the one comparator (class
@@ -465,10 +489,13 @@ class Protection(wiring.Component):
         of :data:`STEPS`, high in its compare clock, and that compare's verdict
         (:func:`step_compare`)."""
         n = self._chain_width()
+        w_ram = self.ram_width
         u_signed = self._udc_shape.signed
         wr = self.limit_wr
-        mem = Memory(shape=n, depth=len(LIMITS),
-                     init=[self.stored_limit(k, w) for k, w in enumerate(self._limit_init)],
+        mask = (1 << w_ram) - 1
+        mem = Memory(shape=w_ram, depth=len(LIMITS),
+                     init=[self.stored_limit(k, w) & mask
+                           for k, w in enumerate(self._limit_init)],
                      attrs={"ram_style": "block", "no_rw_check": 1})
         m.submodules.limits = mem
         wp = mem.write_port()
@@ -478,13 +505,23 @@ class Protection(wiring.Component):
         # step is taken in a write clock (the sequencer waits), so its word is never used
         # (``no_rw_check``).
         rp = mem.read_port(domain="comb")
-        rd_data = Signal(n, name="limit_rd", reset_less=True)
+        rd_data = Signal(w_ram, name="limit_rd", reset_less=True)
         m.d.sync += rd_data.eq(rp.data)
         flip = Const(0, 1)
         if u_signed:
             flip = (wr.index == LIMITS.index("ov_limit")) | (wr.index == LIMITS.index("uv_limit"))
         m.d.comb += [wp.en.eq(wr.valid), wp.addr.eq(wr.index),
-                     wp.data.eq(Cat(wr.data[:n - 1], wr.data[n - 1] ^ flip))]
+                     wp.data.eq(Cat(wr.data[:w_ram - 1], wr.data[w_ram - 1] ^ flip))]
+        limit, split = rd_data, None
+        if w_ram < n:
+            # "ram16": the over-speed limit's bits above the RAM's in flip-flops, loaded with
+            # its write (read by the over-speed step only; the other steps pass the carry
+            # through them).
+            os_k = LIMITS.index("os_limit")
+            os_hi = Signal(n - w_ram, name="limit_os_hi", init=self._limit_init[os_k] >> w_ram)
+            with m.If(wr.valid & (wr.index == os_k)):
+                m.d.sync += os_hi.eq(wr.data[w_ram:n])
+            limit, split = Cat(rd_data, os_hi), w_ram
 
         # The sequencer: requests, the first one taken in each clock without a write.
         names = [s[0] for s in STEPS]
@@ -507,5 +544,5 @@ class Protection(wiring.Component):
         verdict = Signal(name="cmp_verdict")
         m.d.comb += verdict.eq(step_compare({name: go[k] for k, name in enumerate(names)},
                                             self.i.payload, self.udc.payload,
-                                            self.speed.payload, rd_data))
+                                            self.speed.payload, limit, split=split))
         return go, verdict

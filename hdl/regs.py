@@ -501,10 +501,11 @@ class RegisterFile(wiring.Component):
         for name in derived:
             r = regmap[name] if name in regmap else None
             if (r is None or r.access is not Access.RW or r.words != 1 or r.enum is not None
-                    or r.fields is not None or name in export or name in changed
-                    or name in mirror):
+                    or r.fields is not None or name in export or name in changed):
                 raise ValueError(f"RegisterFile derived must name one-word rw registers without "
-                                 f"enum or fields, not exported, mirrored or in changed, "
+                                 f"enum or fields, not exported or in changed, not {name!r}")
+            if name in mirror:
+                raise ValueError(f"RegisterFile derived must not name a mirrored register, "
                                  f"not {name!r}")
         if derived and staging != "bram":
             raise ValueError(f"RegisterFile derived applies only to staging='bram', "

@@ -511,7 +511,8 @@ class Top(wiring.Component):
         protection's limit RAM and compared one step per clock: a sampled cause (over-current,
         over-/under-voltage, over-speed) then reaches the gates 1 … 7 clocks later
         (:attr:`Protection.step_latency`; the pin causes as before) and a limit write acts one
-        clock later.
+        clock later; ``"ram16"`` the same with a limit RAM of one iCE40 block RAM (two with
+        ``"ram"``) and the over-speed limit's upper 16 bits in flip-flops (+≈ 16 logic cells).
 
     Members
     -------
@@ -629,9 +630,10 @@ class Top(wiring.Component):
         check_choice("Top", "scope_ram", scope_ram, SCOPE_RAMS)
         check_choice("Top", "regs_staging", regs_staging, REGS_STAGINGS)
         check_choice("Top", "prot_limits", prot_limits, LIMIT_FORMS)
-        if prot_limits == "ram" and regs_staging != "bram":
-            raise ValueError(f"Top prot_limits='ram' needs regs_staging='bram' (the limits are "
-                             f"mirrored from its staging RAM), not regs_staging={regs_staging!r}")
+        if prot_limits != "ports" and regs_staging != "bram":
+            raise ValueError(f"Top prot_limits={prot_limits!r} needs regs_staging='bram' (the "
+                             f"limits are mirrored from its staging RAM), not "
+                             f"regs_staging={regs_staging!r}")
         check_choice("Top", "speed_loop", speed_loop, SPEED_LOOPS)
         if speed_loop == "engine" and (current_loop, regs_staging) != ("engine", "bram"):
             raise ValueError(f"Top speed_loop='engine' needs current_loop='engine' and "
@@ -692,7 +694,7 @@ class Top(wiring.Component):
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
-                                  **({"mirror": PROT_LIMITS} if prot_limits == "ram" else {}),
+                                  **({"mirror": PROT_LIMITS} if prot_limits != "ports" else {}),
                                   derived=({n: Derived(*op) for n, op in self._operands.items()}
                                            if regs_staging == "bram" else None))
         # The RAM counters lose no count if commits and the top's counts (one per PWM period
@@ -782,7 +784,7 @@ class Top(wiring.Component):
         self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain,
                                    trip_register=trip_register, limits=prot_limits,
                                    **({"limit_init": tuple(self._regs.mirror_init)}
-                                      if prot_limits == "ram" else {}))
+                                      if prot_limits != "ports" else {}))
         self._gates = Gates()
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
@@ -1090,7 +1092,7 @@ class Top(wiring.Component):
                              servo.speed_config.index.eq(exp.index - k),
                              servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS
-        if prot.limits == "ram":
+        if prot.limits != "ports":
             # The limits mirrored from the register file's staging RAM (one clock after the
             # flip-flops would have changed) into the protection's limit RAM.
             assert [r.name for _, r, _ in regs.mirror_words] == list(PROT_LIMITS)

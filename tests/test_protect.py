@@ -77,7 +77,8 @@ def flags(*names):
                                   r"such as signed\(16\), not unsigned\(40\)$"),
     ({"uv_arm_chain": 1}, r"^Protection uv_arm_chain must be a bool, not 1$"),
     ({"trip_register": None}, r"^Protection trip_register must be a bool, not None$"),
-    ({"limits": 1}, r"^Protection limits must be a string, one of 'ports', 'ram', not 1$"),
+    ({"limits": 1},
+     r"^Protection limits must be a string, one of 'ports', 'ram', 'ram16', not 1$"),
     ({"limits": "ram", "limit_init": (1, 2, 3)},
      r"^Protection limit_init must be 4 integers from 0 to 2\*\*32 - 1 \(the words of "
      r"oc_limit, ov_limit, uv_limit, os_limit\), not \(1, 2, 3\)$"),
@@ -90,9 +91,10 @@ def test_protect_parameter_validation(kwargs, message):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"limits": "rom"}, r"^Protection limits must be one of 'ports', 'ram', not 'rom'$"),
+    ({"limits": "rom"}, r"^Protection limits must be one of 'ports', 'ram', 'ram16', "
+                        r"not 'rom'$"),
     ({"limit_init": (0, 0, 0, 0)},
-     r"^Protection limit_init applies only to limits='ram', not limits='ports'$"),
+     r"^Protection limit_init applies only to limits='ram' or 'ram16', not limits='ports'$"),
 ])
 def test_protect_parameter_values(kwargs, message):
     with pytest.raises(ValueError, match=message):
@@ -313,39 +315,48 @@ def test_abs_exceeds_exhaustive_mixed_widths(v_width, limit_width):
 
 # --- limits="ram": the limit RAM and the sequential compare (docs/AREA.md §7.77) -------------
 
-def test_protect_ram_latency_each_input():
+RAM_FORMS = pytest.mark.parametrize("limits", ["ram", "ram16"])
+
+
+@RAM_FORMS
+def test_protect_ram_latency_each_input(limits):
     """The pins as in the parallel form (1 clock to ``trip``); each sampled cause 1 + the steps
     before it later (``step_latency``: the first over-current 2, the third 4)."""
-    dut = Protection(limits="ram")
-    latency = verify_protect.measure_latency(limits="ram")
+    dut = Protection(limits=limits)
+    latency = verify_protect.measure_latency(limits=limits)
     pins = set(FAULTS) - set(dut.step_latency)
     assert latency == {**{name: 1 for name in pins}, **dut.step_latency}
     assert dut.step_latency == {"overcurrent_a": 2, "overcurrent_b": 3, "overcurrent_c": 4,
                                 "overvoltage": 2, "undervoltage": 3, "overspeed": 2}
 
 
+@RAM_FORMS
 @pytest.mark.parametrize("trip_register", [True, False])
-def test_protect_ram_random_fault_sequences_vs_model(trip_register):
+def test_protect_ram_random_fault_sequences_vs_model(trip_register, limits):
     """The iCE40's form: every output in every clock against the model (its limit RAM and
     step sequencer), the limits written through ``limit_wr`` (segments' four words in four
     clocks, random rewrites: steps wait for them)."""
-    result = verify_protect.run(6000, seed=3, trip_register=trip_register, limits="ram")
+    # ("ram16" with a 32-bit speed, as the Top's: the over-speed limit's upper half in flops)
+    result = verify_protect.run(6000, seed=3, trip_register=trip_register, limits=limits,
+                                speed_width=32 if limits == "ram16" else 16)
     assert result["mismatches"] == 0, result
     assert result["trips"] > 20 and result["clears"] > 20
     assert result["fault_latency_clk_max"] == 4
 
 
-def _ram_case_cols(cases, udc_cases):
+def _ram_case_cols(cases, udc_cases, speed_scale=1):
     """Columns (RAM_INPUTS) that, per case, write the four limits, then take one sample of
     every stream (the currents a, b, c = v, −v, v; U_dc u; speed v) and hold it for 8 clocks
     with ``clear`` high: every step compared once per case, on limits just written."""
     steps = []
     for (v, lim), (u, ulim) in zip(cases, udc_cases):
-        words = (lim, ulim & 0xFFFF_FFFF, ulim & 0xFFFF_FFFF, lim)
+        words = (lim, ulim & 0xFFFF_FFFF, ulim & 0xFFFF_FFFF,
+                 lim * speed_scale + (speed_scale > 1))
         for k in range(len(LIMITS)):
             steps.append({"lim_valid": 1, "lim_index": k, "lim_data": words[k],
                           "uv_enable": 1})
-        sample = {"a": v, "b": -v if -v <= 15 else v, "c": v, "udc": u, "speed": v,
+        sample = {"a": v, "b": -v if -v <= 15 else v, "c": v, "udc": u,
+                  "speed": v * speed_scale + (speed_scale > 1) * (v & 1),
                   "uv_enable": 1, "clear": 1}
         steps.append({**sample, "i_valid": 1, "udc_valid": 1, "speed_valid": 1})
         steps += [sample] * 8
@@ -354,22 +365,26 @@ def _ram_case_cols(cases, udc_cases):
             for k in RAM_INPUTS}
 
 
+@RAM_FORMS
 @pytest.mark.parametrize("udc_shape", [signed(4), unsigned(3)])
-def test_protect_ram_compares_exhaustive_small_width(udc_shape):
+def test_protect_ram_compares_exhaustive_small_width(udc_shape, limits):
     """The one comparator of every step (:func:`~foc_servo.hdl.protect.step_compare`): every
     5-bit current and speed against every 5-bit limit (the most negative value included), and
     every U_dc code against every U_dc limit (over-voltage, under-voltage, arming), each on a
     limit just written, against the model clock by clock; the model's verdicts are Python's
-    ``abs(v) > limit`` and plain compares."""
+    ``abs(v) > limit`` and plain compares. (``"ram16"``: the speed 7 bits wide, its limit's
+    upper 2 bits in flip-flops.)"""
     n = 5
-    dut = Protection(current_width=n, speed_width=n, udc_shape=udc_shape, limits="ram")
+    dut = Protection(current_width=n, speed_width=n if limits == "ram" else n + 2,
+                     udc_shape=udc_shape, limits=limits)
     cases = [(v, lim) for v in range(-(1 << (n - 1)), 1 << (n - 1)) for lim in range(1 << n)]
     lo, hi = shape_range(udc_shape)
     upairs = [(u, lim) for u in range(lo, hi + 1) for lim in range(lo, hi + 1)]
     rng = np.random.default_rng(5)
     udc_cases = [upairs[k] for k in rng.integers(0, len(upairs), size=len(cases))]
     udc_cases[:len(upairs)] = upairs
-    result, exp, _ = verify_protect.compare(dut, _ram_case_cols(cases, udc_cases))
+    scale = 1 if limits == "ram" else 4     # (speed and its limit over 7 bits)
+    result, exp, _ = verify_protect.compare(dut, _ram_case_cols(cases, udc_cases, scale))
     assert result["mismatches"] == 0, result
     bits = exp["present"]
     for name in ("overcurrent_a", "overcurrent_b", "overspeed", "overvoltage", "undervoltage"):
@@ -377,7 +392,8 @@ def test_protect_ram_compares_exhaustive_small_width(udc_shape):
     assert exp["uv_armed"].sum() > 1000
 
 
-def test_protect_ram_steps_wait_for_writes_and_share_the_comparator():
+@RAM_FORMS
+def test_protect_ram_steps_wait_for_writes_and_share_the_comparator(limits):
     """A sample's steps in STEPS order, one per clock, none in a ``limit_wr`` clock; a limit
     written in clock w is used by the steps taken after w (against the model)."""
     base = {"lim_valid": 0, "lim_index": 0, "lim_data": 0}
@@ -390,7 +406,7 @@ def test_protect_ram_steps_wait_for_writes_and_share_the_comparator():
     default = {**DEFAULTS, **base}
     cols = {k: np.array([st.get(k, default[k]) for st in steps], dtype=np.int64)
             for k in RAM_INPUTS}
-    result, exp, _ = verify_protect.compare(Protection(limits="ram"), cols)
+    result, exp, _ = verify_protect.compare(Protection(limits=limits), cols)
     assert result["mismatches"] == 0, result
     seen = [unpack_flags(p) for p in exp["present"]]
     # oc_a taken in 3 (present in 5), oc_b in 4, none in 5 and 6, oc_c in 7 (limit 1001: not
@@ -407,3 +423,11 @@ def test_protect_ram_model_steps_are_the_documented_order():
     assert [s[0] for s in STEPS] == ["oc_a", "oc_b", "oc_c", "ov", "uv", "arm", "os"]
     assert [s[2] for s in STEPS] == ["oc_limit"] * 3 + ["ov_limit", "uv_limit", "uv_limit",
                                                          "os_limit"]
+
+
+def test_protect_ram16_widths():
+    """``"ram16"``: the RAM as wide as the currents and U_dc, the comparator as the speed."""
+    assert Protection(speed_width=32, limits="ram").ram_width == 32
+    assert Protection(speed_width=32, limits="ram16").ram_width == 16
+    assert Protection(speed_width=8, limits="ram16").ram_width == 16
+    assert Protection().ram_width is None

@@ -25,6 +25,7 @@ CAUGHT_BY = {
     "fault": r"fault bound: a gate on 3 clocks after a fault",
     "fault_or": r"fault bound: a gate on 3 clocks after a fault",
     "fault_ram": r"fault bound: a gate on 3 clocks after a fault",
+    "fault_ram16": r"fault bound: a gate on 3 clocks after a fault",
     "abs_compare": r"abs_compare: \|v\| > limit at (16|32) bit",
     "pi": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",
     "pi_speed": r"pi exact: integrator update differs from clamp\(I \+ dI\) \(wrapped\)",

@@ -177,7 +177,7 @@ def _signed(word, bits=32):
      r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
      r"not 40 clocks$"),
     ({"prot_limits": "flops"}, ValueError,
-     r"^Top prot_limits must be one of 'ports', 'ram', not 'flops'$"),
+     r"^Top prot_limits must be one of 'ports', 'ram', 'ram16', not 'flops'$"),
     ({"prot_limits": "ram"}, ValueError,
      r"^Top prot_limits='ram' needs regs_staging='bram' \(the limits are mirrored from its "
      r"staging RAM\), not regs_staging='ff'$"),
@@ -1089,13 +1089,14 @@ def test_top_speed_reaches_lead_angle_and_overspeed_one_clock_after_mt():
     assert os_[t + 1 + Protection.latency]
 
 
-def test_top_prot_limits_ram_overspeed_from_a_host_write():
+@pytest.mark.parametrize("limits", ["ram", "ram16"])
+def test_top_prot_limits_ram_overspeed_from_a_host_write(limits):
     """``prot_limits="ram"`` (the iCE40's): a host write of ``prot_os_limit`` reaches the
     protection's limit RAM through the register file's mirror port (one write, in the clock
     after the access); the overspeed fault rises ``1 + step_latency["overspeed"]`` clocks after
     the first M/T result above the limit after it (one clock more than the limit ports'
     ``1 + Protection.latency``), and not before."""
-    top = Top(pwm_hz=250e3, baud=BAUD, regs_staging="bram", prot_limits="ram")
+    top = Top(pwm_hz=250e3, baud=BAUD, regs_staging="bram", prot_limits=limits)
     bench = _Bench(top, BAUD)
     host = _Host(bench)
     prot, mt, regs = top._protect, top._mt, top._regs

@@ -19,7 +19,7 @@ INPUTS = ("fault_n", "oc_comp", "i_valid", "a", "b", "c", "udc_valid", "udc", "s
           "speed", "encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
           "uv_limit", "uv_enable", "os_limit", "mask", "clear")
 
-#: The columns with ``limits="ram"``: the limit write port (``lim_valid``, ``lim_index``,
+#: The columns with ``limits="ram"`` / ``"ram16"``: the limit write port (``lim_valid``, ``lim_index``,
 #: ``lim_data``: the 32-bit word, unsigned) in place of the four limits.
 RAM_INPUTS = tuple(k for k in INPUTS if k not in LIMITS) + ("lim_valid", "lim_index",
                                                             "lim_data")
@@ -58,8 +58,9 @@ def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), 
         ``trip``, ``present``, ``first``, ``seen`` (flag integers) and ``uv_armed``, as seen
         during each clock (the state before that clock's edge), starting from reset.
     """
-    if limits == "ram":
-        return _protect_ram(cols, current_width, udc_shape, speed_width, limit_init)
+    if limits != "ports":
+        return _protect_ram(cols, current_width, udc_shape, speed_width, limit_init,
+                            wide=limits == "ram")
     c = {k: np.asarray(cols[k], dtype=np.int64) for k in INPUTS}
     n = c["fault_n"].size
     # Verdicts of each sample (vectorised); meaningful only where the sample is valid.
@@ -139,29 +140,33 @@ def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), 
     return out
 
 
-def _limit_value(word, index, width, udc_signed):
+def _limit_value(word, index, width, udc_signed, os_width=None):
     """The limit the RAM word ``word`` (``limit_wr.data``) at ``index`` stands for in the
-    ``width``-bit comparator: its low ``width`` bits, as a signed value for a U_dc limit of a
-    signed U_dc."""
+    ``width``-bit comparator (the over-speed limit's: ``os_width`` if given): its low bits, as
+    a signed value for a U_dc limit of a signed U_dc."""
+    if LIMITS[index] == "os_limit" and os_width is not None:
+        width = os_width
     v = int(word) & ((1 << width) - 1)
     if udc_signed and LIMITS[index] in ("ov_limit", "uv_limit") and v >> (width - 1):
         v -= 1 << width
     return v
 
 
-def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init):
-    """:func:`protect_np` for ``limits="ram"``: the limit RAM (written at the end of a
-    ``lim_valid`` clock) and the step sequencer (requests, the first requested step taken in a
-    clock without a write, its word read then and compared in the next clock on the payloads
-    of that clock)."""
+def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=True):
+    """:func:`protect_np` for ``limits="ram"`` (``wide``) or ``"ram16"``: the limit RAM
+    (written at the end of a ``lim_valid`` clock) and the step sequencer (requests, the first
+    requested step taken in a clock without a write, its word read then and compared in the
+    next clock on the payloads of that clock). ``"ram16"``: the currents' and U_dc's limits
+    are the words' low ``max(current_width, udc width)`` bits."""
     n_bits = max(current_width, udc_shape.width, speed_width)
+    m_bits = n_bits if wide else min(n_bits, max(current_width, udc_shape.width))
     u_signed = udc_shape.signed
     if limit_init is None:
         lo = -(1 << (udc_shape.width - 1)) if u_signed else 0
         hi = (1 << (udc_shape.width - 1)) - 1 if u_signed else (1 << udc_shape.width) - 1
         limit_init = ((1 << current_width) - 1, hi & 0xFFFF_FFFF, lo & 0xFFFF_FFFF,
                       (1 << speed_width) - 1)
-    ram = [_limit_value(w, k, n_bits, u_signed) for k, w in enumerate(limit_init)]
+    ram = [_limit_value(w, k, m_bits, u_signed, n_bits) for k, w in enumerate(limit_init)]
     c = {k: np.asarray(cols[k], dtype=np.int64).tolist() for k in RAM_INPUTS}
     n = len(c["fault_n"])
     names = [s[0] for s in STEPS]
@@ -246,5 +251,5 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init):
             go_limit = ram[word[pick]]
         if c["lim_valid"][t]:
             k = c["lim_index"][t]
-            ram[k] = _limit_value(c["lim_data"][t], k, n_bits, u_signed)
+            ram[k] = _limit_value(c["lim_data"][t], k, m_bits, u_signed, n_bits)
     return {k: np.asarray(v, dtype=np.int64) for k, v in out.items()}

@@ -118,7 +118,7 @@ def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_wid
                                  ("c", "i_valid", (i_lo, i_hi)), ("udc", "udc_valid", (u_lo, u_hi)),
                                  ("speed", "speed_valid", (s_lo, s_hi))):
         junk = cols[valid] == 0
-        if limits == "ram":
+        if limits != "ports":
             last = -100
             for t in range(n):
                 if cols[valid][t]:
@@ -127,7 +127,7 @@ def stimulus(count, *, seed=0, current_width=16, udc_shape=signed(16), speed_wid
                     cols[key][t] = cols[key][last]
                     junk[t] = False
         cols[key][junk] = rng.integers(lo, hi + 1, size=int(junk.sum()))
-    if limits == "ram":
+    if limits != "ports":
         cols = _limit_writes(rng, cols)
     return cols
 
@@ -159,7 +159,7 @@ def _limit_writes(rng, cols):
 
 def _in_layout(dut):
     w, sw, us = dut.current_width, dut.speed_width, dut.udc_shape
-    if dut.limits == "ram":
+    if dut.limits != "ports":
         return data.StructLayout({
             "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
             "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
@@ -222,7 +222,7 @@ class _ProtectBench(wiring.Component):
             dut.uv_enable.eq(s.uv_enable), dut.mask.eq(s.mask),
             dut.clear.eq(running & s.clear),
         ]
-        if dut.limits == "ram":
+        if dut.limits != "ports":
             m.d.comb += [dut.limit_wr.valid.eq(running & s.lim_valid),
                          dut.limit_wr.index.eq(s.lim_index), dut.limit_wr.data.eq(s.lim_data)]
         else:
@@ -254,7 +254,7 @@ def measure_latency(**params):
     settle = 1 if dut.limits == "ports" else 6
 
     async def testbench(ctx):
-        if dut.limits == "ram":
+        if dut.limits != "ports":
             for k, v in enumerate((1000, 30000, 10000, 1000)):
                 ctx.set(dut.limit_wr.valid, 1)
                 ctx.set(dut.limit_wr.index, k)
