@@ -211,8 +211,8 @@ class Protection(wiring.Component):
         with a RAM as wide as the currents and U_dc (one iCE40 block RAM, not two) and the
         over-speed limit's upper bits in flip-flops (:attr:`ram_width`).
     limit_init : sequence of 4 int or None
-        ``limits="ram"`` / ``"ram16"``: the limit RAM's initial words (:data:`LIMITS` order, in the format
-        ``limit_wr`` carries); ``None``: the ports' reset values (never trip).
+        ``limits="ram"`` / ``"ram16"``: the limit RAM's initial words (:data:`LIMITS` order, in
+        the format ``limit_wr`` carries); ``None``: the ports' reset values (never trip).
 
     Sequential compare (``limits="ram"``)
     -------------------------------------
@@ -248,9 +248,10 @@ class Protection(wiring.Component):
         Flags from the encoder / Hall front end (1-clock pulses or levels): illegal quadrature
         transition, invalid Hall code, encoder/Hall plausibility failure.
     limit_wr : In(WordWriteSignature(4))
-        Only with ``limits="ram"`` / ``"ram16"`` (in place of the four limit ports): a write of limit word
-        ``index`` (:data:`LIMITS`) with ``data``, the limit as a 32-bit word, a signed one
-        sign-extended (the register file's read format); the RAM holds it from the next clock.
+        Only with ``limits="ram"`` / ``"ram16"`` (in place of the four limit ports): a write
+        of limit word ``index`` (:data:`LIMITS`) with ``data``, the limit as a 32-bit word, a
+        signed one sign-extended (the register file's read format); the RAM holds it from the
+        next clock.
     oc_limit : In(unsigned(w), init=2**w − 1)
         Over-current threshold on ``|i_x|`` (same scale as ``i``); the reset value never trips.
     ov_limit, uv_limit : In(udc_shape, init=max / min code)

@@ -431,3 +431,11 @@ def test_protect_ram16_widths():
     assert Protection(speed_width=32, limits="ram16").ram_width == 16
     assert Protection(speed_width=8, limits="ram16").ram_width == 16
     assert Protection().ram_width is None
+
+
+@pytest.mark.slow
+@RAM_FORMS
+def test_protect_ram_100k_random_clocks_vs_model(limits):
+    """The iCE40's forms as the Top builds them (32-bit speed, the OR of ``present``)."""
+    result = verify_protect.run(100_000, limits=limits, trip_register=False, speed_width=32)
+    assert result["mismatches"] == 0, result

@@ -19,8 +19,8 @@ INPUTS = ("fault_n", "oc_comp", "i_valid", "a", "b", "c", "udc_valid", "udc", "s
           "speed", "encoder_illegal", "hall_invalid", "encoder_hall", "oc_limit", "ov_limit",
           "uv_limit", "uv_enable", "os_limit", "mask", "clear")
 
-#: The columns with ``limits="ram"`` / ``"ram16"``: the limit write port (``lim_valid``, ``lim_index``,
-#: ``lim_data``: the 32-bit word, unsigned) in place of the four limits.
+#: The columns with ``limits="ram"`` / ``"ram16"``: the limit write port (``lim_valid``,
+#: ``lim_index``, ``lim_data``: the 32-bit word, unsigned) in place of the four limits.
 RAM_INPUTS = tuple(k for k in INPUTS if k not in LIMITS) + ("lim_valid", "lim_index",
                                                             "lim_data")
 
