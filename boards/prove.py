@@ -234,9 +234,10 @@ class FaultSpec(Elaboratable):
         the sequential compare; ``"ram16"`` likewise with one block RAM). The spec then takes a
         sampled verdict in the clock the block compares its step (its ``step_go``), with the
         block's comparator function (:func:`~foc_servo.hdl.protect.step_compare`, equal to the
-        plain compares by the ``abs_compare`` proof) on that clock's payload and the limit word
-        the block read from its RAM (``limit_rd``; ``"ram16"`` with ``limit_os_hi``): the
-        properties hold from that clock, the pin causes' from their own as before.
+        plain compares by the ``abs_compare`` proof) on the payload of the clock before (the
+        step's taken in) and the limit word the block read from its RAM (``limit_rd``;
+        ``"ram16"`` with ``limit_os_hi``): the properties hold from that clock, the pin causes'
+        from their own as before.
     """
 
     def __init__(self, *, broken=False, trip_register=True, limits="ports"):
@@ -282,10 +283,14 @@ class FaultSpec(Elaboratable):
             if self.limits == "ram16":
                 word, split = Cat(word, internal["limit_os_hi"]), len(word)
             go = {name: go_bits[k] for k, (name, _, _) in enumerate(STEPS)}
+            # (the operand is the payload of the clock the step was taken in, the one before)
+            i_d = _Currents({p: _history(m, getattr(i, p), 1, f"spec_i{p}")[0] for p in "abc"})
+            udc_d = _history(m, prot.udc.payload, 1, "spec_udc")[0]
+            speed_d = _history(m, speed, 1, "spec_speed")[0]
 
             def verdict(name):
-                return step_compare({n: Const(int(n == name), 1) for n in go}, i,
-                                    prot.udc.payload, speed, word, split=split)
+                return step_compare({n: Const(int(n == name), 1) for n in go}, i_d,
+                                    udc_d, speed_d, word, split=split)
             sampled = {name: (go[name], verdict(name))
                        for name in ("oc_a", "oc_b", "oc_c", "ov", "uv", "os")}
             arm = go["arm"] & verdict("arm")

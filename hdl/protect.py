@@ -44,7 +44,7 @@ from .bus import WordWriteSignature
 from .fixed import abs_exceeds, check_bool, check_choice, check_param, shape_range
 
 __all__ = ["FAULTS", "FAULT_LAYOUT", "LIMITS", "LIMIT_FORMS", "STEPS", "Protection",
-           "step_compare", "store_limit", "udc_compares"]
+           "step_compare", "step_operand", "step_verdict", "store_limit", "udc_compares"]
 
 #: Cause names, in bit order of :data:`FAULT_LAYOUT` (bit 0 first).
 FAULTS = ("external", "overcurrent_a", "overcurrent_b", "overcurrent_c", "overcurrent_comparator",
@@ -118,7 +118,23 @@ def store_limit(index, word, width, udc_signed):
 
 
 def step_compare(go, i, udc, speed, limit, *, split=None):
-    """``Protection(limits="ram")``'s one comparator: the verdict of the step that ``go``
+    """:func:`step_verdict` of :func:`step_operand`: the comparator of one step as one
+    function (the proofs state it so)."""
+    x, cin = step_operand(go, i, udc, speed, limit, split=split)
+    return step_verdict(x, cin, limit, go["uv"])
+
+
+def step_verdict(x, cin, limit, uv):
+    """The verdict of a step from its operand ``x``, ``cin`` (:func:`step_operand`) and
+    ``limit``: the carry out of ``limit + x + cin``, inverted unless ``uv`` (the under-voltage
+    step's)."""
+    n = len(Value.cast(limit))
+    carry = (Cat(cin, limit) + Cat(Const(1, 1), x))[n + 1]
+    return carry ^ ~uv
+
+
+def step_operand(go, i, udc, speed, limit, *, split=None):
+    """``Protection(limits="ram")``'s one comparator: ``(X, cin)`` of the step that ``go``
     selects (a dict of one bit per name of :data:`STEPS`, at most one high) on the currents
     ``i`` (a, b, c), ``udc`` and ``speed`` against ``limit``, the limit RAM's word (``n`` bits,
     as :meth:`Protection.stored_limit` stores it).
@@ -146,35 +162,19 @@ def step_compare(go, i, udc, speed, limit, *, split=None):
     phase = Mux(go["oc_a"], i.a, Mux(go["oc_b"], i.b, i.c))
     s_i, s_s = phase[-1], speed[-1]
 
-    # X = ~(V XOR t): V the step's operand extended to n bits (a current or the speed
-    # sign-extended, so that X is ones above its magnitude bits; U_dc in offset binary), t its
-    # sign for a magnitude compare (abs_exceeds' ~(v XOR s)), 0 for U_dc.
-    p_ext = phase.as_signed()
-    s_ext = speed.as_signed()
-    if udc.shape().signed:      # sign-extended to n bits, the top bit flipped
-        u_ext = [udc[j] if j < uw else udc[-1] for j in range(top - 1)] + [~udc[-1]]
+    def bits(v, sign, width):
+        return [~(v[j] ^ sign) if j < width - 1 else Const(1, 1) for j in range(n)]
+    x_i = bits(phase, s_i, cw)
+    x_s = bits(speed, s_s, sw)
+    if udc.shape().signed:
+        x_u = [~udc[j] if j < uw - 1 else ~udc[-1] for j in range(top - 1)] + [udc[-1]]
     else:
-        u_ext = [udc[j] if j < uw else Const(0, 1) for j in range(top)]
-    t_lo = Mux(g_i, s_i, g_s & s_s)
-    # Where the current and U_dc are both extension bits, X is 1 for a current and ~V for
-    # U_dc's (constant but for its sign): V from the speed or that constant, the U_dc sign in
-    # t (one LUT4 a bit: g_i, g_u, the speed bit, t_hi).
-    t_hi = Mux(g_u, udc[-1] if udc.shape().signed else 0, s_s)
-    xs = []
-    for j in range(n):
-        sj = s_ext[min(j, sw - 1)]
-        if j >= top:            # (split: the speed's bits, else the carry passes)
-            xs.append(Mux(g_s, ~(sj ^ s_s), ~limit[j]))
-        elif j >= cw - 1 and j >= uw - 1 + (0 if udc.shape().signed else 1):
-            const = 1 if udc.shape().signed and j == top - 1 else 0  # (the flipped top bit)
-            xs.append(g_i | ~(Mux(g_u, const, sj) ^ t_hi))
-        else:
-            pj = p_ext[min(j, cw - 1)]
-            xs.append(~(Mux(g_i, pj, Mux(g_u, u_ext[j], sj)) ^ t_lo))
+        x_u = [~udc[j] if j < uw else Const(1, 1) for j in range(top)]
+    xs = [Mux(g_i, x_i[j], Mux(g_u, x_u[j], x_s[j])) if j < top
+          else Mux(g_s, x_s[j], ~limit[j]) for j in range(n)]
     x = Cat(xs)
     cin = Mux(g_i, ~s_i, Mux(g_s, ~s_s, ~go["uv"]))
-    carry = (Cat(cin, limit) + Cat(Const(1, 1), x))[n + 1]
-    return carry ^ ~go["uv"]
+    return x, cin
 
 
 class Protection(wiring.Component):
@@ -219,16 +219,16 @@ class Protection(wiring.Component):
     A valid sample requests its compares (:data:`STEPS`: ``i`` the three over-currents,
     ``udc`` over-voltage, under-voltage and the arming, ``speed`` over-speed); every clock
     without a ``limit_wr`` write the first requested step in :data:`STEPS` order (this clock's
-    requests included) is taken: its limit word is read from the RAM in that clock, and in the
-    next the one comparator compares it with the step's operand, which must still be on the
-    payload (the Top's are registers that hold for a PWM period), and its verdict acts as the
-    parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` two
+    requests included) is taken: its limit word is read from the RAM and its operand taken from
+    the payload in that clock (both registered), and in the next the one comparator compares
+    them and its verdict acts as the parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` two
     clocks after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
     later than the parallel form's (the first over-current 1, the third 3; all seven requested
-    at once: the over-speed 7 clocks later); a step compares the payload of its compare clock
-    (a second sample of a stream before its steps are taken is compared in their place, the
-    first one's verdict never seen; samples of a stream less than 7 clocks apart can keep the
-    later steps waiting); a limit written in clock ``w`` is used by the steps taken from
+    at once: the over-speed 7 clocks later); a step compares the payload of the clock it is
+    taken in, so the payload must hold until then (the Top's are registers that hold for a PWM
+    period; a second sample of a stream before its steps are taken is compared in their place,
+    the first one's verdict never seen; samples of a stream less than 7 clocks apart can keep
+    the later steps waiting); a limit written in clock ``w`` is used by the steps taken from
     ``w + 1`` on. The under-voltage and arming steps read the under-voltage limit in their own
     clocks.
 
@@ -541,9 +541,15 @@ class Protection(wiring.Component):
         m.d.comb += rp.addr.eq(Cat(Cat(pick[k] for k in range(len(STEPS)) if word[k] >> b & 1)
                                    .any() for b in range(len(rp.addr))))
 
-        # The step's compare in its compare clock (``go``), on the payloads then.
+        # The step's operand formed from the payloads in the clock it is taken (``pick``) and
+        # registered beside the RAM's word (iCE40 Fmax: the operand multiplexer in front of
+        # the 33-bit chain missed 33.333 MHz), compared in the next clock (``go``).
+        x, cin = step_operand({name: pick[k] for k, name in enumerate(names)}, self.i.payload,
+                              self.udc.payload, self.speed.payload, limit, split=split)
+        x_q = Signal(len(x), name="cmp_x", reset_less=True)
+        cin_q = Signal(name="cmp_cin", reset_less=True)
+        m.d.sync += [x_q.eq(x), cin_q.eq(cin)]
         verdict = Signal(name="cmp_verdict")
-        m.d.comb += verdict.eq(step_compare({name: go[k] for k, name in enumerate(names)},
-                                            self.i.payload, self.udc.payload,
-                                            self.speed.payload, limit, split=split))
+        m.d.comb += verdict.eq(step_verdict(x_q, cin_q, limit,
+                                            go[names.index("uv")]))
         return go, verdict

@@ -439,3 +439,23 @@ def test_protect_ram_100k_random_clocks_vs_model(limits):
     """The iCE40's forms as the Top builds them (32-bit speed, the OR of ``present``)."""
     result = verify_protect.run(100_000, limits=limits, trip_register=False, speed_width=32)
     assert result["mismatches"] == 0, result
+
+
+@RAM_FORMS
+def test_protect_ram_step_takes_the_payload_of_its_pick_clock(limits):
+    """A step's operand is the payload of the clock it is taken in (registered beside the
+    RAM's word, iCE40 Fmax), not of its compare clock: a current over the limit in its valid
+    clock only trips ``overcurrent_a`` (taken then), not ``_b`` / ``_c`` (taken later, on the
+    payload then within the limit); the speed likewise."""
+    base = {"lim_valid": 0, "lim_index": 0, "lim_data": 0}
+    steps = [{**base, "lim_valid": 1, "lim_index": k, "lim_data": 1000} for k in (0, 3)]
+    steps += [{**base, "i_valid": 1, "a": -2000, "b": 2000, "c": 2000,
+               "speed_valid": 1, "speed": 0}]
+    steps += [{**base, "speed": 5000}] + [base] * 8
+    default = {**DEFAULTS, **base}
+    cols = {k: np.array([st.get(k, default[k]) for st in steps], dtype=np.int64)
+            for k in RAM_INPUTS}
+    result, exp, _ = verify_protect.compare(Protection(limits=limits), cols)
+    assert result["mismatches"] == 0, result
+    seen = set().union(*(unpack_flags(p) for p in exp["present"]))
+    assert seen == {"overcurrent_a"}

@@ -155,8 +155,8 @@ def _limit_value(word, index, width, udc_signed, os_width=None):
 def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=True):
     """:func:`protect_np` for ``limits="ram"`` (``wide``) or ``"ram16"``: the limit RAM
     (written at the end of a ``lim_valid`` clock) and the step sequencer (requests, the first
-    requested step taken in a clock without a write, its word read then and compared in the
-    next clock on the payloads of that clock). ``"ram16"``: the currents' and U_dc's limits
+    requested step taken in a clock without a write, its word read and its operand taken from
+    the payload then, compared in the next clock). ``"ram16"``: the currents' and U_dc's limits
     are the words' low ``max(current_width, udc width)`` bits."""
     n_bits = max(current_width, udc_shape.width, speed_width)
     m_bits = n_bits if wide else min(n_bits, max(current_width, udc_shape.width))
@@ -175,8 +175,8 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
     out = {k: [0] * n for k in ("trip", "present", "first", "seen", "uv_armed")}
     held = {"oc_a": 0, "oc_b": 0, "oc_c": 0, "ov": 0, "uv": 0, "os": 0}
     pend = [0] * len(STEPS)
-    go = None                       # the step compared in this clock, and its limit
-    go_limit = 0
+    go = None                       # the step compared in this clock, its limit and operand
+    go_limit = go_value = 0
     armed = latched = present = first = seen = 0
     b = _BIT
     for t in range(n):
@@ -184,22 +184,18 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
         out["present"][t], out["first"][t], out["seen"][t] = present, first, seen
         out["uv_armed"][t] = armed
 
-        # This clock's compare (the step taken in the last clock).
+        # This clock's compare (the step taken in the last clock, on that clock's payload).
         now = dict(held)
         arm_now = 0
         if go is not None:
             name = names[go]
-            lim = go_limit
-            if name.startswith("oc_"):
-                verdict = abs(c[name[-1]][t]) > lim
-            elif name == "os":
-                verdict = abs(c["speed"][t]) > lim
-            elif name == "ov":
-                verdict = c["udc"][t] > lim
-            elif name == "uv":
-                verdict = c["udc"][t] < lim
-            else:                   # arm
-                verdict = c["udc"][t] > lim
+            lim, v = go_limit, go_value
+            if name.startswith("oc_") or name == "os":
+                verdict = abs(v) > lim
+            elif name in ("ov", "arm"):
+                verdict = v > lim
+            else:                   # uv
+                verdict = v < lim
             if name == "arm":
                 arm_now = int(verdict)
             else:
@@ -249,6 +245,9 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
         go = pick
         if pick is not None:
             go_limit = ram[word[pick]]
+            name = names[pick]
+            go_value = c[name[-1] if name.startswith("oc_") else
+                         "speed" if name == "os" else "udc"][t]
         if c["lim_valid"][t]:
             k = c["lim_index"][t]
             ram[k] = _limit_value(c["lim_data"][t], k, m_bits, u_signed, n_bits)
