@@ -121,7 +121,7 @@ LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 #: (no limit flip-flops, one carry chain for six: docs/AREA.md §7.77; a sampled cause reaches
 #: the gates 1 … 7 clocks later, the pins as before); the limit ports and a comparator per
 #: cause elsewhere (the netlists of before). ``"ram"`` takes 2 block RAMs (30 of the UP5K's
-#: 30 with the rest of the top); ``"ram16"`` 1, for +26 logic cells (6 453 against 6 427).
+#: 30 with the rest of the top); ``"ram16"`` 1, for +39 logic cells (6 479 against 6 440).
 PROT_LIMITS = {"ice40": "ram", "ecp5": "ports", "xc7": "ports", "xc6s": "ports"}
 
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without

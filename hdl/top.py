@@ -512,7 +512,8 @@ class Top(wiring.Component):
         over-/under-voltage, over-speed) then reaches the gates 1 … 7 clocks later
         (:attr:`Protection.step_latency`; the pin causes as before) and a limit write acts one
         clock later; ``"ram16"`` the same with a limit RAM of one iCE40 block RAM (two with
-        ``"ram"``) and the over-speed limit's upper 16 bits in flip-flops (+≈ 16 logic cells).
+        ``"ram"``) and the over-speed limit's upper 16 bits in flip-flops (+39 logic cells on the
+        iCEBreaker, docs/AREA.md §7.77).
 
     Members
     -------
