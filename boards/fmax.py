@@ -109,14 +109,18 @@ def fmax_catalog():
     loop engine's current loop (``foc_engine``, with its configuration and status as ports:
     the iCEBreaker's top builds it with ``config="ram"``, ``status="ram"``), and the
     iCEBreaker's engine as the top has it (``foc_engine_speed``: ``config="ram"``,
-    ``status="ram"``, the speed run, ``speed=True``)."""
+    ``status="ram"``, the speed run, ``speed=True``), and the iCEBreaker's protection
+    (``protect_ram``: a 32-bit speed, ``trip_register=False``, ``limits="ram"``)."""
     from ..hdl.catalog import BLOCKS
     from ..hdl.foc_engine import EngineCurrentLoop
+    from ..hdl.protect import Protection
     from ..hdl.uart import UartRx, UartTx
     return {**BLOCKS, "uart_rx": lambda: UartRx(), "uart_tx": lambda: UartTx(),
             "foc_engine": lambda: EngineCurrentLoop(),
             "foc_engine_speed": lambda: EngineCurrentLoop(config="ram", status="ram",
-                                                          speed=True)}
+                                                          speed=True),
+            "protect_ram": lambda: Protection(speed_width=32, trip_register=False,
+                                              limits="ram")}
 
 
 def _run(argv, cwd, log):
