@@ -798,7 +798,9 @@ class Engine(wiring.Component):
     from the next ``pc`` in a second ROM beside the program ROM (``cfg_rom``: per
     instruction its config word), so the RAM is read in F and its data is one more input of
     R's special AND-OR (one line, and one for ``asl``), in place of one line per config
-    special. The RAM is read one clock before the port values were: a write in the F clock
+    special. ``cfg_rom`` also holds whether the instruction reads ``TC``: with ``config`` the
+    sine table's halves are words of their own (``TS`` at ``i``, ``TC`` at ``i + 2**n``), so
+    that ``TS`` and ``TC`` are one line (one key) too. The RAM is read one clock before the port values were: a write in the F clock
     of the word read (``cfg.valid`` and ``cfg.index`` equal to it) is taken from ``cfg.data``
     registered (the bypass), so each read returns the word as of the R clock.
 
@@ -944,6 +946,8 @@ class Engine(wiring.Component):
             return (n, ins.asl)
         if ins.a in self._slice_specials:
             return (n + 1 + self._slice_specials[ins.a], ins.asl)
+        if self._config and ins.a == 3:         # TC: the table line (TS's key), other half
+            return (2, ins.asl)
         return (ins.a, ins.asl)
 
     @property
@@ -1034,11 +1038,22 @@ class Engine(wiring.Component):
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
         ang = self.o_ang                    # the output register named "ang"
-        m.submodules.table = table = Memory(shape=2 * ft, depth=1 << n, init=rot.table_words)
+        # With ``config`` the table holds TS and TC as words of their own (TS at ``i``, TC at
+        # ``i + 2**n``), one special line for both: the half is the address's top bit, looked
+        # up beside the configuration word in ``cfg_rom`` (F: the clock the table is
+        # addressed in), so that R's AND-OR has one ``ft``-bit line in place of two.
+        tab_half = bool(self._config)
+        ft_mask = (1 << ft) - 1
+        m.submodules.table = table = Memory(
+            shape=ft if tab_half else 2 * ft, depth=(2 if tab_half else 1) << n,
+            init=([v & ft_mask for v in rot.table_words] + [v >> ft for v in rot.table_words]
+                  if tab_half else rot.table_words))
         tab_r = table.read_port()
         quad = ang[aw - 2:]
         mu = ang[aw - 3]
-        m.d.comb += tab_r.addr.eq(ang[mb:aw - 3] ^ Mux(mu, (1 << n) - 1, 0))
+        tab_idx = ang[mb:aw - 3] ^ Mux(mu, (1 << n) - 1, 0)
+        if not tab_half:
+            m.d.comb += tab_r.addr.eq(tab_idx)
         kd_rom = [Const(v, unsigned(max(1, max(rot.kd_rom).bit_length()))) for v in rot.kd_rom]
         kd = Signal(unsigned(max(1, max(rot.kd_rom).bit_length())))
         with m.Switch(Cat(ang[:mb], mu)):
@@ -1052,8 +1067,8 @@ class Engine(wiring.Component):
         # The special operands as bit fields (base value, first bit, width, signed, left shift):
         # the AND-OR below is built bit by bit from them (``_special_and_or``).
         kd_w = len(kd)
-        fields = [None, None, (tab_r.data, 0, ft, True, 0), (tab_r.data, ft, ft, True, 0),
-                  (kd, 0, kd_w, False, 0)]
+        fields = [None, None, (tab_r.data, 0, ft, True, 0),
+                  None if tab_half else (tab_r.data, ft, ft, True, 0), (kd, 0, kd_w, False, 0)]
         for name, shape in self._special_shapes.items():
             if name in self._config or name in self._config_slices:
                 fields.append(None)
@@ -1061,7 +1076,8 @@ class Engine(wiring.Component):
                 shape = Shape.cast(shape)
                 fields.append((getattr(self, f"s_{name}"), 0, shape.width, shape.signed, 0))
         if self._config:
-            cfg_value = self._config_ram(m, prog, cfg_of, pc_next)
+            cfg_value, tc_half = self._config_ram(m, prog, cfg_of, pc_next)
+            m.d.comb += tab_r.addr.eq(Cat(tab_idx, tc_half))
             fields.append((cfg_value, 0, len(cfg_value), True, 0))
             # The slices: wirings of the same read (zero-extended).
             fields += [(cfg_value, lo, bits, False, shift)
@@ -1365,17 +1381,22 @@ class Engine(wiring.Component):
     def _config_ram(self, m, prog, cfg_of, pc_next):
         """The configuration RAM (class docstring): its write port, the word look-up from the
         next ``pc`` (``cfg_rom``), the read in F and the bypass of a write in the F clock.
-        Returns the configuration operand as of the R clock (sign-extended)."""
+        Returns the configuration operand as of the R clock (sign-extended) and the F
+        clock's sine-table half (1: TC)."""
         cw, n = self._config_width, len(self._config)
-        # Per instruction the config word its A operand reads (0 for none: read, not used).
-        words = [cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0 for ins in prog.instrs]
+        # Per instruction the config word its A operand reads (0 for none: read, not used)
+        # and, above it, whether it reads TC (the sine table's half: its address's top bit).
+        ww = Shape.cast(range(max(n, 2))).width
+        words = [(cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0)
+                 | (int(bool(ins.asp and ins.a == 3)) << ww) for ins in prog.instrs]
         # (In a block RAM: as a LUT ROM on ``pc_next`` it lengthened the branch condition's
         # path to 32.8 ns, 30.5 MHz on the UP5K; the block RAM's address takes pc_next as is.)
-        m.submodules.cfg_rom = cfg_rom = Memory(shape=range(max(n, 2)),
+        m.submodules.cfg_rom = cfg_rom = Memory(shape=ww + 1,
                                                 depth=max(len(words), 2), init=words,
                                                 attrs={"rom_style": "block"})
-        look = cfg_rom.read_port()              # the word of the instruction at pc (F)
-        m.d.comb += look.addr.eq(pc_next)
+        look_r = cfg_rom.read_port()            # the word of the instruction at pc (F)
+        m.d.comb += look_r.addr.eq(pc_next)
+        look = data.View(data.StructLayout({"data": ww, "tc": 1}), look_r.data)
         init = [(v & ((1 << cw) - 1)) - ((v >> (cw - 1) & 1) << cw) for v in self._config_init]
         # The read port as the register file's: asynchronous, its data registered here (one
         # synchronous block RAM port); a read of the word being written is undefined
@@ -1395,4 +1416,4 @@ class Engine(wiring.Component):
             m.d.sync += byp_data.eq(self.cfg.data[:cw])
         value = Signal(signed(cw))
         m.d.comb += value.eq(Mux(byp, byp_data, rd_data))
-        return value
+        return value, look.tc
