@@ -800,7 +800,8 @@ class Engine(wiring.Component):
     R's special AND-OR (one line, and one for ``asl``), in place of one line per config
     special. ``cfg_rom`` also holds whether the instruction reads ``TC``: with ``config`` the
     sine table's halves are words of their own (``TS`` at ``i``, ``TC`` at ``i + 2**n``), so
-    that ``TS`` and ``TC`` are one line (one key) too. The RAM is read one clock before the port values were: a write in the F clock
+    that ``TS`` and ``TC`` are one line (one key) too. The RAM is read one clock before the
+    port values were: a write in the F clock
     of the word read (``cfg.valid`` and ``cfg.index`` equal to it) is taken from ``cfg.data``
     registered (the bypass), so each read returns the word as of the R clock.
 
@@ -1203,14 +1204,21 @@ class Engine(wiring.Component):
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
         h_mask = Signal(unsigned(P_WORD), reset_less=True)
+        # The carry-in (X ≥ 0) in two terms: ``rc_s`` of the sum (its sign at the end of X1's
+        # adder, registered) or PQ (never negative), ``rc_p`` of P (its sign in X2); they
+        # enter the rounding adder as the carry out of a bit below its operands (1 + rc_s +
+        # rc_p carries rc_s | rc_p): no OR and no feed-in cell in front of the carry chain
+        # (rc_s straight from its flip-flop, rc_p one LUT behind P). AREA.md §7.74.
+        rc_s = Signal()
         rnd_p = Signal()
-        rnd_pq = Signal()
-        rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
         m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
                                    ~(Const((1 << (P_WORD + 1)) - 1, P_WORD + 1) << ir.sh)[1:P_WORD + 1], 0)),
-                     rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
-                     rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
+                     rnd_p.eq(rounding & p_read),
+                     rc_s.eq((rounding & pq_read) |
+                             (rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel & ~s[-1]))]
+        rc_p = Signal()
+        m.d.comb += rc_p.eq(rnd_p & ~p[-1])
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
         # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
@@ -1220,8 +1228,7 @@ class Engine(wiring.Component):
         rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
-        rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        m.d.sync += r3.eq((rx + rh + rcin)[:P_WORD + 2] | x2m)
+        m.d.sync += r3.eq((Cat(rc_s, rx) + Cat(rc_p, rh) + 1)[1:P_WORD + 3] | x2m)
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal
