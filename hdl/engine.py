@@ -1163,7 +1163,14 @@ class Engine(wiring.Component):
         # bring into it (cin into bit 0, ea | eb of the bit below): no carry chain in front.
         carries = Cat(cin, (ea | eb)[:WORD])
         s_nz = (ea ^ eb ^ carries)[:WORD + 1]
-        s_z4 = [s_nz[j:j + 4].any() for j in range(0, WORD + 1, 4)]     # two levels of OR4
+        # Two levels of OR4; the first level's outputs kept (yosys ``keep``): without them abc
+        # mapped the zero test as a chain of 7 LUTs from the register file's read data to
+        # ``flag_zg`` (the iCEBreaker engine's critical path on seed 1, AREA.md §7.74).
+        s_z4 = []
+        for j in range(0, WORD + 1, 4):
+            z = Signal(name=f"s_z4_{j // 4}", attrs={"keep": 1})
+            m.d.comb += z.eq(s_nz[j:j + 4].any())
+            s_z4.append(z)
         s_zg = Cat(*(Cat(*s_z4[j:j + 4]).any() for j in range(0, len(s_z4), 4)))
         # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
         # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
