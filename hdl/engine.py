@@ -1025,14 +1025,21 @@ class Engine(wiring.Component):
         # write addresses always differ).
         dl_n = Signal(2)
         m.d.sync += dl_n.eq(dl_n + 1)
+        # R's DIV decode and repeat test as kept wires (yosys ``keep``), one and two LUT levels
+        # behind the ROM: without them abc mapped the decode as a chain of four LUTs shared
+        # with the delay line's fields, in front of ``hold`` and ``pc`` (``foc_engine_speed``
+        # seed 3: ROM → pc 33.8 ns, 29.6 MHz; AREA.md §7.74).
+        r_div = Signal(attrs={"keep": 1})
+        r_rep = Signal(attrs={"keep": 1})
+        rep_k = Signal(5)
+        m.d.comb += [r_div.eq(ir1.op == Op.DIV), r_rep.eq(rep_k != ir1.sh)]
         ir3 = _delay_line(m, "x3_delay", dl_n, 2,          # the fields of the instruction in X3
                           {"sh": ir1.sh, "acc": ir1.acc, "mul": ir1.op == Op.MUL,
-                           "div": ir1.op == Op.DIV, "end": ir1.op == Op.END})
+                           "div": r_div, "end": ir1.op == Op.END})
         # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
-        rep_k = Signal(5)
         hold = Signal()
-        m.d.comb += [hold.eq(r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+        m.d.comb += [hold.eq(r_valid & r_div & r_rep),
                      rom_r.en.eq(~hold)]
         m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
