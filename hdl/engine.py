@@ -798,7 +798,10 @@ class Engine(wiring.Component):
     from the next ``pc`` in a second ROM beside the program ROM (``cfg_rom``: per
     instruction its config word), so the RAM is read in F and its data is one more input of
     R's special AND-OR (one line, and one for ``asl``), in place of one line per config
-    special. The RAM is read one clock before the port values were: a write in the F clock
+    special. ``cfg_rom`` also holds whether the instruction reads ``TC``: with ``config`` the
+    sine table's halves are words of their own (``TS`` at ``i``, ``TC`` at ``i + 2**n``), so
+    that ``TS`` and ``TC`` are one line (one key) too. The RAM is read one clock before the
+    port values were: a write in the F clock
     of the word read (``cfg.valid`` and ``cfg.index`` equal to it) is taken from ``cfg.data``
     registered (the bypass), so each read returns the word as of the R clock.
 
@@ -944,6 +947,8 @@ class Engine(wiring.Component):
             return (n, ins.asl)
         if ins.a in self._slice_specials:
             return (n + 1 + self._slice_specials[ins.a], ins.asl)
+        if self._config and ins.a == 3:         # TC: the table line (TS's key), other half
+            return (2, ins.asl)
         return (ins.a, ins.asl)
 
     @property
@@ -1020,25 +1025,43 @@ class Engine(wiring.Component):
         # write addresses always differ).
         dl_n = Signal(2)
         m.d.sync += dl_n.eq(dl_n + 1)
+        # R's DIV decode and repeat test as kept wires (yosys ``keep``), one and two LUT levels
+        # behind the ROM: without them abc mapped the decode as a chain of four LUTs shared
+        # with the delay line's fields, in front of ``hold`` and ``pc`` (``foc_engine_speed``
+        # seed 3: ROM → pc 33.8 ns, 29.6 MHz; AREA.md §7.74).
+        r_div = Signal(attrs={"keep": 1})
+        r_rep = Signal(attrs={"keep": 1})
+        rep_k = Signal(5)
+        m.d.comb += [r_div.eq(ir1.op == Op.DIV), r_rep.eq(rep_k != ir1.sh)]
         ir3 = _delay_line(m, "x3_delay", dl_n, 2,          # the fields of the instruction in X3
                           {"sh": ir1.sh, "acc": ir1.acc, "mul": ir1.op == Op.MUL,
-                           "div": ir1.op == Op.DIV, "end": ir1.op == Op.END})
+                           "div": r_div, "end": ir1.op == Op.END})
         # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
-        rep_k = Signal(5)
         hold = Signal()
-        m.d.comb += [hold.eq(r_valid & (ir1.op == Op.DIV) & (rep_k != ir1.sh)),
+        m.d.comb += [hold.eq(r_valid & r_div & r_rep),
                      rom_r.en.eq(~hold)]
         m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
         ang = self.o_ang                    # the output register named "ang"
-        m.submodules.table = table = Memory(shape=2 * ft, depth=1 << n, init=rot.table_words)
+        # With ``config`` the table holds TS and TC as words of their own (TS at ``i``, TC at
+        # ``i + 2**n``), one special line for both: the half is the address's top bit, looked
+        # up beside the configuration word in ``cfg_rom`` (F: the clock the table is
+        # addressed in), so that R's AND-OR has one ``ft``-bit line in place of two.
+        tab_half = bool(self._config)
+        ft_mask = (1 << ft) - 1
+        m.submodules.table = table = Memory(
+            shape=ft if tab_half else 2 * ft, depth=(2 if tab_half else 1) << n,
+            init=([v & ft_mask for v in rot.table_words] + [v >> ft for v in rot.table_words]
+                  if tab_half else rot.table_words))
         tab_r = table.read_port()
         quad = ang[aw - 2:]
         mu = ang[aw - 3]
-        m.d.comb += tab_r.addr.eq(ang[mb:aw - 3] ^ Mux(mu, (1 << n) - 1, 0))
+        tab_idx = ang[mb:aw - 3] ^ Mux(mu, (1 << n) - 1, 0)
+        if not tab_half:
+            m.d.comb += tab_r.addr.eq(tab_idx)
         kd_rom = [Const(v, unsigned(max(1, max(rot.kd_rom).bit_length()))) for v in rot.kd_rom]
         kd = Signal(unsigned(max(1, max(rot.kd_rom).bit_length())))
         with m.Switch(Cat(ang[:mb], mu)):
@@ -1052,8 +1075,8 @@ class Engine(wiring.Component):
         # The special operands as bit fields (base value, first bit, width, signed, left shift):
         # the AND-OR below is built bit by bit from them (``_special_and_or``).
         kd_w = len(kd)
-        fields = [None, None, (tab_r.data, 0, ft, True, 0), (tab_r.data, ft, ft, True, 0),
-                  (kd, 0, kd_w, False, 0)]
+        fields = [None, None, (tab_r.data, 0, ft, True, 0),
+                  None if tab_half else (tab_r.data, ft, ft, True, 0), (kd, 0, kd_w, False, 0)]
         for name, shape in self._special_shapes.items():
             if name in self._config or name in self._config_slices:
                 fields.append(None)
@@ -1061,7 +1084,8 @@ class Engine(wiring.Component):
                 shape = Shape.cast(shape)
                 fields.append((getattr(self, f"s_{name}"), 0, shape.width, shape.signed, 0))
         if self._config:
-            cfg_value = self._config_ram(m, prog, cfg_of, pc_next)
+            cfg_value, tc_half = self._config_ram(m, prog, cfg_of, pc_next)
+            m.d.comb += tab_r.addr.eq(Cat(tab_idx, tc_half))
             fields.append((cfg_value, 0, len(cfg_value), True, 0))
             # The slices: wirings of the same read (zero-extended).
             fields += [(cfg_value, lo, bits, False, shift)
@@ -1146,7 +1170,14 @@ class Engine(wiring.Component):
         # bring into it (cin into bit 0, ea | eb of the bit below): no carry chain in front.
         carries = Cat(cin, (ea | eb)[:WORD])
         s_nz = (ea ^ eb ^ carries)[:WORD + 1]
-        s_z4 = [s_nz[j:j + 4].any() for j in range(0, WORD + 1, 4)]     # two levels of OR4
+        # Two levels of OR4; the first level's outputs kept (yosys ``keep``): without them abc
+        # mapped the zero test as a chain of 7 LUTs from the register file's read data to
+        # ``flag_zg`` (the iCEBreaker engine's critical path on seed 1, AREA.md §7.74).
+        s_z4 = []
+        for j in range(0, WORD + 1, 4):
+            z = Signal(name=f"s_z4_{j // 4}", attrs={"keep": 1})
+            m.d.comb += z.eq(s_nz[j:j + 4].any())
+            s_z4.append(z)
         s_zg = Cat(*(Cat(*s_z4[j:j + 4]).any() for j in range(0, len(s_z4), 4)))
         # The result: the sum, A, or B (SEL: on c; MIN, MAX: on c or the sum's sign). The sum
         # is registered as it leaves the adder (``s2``), A and B beside it (``a2``, ``b2``); the
@@ -1187,14 +1218,21 @@ class Engine(wiring.Component):
         # 2**(sh−1) − 1 prepared in X1, the sign as the carry-in (no select in front of the
         # rounding adder's operands).
         h_mask = Signal(unsigned(P_WORD), reset_less=True)
+        # The carry-in (X ≥ 0) in two terms: ``rc_s`` of the sum (its sign at the end of X1's
+        # adder, registered) or PQ (never negative), ``rc_p`` of P (its sign in X2); they
+        # enter the rounding adder as the carry out of a bit below its operands (1 + rc_s +
+        # rc_p carries rc_s | rc_p): no OR and no feed-in cell in front of the carry chain
+        # (rc_s straight from its flip-flop, rc_p one LUT behind P). AREA.md §7.74.
+        rc_s = Signal()
         rnd_p = Signal()
-        rnd_pq = Signal()
-        rnd_s = Signal()
         rounding = ir.rnd & (ir.sh != 0)
         m.d.sync += [h_mask.eq(Mux(rounding & ~d_mm & ~d_sel,
                                    ~(Const((1 << (P_WORD + 1)) - 1, P_WORD + 1) << ir.sh)[1:P_WORD + 1], 0)),
-                     rnd_p.eq(rounding & p_read), rnd_pq.eq(rounding & pq_read),
-                     rnd_s.eq(rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel)]
+                     rnd_p.eq(rounding & p_read),
+                     rc_s.eq((rounding & pq_read) |
+                             (rounding & ~p_read & ~pq_read & ~d_mm & ~d_sel & ~s[-1]))]
+        rc_p = Signal()
+        m.d.comb += rc_p.eq(rnd_p & ~p[-1])
         # X3: the rounded sum registered; shift by sh (floor) and the saturation test,
         # registered. X4: the saturation select, write back.
         r3 = Signal(signed(P_WORD + 2))
@@ -1204,8 +1242,7 @@ class Engine(wiring.Component):
         rh = Signal(P_WORD + 2)
         m.d.comb += [rx.eq(xp), rh.eq(h_mask)]
         # (Rounding applies to P, PQ (never negative) and the sum only: not to SEL, MIN, MAX.)
-        rcin = (rnd_p & ~p[-1]) | rnd_pq | (rnd_s & ~s2[-1])
-        m.d.sync += r3.eq((rx + rh + rcin)[:P_WORD + 2] | x2m)
+        m.d.sync += r3.eq((Cat(rc_s, rx) + Cat(rc_p, rh) + 1)[1:P_WORD + 3] | x2m)
         shifted = Signal(signed(WORD + 1))     # r3 >> sh: its low WORD bits and the sign
         m.d.sync += shifted.eq(_shift_right(r3, ir3.sh, WORD))
         # Saturation: the shifted value fits signed(sw) iff its bits from sw − 1 up all equal
@@ -1365,17 +1402,22 @@ class Engine(wiring.Component):
     def _config_ram(self, m, prog, cfg_of, pc_next):
         """The configuration RAM (class docstring): its write port, the word look-up from the
         next ``pc`` (``cfg_rom``), the read in F and the bypass of a write in the F clock.
-        Returns the configuration operand as of the R clock (sign-extended)."""
+        Returns the configuration operand as of the R clock (sign-extended) and the F
+        clock's sine-table half (1: TC)."""
         cw, n = self._config_width, len(self._config)
-        # Per instruction the config word its A operand reads (0 for none: read, not used).
-        words = [cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0 for ins in prog.instrs]
+        # Per instruction the config word its A operand reads (0 for none: read, not used)
+        # and, above it, whether it reads TC (the sine table's half: its address's top bit).
+        ww = Shape.cast(range(max(n, 2))).width
+        words = [(cfg_of[ins.a] if ins.asp and ins.a in cfg_of else 0)
+                 | (int(bool(ins.asp and ins.a == 3)) << ww) for ins in prog.instrs]
         # (In a block RAM: as a LUT ROM on ``pc_next`` it lengthened the branch condition's
         # path to 32.8 ns, 30.5 MHz on the UP5K; the block RAM's address takes pc_next as is.)
-        m.submodules.cfg_rom = cfg_rom = Memory(shape=range(max(n, 2)),
+        m.submodules.cfg_rom = cfg_rom = Memory(shape=ww + 1,
                                                 depth=max(len(words), 2), init=words,
                                                 attrs={"rom_style": "block"})
-        look = cfg_rom.read_port()              # the word of the instruction at pc (F)
-        m.d.comb += look.addr.eq(pc_next)
+        look_r = cfg_rom.read_port()            # the word of the instruction at pc (F)
+        m.d.comb += look_r.addr.eq(pc_next)
+        look = data.View(data.StructLayout({"data": ww, "tc": 1}), look_r.data)
         init = [(v & ((1 << cw) - 1)) - ((v >> (cw - 1) & 1) << cw) for v in self._config_init]
         # The read port as the register file's: asynchronous, its data registered here (one
         # synchronous block RAM port); a read of the word being written is undefined
@@ -1395,4 +1437,4 @@ class Engine(wiring.Component):
             m.d.sync += byp_data.eq(self.cfg.data[:cw])
         value = Signal(signed(cw))
         m.d.comb += value.eq(Mux(byp, byp_data, rd_data))
-        return value
+        return value, look.tc

@@ -467,7 +467,7 @@ def test_engine_hdl_post_path_matches_interpreter_cycle_by_cycle():
     interpreter, every write back cycle by cycle: P near every power of two up to P_WORD bits
     (set exactly by a MUL and a MAC) through posts of every shift 0 … 31, floor and rounding,
     both saturation widths (and no saturation where the result fits WORD), and the ALU's
-    33-bit sum with shifts 0 … 3 saturated. The programs use only some of these shifts and
+    33-bit sum with shifts 0 … 3 saturated, and PQ rounded by 1 … 17. The programs use only some of these shifts and
     saturation thresholds: this covers the rest of the shifter and of the saturation test."""
     A = Assembler(specials=("y1", "y2", "a", "b"), bspecials=("y1", "y2", "b"), conds=(),
                   outs=("ang",))
@@ -485,6 +485,11 @@ def test_engine_hdl_post_path_matches_interpreter_cycle_by_cycle():
                 for sh in range(4):
                     A.alu(op, f"r.o{i % 8}", "s.a", "b.b", sh=sh, rnd=rnd, sat=sat)
                     i += 1
+    # PQ (P's low div_bits bits, never negative) rounded: its ties (P near powers of two)
+    # need the rounding carry (AREA.md §7.74: the carry's PQ term dropped passes the rest).
+    for sh in range(1, 18):
+        A.alu(Op.ADD, f"r.o{i % 8}", "s.PQ", 0, sh=sh, rnd=True)
+        i += 1
     A.end()
     prog = A.assemble()
     shapes = {"y1": signed(28), "y2": signed(28), "a": signed(32), "b": signed(32)}
