@@ -164,12 +164,20 @@ class GlitchFilter(wiring.Component):
         m = Module()
         for k in range(self._width):
             rem = Signal(range(self._max_length + 1), name=f"rem{k}")
-            with m.If(self.i[k] == self.o[k]):
-                m.d.sync += rem.eq(self.length)
-            with m.Elif(rem[1:] == 0):              # rem ≤ 1
-                m.d.sync += [self.o[k].eq(self.i[k]), rem.eq(self.length)]
-            with m.Else():
-                m.d.sync += rem.eq(rem - 1)
+            n = len(rem)
+            # i ≠ o with rem ≤ 1: the output takes the input (and rem reloads); i ≠ o with
+            # rem ≥ 2: rem counts down (``dec``); otherwise rem reloads. The decrement is
+            # rem + (dec repeated) — rem − 1 when counting, rem when not — and the reload
+            # selects on ``dec`` itself, so each bit's next value is a function of rem's bit,
+            # dec, the carry and length's bit: one LUT with its carry per bit (iCE40: the
+            # LUT that forms the sum also makes the reload select; rem − 1 and a select by
+            # another signal took two LUTs per bit; docs/AREA.md §7.76).
+            differ = self.i[k] ^ self.o[k]
+            dec = Signal(name=f"dec{k}")
+            m.d.comb += dec.eq(differ & (rem[1:] != 0))
+            m.d.sync += rem.eq(Mux(dec, (rem + dec.replicate(n))[:n], self.length))
+            with m.If(differ & (rem[1:] == 0)):     # rem ≤ 1
+                m.d.sync += self.o[k].eq(self.i[k])
         return m
 
 
