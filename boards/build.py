@@ -115,6 +115,25 @@ TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: logic cells on the iCEBreaker the other way). The same replies and accesses either way.
 LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(enc_rm_adders=…)`` per FPGA family: the encoder's angle remainder stepped on two adders
+#: in a row on the iCE40 (no ``Rp − cpr`` register and no compare chains: −16 logic cells for
+#: the encoder alone, docs/AREA.md §7.76); on two compares and one adder elsewhere (the
+#: netlists of before: a shorter path for the ECP5's 100 MHz). The same angle either way.
+ENC_RM_ADDERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(mt_chunk_multipliers=…)`` per FPGA family: M/T's product ``k·|ΔM|`` on one SB_MAC16
+#: per 16-bit chunk of ``k`` on the iCE40 (no 3-way chunk select in front of one multiplier,
+#: the carry's flip-flops with their LUTs: 7 of the UP5K's 8 SB_MAC16, −33 logic cells for
+#: M/T alone, docs/AREA.md §7.76); one multiplier elsewhere (the netlists of before). The same
+#: speeds either way.
+MT_CHUNK_MULTIPLIERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(mt_k_export=…)`` per FPGA family: ``mt_k`` from the register file's export port into
+#: the SB_MAC16s' input registers on the iCE40 (its 48 flip-flops out of the register file,
+#: docs/AREA.md §7.76; needs the block-RAM staging and one multiplier per chunk); the
+#: register file's flip-flops elsewhere. The same speeds either way.
+MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
 #: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
@@ -357,7 +376,10 @@ class BoardTop(Elaboratable):
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
-                        link_read_hold=LINK_READ_HOLD[self._board.family])
+                        link_read_hold=LINK_READ_HOLD[self._board.family],
+                        enc_rm_adders=ENC_RM_ADDERS[self._board.family],
+                        mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
+                        mt_k_export=MT_K_EXPORT[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)
