@@ -126,11 +126,12 @@ class MTSpeed(wiring.Component):
         ``k`` holds its value from the clock of an accepted update to its result (it changes
         only between computations, e.g. a register file's shadowed register committed before
         ``period_start``): the per-chunk multipliers (``chunk_multipliers`` required) take
-        ``k`` as it is, without sampling registers or a registered product, so that a register
-        in front of ``k`` becomes the multipliers' own input register (iCE40: SB_MAC16 A
-        registers with their hold; the Top's ``mt_k`` from the register file's export port,
-        docs/AREA.md §7.76). Same outputs in the same clocks as the other forms for such a
-        ``k``; a ``k`` that changes during a computation gives another product.
+        ``k`` as it is, without their sampling registers (the products registered as before),
+        so that a register in front of ``k`` becomes the multipliers' own input register
+        (iCE40: SB_MAC16 A registers with their hold; the Top's ``mt_k`` from the register
+        file's export port, docs/AREA.md §7.76). Same outputs in the same clocks as the other
+        forms for such a ``k``; a ``k`` that changes during a computation gives another
+        product.
 
     Members
     -------
@@ -405,19 +406,21 @@ class MTSpeed(wiring.Component):
             # clock (no reset, no select), so in clock u + c it samples k's chunk c as the
             # single multiplier's k_c does, and its product `pp<c>` is read in clock u + 2 + c
             # only; `t<c>` = pp<c> + carry is chunk c's sum.
-            # With k_steady the product is k's chunk times dm as they are: dm is the snapshot
-            # from clock u + 1 on, k the same from u on, so in clock u + 2 + c it equals the
-            # registered product of the samples.
+            # With k_steady the product is formed from k's chunk as it is (no k_c<c>): dm is
+            # the snapshot from clock u + 1 on, k the same from u on, so in clock u + 2 + c it
+            # equals the product of the samples. (The products stay registered: three
+            # multipliers read in exclusive clocks would otherwise be shared into one behind a
+            # select by yosys.)
             ts = []
             for c in range(nk):
                 t_c = Signal(16 + mw, name=f"t{c}")
+                pp_c = Signal(16 + mw, reset_less=True, name=f"pp{c}")
                 if self._k_steady:
-                    m.d.comb += t_c.eq(chunks[c] * dm + carry)
+                    m.d.sync += pp_c.eq(chunks[c] * dm)
                 else:
                     k_cc = Signal(16, reset_less=True, name=f"k_c{c}")
-                    pp_c = Signal(16 + mw, reset_less=True, name=f"pp{c}")
                     m.d.sync += [k_cc.eq(chunks[c]), pp_c.eq(k_cc * dm)]
-                    m.d.comb += t_c.eq(pp_c + carry)
+                m.d.comb += t_c.eq(pp_c + carry)
                 ts.append(t_c)
         else:
             pp = Signal(16 + mw, reset_less=True)
