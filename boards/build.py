@@ -115,6 +115,12 @@ TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: logic cells on the iCEBreaker the other way). The same replies and accesses either way.
 LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(enc_fold_reload=…)`` per FPGA family: the encoder's glitch-filter counters with the
+#: reload select in their decrement's LUTs on the iCE40 (one LUT and carry per bit: −36 logic
+#: cells for the encoder alone, docs/AREA.md §7.76); ``rem − 1`` and a select elsewhere (the
+#: netlists of before; the other form costs the Spartan-7 ≈ 60 LUT6). The same outputs.
+ENC_FOLD_RELOAD = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(enc_rm_adders=…)`` per FPGA family: the encoder's angle remainder stepped on two adders
 #: in a row on the iCE40 (no ``Rp − cpr`` register and no compare chains: −16 logic cells for
 #: the encoder alone, docs/AREA.md §7.76); on two compares and one adder elsewhere (the
@@ -377,6 +383,7 @@ class BoardTop(Elaboratable):
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family],
+                        enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
                         enc_rm_adders=ENC_RM_ADDERS[self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
                         mt_k_export=MT_K_EXPORT[self._board.family])

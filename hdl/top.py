@@ -489,6 +489,11 @@ class Top(wiring.Component):
         :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
         registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
         default ``False``, fewer iCE40 cells).
+    enc_fold_reload : bool
+        :class:`~.encoder.GlitchFilter` ``fold_reload``: the filter counters' reload select in
+        their decrement's LUTs (the same filtered pins; the iCE40's choice and the default,
+        fewer logic cells; ``False`` the ECP5's and the Spartan-7's netlist of before, fewer
+        LUT6, docs/AREA.md §7.76).
     enc_rm_adders : bool
         :class:`~.encoder.QuadratureDecoder` ``rm_adders``: the angle remainder's step on two
         adders in a row (the same angle; the iCE40's choice and the default, fewer logic
@@ -555,7 +560,7 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
-    enc_rm_adders, mt_chunk_multipliers, mt_k_export : bool
+    enc_fold_reload, enc_rm_adders, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -576,7 +581,8 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True, enc_rm_adders=True, mt_chunk_multipliers=True,
+                 timer_clamp=True, enc_fold_reload=True, enc_rm_adders=True,
+                 mt_chunk_multipliers=True,
                  mt_k_export=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -737,7 +743,8 @@ class Top(wiring.Component):
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
                                         z_offset_init=regmap["enc_z_offset"].reset,
-                                        rm_adders=enc_rm_adders)
+                                        rm_adders=enc_rm_adders,
+                                        fold_reload=enc_fold_reload)
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
                            chunk_multipliers=mt_chunk_multipliers,
                            k_steady=mt_k_export)
@@ -831,6 +838,7 @@ class Top(wiring.Component):
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
+    enc_fold_reload = property(lambda self: self._encoder.fold_reload)
     enc_rm_adders = property(lambda self: self._encoder.rm_adders)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
     mt_k_export = property(lambda self: self._mt.k_steady)
@@ -1109,8 +1117,10 @@ class Top(wiring.Component):
             else:
                 k = self._speed_export
                 # (with mt_k exported its words come after the speed loop's)
-                last = (exp.index < k + len(SPEED_CONFIG)) if self._mt_k_words else 1
-                m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k) & last),
+                ours = exp.valid & (exp.index >= k)
+                if self._mt_k_words:
+                    ours &= exp.index < k + len(SPEED_CONFIG)
+                m.d.comb += [servo.speed_config.valid.eq(ours),
                              servo.speed_config.index.eq(exp.index - k),
                              servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS

@@ -28,6 +28,15 @@ def rm_form(request, monkeypatch):
     return request.param
 
 
+@pytest.fixture(params=[True, False], ids=["fold_reload", "reload_select"])
+def fold_form(request, monkeypatch):
+    """Both forms of the glitch filter's counter (``fold_reload``, the iCE40's and the default;
+    ``rem − 1`` and a select, the ECP5's and the Spartan-7's), as :func:`rm_form`."""
+    for cls in (GlitchFilter, EncoderFrontEnd):
+        monkeypatch.setitem(cls.__init__.__kwdefaults__, "fold_reload", request.param)
+    return request.param
+
+
 def pins(a=0, b=0, z=0, hall=HALL_CODES[0]):
     return a | (b << 1) | (z << 2) | (hall << 3)
 
@@ -83,8 +92,17 @@ def test_glitch_filter_parameter_validation():
         EncoderFrontEnd(max_length=True)
 
 
+def test_glitch_filter_fold_reload_validation_and_default():
+    assert GlitchFilter().fold_reload is True
+    assert GlitchFilter(fold_reload=False).fold_reload is False
+    assert EncoderFrontEnd.__init__.__kwdefaults__["fold_reload"] is True
+    with pytest.raises(TypeError, match="GlitchFilter fold_reload must be a bool, not 0"):
+        GlitchFilter(fold_reload=0)
+
+
 def test_decoder_rm_adders_validation_and_default():
-    assert QuadratureDecoder().rm_adders is True and not QuadratureDecoder(rm_adders=False).rm_adders
+    assert QuadratureDecoder().rm_adders is True
+    assert QuadratureDecoder(rm_adders=False).rm_adders is False
     assert EncoderFrontEnd.__init__.__kwdefaults__["rm_adders"] is True
     with pytest.raises(TypeError, match="QuadratureDecoder rm_adders must be a bool, not 1"):
         QuadratureDecoder(rm_adders=1)
@@ -103,6 +121,7 @@ def test_quadrature_z_gate_validation():
 
 # --- glitch filter --------------------------------------------------------------------------
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_every_length_and_width_cycle_by_cycle():
     """Lengths 0 … 8, pulses of 1 … length + 3 clocks of both polarities: the output matches
     the model on every clock, a pulse is passed iff it lasts ≥ max(length, 1) clocks, and then
@@ -140,6 +159,7 @@ def test_glitch_filter_every_length_and_width_cycle_by_cycle():
     assert errors == []
 
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_random_with_length_changes_vs_model():
     rng = np.random.default_rng(3)
     n = 3000
@@ -162,6 +182,7 @@ def test_glitch_filter_random_with_length_changes_vs_model():
     assert len(set(got)) == 4         # every output combination occurred
 
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_targets_through_front_end():
     """Pulses on A, B, Z and a Hall input at lengths 0 … 6 and 20: never a short one counted,
     never a long one missed, exact threshold at max(length, 1)."""
