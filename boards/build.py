@@ -121,12 +121,6 @@ LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 #: netlists of before; the other form costs the Spartan-7 ≈ 60 LUT6). The same outputs.
 ENC_FOLD_RELOAD = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
-#: ``Top(enc_rm_adders=…)`` per FPGA family: the encoder's angle remainder stepped on two adders
-#: in a row on the iCE40 (no ``Rp − cpr`` register and no compare chains: −16 logic cells for
-#: the encoder alone, docs/AREA.md §7.76); on two compares and one adder elsewhere (the
-#: netlists of before: a shorter path for the ECP5's 100 MHz). The same angle either way.
-ENC_RM_ADDERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
-
 #: ``Top(mt_chunk_multipliers=…)`` per FPGA family: M/T's product ``k·|ΔM|`` on one SB_MAC16
 #: per 16-bit chunk of ``k`` on the iCE40 (no 3-way chunk select in front of one multiplier,
 #: the carry's flip-flops with their LUTs: 7 of the UP5K's 8 SB_MAC16, −33 logic cells for
@@ -384,7 +378,6 @@ class BoardTop(Elaboratable):
                         timer_clamp=TIMER_CLAMP[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family],
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
-                        enc_rm_adders=ENC_RM_ADDERS[self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
                         mt_k_export=MT_K_EXPORT[self._board.family])
 

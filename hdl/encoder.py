@@ -280,13 +280,6 @@ class QuadratureDecoder(wiring.Component):
         The configuration after reset (the inputs' ``init``; 5000, 4, 0): its constants are
         the registers' reset values, so an input that holds it from reset on needs no strobe
         (the register file's reset values).
-    rm_adders : bool
-        The form of the angle remainder's step (the same outputs either way): ``True`` (the
-        default, the iCE40's) two adders in a row, ``rm ± Rp`` and then the wrap test and
-        correction ``∓ cpr`` on the second (no ``Rp − cpr`` register, no compares: fewer iCE40
-        cells, docs/AREA.md §7.76); ``False`` the wrap tests on two compares of ``rm`` with
-        registered constants and the step on one adder behind them (a shorter path: the ECP5's
-        at 100 MHz).
 
     Members
     -------
@@ -349,10 +342,8 @@ class QuadratureDecoder(wiring.Component):
 
     latency = 1
 
-    def __init__(self, *, z_gate=None, lines_init=5000, pole_pairs_init=4, z_offset_init=0,
-                 rm_adders=True):
+    def __init__(self, *, z_gate=None, lines_init=5000, pole_pairs_init=4, z_offset_init=0):
         self._z_gate = _check_z_gate("QuadratureDecoder", z_gate)
-        self._rm_adders = check_bool("QuadratureDecoder", "rm_adders", rm_adders)
         init = _check_config_init("QuadratureDecoder", lines_init, pole_pairs_init,
                                   z_offset_init)
         super().__init__({
@@ -370,7 +361,6 @@ class QuadratureDecoder(wiring.Component):
         })
 
     z_gate = property(lambda self: self._z_gate)
-    rm_adders = property(lambda self: self._rm_adders)
 
     @property
     def config_latency(self):
@@ -399,13 +389,12 @@ class QuadratureDecoder(wiring.Component):
         # carries are 0, and the values, sums and carries are the same.
         qw = CPR_WIDTH - 2
         rp4 = Signal(qw, init=rp0 >> 2)
-        # The wrap tests of e's step and of the output sums as one carry chain each, on
-        # registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (16 for the
+        # The wrap tests of the position steps and of the output sums as one carry chain each,
+        # on registers: x ≥ cpr − c as the carry out of x + (c − cpr) on 18 bits (16 for the
         # quartered rm: c − cpr is −cpr … −1 modulo 2**18 in a valid configuration). In an
         # invalid one (Rz < 2**18 may then exceed cpr) the angle's carry is still that of
         # rm + ((Rz − cpr) mod 2**18), as the model has it. cpr − z for e, signed (z may
-        # exceed cpr); cpr − 1 for the count's wrap (and cpr for rm's step with rm_adders).
-        # Rp − cpr for rm's step without (rm_adders=False).
+        # exceed cpr); cpr − 1 for the count's wrap.
         n_rp4 = Signal(qw, init=((rp0 - cpr0) % (1 << CPR_WIDTH)) >> 2)
         n_pp = Signal(CPR_WIDTH, init=(pp0 - cpr0) % (1 << CPR_WIDTH))
         n_rz4 = Signal(qw, init=((rz0 - cpr0) % (1 << CPR_WIDTH)) >> 2)
@@ -444,7 +433,7 @@ class QuadratureDecoder(wiring.Component):
         #   1       t = 0:             cpr − 1 = ~(0 − cpr); wr = pole_pairs
         #   2       t = pole_pairs:    pole_pairs − cpr, pole_pairs < cpr
         #   3 … 18  t = 2·wr:          the 16 steps of pole_pairs·2**16 / cpr
-        #   19      t = Rp:            Rp − cpr (rm_adders=False); Qp, Rp taken; wr = z_offset
+        #   19      t = Rp:            Rp − cpr; Qp, Rp taken; wr = z_offset
         #   20      t = z_offset:      z_offset < cpr
         #   21 … 36 t = 2·wr:          the 16 steps of z_offset·2**16 / cpr
         #   37      t = Rz:            Rz − cpr; Qz taken; commit
@@ -502,8 +491,7 @@ class QuadratureDecoder(wiring.Component):
             with m.Case(t_p):
                 m.d.sync += [n_pp.eq(diff), pp_c.eq(wr), pp_ok.eq(diff < 0)]
             with m.Case(t_qp):
-                m.d.sync += ([] if self._rm_adders else [n_rp4.eq(diff[2:CPR_WIDTH])]) + [
-                    qp.eq(wq), rp4.eq(wr[2:]), wr.eq(z_p)]
+                m.d.sync += [n_rp4.eq(diff[2:CPR_WIDTH]), qp.eq(wq), rp4.eq(wr[2:]), wr.eq(z_p)]
             with m.Case(t_z):
                 m.d.sync += z_ok.eq(diff < 0)
         new_valid = (lines_p != 0) & (pp_p != 0) & pp_ok & z_ok
@@ -544,12 +532,11 @@ class QuadratureDecoder(wiring.Component):
         em = Signal(CPR_WIDTH)          # pole_pairs·count mod cpr
         thm = Signal(aw)                # floor(em·2**16 / cpr) mod 2**16
         rm4 = Signal(qw)                # rm / 4: em·2**16 − thm·cpr (mod 2**16·cpr), in [0, cpr)
-        # e's wrap test is the carry out of a register plus a per-configuration constant (or
+        # Each wrap test is the carry out of a register plus a per-configuration constant (or
         # a comparison of two registers), side by side with the step's own adder (em + p ≥ cpr
-        # ⇔ carry out of em + (p − cpr); em − p < 0 ⇔ em < p). One adder serves both
-        # directions: the wrap test picks the operand (the step or step − cpr), the direction
-        # whether it is subtracted (see _step). rm's step: the same with rm_adders=False (rm
-        # − Rp < 0 ⇔ rm < Rp), else below.
+        # ⇔ carry out of em + (p − cpr); rm − Rp < 0 ⇔ rm < Rp). One adder per counter serves
+        # both directions: the wrap test picks the operand (the step or step − cpr), the
+        # direction whether it is subtracted (see _step).
         fwd_c = Signal()
         m.d.comb += fwd_c.eq(fwd)
         c_wrap = Mux(fwd_c, self.count == cpr_m1, self.count == 0)
@@ -558,23 +545,7 @@ class QuadratureDecoder(wiring.Component):
         # (pole_pairs from the register made with n_pp, so that e's step constants agree
         # whatever the input does; the Top uses no e: this goes with em.)
         em_next, _ = _step(fwd_c, em, pp_c, n_pp, (em + n_pp)[CPR_WIDTH], em < pp_c)
-        if self._rm_adders:
-            # rm's step as two adders in a row, no compare: s = rm ± Rp (17 bits: up, s < 2·cpr;
-            # down, its borrow is the wrap), then the wrap test (up: s ≥ cpr, the carry out of
-            # s − cpr) and the correction s ∓ cpr taken in the second adder's own LUTs (a select
-            # on the wrap beside its sum). cpr/4 = lines_m1 + 1 (lines ≥ 1 in every configuration
-            # that counts): s − cpr/4 = s + ~lines_m1, s + cpr/4 = s + lines_m1 + 1.
-            s_rm = Signal(qw + 1)
-            m.d.comb += s_rm.eq(_add(Cat(rm4, Const(0, 1)), Cat(rp4, Const(0, 1))
-                                     ^ Mux(fwd_c, 0, (1 << (qw + 1)) - 1), ~fwd_c))
-            n_cor = Cat(lines_m1, Const(0, 1)) ^ Mux(fwd_c, (1 << (qw + 1)) - 1, 0)
-            cor = Signal(qw + 2)            # the sum and its carry out (bit qw + 1)
-            m.d.comb += cor.eq((Cat(~fwd_c, s_rm) + Cat(~fwd_c, n_cor))[1:])
-            rm_wrap = Mux(fwd_c, cor[qw + 1], s_rm[qw])
-            rm_next = Mux(rm_wrap, cor[:qw], s_rm[:qw])
-            cin = fwd_c == rm_wrap
-        else:
-            rm_next, cin = _step(fwd_c, rm4, rp4, n_rp4, (rm4 + n_rp4)[qw], rm4 < rp4)
+        rm_next, cin = _step(fwd_c, rm4, rp4, n_rp4, (rm4 + n_rp4)[qw], rm4 < rp4)
         # up: θm + Qp + carry; down: θm − Qp − borrow = θm + ~Qp + (1 − borrow).
         thm_next = _add(thm, qp ^ Mux(fwd_c, 0, (1 << aw) - 1), cin)
         with m.If(valid & ~(self.busy & lp_run) & ~lp_again & (fwd | bwd)):
@@ -914,7 +885,7 @@ class EncoderFrontEnd(wiring.Component):
     ----------
     max_length : int
         Largest glitch filter length, clocks (1 … 65535).
-    z_gate, lines_init, pole_pairs_init, z_offset_init, rm_adders
+    z_gate, lines_init, pole_pairs_init, z_offset_init
         See :class:`QuadratureDecoder`.
     fold_reload : bool
         See :class:`GlitchFilter`.
@@ -969,14 +940,12 @@ class EncoderFrontEnd(wiring.Component):
     sync_stages = 2
 
     def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
-                 z_offset_init=0, rm_adders=True, fold_reload=True):
+                 z_offset_init=0, fold_reload=True):
         self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
-        check_bool("EncoderFrontEnd", "rm_adders", rm_adders)
         init = _check_config_init("EncoderFrontEnd", lines_init, pole_pairs_init, z_offset_init)
         self._decoder = QuadratureDecoder(z_gate=z_gate, lines_init=init[0],
-                                          pole_pairs_init=init[1], z_offset_init=init[2],
-                                          rm_adders=rm_adders)
+                                          pole_pairs_init=init[1], z_offset_init=init[2])
         self._filter = GlitchFilter(width=6, max_length=max_length, fold_reload=fold_reload)
         self._hall = HallSensor()
         self._plausibility = HallPlausibility(theta_registered=True)
@@ -1002,7 +971,6 @@ class EncoderFrontEnd(wiring.Component):
 
     max_length = property(lambda self: self._max_length)
     z_gate = property(lambda self: self._decoder.z_gate)
-    rm_adders = property(lambda self: self._decoder.rm_adders)
     fold_reload = property(lambda self: self._filter.fold_reload)
     config_latency = property(lambda self: self._decoder.config_latency)
 

@@ -494,11 +494,6 @@ class Top(wiring.Component):
         their decrement's LUTs (the same filtered pins; the iCE40's choice and the default,
         fewer logic cells; ``False`` the ECP5's and the Spartan-7's netlist of before, fewer
         LUT6, docs/AREA.md §7.76).
-    enc_rm_adders : bool
-        :class:`~.encoder.QuadratureDecoder` ``rm_adders``: the angle remainder's step on two
-        adders in a row (the same angle; the iCE40's choice and the default, fewer logic
-        cells; ``False`` two compares and an adder, a shorter path: the ECP5's and the
-        Spartan-7's netlist of before, docs/AREA.md §7.76).
     mt_chunk_multipliers : bool
         :class:`~.mt_speed.MTSpeed` ``chunk_multipliers``: one multiplier per 16-bit chunk of
         ``mt_k`` (three), no chunk select (the same speeds in the same clocks; the iCE40's
@@ -560,7 +555,7 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
-    enc_fold_reload, enc_rm_adders, mt_chunk_multipliers, mt_k_export : bool
+    enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -581,8 +576,7 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True, enc_fold_reload=True, enc_rm_adders=True,
-                 mt_chunk_multipliers=True,
+                 timer_clamp=True, enc_fold_reload=True, mt_chunk_multipliers=True,
                  mt_k_export=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -743,7 +737,6 @@ class Top(wiring.Component):
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
                                         z_offset_init=regmap["enc_z_offset"].reset,
-                                        rm_adders=enc_rm_adders,
                                         fold_reload=enc_fold_reload)
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
                            chunk_multipliers=mt_chunk_multipliers,
@@ -839,7 +832,6 @@ class Top(wiring.Component):
     timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
-    enc_rm_adders = property(lambda self: self._encoder.rm_adders)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
     mt_k_export = property(lambda self: self._mt.k_steady)
     commit_clocks = property(lambda self: self._regs.commit_clocks)

@@ -18,20 +18,12 @@ from foc_servo.sim.models import encoder as model
 AB = ((0, 0), (1, 0), (1, 1), (0, 1))       # quadrature state of phase 0 … 3
 
 
-@pytest.fixture(params=[True, False], ids=["rm_adders", "rm_compares"])
-def rm_form(request, monkeypatch):
-    """Both forms of the angle remainder's step (``rm_adders``, the iCE40's and the default;
-    the compares, the ECP5's): the default of the decoder's and the front end's constructors
-    (also where sim.verify.encoder builds them) set to one, the test run once with each."""
-    for cls in (QuadratureDecoder, EncoderFrontEnd):
-        monkeypatch.setitem(cls.__init__.__kwdefaults__, "rm_adders", request.param)
-    return request.param
-
-
 @pytest.fixture(params=[True, False], ids=["fold_reload", "reload_select"])
 def fold_form(request, monkeypatch):
     """Both forms of the glitch filter's counter (``fold_reload``, the iCE40's and the default;
-    ``rem − 1`` and a select, the ECP5's and the Spartan-7's), as :func:`rm_form`."""
+    ``rem − 1`` and a select, the ECP5's and the Spartan-7's): the default of the filter's and
+    the front end's constructors (also where sim.verify.encoder builds them) set to one, the
+    test run once with each."""
     for cls in (GlitchFilter, EncoderFrontEnd):
         monkeypatch.setitem(cls.__init__.__kwdefaults__, "fold_reload", request.param)
     return request.param
@@ -98,16 +90,6 @@ def test_glitch_filter_fold_reload_validation_and_default():
     assert EncoderFrontEnd.__init__.__kwdefaults__["fold_reload"] is True
     with pytest.raises(TypeError, match="GlitchFilter fold_reload must be a bool, not 0"):
         GlitchFilter(fold_reload=0)
-
-
-def test_decoder_rm_adders_validation_and_default():
-    assert QuadratureDecoder().rm_adders is True
-    assert QuadratureDecoder(rm_adders=False).rm_adders is False
-    assert EncoderFrontEnd.__init__.__kwdefaults__["rm_adders"] is True
-    with pytest.raises(TypeError, match="QuadratureDecoder rm_adders must be a bool, not 1"):
-        QuadratureDecoder(rm_adders=1)
-    with pytest.raises(TypeError, match="EncoderFrontEnd rm_adders must be a bool, not None"):
-        EncoderFrontEnd(rm_adders=None)
 
 
 def test_quadrature_z_gate_validation():
@@ -214,7 +196,6 @@ def test_quadrature_latency_cycle_by_cycle():
         assert out["a_rise"][new] == 1 and out["up"][new] == 1
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_quadrature_direction_a_rise_and_wrap_at_cpr():
     """lines = 3 (cpr 12): 30 counts forward then 30 back; count wraps at exactly 12; a_rise
     once per line in each direction; up follows the direction."""
@@ -247,7 +228,6 @@ def test_quadrature_illegal_transition_strobe_without_count():
 
 # --- index ----------------------------------------------------------------------------------
 
-@pytest.mark.usefixtures("rm_form")
 def test_index_first_z_aligns_and_loads_offset():
     """The first Z sets aligned, clears count and loads e with z_offset; theta switches from the
     Hall centre to floor(e·2**16 / cpr) one clock later (``theta_latency``: the decoder's angle
@@ -297,7 +277,6 @@ def test_index_gated_marks_same_state_in_both_directions():
         assert last == want, (direction, last, want)
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_index_realign_and_config_change_drop_alignment():
     """realign: the next Z realigns; a new z_offset applies at once (still aligned); a new line
     count or pole-pair count clears the alignment after config_latency clocks."""
@@ -384,7 +363,6 @@ async def _strobed_clock(ctx, dut, dec, names, pins, cfg, lp, zc):
             tuple(int(getattr(dec, k)) for k in names))
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_decoder_invalid_configurations_theta_vs_model():
     """Invalid configurations (z_offset or pole_pairs ≥ cpr, lines 0) leave whatever the 16
     division steps give, remainders ≥ cpr included: the decoder's theta, e, count, busy and
@@ -428,7 +406,6 @@ def test_decoder_invalid_configurations_theta_vs_model():
     assert not mism, mism[:3]
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_decoder_change_strobes_in_and_out_of_a_sequence_vs_model():
     """Configuration changes with their strobes at random clocks, many of them while a sequence
     runs (joined in its first clock / up to its 19th, or run again after its commit), ``lines``
@@ -482,7 +459,6 @@ def test_decoder_change_strobes_in_and_out_of_a_sequence_vs_model():
 
 @pytest.mark.parametrize("kind, at, runs", [("lp", 1, 1), ("lp", 2, 2), ("z", 19, 1),
                                             ("z", 20, 2)])
-@pytest.mark.usefixtures("rm_form")
 def test_decoder_strobe_while_busy_joins_or_runs_again(kind, at, runs):
     """A z_offset change starts a sequence; a second change arrives ``at`` clocks later (the
     sequence's timer): joined (one sequence) up to the clock its input is read, else run again
@@ -516,7 +492,6 @@ def test_decoder_strobe_while_busy_joins_or_runs_again(kind, at, runs):
     assert sum(busy) == runs * (dut.config_latency - 1)
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_decoder_reset_configuration_needs_no_strobe():
     """``lines_init`` … ``z_offset_init``: the inputs hold the reset configuration from reset on
     without a strobe (a register file's reset values): no sequence, the angle exact at once;
@@ -554,7 +529,6 @@ def test_decoder_reset_configuration_needs_no_strobe():
         assert seen == ({(0, 0, 0), (0, 0, 1)} if cfg[0] else {(0, 1, 0)}), seen
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_decoder_register_copy_in_consecutive_clocks_is_one_sequence():
     """A register file's copy announces lines, pole_pairs and z_offset in three consecutive
     clocks: one sequence (busy for config_latency − 1 clocks), the position cleared, the new
@@ -970,14 +944,12 @@ def test_plausibility_plant_full_scale_sweep_and_no_false_trips():
 
 # --- electrical angle -----------------------------------------------------------------------
 
-@pytest.mark.usefixtures("rm_form")
 def test_angle_no_drift_forward_back_random_walk():
     r = verify_encoder.run_drift(6000)
     assert r["checked"] > 3 * 6000
     assert (r["angle_drift_counts"], r["theta_errors"], r["count_errors"]) == (0, 0, 0)
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_angle_no_drift_odd_lines_and_pole_pairs():
     r = verify_encoder.run_drift(3000, lines=997, pole_pairs=13, z_offset=3987)
     assert (r["angle_drift_counts"], r["theta_errors"], r["count_errors"]) == (0, 0, 0)
@@ -1016,7 +988,6 @@ def test_angle_no_drift_model_against_exact_formula():
 
 # --- whole front end against the model ------------------------------------------------------
 
-@pytest.mark.usefixtures("rm_form")
 @pytest.mark.parametrize("z_gate", [None, 0])
 def test_front_end_random_pins_vs_model(z_gate):
     r = verify_encoder.run_random(3000, seed=2, z_gate=z_gate)
@@ -1025,7 +996,6 @@ def test_front_end_random_pins_vs_model(z_gate):
     assert r["index_strobes_model"] > 0
 
 
-@pytest.mark.usefixtures("rm_form")
 def test_front_end_short_segments_invalid_configurations_vs_model():
     """Many short configuration segments (invalid ones included) in a short run: the default
     run above sees one segment only. Catches the session-3 regression (the pipelined output
