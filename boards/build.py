@@ -123,6 +123,24 @@ LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 #: cause elsewhere (the netlists of before). ``"ram"`` takes 2 block RAMs (30 of the UP5K's
 #: 30 with the rest of the top); ``"ram16"`` 1, for +39 logic cells (6 479 against 6 440).
 PROT_LIMITS = {"ice40": "ram", "ecp5": "ports", "xc7": "ports", "xc6s": "ports"}
+#: ``Top(enc_fold_reload=…)`` per FPGA family: the encoder's glitch-filter counters with the
+#: reload select in their decrement's LUTs on the iCE40 (one LUT and carry per bit: −36 logic
+#: cells for the encoder alone, docs/AREA.md §7.76); ``rem − 1`` and a select elsewhere (the
+#: netlists of before; the other form costs the Spartan-7 ≈ 60 LUT6). The same outputs.
+ENC_FOLD_RELOAD = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(mt_chunk_multipliers=…)`` per FPGA family: M/T's product ``k·|ΔM|`` on one SB_MAC16
+#: per 16-bit chunk of ``k`` on the iCE40 (no 3-way chunk select in front of one multiplier,
+#: the carry's flip-flops with their LUTs: 7 of the UP5K's 8 SB_MAC16, −33 logic cells for
+#: M/T alone, docs/AREA.md §7.76); one multiplier elsewhere (the netlists of before). The same
+#: speeds either way.
+MT_CHUNK_MULTIPLIERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(mt_k_export=…)`` per FPGA family: ``mt_k`` from the register file's export port into
+#: the SB_MAC16s' input registers on the iCE40 (its 48 flip-flops out of the register file,
+#: docs/AREA.md §7.76; needs the block-RAM staging and one multiplier per chunk); the
+#: register file's flip-flops elsewhere. The same speeds either way.
+MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
@@ -368,7 +386,10 @@ class BoardTop(Elaboratable):
                         timer_clamp=TIMER_CLAMP[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family],
                         prot_limits=(PROT_LIMITS[self._board.family]
-                                     if self._board.regs_staging == "bram" else "ports"))
+                                     if self._board.regs_staging == "bram" else "ports"),
+                        enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
+                        mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
+                        mt_k_export=MT_K_EXPORT[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

@@ -129,6 +129,12 @@ class GlitchFilter(wiring.Component):
         Number of independent bits, 1 … 64.
     max_length : int
         Largest ``length``, 1 … 65535 clocks (sets the counter width).
+    fold_reload : bool
+        The counter's form (the same outputs either way): ``True`` (the default, the iCE40's)
+        the reload select on the decrement's own operand, ``rem + (dec repeated)`` selected by
+        ``dec`` (one LUT with its carry per bit, docs/AREA.md §7.76); ``False`` ``rem − 1``
+        and the reload selected by the equality (fewer LUT6 on the Spartan-7, the ECP5's
+        netlist of before).
 
     Members
     -------
@@ -148,9 +154,10 @@ class GlitchFilter(wiring.Component):
 
     latency = 1
 
-    def __init__(self, *, width=1, max_length=255):
+    def __init__(self, *, width=1, max_length=255, fold_reload=True):
         self._width = check_param("GlitchFilter", "width", width, 1, 64)
         self._max_length = check_param("GlitchFilter", "max_length", max_length, 1, 65535)
+        self._fold_reload = check_bool("GlitchFilter", "fold_reload", fold_reload)
         super().__init__({
             "i": In(width),
             "length": In(range(max_length + 1)),
@@ -159,17 +166,34 @@ class GlitchFilter(wiring.Component):
 
     width = property(lambda self: self._width)
     max_length = property(lambda self: self._max_length)
+    fold_reload = property(lambda self: self._fold_reload)
 
     def elaborate(self, platform):
         m = Module()
         for k in range(self._width):
             rem = Signal(range(self._max_length + 1), name=f"rem{k}")
-            with m.If(self.i[k] == self.o[k]):
-                m.d.sync += rem.eq(self.length)
-            with m.Elif(rem[1:] == 0):              # rem ≤ 1
-                m.d.sync += [self.o[k].eq(self.i[k]), rem.eq(self.length)]
-            with m.Else():
-                m.d.sync += rem.eq(rem - 1)
+            if not self._fold_reload:
+                with m.If(self.i[k] == self.o[k]):
+                    m.d.sync += rem.eq(self.length)
+                with m.Elif(rem[1:] == 0):              # rem ≤ 1
+                    m.d.sync += [self.o[k].eq(self.i[k]), rem.eq(self.length)]
+                with m.Else():
+                    m.d.sync += rem.eq(rem - 1)
+                continue
+            n = len(rem)
+            # i ≠ o with rem ≤ 1: the output takes the input (and rem reloads); i ≠ o with
+            # rem ≥ 2: rem counts down (``dec``); otherwise rem reloads. The decrement is
+            # rem + (dec repeated) — rem − 1 when counting, rem when not — and the reload
+            # selects on ``dec`` itself, so each bit's next value is a function of rem's bit,
+            # dec, the carry and length's bit: one LUT with its carry per bit (iCE40: the
+            # LUT that forms the sum also makes the reload select; rem − 1 and a select by
+            # another signal took two LUTs per bit; docs/AREA.md §7.76).
+            differ = self.i[k] ^ self.o[k]
+            dec = Signal(name=f"dec{k}")
+            m.d.comb += dec.eq(differ & (rem[1:] != 0))
+            m.d.sync += rem.eq(Mux(dec, (rem + dec.replicate(n))[:n], self.length))
+            with m.If(differ & (rem[1:] == 0)):     # rem ≤ 1
+                m.d.sync += self.o[k].eq(self.i[k])
         return m
 
 
@@ -863,6 +887,8 @@ class EncoderFrontEnd(wiring.Component):
         Largest glitch filter length, clocks (1 … 65535).
     z_gate, lines_init, pole_pairs_init, z_offset_init
         See :class:`QuadratureDecoder`.
+    fold_reload : bool
+        See :class:`GlitchFilter`.
 
     Members
     -------
@@ -914,13 +940,13 @@ class EncoderFrontEnd(wiring.Component):
     sync_stages = 2
 
     def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
-                 z_offset_init=0):
+                 z_offset_init=0, fold_reload=True):
         self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
         init = _check_config_init("EncoderFrontEnd", lines_init, pole_pairs_init, z_offset_init)
         self._decoder = QuadratureDecoder(z_gate=z_gate, lines_init=init[0],
                                           pole_pairs_init=init[1], z_offset_init=init[2])
-        self._filter = GlitchFilter(width=6, max_length=max_length)
+        self._filter = GlitchFilter(width=6, max_length=max_length, fold_reload=fold_reload)
         self._hall = HallSensor()
         self._plausibility = HallPlausibility(theta_registered=True)
         super().__init__({
@@ -945,6 +971,7 @@ class EncoderFrontEnd(wiring.Component):
 
     max_length = property(lambda self: self._max_length)
     z_gate = property(lambda self: self._decoder.z_gate)
+    fold_reload = property(lambda self: self._filter.fold_reload)
     config_latency = property(lambda self: self._decoder.config_latency)
 
     def elaborate(self, platform):

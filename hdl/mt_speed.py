@@ -44,7 +44,7 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_param
+from .fixed import check_bool, check_param
 from .regmap import MT_EDGES_PER_LINE
 
 __all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
@@ -115,6 +115,23 @@ class MTSpeed(wiring.Component):
     m_width : int
         Width of the window edge count ΔM, 2 … 32 (saturating; far above any edge count per
         update period).
+    chunk_multipliers : bool
+        One multiplier per 16-bit chunk of ``k`` (:attr:`k_chunks` of them), each fed its
+        chunk straight from ``k`` and sampling it in the same clock as the single multiplier
+        would, instead of one multiplier behind a :attr:`k_chunks`-way select of the chunks
+        (iCE40: two more SB_MAC16 for the default 48-bit ``k``, no select in front of them and
+        the carry's select beside its flip-flops; docs/AREA.md §7.76). Same outputs in the
+        same clocks.
+    k_steady : bool
+        ``k`` holds its value from the clock of an accepted update to its result (it changes
+        only between computations, e.g. a register file's shadowed register committed before
+        ``period_start``): the per-chunk multipliers (``chunk_multipliers`` required) take
+        ``k`` as it is, without their sampling registers (the products registered as before),
+        so that a register in front of ``k`` becomes the multipliers' own input register
+        (iCE40: SB_MAC16 A registers with their hold; the Top's ``mt_k`` from the register
+        file's export port, docs/AREA.md §7.76). Same outputs in the same clocks as the other
+        forms for such a ``k``; a ``k`` that changes during a computation gives another
+        product.
 
     Members
     -------
@@ -175,7 +192,8 @@ class MTSpeed(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=32,
-                 edge_mode="a_rising", k_width=None, m_width=16):
+                 edge_mode="a_rising", k_width=None, m_width=16, chunk_multipliers=False,
+                 k_steady=False):
         clk_hz = _check_hz("clk_hz", clk_hz)
         tclk_hz = clk_hz if tclk_hz is None else _check_hz("tclk_hz", tclk_hz)
         if tclk_hz > clk_hz:
@@ -186,6 +204,10 @@ class MTSpeed(wiring.Component):
             k_width = out_width + 16
         self._k_width = check_param("MTSpeed", "k_width", k_width, 2, 64)
         self._m_width = check_param("MTSpeed", "m_width", m_width, 2, 32)
+        self._chunk_multipliers = check_bool("MTSpeed", "chunk_multipliers", chunk_multipliers)
+        self._k_steady = check_bool("MTSpeed", "k_steady", k_steady)
+        if k_steady and not chunk_multipliers:
+            raise ValueError("MTSpeed k_steady needs chunk_multipliers=True")
         try:
             self._edge_mode = EdgeMode(edge_mode)
         except ValueError:
@@ -205,6 +227,8 @@ class MTSpeed(wiring.Component):
     out_width = property(lambda self: self._out_width)
     k_width = property(lambda self: self._k_width)
     m_width = property(lambda self: self._m_width)
+    chunk_multipliers = property(lambda self: self._chunk_multipliers)
+    k_steady = property(lambda self: self._k_steady)
     edge_mode = property(lambda self: self._edge_mode.value)
     edges_per_line = property(lambda self: self._edge_mode.edges_per_line)
     tclk_ratio = property(lambda self: self._tclk_ratio)
@@ -372,28 +396,52 @@ class MTSpeed(wiring.Component):
         # The registered partial product k_c·|ΔM|: no reset (it is rewritten every clock and
         # only read while `adding`), so that iCE40 synthesis takes it into the SB_MAC16's own
         # pipeline register and keeps the carry add in the SB_MAC16's adder.
-        pp = Signal(16 + mw, reset_less=True)
-        t = Signal(16 + mw)                             # pp + carry < 2**(16 + mw)
         left = Signal(range(nk + 1))                    # chunks still to multiply
         adding = Signal()                               # pp holds a partial product
         ready = Signal()                                # t is the product's last chunk
         k_pad = Cat(self.k, Const(0, 16 * nk - self._k_width))
-        # The multiplier's k operand from a register, `k_c` (ECP5 Fmax: no word multiplexer in
-        # front of the MULT18X18D), loaded a clock before `pp` is formed with it: k is sampled in
-        # clocks u … u + nk − 1. No reset: read only while `adding`, i.e. after a start.
-        k_c = Signal(16, reset_less=True)
-        m.d.comb += t.eq(pp + carry)
-        # Chunk c is loaded in clock u + c: chunk 0 at the start, chunk c >= 1 while left ==
-        # nk + 1 − c. Other clocks load don't-care values (k_c is read only while `adding`).
         chunks = [k_pad[16 * c:16 * c + 16] for c in range(nk)]
-        k_sel = chunks[-1]
-        for c in reversed(range(1, nk - 1)):
-            k_sel = Mux(left == nk + 1 - c, chunks[c], k_sel)
-        if nk > 1:
-            k_sel = Mux(start, chunks[0], k_sel)
-        m.d.sync += k_c.eq(k_sel)
+        if self._chunk_multipliers:
+            # One multiplier per chunk: its k operand register `k_c<c>` takes chunk c in every
+            # clock (no reset, no select), so in clock u + c it samples k's chunk c as the
+            # single multiplier's k_c does, and its product `pp<c>` is read in clock u + 2 + c
+            # only; `t<c>` = pp<c> + carry is chunk c's sum.
+            # With k_steady the product is formed from k's chunk as it is (no k_c<c>): dm is
+            # the snapshot from clock u + 1 on, k the same from u on, so in clock u + 2 + c it
+            # equals the product of the samples. (The products stay registered: three
+            # multipliers read in exclusive clocks would otherwise be shared into one behind a
+            # select by yosys.)
+            ts = []
+            for c in range(nk):
+                t_c = Signal(16 + mw, name=f"t{c}")
+                pp_c = Signal(16 + mw, reset_less=True, name=f"pp{c}")
+                if self._k_steady:
+                    m.d.sync += pp_c.eq(chunks[c] * dm)
+                else:
+                    k_cc = Signal(16, reset_less=True, name=f"k_c{c}")
+                    m.d.sync += [k_cc.eq(chunks[c]), pp_c.eq(k_cc * dm)]
+                m.d.comb += t_c.eq(pp_c + carry)
+                ts.append(t_c)
+        else:
+            pp = Signal(16 + mw, reset_less=True)
+            t = Signal(16 + mw)                         # pp + carry < 2**(16 + mw)
+            # The multiplier's k operand from a register, `k_c` (ECP5 Fmax: no word
+            # multiplexer in front of the MULT18X18D), loaded a clock before `pp` is formed
+            # with it: k is sampled in clocks u … u + nk − 1. No reset: read only while
+            # `adding`, i.e. after a start.
+            k_c = Signal(16, reset_less=True)
+            m.d.comb += t.eq(pp + carry)
+            # Chunk c is loaded in clock u + c: chunk 0 at the start, chunk c >= 1 while left
+            # == nk + 1 − c. Other clocks load don't-care values (k_c is read only while
+            # `adding`).
+            k_sel = chunks[-1]
+            for c in reversed(range(1, nk - 1)):
+                k_sel = Mux(left == nk + 1 - c, chunks[c], k_sel)
+            if nk > 1:
+                k_sel = Mux(start, chunks[0], k_sel)
+            m.d.sync += [k_c.eq(k_sel), pp.eq(k_c * dm)]
+            ts = [t] * nk
         m.d.sync += [
-            pp.eq(k_c * dm),
             adding.eq(left != 0),
             ready.eq(left == 1),
         ]
@@ -402,8 +450,13 @@ class MTSpeed(wiring.Component):
         with m.Else():
             with m.If(left != 0):
                 m.d.sync += left.eq(left - 1)
-            with m.If(adding & ~ready):
-                m.d.sync += carry.eq(t[16:])
+            if self._chunk_multipliers:
+                for c in range(nk - 1):
+                    with m.If(adding & (left == nk - 1 - c)):
+                        m.d.sync += carry.eq(ts[c][16:])
+            else:
+                with m.If(adding & ~ready):
+                    m.d.sync += carry.eq(t[16:])
         with m.If(left == nk):                          # clock u + 1: dm is the snapshot
             with m.If(dm == 0):
                 m.d.sync += n_dv[0].eq(0)
@@ -438,7 +491,7 @@ class MTSpeed(wiring.Component):
             with m.If((count == qs) & fits):
                 m.d.sync += sat.eq(1)
         for c in range(nk):
-            lo = 16 * c
+            lo, t = 16 * c, ts[c]
             if lo >= aw:
                 part, top = Const(0, 1), (t if c == nk - 1 else t[:16])
             elif c == nk - 1:

@@ -220,7 +220,7 @@ from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
-from .fixed import at_least, check_choice, round_shift, saturate
+from .fixed import at_least, check_bool, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
@@ -514,6 +514,25 @@ class Top(wiring.Component):
         clock later; ``"ram16"`` the same with a limit RAM of one iCE40 block RAM (two with
         ``"ram"``) and the over-speed limit's upper 16 bits in flip-flops (+39 logic cells on the
         iCEBreaker, docs/AREA.md §7.77).
+    enc_fold_reload : bool
+        :class:`~.encoder.GlitchFilter` ``fold_reload``: the filter counters' reload select in
+        their decrement's LUTs (the same filtered pins; the iCE40's choice and the default,
+        fewer logic cells; ``False`` the ECP5's and the Spartan-7's netlist of before, fewer
+        LUT6, docs/AREA.md §7.76).
+    mt_chunk_multipliers : bool
+        :class:`~.mt_speed.MTSpeed` ``chunk_multipliers``: one multiplier per 16-bit chunk of
+        ``mt_k`` (three), no chunk select (the same speeds in the same clocks; the iCE40's
+        choice and the default: 7 of the UP5K's 8 SB_MAC16, fewer logic cells; ``False`` one
+        multiplier, the ECP5's and the Spartan-7's netlist of before, docs/AREA.md §7.76).
+    mt_k_export : bool
+        ``mt_k`` (shadowed: it changes only in a commit, before ``period_start``) not a
+        register-file flip-flop but a word pair of its ``export`` port, loaded into three
+        16-bit registers here that feed M/T's multipliers as they are (``MTSpeed(k_steady=
+        True)``; iCE40: the SB_MAC16s' own A registers, no logic cell). Needs
+        ``regs_staging="bram"`` and ``mt_chunk_multipliers``; the registers hold 0 from
+        power-up until the register file's reset walk writes ``mt_k`` (no M/T result reads
+        ``k`` that early: the PWM period must exceed the walk, checked). The same speeds; the
+        iCE40's choice (default ``False``: it needs the block-RAM staging).
 
     Members
     -------
@@ -561,6 +580,8 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
+    enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
+        The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
         ``period_start`` and the new values are all in place in the ``period_start`` clock
@@ -580,7 +601,8 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True, prot_limits="ports"):
+                 timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
+                 mt_chunk_multipliers=True, mt_k_export=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -635,6 +657,8 @@ class Top(wiring.Component):
             raise ValueError(f"Top prot_limits={prot_limits!r} needs regs_staging='bram' (the "
                              f"limits are mirrored from its staging RAM), not "
                              f"regs_staging={regs_staging!r}")
+        if check_bool("Top", "mt_k_export", mt_k_export) and regs_staging != "bram":
+            raise ValueError(f"Top mt_k_export needs regs_staging='bram', not {regs_staging!r}")
         check_choice("Top", "speed_loop", speed_loop, SPEED_LOOPS)
         if speed_loop == "engine" and (current_loop, regs_staging) != ("engine", "bram"):
             raise ValueError(f"Top speed_loop='engine' needs current_loop='engine' and "
@@ -691,7 +715,8 @@ class Top(wiring.Component):
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
                                            if cfg_ram else ())
-                                          + (SPEED_LOOP_CONFIG if speed_ram else ())),
+                                          + (SPEED_LOOP_CONFIG if speed_ram else ())
+                                          + (("mt_k",) if mt_k_export else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
@@ -742,8 +767,20 @@ class Top(wiring.Component):
         # (the decoder's configuration after reset: the registers', which give no change strobe)
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
-                                        z_offset_init=regmap["enc_z_offset"].reset)
-        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH)
+                                        z_offset_init=regmap["enc_z_offset"].reset,
+                                        fold_reload=enc_fold_reload)
+        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
+                           chunk_multipliers=mt_chunk_multipliers,
+                           k_steady=mt_k_export)
+        # mt_k from the export port: its words' indices; the PWM period outlasts the reset
+        # walk (before it the registers hold 0; M/T's first result after a reset is a stopped
+        # one, whose product is 0 whatever k, and the next comes a period later).
+        self._mt_k_words = [i for i, (_, r, _) in enumerate(self._regs.export_words)
+                            if r.name == "mt_k"]
+        if mt_k_export and not 2 * n > self._regs.reset_clocks + 2:
+            raise ValueError(f"Top mt_k_export needs a PWM period longer than the register "
+                             f"file's reset walk ({self._regs.reset_clocks + 2} clocks), not "
+                             f"{2 * n}")
         k = self._speed_export
         self._servo = Servo(kp_format=regmap["pi_speed_kp"].fmt,
                             kx_format=regmap["pi_speed_kx"].fmt, mul_width=mul_width,
@@ -828,7 +865,22 @@ class Top(wiring.Component):
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
+    enc_fold_reload = property(lambda self: self._encoder.fold_reload)
+    mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
+    mt_k_export = property(lambda self: self._mt.k_steady)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
+
+    def _mt_k(self, m, exp):
+        """``mt_k`` from the register file's export port (``mt_k_export``): three 16-bit
+        registers (no reset, 0 at power-up: SB_MAC16 input registers) loaded from its two
+        words in the clocks its flip-flops would load."""
+        lo, hi = self._mt_k_words
+        chunks = [Signal(16, name=f"mt_k{c}", reset_less=True) for c in range(3)]
+        with m.If(exp.valid & (exp.index == lo)):
+            m.d.sync += [chunks[0].eq(exp.data[:16]), chunks[1].eq(exp.data[16:])]
+        with m.If(exp.valid & (exp.index == hi)):
+            m.d.sync += chunks[2].eq(exp.data[:16])
+        return Cat(*chunks)
 
     def elaborate(self, platform):
         m = Module()
@@ -1051,7 +1103,7 @@ class Top(wiring.Component):
             sl.speed_rate_div.eq(operand("speed_div")),
             sl.speed_ref_delay.eq(regs.speed_ref_delay),
             sl.speed_int_hold.eq(regs.speed_int_hold),
-            mt.k.eq(regs.mt_k),
+            mt.k.eq(self._mt_k(m, exp) if self._mt_k_words else regs.mt_k),
 
             enc.lines.eq(regs.enc_lines),
             enc.pole_pairs.eq(regs.enc_pole_pairs),
@@ -1089,7 +1141,11 @@ class Top(wiring.Component):
                              servo.iq_ff.eq(regs.speed_ff_iq)]
             else:
                 k = self._speed_export
-                m.d.comb += [servo.speed_config.valid.eq(exp.valid & (exp.index >= k)),
+                # (with mt_k exported its words come after the speed loop's)
+                ours = exp.valid & (exp.index >= k)
+                if self._mt_k_words:
+                    ours &= exp.index < k + len(SPEED_CONFIG)
+                m.d.comb += [servo.speed_config.valid.eq(ours),
                              servo.speed_config.index.eq(exp.index - k),
                              servo.speed_config.data.eq(exp.data)]
         assert tuple(regs.prot_mask.shape().members) == FAULTS

@@ -27,10 +27,10 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    PROT_LIMITS, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER,
-                                    BoardTop, _tool, build, pll_config, prepare,
-                                    synthesis_verilog)
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, ENC_FOLD_RELOAD, LINK_READ_HOLD,
+                                    MT_CHUNK_MULTIPLIERS, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
+                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop, _tool,
+                                    build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -262,6 +262,13 @@ FAMILY_FORMS = [
      lambda top: (top.timer_clamp, top._timer.signed_duty, not top._dtc.clamp)),
     ("prot_limits", PROT_LIMITS, ("ram", "ports", "ports", "ports"),
      lambda top: (top.prot_limits, top._protect.limits)),
+    ("enc_fold_reload", ENC_FOLD_RELOAD, (True, False, False, False),
+     lambda top: (top.enc_fold_reload, top._encoder.fold_reload,
+                  top._encoder._filter.fold_reload)),
+    ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
+     lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
+    ("mt_k_export", MT_K_EXPORT, (True, False, False, False),
+     lambda top: (top.mt_k_export, top._mt.k_steady, bool(top._mt_k_words))),
 ]
 
 

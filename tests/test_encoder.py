@@ -18,6 +18,17 @@ from foc_servo.sim.models import encoder as model
 AB = ((0, 0), (1, 0), (1, 1), (0, 1))       # quadrature state of phase 0 … 3
 
 
+@pytest.fixture(params=[True, False], ids=["fold_reload", "reload_select"])
+def fold_form(request, monkeypatch):
+    """Both forms of the glitch filter's counter (``fold_reload``, the iCE40's and the default;
+    ``rem − 1`` and a select, the ECP5's and the Spartan-7's): the default of the filter's and
+    the front end's constructors (also where sim.verify.encoder builds them) set to one, the
+    test run once with each."""
+    for cls in (GlitchFilter, EncoderFrontEnd):
+        monkeypatch.setitem(cls.__init__.__kwdefaults__, "fold_reload", request.param)
+    return request.param
+
+
 def pins(a=0, b=0, z=0, hall=HALL_CODES[0]):
     return a | (b << 1) | (z << 2) | (hall << 3)
 
@@ -73,6 +84,14 @@ def test_glitch_filter_parameter_validation():
         EncoderFrontEnd(max_length=True)
 
 
+def test_glitch_filter_fold_reload_validation_and_default():
+    assert GlitchFilter().fold_reload is True
+    assert GlitchFilter(fold_reload=False).fold_reload is False
+    assert EncoderFrontEnd.__init__.__kwdefaults__["fold_reload"] is True
+    with pytest.raises(TypeError, match="GlitchFilter fold_reload must be a bool, not 0"):
+        GlitchFilter(fold_reload=0)
+
+
 def test_quadrature_z_gate_validation():
     with pytest.raises(TypeError, match=r"^QuadratureDecoder z_gate must be None or an integer "
                                         r"from 0 to 3, not 4$"):
@@ -84,6 +103,7 @@ def test_quadrature_z_gate_validation():
 
 # --- glitch filter --------------------------------------------------------------------------
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_every_length_and_width_cycle_by_cycle():
     """Lengths 0 … 8, pulses of 1 … length + 3 clocks of both polarities: the output matches
     the model on every clock, a pulse is passed iff it lasts ≥ max(length, 1) clocks, and then
@@ -121,6 +141,7 @@ def test_glitch_filter_every_length_and_width_cycle_by_cycle():
     assert errors == []
 
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_random_with_length_changes_vs_model():
     rng = np.random.default_rng(3)
     n = 3000
@@ -143,6 +164,7 @@ def test_glitch_filter_random_with_length_changes_vs_model():
     assert len(set(got)) == 4         # every output combination occurred
 
 
+@pytest.mark.usefixtures("fold_form")
 def test_glitch_filter_targets_through_front_end():
     """Pulses on A, B, Z and a Hall input at lengths 0 … 6 and 20: never a short one counted,
     never a long one missed, exact threshold at max(length, 1)."""

@@ -72,6 +72,9 @@ def both(dut, edges, neg, ups, *, k, end_cycle):
     ({"out_width": 49}, TypeError, "MTSpeed out_width must be an integer from 8 to 48, not 49"),
     ({"k_width": 1}, TypeError, "MTSpeed k_width must be an integer from 2 to 64, not 1"),
     ({"m_width": 33}, TypeError, "MTSpeed m_width must be an integer from 2 to 32, not 33"),
+    ({"chunk_multipliers": 1}, TypeError, "MTSpeed chunk_multipliers must be a bool, not 1"),
+    ({"k_steady": 0}, TypeError, "MTSpeed k_steady must be a bool, not 0"),
+    ({"k_steady": True}, ValueError, "MTSpeed k_steady needs chunk_multipliers=True"),
     ({"edge_mode": "x2"}, ValueError, "MTSpeed edge_mode must be 'a_rising' or 'x4', not 'x2'"),
 ])
 def test_mt_validation(kwargs, exc, msg):
@@ -308,14 +311,16 @@ def test_mt_unsigned_division_is_the_signed_truncating_division(config):
     assert model.fresh_speed(7, -1, 2, out_width=16) == -3 == exact_speed(7, -1, 2, 16)
 
 
+@pytest.mark.parametrize("chunk_multipliers", [False, True])
 @pytest.mark.parametrize("out_width", [12, 32])     # quotient 11 bits = out_width − 1; 23 < 31
 @pytest.mark.parametrize("k", [0, 1, 2 ** 20 - 1, 12345])
-def test_mt_division_corners_through_the_gateware(out_width, k):
+def test_mt_division_corners_through_the_gateware(out_width, k, chunk_multipliers):
     """Windows built edge by edge on a small instance (4-bit ΔM, 8-bit TC, 32 clocks per TC
     tick) reach the corners: ΔM saturated at −8 and +7, net-zero windows, ΔT = 0 (edges in the
-    reference's tick), 1, 2 and near the span, full-scale k; gateware == model == exact."""
+    reference's tick), 1, 2 and near the span, full-scale k; gateware == model == exact (one
+    multiplier behind the chunk select, or one per chunk)."""
     dut = MTSpeed(clk_hz=3.2e6, tclk_hz=1e5, tc_width=8, out_width=out_width, k_width=20,
-                  m_width=4)
+                  m_width=4, chunk_multipliers=chunk_multipliers)
     r, lat = dut.tclk_ratio, dut.latency
     assert r == 32
     windows = [(1, 1), (-1, 1), (10, 0), (-1, 2), (-12, 0), (3, 250), (0, 0), (0, 3), (-8, 1),
@@ -640,12 +645,14 @@ def test_mt_expiry_during_the_computation_invalidates_it():
     ({"out_width": 16, "k_width": 24, "m_width": 8, "tc_width": 12},
      [1, 2 ** 24 - 1, 2 ** 15 * 9, 2 ** 15 * 200, 777_777]),
 ])
-def test_mt_division_random_windows_through_the_gateware(config, k_values):
+@pytest.mark.parametrize("chunk_multipliers", [False, True])
+def test_mt_division_random_windows_through_the_gateware(config, k_values, chunk_multipliers):
     """Short random windows (1 … 40 edges both ways, 0 … 3000 clocks) on the top's instance
     (48-bit k, 63-bit product, 32 quotient steps) and a narrow one whose product (31 bits)
     exceeds the division register (28 bits): fresh quotients small, large, exact and saturated;
-    gateware == model == exact k·ΔM/ΔT, clock for clock."""
-    dut = MTSpeed(clk_hz=50e6, **config)
+    gateware == model == exact k·ΔM/ΔT, clock for clock (one multiplier behind the chunk
+    select, or one per chunk)."""
+    dut = MTSpeed(clk_hz=50e6, chunk_multipliers=chunk_multipliers, **config)
     rng = np.random.default_rng(9)
     lat = dut.latency
     for k in k_values:
@@ -664,3 +671,89 @@ def test_mt_division_random_windows_through_the_gateware(config, k_values):
             c += lat
         out = both(dut, edges, neg, ups, k=k, end_cycle=c + lat + 2)
         assert out["fresh"].sum() >= 20
+
+
+@pytest.mark.parametrize("k_width", [16, 20, 48])
+def test_mt_chunk_multipliers_sample_k_as_the_chunk_select(k_width):
+    """``chunk_multipliers=True`` against the default form, clock for clock, with ``k`` changing
+    in every clock (random, so that each chunk's sampling clock u + c matters), random edges
+    both ways and updates early, late and while busy: the same outputs in the same clocks."""
+    from amaranth.hdl import Module, Signal
+    kw = dict(clk_hz=50e6, tc_width=10, out_width=32, k_width=k_width, m_width=6)
+    forms = [MTSpeed(**kw), MTSpeed(chunk_multipliers=True, **kw)]
+    assert forms[1].chunk_multipliers and not forms[0].chunk_multipliers
+    m = Module()
+    k = Signal(k_width)
+    step, neg, update = Signal(), Signal(), Signal()
+    for i, dut in enumerate(forms):
+        m.submodules[f"dut{i}"] = dut
+        m.d.comb += [dut.k.eq(k), dut.edge.step.eq(step), dut.edge.neg.eq(neg),
+                     dut.update.eq(update)]
+    rng = np.random.default_rng(17)
+    lat = forms[0].latency
+    seen = {"fresh": 0, "bound": 0, "unsaturated": 0}
+
+    async def testbench(ctx):
+        for c in range(60 * lat):
+            # log-uniform: most results below saturation, so that every chunk counts
+            ctx.set(k, int(rng.integers(0, 2 ** int(rng.integers(4, k_width + 1)),
+                                        dtype=np.uint64)))
+            ctx.set(step, int(rng.random() < (0.3 if (c // 400) % 2 else 0.02)))
+            ctx.set(neg, int(rng.random() < 0.2))
+            ctx.set(update, int(rng.random() < 1.5 / lat))
+            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload.as_value())) for d in forms]
+            assert got[0] == got[1], c
+            if got[0][0]:
+                p = ctx.get(forms[0].o.payload)
+                seen["fresh"] += p.fresh
+                seen["bound"] += not p.fresh and not p.stopped
+                seen["unsaturated"] += p.fresh and 0 < abs(p.speed) < 2 ** 31 - 1
+            await ctx.tick()
+
+    simulate(m, [testbench], clock_hz=50e6, name="mt_chunk_multipliers")
+    assert seen["fresh"] > 10 and seen["bound"] > 2 and seen["unsaturated"] > 5, seen
+
+
+@pytest.mark.parametrize("k_width", [16, 48])
+def test_mt_k_steady_against_the_default_form(k_width):
+    """``k_steady=True`` against the default form, clock for clock, with ``k`` changing only in
+    the clock before each update (updates ``latency + 2`` … apart: so steady through every
+    computation, as the Top's committed ``mt_k``), random edges both ways: the same outputs in
+    the same clocks. A ``k`` change during a computation is what the form does not follow."""
+    from amaranth.hdl import Module, Signal
+    kw = dict(clk_hz=50e6, tc_width=10, out_width=32, k_width=k_width, m_width=6)
+    forms = [MTSpeed(**kw), MTSpeed(chunk_multipliers=True, k_steady=True, **kw)]
+    assert forms[1].k_steady and not forms[0].k_steady
+    m = Module()
+    k = Signal(k_width)
+    step, neg, update = Signal(), Signal(), Signal()
+    for i, dut in enumerate(forms):
+        m.submodules[f"dut{i}"] = dut
+        m.d.comb += [dut.k.eq(k), dut.edge.step.eq(step), dut.edge.neg.eq(neg),
+                     dut.update.eq(update)]
+    rng = np.random.default_rng(23)
+    lat = forms[0].latency
+    seen = {"fresh": 0, "bound": 0, "unsaturated": 0}
+
+    async def testbench(ctx):
+        next_up = 5
+        for c in range(60 * lat):
+            if c == next_up - 1:
+                ctx.set(k, int(rng.integers(0, 2 ** int(rng.integers(4, k_width + 1)),
+                                            dtype=np.uint64)))
+            ctx.set(update, int(c == next_up))
+            if c == next_up:
+                next_up += lat + 2 + int(rng.integers(0, 40))
+            ctx.set(step, int(rng.random() < (0.3 if (c // 400) % 2 else 0.02)))
+            ctx.set(neg, int(rng.random() < 0.2))
+            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload.as_value())) for d in forms]
+            assert got[0] == got[1], c
+            if got[0][0]:
+                p = ctx.get(forms[0].o.payload)
+                seen["fresh"] += p.fresh
+                seen["bound"] += not p.fresh and not p.stopped
+                seen["unsaturated"] += p.fresh and 0 < abs(p.speed) < 2 ** 31 - 1
+            await ctx.tick()
+
+    simulate(m, [testbench], clock_hz=50e6, name="mt_k_steady")
+    assert seen["fresh"] > 10 and seen["bound"] > 2 and seen["unsaturated"] > 5, seen

@@ -1603,3 +1603,62 @@ def test_top_reference_writes_strobe_ref_step_at_the_loop_that_sees_them(staging
         assert per_frame[k] == [seen], (k, per_frame[k], seen)
     # The unchanged value's step: within two periods of its frame's end (commit, loop strobe).
     assert per_frame[1][0] - frames[1][1] < 2 * top.pwm_period
+
+
+def test_top_mt_k_from_the_export_port_is_the_flip_flops_clock_for_clock():
+    """``mt_k_export`` (the iCEBreaker's): ``mt_k`` has no flip-flops in the register file; its
+    two export-port words load three registers that feed M/T's multipliers as they are
+    (``MTSpeed(k_steady=True)``). Against the same top with the flip-flops, the same host
+    writes (``mt_k`` halved two periods in, read back) and encoder: the same ``k`` at M/T from
+    the end of the reset walk on, the same M/T outputs in every clock, and ``k`` steady from
+    each accepted update to its result."""
+    lat = None
+    traces, reads = [], []
+    for export in (False, True):
+        top = Top(pwm_hz=PWM, baud=BAUD, regs_staging="bram", mt_k_export=export)
+        regs, mt = top._regs, top._mt
+        assert top.mt_k_export is export and mt.k_steady is export
+        names = [r.name for _, r, _ in regs.export_words]
+        assert (names.count("mt_k"), hasattr(regs, "mt_k")) == ((2, False) if export else
+                                                                (0, True))
+        lat = mt.latency
+        k0 = top.regmap["mt_k"].reset
+        new = k0 // 2 + 12345
+
+        def probe(ctx, mt=mt, top=top):
+            p = ctx.get(mt.o.payload)
+            return (ctx.get(mt.k), ctx.get(mt.update), ctx.get(mt.o.valid), p.speed, p.stopped,
+                    p.fresh)
+        host = _TracingHost(bench := _Bench(top, BAUD), probe)
+
+        async def testbench(ctx, host=host, top=top, new=new):
+            ctx.set(top.hall, HALL_OK)
+            for _ in range(2):
+                await host.next_period(ctx, top)
+            await host.write(ctx, _addr(top, "mt_k"), new & 0xFFFF_FFFF, new >> 32)
+            reads.append(tuple(await host.read(ctx, _addr(top, "mt_k"), 2)))
+            for _ in range(4):
+                await host.next_period(ctx, top)
+
+        simulate(bench, [testbench], [_encoder_process(top, 25)],
+                 name=f"test_top_mt_k_export_{export}")
+        traces.append(host.trace)
+    assert reads == [(new & 0xFFFF_FFFF, new >> 32)] * 2
+    ff, ex = traces
+    n = min(len(ff), len(ex))
+    assert n > 6 * top.pwm_period
+    walk = top._regs.reset_clocks + 2
+    assert all(ex[t][0] == ff[t][0] for t in range(walk, n)), \
+        next(t for t in range(walk, n) if ex[t][0] != ff[t][0])
+    assert [t[1:] for t in ex[:n]] == [t[1:] for t in ff[:n]]
+    ks = [t[0] for t in ex[walk:n]]
+    assert ks[0] == k0 and ks[-1] == new    # (and the low word alone for a clock, as the FFs)
+    fresh = [t for t in ex[:n] if t[2] and t[5]]
+    assert len(fresh) >= 4 and fresh[0][3] != fresh[-1][3]
+    # k is steady through every computation (update accepted in u, result in u + latency)
+    # after the walk; the one in the walk is a stopped one (its product 0 whatever k).
+    valid_at = [t for t in range(n) if ex[t][2]]
+    assert all(len({ex[s][0] for s in range(v - lat, v + 1)}) == 1
+               for v in valid_at if v - lat >= walk)
+    assert all(ex[v][4] and ex[v][3] == 0 for v in valid_at if v - lat < walk)
+    assert len(valid_at) >= 6
