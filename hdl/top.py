@@ -184,7 +184,8 @@ loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and s
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
 link's 16-bit counters (``st_link_*``) count the frames before the one that reads them. With
-``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) are words
+``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) and
+``st_current_loops`` (the current loop's passes, :data:`RAM_LOOP_COUNTERS`) are words
 of the register file's staging RAM, counted from strobes (``RegisterFile(counters=...)``,
 docs/AREA.md §7.59): a read returns the same value as from flip-flops, but a register access
 taken in the clock of a count (or while one is pending) waits until the count is written (two
@@ -286,6 +287,10 @@ MT_TC_WIDTH = 28
 #: The top's own wrapping 16-bit status counters (speed-loop runs, current-loop overruns,
 #: dropped ADC strobes), at most one count per PWM period each.
 TOP_COUNTERS = ("st_speed_loops", "st_overruns", "st_adc_overruns")
+#: With ``regs_staging="bram"`` also the current-loop passes (the duty transfers, ``done``, at
+#: most one a PWM period) are counted in the staging RAM (docs/AREA.md §7.78); with ``"ff"``
+#: ``st_current_loops`` is the loop's own ``count`` (its low 16 bits).
+RAM_LOOP_COUNTERS = ("st_current_loops",)
 
 REF_STEP_REGISTERS = ("mode", "speed_ref", "i_d_ref", "i_q_ref", "ol_u_d", "ol_u_q")
 
@@ -669,7 +674,8 @@ class Top(wiring.Component):
         self._ram_counters = COUNTERS if regs_staging == "bram" else ()
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
-                                            + (TOP_COUNTERS if self._ram_counters else ())),
+                                            + (TOP_COUNTERS + RAM_LOOP_COUNTERS
+                                               if self._ram_counters else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
                                            if cfg_ram else ())
@@ -1151,6 +1157,8 @@ class Top(wiring.Component):
         counted = {"st_speed_loops": servo.speed_valid, "st_overruns": cl.overrun,
                    "st_adc_overruns": adc.overrun}
         assert tuple(counted) == TOP_COUNTERS
+        if self._ram_counters:
+            counted["st_current_loops"] = cl.done
         for name, event in counted.items():
             if self._ram_counters:
                 m.d.comb += getattr(regs, f"{name}_inc").eq(event)
@@ -1197,7 +1205,8 @@ class Top(wiring.Component):
             regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
             regs.st_udc.eq(cl.udc.payload),
-            regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
+            # (16-bit register: wraps at 2**16; with "bram" a counter in the staging RAM)
+            *([] if self._ram_counters else [regs.st_current_loops.eq(cl.count[:16])]),
             _raw(regs.st_loop_flags).eq(flags),
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),
