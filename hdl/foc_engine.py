@@ -734,7 +734,13 @@ class EngineCurrentLoop(wiring.Component):
         top keeps clear of the loop's run, hdl/top.py "References in the engine's RAM"); a
         SPEED sample that waits behind a speed run takes that run's result. With
         ``status="ram"`` the references it used are two more words of ``status_probe``'s RAM
-        (:data:`REF_STATUS`, for the scope).
+        (:data:`REF_STATUS`, for the scope). The speed reference is the RAM's last word
+        (:data:`REF_SPEED_WORDS`, no ``speed_ref`` port): the speed run reads it as a word;
+        while ``speed_clear`` ``speed_ref_int`` takes it from its write (held against the
+        speed tracking until the slew's word, which a commit copy writes after it) and its
+        reset value is what the forcing from a register loaded in the reset clock; docs/AREA.md
+        §7.78 (one documented difference: ``clear`` raised after a copy's reference word and
+        lowered before the next copy's, with the slew 0, keeps the last run's ``ref_int``).
     status : str
         Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
         registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM

@@ -389,3 +389,67 @@ def test_engine_refs_sample_behind_a_speed_run_takes_its_result():
     simulate(dut, [testbench], name="engine_refs_behind_speed")
     assert seen["before"] == 0 and seen["iq"] == 4096 and seen["iq_valid_before_o"]
     assert seen["o"] == 4096
+
+
+def test_engine_refs_speed_ref_tracking_needs_a_copy_while_clear():
+    """The documented difference of the speed reference as a word (docs/AREA.md §7.78): while
+    ``clear`` the RAM loop's ``ref_int`` takes ``speed_ref`` from the word's write, so if
+    ``clear`` rises after a copy's reference word (a trip) and falls again before the next
+    copy (slew 0), the fresh run after it starts from the last run's ``ref_int`` (R1), where
+    the register's forcing gave the new reference (R2); with ``speed_ref_delay`` 1 the PI's
+    reference of that run is ``to_pi`` of it, so the i_q references differ. With the word
+    written while ``clear`` (every commit copy in it) both take R2 (the cycle-by-cycle test)."""
+    r1, r2 = 1 << 20, 2 << 20
+    init = [0] * (N_CFG + 4)
+    init[N_CFG] = 1 << 12                                           # speed kp 1.0
+    bench = _Pair(init, [0, 0, 0, 0, -5000 & 0xFFFF_FFFF, 5000], r1)
+    a, b = bench.ports, bench.ram
+    seen = {}
+
+    async def run(ctx, tag):
+        for dut in (a, b):
+            ctx.set(dut.speed_valid, 1)
+        await ctx.tick()
+        for dut in (a, b):
+            ctx.set(dut.speed_valid, 0)
+        for _ in range(300):
+            for name, dut in (("a", a), ("b", b)):
+                if ctx.get(dut.speed_o.valid):
+                    seen[f"{tag}_{name}"] = ctx.get(dut.speed_o.payload)
+            await ctx.tick()
+
+    async def testbench(ctx):
+        for dut in (a, b):
+            ctx.set(dut.o.ready, 1)
+            ctx.set(dut.speed_clear, 1)             # (as the Servo's in the reset clock)
+            ctx.set(dut.speed_ref_delay, 8)                         # d = 1.0
+        ctx.set(a.speed_ref, r1)
+        ctx.set(a.iq_lim_lo, -5000)
+        ctx.set(a.iq_lim_hi, 5000)
+        await ctx.tick()
+        for dut in (a, b):
+            ctx.set(dut.speed_clear, 0)
+        await ctx.tick()
+        await run(ctx, "first")
+        ctx.set(b.config.valid, 1)                  # a copy while running: R2, then slew 0
+        ctx.set(b.config.index, WORD["sref"])
+        ctx.set(b.config.data, r2)
+        await ctx.tick()
+        ctx.set(a.speed_ref, r2)
+        ctx.set(b.config.index, N_CFG + len(REF_CONFIG_WORDS) + SLEW)
+        ctx.set(b.config.data, 0)
+        await ctx.tick()
+        ctx.set(b.config.valid, 0)
+        for dut in (a, b):                          # a trip: clear, no copy in it
+            ctx.set(dut.speed_clear, 1)
+        await ctx.tick().repeat(10)
+        seen["ref_int"] = (ctx.get(a.speed_ref_int), ctx.get(b.speed_ref_int))
+        for dut in (a, b):
+            ctx.set(dut.speed_clear, 0)
+        await ctx.tick()
+        await run(ctx, "fresh")
+
+    simulate(bench, [testbench], name="engine_refs_sref_tracking")
+    assert seen["first_a"] == seen["first_b"]
+    assert seen["ref_int"] == (r2, r1)
+    assert seen["fresh_a"] != seen["fresh_b"] and seen["fresh_b"] == seen["first_b"], seen
