@@ -738,7 +738,7 @@ class EngineCurrentLoop(wiring.Component):
         (:data:`REF_SPEED_WORDS`, no ``speed_ref`` port): the speed run reads it as a word;
         while ``speed_clear`` ``speed_ref_int`` takes it from its write (held against the
         speed tracking until the slew's word, which a commit copy writes after it) and its
-        reset value is what the forcing from a register loaded in the reset clock; docs/AREA.md
+        reset value is what the forcing from a register loads in the reset clock; docs/AREA.md
         §7.78 (one documented difference: ``clear`` raised after a copy's reference word and
         lowered before the next copy's, with the slew 0, keeps the last run's ``ref_int``).
     status : str
