@@ -185,7 +185,8 @@ and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI satura
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
 link's 16-bit counters (``st_link_*``) count the frames before the one that reads them. With
 ``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) and
-``st_current_loops`` (the current loop's passes, :data:`RAM_LOOP_COUNTERS`) are words
+``st_current_loops`` (the current loop's passes, :data:`RAM_LOOP_COUNTERS`; with
+``ram_loop_count``, the iCE40's) are words
 of the register file's staging RAM, counted from strobes (``RegisterFile(counters=...)``,
 docs/AREA.md §7.59): a read returns the same value as from flip-flops, but a register access
 taken in the clock of a count (or while one is pending) waits until the count is written (two
@@ -219,7 +220,7 @@ from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
-from .fixed import at_least, check_choice, round_shift, saturate
+from .fixed import at_least, check_bool, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
@@ -506,6 +507,12 @@ class Top(wiring.Component):
         :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
         registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
         default ``False``, fewer iCE40 cells).
+    ram_loop_count : bool
+        With ``regs_staging="bram"``: ``st_current_loops`` counted in the register file's
+        staging RAM from the loop's ``done`` (:data:`RAM_LOOP_COUNTERS`; the same values, an
+        access in a count's clock acked two clocks later, module docstring "Status"; the
+        iCE40's choice and the default, fewer iCE40 cells, docs/AREA.md §7.78); ``False`` the
+        loop's own ``count`` (the Spartan-7's: fewer LUT6). No effect with ``"ff"``.
 
     Members
     -------
@@ -553,6 +560,9 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
+    ram_loop_count : bool
+        ``st_current_loops`` is a counter of the staging RAM (the parameter with
+        ``regs_staging="bram"``, else ``False``).
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
         ``period_start`` and the new values are all in place in the ``period_start`` clock
@@ -572,8 +582,9 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True):
+                 timer_clamp=True, ram_loop_count=True):
         mul_width = check_mul_width("Top", mul_width)
+        check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
             if not _is_hz(value):
@@ -672,10 +683,12 @@ class Top(wiring.Component):
         # counted in the staging RAM (RegisterFile(counters=...), from count strobes): no
         # 16-bit counter and no read multiplexer term each (docs/AREA.md §7.59).
         self._ram_counters = COUNTERS if regs_staging == "bram" else ()
+        self._ram_loop_count = bool(self._ram_counters) and ram_loop_count
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
-                                            + (TOP_COUNTERS + RAM_LOOP_COUNTERS
-                                               if self._ram_counters else ())),
+                                            + (TOP_COUNTERS if self._ram_counters else ())
+                                            + (RAM_LOOP_COUNTERS if self._ram_loop_count
+                                               else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
                                            if cfg_ram else ())
@@ -813,6 +826,7 @@ class Top(wiring.Component):
     trip_register = property(lambda self: self._protect.trip_register)
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
+    ram_loop_count = property(lambda self: self._ram_loop_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
@@ -1157,7 +1171,7 @@ class Top(wiring.Component):
         counted = {"st_speed_loops": servo.speed_valid, "st_overruns": cl.overrun,
                    "st_adc_overruns": adc.overrun}
         assert tuple(counted) == TOP_COUNTERS
-        if self._ram_counters:
+        if self._ram_loop_count:
             counted["st_current_loops"] = cl.done
         for name, event in counted.items():
             if self._ram_counters:
@@ -1206,7 +1220,7 @@ class Top(wiring.Component):
             regs.st_speed.eq(speed),
             regs.st_udc.eq(cl.udc.payload),
             # (16-bit register: wraps at 2**16; with "bram" a counter in the staging RAM)
-            *([] if self._ram_counters else [regs.st_current_loops.eq(cl.count[:16])]),
+            *([] if self._ram_loop_count else [regs.st_current_loops.eq(cl.count[:16])]),
             _raw(regs.st_loop_flags).eq(flags),
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),
