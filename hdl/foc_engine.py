@@ -1194,9 +1194,10 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
-        m.d.comb += [eng.s_spd.eq(self.speed), eng.s_rint.eq(ref_int),
-                     *([] if refs else [eng.s_sref.eq(self.speed_ref),
-                                        eng.s_ilo.eq(self.iq_lim_lo),
+        m.d.comb += [eng.s_spd.eq(self.speed),
+                     *([] if refs else [eng.s_sref.eq(self.speed_ref)]),
+                     eng.s_rint.eq(ref_int),
+                     *([] if refs else [eng.s_ilo.eq(self.iq_lim_lo),
                                         eng.s_ihi.eq(self.iq_lim_hi)]),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),
                      eng.s_ih.eq(self.speed_int_hold)]
