@@ -38,7 +38,7 @@ __all__ = ["EngineCurrentLoop", "current_loop_program", "path_lengths", "duty_le
            "STATUS", "STATUS_OUTS", "STATUSES", "status_quiet", "speed_loop_program",
            "speed_run_timing", "SPEED_CONFIG_WORDS", "SPEED_SLICES", "SPEED_PARAMS",
            "REF_CONFIG_WORDS", "REFS", "REF_SPECIALS", "REF_OUTS", "REF_STATUS",
-           "REF_STATUS_OUTS", "REF_SPEED_WORDS",
+           "REF_STATUS_OUTS",
            "CURRENT_STATE", "SPEED_STATE",
            "SPEED_SPECIALS", "SPEED_SHAPES", "SPEED_FLAGS", "SPEED_CONDS", "SPEED_OUTS"]
 
@@ -85,13 +85,6 @@ REF_OUTS = {"idr": 16, "iqr": 16}
 #: used, for the scope; no status registers) and the outputs that write them.
 REF_STATUS = ("i_d_ref", "i_q_ref")
 REF_STATUS_OUTS = {"i_d_ref": "idr", "i_q_ref": "iqr"}
-#: ``refs="ram"``: the speed reference ``sref`` is a configuration word too, the RAM's last
-#: (after :data:`SPEED_CONFIG_WORDS`), in place of the ``speed_ref`` port: the speed run reads
-#: it as a word (the program unchanged); while ``clear`` the wrapper loads ``ref_int`` from the
-#: word's write (class docstring, *Speed loop*). Written by the register file's export port
-#: at its commit copy, after the slew's word (whose slot comes later in the copy, so the
-#: tracking choice ``slew ≠ 0`` is final when the copy ends).
-REF_SPEED_WORDS = ("sref",)
 #: Values of ``EngineCurrentLoop(refs=...)``.
 REFS = ("ports", "ram")
 #: Values of ``EngineCurrentLoop(status=...)``.
@@ -734,13 +727,7 @@ class EngineCurrentLoop(wiring.Component):
         top keeps clear of the loop's run, hdl/top.py "References in the engine's RAM"); a
         SPEED sample that waits behind a speed run takes that run's result. With
         ``status="ram"`` the references it used are two more words of ``status_probe``'s RAM
-        (:data:`REF_STATUS`, for the scope). The speed reference is the RAM's last word
-        (:data:`REF_SPEED_WORDS`, no ``speed_ref`` port): the speed run reads it as a word;
-        while ``speed_clear`` ``speed_ref_int`` takes it from its write (held against the
-        speed tracking until the slew's word, which a commit copy writes after it) and its
-        reset value is what the forcing from a register loads in the reset clock; docs/AREA.md
-        §7.78 (one documented difference: ``clear`` raised after a copy's reference word and
-        lowered before the next copy's, with the slew 0, keeps the last run's ``ref_int``).
+        (:data:`REF_STATUS`, for the scope).
     status : str
         Where the status outputs (:data:`STATUS`) are held: ``"ports"`` (default) output
         registers, the ``Out`` members ``i_alpha`` … ``u_beta``; ``"ram"`` a status RAM
@@ -838,8 +825,7 @@ class EngineCurrentLoop(wiring.Component):
                              f"speed={speed!r}")
         self._refs = refs
         n_config = (len(CONFIG) + (len(REF_CONFIG_WORDS) if refs == "ram" else 0)
-                    + (len(SPEED_CONFIG_WORDS) if speed else 0)
-                    + (len(REF_SPEED_WORDS) if refs == "ram" else 0))
+                    + (len(SPEED_CONFIG_WORDS) if speed else 0))
         if config_init is not None and config != "ram":
             raise ValueError(f"EngineCurrentLoop config_init applies only to config='ram', "
                              f"not config={config!r}")
@@ -853,7 +839,6 @@ class EngineCurrentLoop(wiring.Component):
         self._status_mems = {}                  # status="ram": made by elaborate()
         self._config = config
         self._config_init = list(config_init) if config_init is not None else [0] * n_config
-        self._n_config = n_config
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
         self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw,
                                              speed=speed, refs=refs == "ram")
@@ -897,15 +882,13 @@ class EngineCurrentLoop(wiring.Component):
         if speed:
             sp = SPEED_PARAMS
             speed_ports = {
-                "speed_valid": In(1),
-                **({} if refs == "ram" else {"speed_ref": In(signed(sp["speed_width"])),
-                                             "iq_lim_lo": In(sw), "iq_lim_hi": In(sw)}),
+                "speed_valid": In(1), "speed_ref": In(signed(sp["speed_width"])),
+                **({} if refs == "ram" else {"iq_lim_lo": In(sw), "iq_lim_hi": In(sw)}),
                 "speed_rate_div": In(unsigned(8)),
                 "speed_ref_delay": In(unsigned(sp["delay_width"])), "speed_int_hold": In(1),
                 "speed_clear": In(1),
                 "speed_o": Out(stream.Signature(sw, always_ready=True)),
-                "speed_sat": Out(1),
-                "speed_ref_int": Out(signed(sp["speed_width"]), init=self._ref_int_init()),
+                "speed_sat": Out(1), "speed_ref_int": Out(signed(sp["speed_width"])),
             }
         if status == "ram":
             rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
@@ -998,7 +981,7 @@ class EngineCurrentLoop(wiring.Component):
             shapes.update(SPEED_SHAPES)
             outs.update({k: v for k, v in SPEED_OUTS.items() if k not in OUTS})
             strobe_outs += ("ref_int", "iq")
-            config = CONFIG + refs + SPEED_CONFIG_WORDS + (REF_SPEED_WORDS if refs else ())
+            config = CONFIG + refs + SPEED_CONFIG_WORDS
         if refs:
             shapes.update({name: sw for name in REF_SPECIALS})
             outs.update(REF_OUTS)
@@ -1084,17 +1067,6 @@ class EngineCurrentLoop(wiring.Component):
         m.d.sync += self.phase.valid.eq(eng.o_pc_we)
         return m
 
-    def _ref_int_init(self):
-        """``speed_ref_int``'s reset value: 0, or with ``refs="ram"`` what the forcing from a
-        ``speed_ref`` register loaded in the reset clock (``clear`` is high there: the Servo's
-        mode resets to DISABLED): the speed reference's initial word if the slew's is 0 (else
-        the speed, which resets to 0)."""
-        if self._refs != "ram":
-            return 0
-        j_slew = len(CONFIG) + len(REF_CONFIG_WORDS) + SPEED_CONFIG_WORDS.index("slew")
-        sref = self._config_init[-1]
-        return 0 if self._config_init[j_slew] else sref - ((sref >> 31) << 32)
-
     def _speed_run(self, m, eng, cur_go):
         """``speed=True``: the speed run beside the current loop's samples (class docstring,
         *Speed loop*): request, decimation, start arbitration, the state the program keeps
@@ -1155,37 +1127,10 @@ class EngineCurrentLoop(wiring.Component):
                 m.d.sync += abort.eq(abort - 1)
         # ref_int: forced to the tracked value while clear, else the program's write.
         ref_int = self.speed_ref_int
-        refs = self._refs == "ram"      # (the limits and the speed reference are words then)
-        if refs:
-            # (speed_ref is the RAM's last word, no port: while clear ref_int takes it from
-            # the word's write, and the speed in every clock while slew ≠ 0, but not from that
-            # write to the slew word's in the same copy (``held``; the slew's slot comes after
-            # the reference's in the copy and the reset walk), so when the copy ends it holds
-            # the speed if the new slew ≠ 0, else the new reference: the value the forcing from
-            # the register had in that clock. Not so if clear rose after the copy's reference
-            # word and falls before the next copy's (a trip released and SPEED re-entered with
-            # no commit copy between, speed_slew 0): then ref_int is still the last run's.)
-            cfg = self.config
-            j_sref = self._n_config - 1
-            sref_we = Signal()
-            held = Signal()
-            m.d.comb += sref_we.eq(cfg.valid & (cfg.index == j_sref))
-            with m.If(sref_we):
-                m.d.sync += held.eq(1)
-            with m.Elif(cfg.valid & (cfg.index == j_slew)):
-                m.d.sync += held.eq(0)
-            with m.If(clear):
-                with m.If(sref_we):
-                    m.d.sync += ref_int.eq(cfg.data)
-                with m.Elif(slew_nz & ~held):
-                    m.d.sync += ref_int.eq(self.speed)
-            with m.Elif(eng.o_ref_int_we & ok):
-                m.d.sync += ref_int.eq(eng.o_data[:sp["speed_width"]])
-        else:
-            with m.If(clear):
-                m.d.sync += ref_int.eq(Mux(slew_nz, self.speed, self.speed_ref))
-            with m.Elif(eng.o_ref_int_we & ok):
-                m.d.sync += ref_int.eq(eng.o_data[:sp["speed_width"]])
+        with m.If(clear):
+            m.d.sync += ref_int.eq(Mux(slew_nz, self.speed, self.speed_ref))
+        with m.Elif(eng.o_ref_int_we & ok):
+            m.d.sync += ref_int.eq(eng.o_data[:sp["speed_width"]])
         # The i_q reference, sat (written just before iq by the program) and o.valid.
         m.d.sync += self.speed_o.valid.eq(iq_we & ok)
         with m.If(clear):
@@ -1194,9 +1139,8 @@ class EngineCurrentLoop(wiring.Component):
             m.d.sync += [self.speed_o.payload.eq(eng.o_data[:16]),
                          self.speed_sat.eq(eng.o_sat)]
         d = self.speed_ref_delay
-        m.d.comb += [eng.s_spd.eq(self.speed),
-                     *([] if refs else [eng.s_sref.eq(self.speed_ref)]),
-                     eng.s_rint.eq(ref_int),
+        refs = self._refs == "ram"      # (the limits are configuration words then)
+        m.d.comb += [eng.s_spd.eq(self.speed), eng.s_sref.eq(self.speed_ref), eng.s_rint.eq(ref_int),
                      *([] if refs else [eng.s_ilo.eq(self.iq_lim_lo),
                                         eng.s_ihi.eq(self.iq_lim_hi)]),
                      eng.s_dfr.eq(d[:3]), eng.s_dint.eq(d[3:]), eng.s_fresh.eq(l_fresh),

@@ -155,14 +155,6 @@ read as 0 here (the RAM's never-written word) unless the mode one clock before t
 clock was CURRENT or SPEED: the values the registers would have held, a trip in the middle of a pass included (the tests:
 ``test_top_scope_reads_the_engine_references_as_the_registers_held_them``,
 ``tests/test_engine_refs.py``).
-``speed_ref`` is the RAM's last word too (:data:`ENGINE_SPEED_REF`, docs/AREA.md §7.78: after the
-speed loop's four): the speed run reads it as a word, the engine's ``ref_int`` tracking while
-``speed_clear`` takes it from the word's write, and the scope's ``speed_ref`` source is a 16-bit
-register here loaded with the word's top half at the same write (the bits the scope records),
-in the clock the register file's flip-flops would have loaded: the same values in the same
-clocks, but for the tracking in one case (a trip released and SPEED re-entered with no commit
-copy between the trip and the re-entry, ``speed_slew`` 0: the first run starts from the last
-run's ``ref_int``, where the register gave ``speed_ref``; hdl/foc_engine.py).
 
 **Scope trigger.** The Servo's ``ref_step`` strobes at the first loop strobe that sees the
 value of a host write to the mode or a reference (:data:`REF_STEP_REGISTERS`): the top flags
@@ -211,7 +203,7 @@ import math
 import numbers
 from collections.abc import Mapping
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, Value, signed, unsigned
+from amaranth.hdl import Cat, Module, Mux, Signal, Value, signed, unsigned
 from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
@@ -224,7 +216,6 @@ from .fixed import at_least, check_bool, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
-from .foc_engine import REF_SPEED_WORDS as ENGINE_SPEED_REF_WORDS
 from .foc_engine import REF_STATUS as ENGINE_REF_STATUS
 from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
@@ -267,9 +258,6 @@ ENGINE_CONFIG = tuple({
 ENGINE_REFS = tuple({"ol_ud": "ol_u_d", "ol_uq": "ol_u_q", "idset": "i_d_ref",
                      "iqset": "i_q_ref", "ilo": "pi_speed_lim_lo",
                      "ihi": "pi_speed_lim_hi"}[name] for name in ENGINE_REF_WORDS)
-#: The register of the engine's last configuration word (``refs="ram"``, after the speed loop's
-#: words: :data:`~.foc_engine.REF_SPEED_WORDS`): the speed reference (module docstring).
-ENGINE_SPEED_REF = tuple({"sref": "speed_ref"}[name] for name in ENGINE_SPEED_REF_WORDS)
 #: The registers of the speed loop's configuration words (``regs_staging="bram"``), in its word
 #: order (:data:`~.servo.SPEED_CONFIG`).
 SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew": "speed_slew",
@@ -692,8 +680,7 @@ class Top(wiring.Component):
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
                                            if cfg_ram else ())
-                                          + (SPEED_LOOP_CONFIG if speed_ram else ())
-                                          + (ENGINE_SPEED_REF if refs else ())),
+                                          + (SPEED_LOOP_CONFIG if speed_ram else ())),
                                   status_ram=(tuple(f"st_{n}" for n in ENGINE_STATUS)
                                               if cfg_ram else ()),
                                   changed=("enc_lines", "enc_pole_pairs", "enc_z_offset"),
@@ -732,8 +719,7 @@ class Top(wiring.Component):
                                         config_init=self._regs.export_init[
                                             :len(ENGINE_CONFIG)
                                             + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
-                                               if speed_loop == "engine" else 0)
-                                            + (len(ENGINE_SPEED_REF) if refs else 0)],
+                                               if speed_loop == "engine" else 0)],
                                         status="ram", speed=speed_loop == "engine",
                                         refs="ram" if refs else "ports")
                       if cfg_ram else
@@ -995,9 +981,8 @@ class Top(wiring.Component):
         if hasattr(cl, "config"):
             # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1; with the
             # engine's speed run the speed loop's words after them too: all of them).
-            n_cfg = (len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
-                                           if self._speed_loop == "engine" else 0)
-                     + (len(ENGINE_SPEED_REF) if self._refs else 0))
+            n_cfg = len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
+                                          if self._speed_loop == "engine" else 0)
             m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < n_cfg)),
                          cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
@@ -1026,8 +1011,7 @@ class Top(wiring.Component):
         sl = cl if engine_speed else servo
         m.d.comb += [
             servo.mode.eq(regs.mode),
-            # (the engine's speed reference in its RAM: no port, ENGINE_SPEED_REF)
-            *([] if self._refs else [sl.speed_ref.eq(regs.speed_ref)]),
+            sl.speed_ref.eq(regs.speed_ref),
             # (the engine's references in its RAM: the Servo's id_ref, iq_ref unused, ENGINE_REFS)
             *([] if self._refs else [servo.id_set.eq(regs.i_d_ref),
                                      servo.iq_set.eq(regs.i_q_ref)]),
@@ -1122,21 +1106,9 @@ class Top(wiring.Component):
             m.d.comb += [cl.id_ref.eq(id_ref_q), cl.iq_ref.eq(iq_ref_q)]
         else:
             m.d.sync += theta_q.eq(servo.theta)
-        if self._refs:
-            # speed_ref (a word of the engine's RAM, ENGINE_SPEED_REF): the scope records its
-            # top half, loaded from the export port's write of the word, in the clock the
-            # register file's flip-flops would have loaded (a domain reset: its reset value at
-            # once, as theirs).
-            k = [r.name for _, r, _ in regs.export_words].index(ENGINE_SPEED_REF[0])
-            sref_hi = Signal(16, init=regs.export_init[k] >> 16, name="speed_ref_hi")
-            with m.If(exp.valid & (exp.index == k)):
-                m.d.sync += sref_hi.eq(exp.data[16:32])
-            src_sref = Cat(Const(0, 16), sref_hi)
-        else:
-            src_sref = regs.speed_ref
         m.d.comb += [
             src.speed.eq(speed),
-            src.speed_ref.eq(src_sref),
+            src.speed_ref.eq(regs.speed_ref),
             *([] if self._refs else [src.i_d_ref.eq(id_ref_q), src.i_q_ref.eq(iq_ref_q)]),
             src.theta.eq(theta_q),
             src.u_dc.eq(cl.udc.payload),

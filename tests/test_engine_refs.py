@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from amaranth.hdl import Elaboratable, Module
 
-from foc_servo.hdl.foc_engine import (CONFIG, REF_CONFIG_WORDS, REF_SPEED_WORDS, REF_STATUS,
-                                      SPEED_CONFIG_WORDS,
+from foc_servo.hdl.foc_engine import (CONFIG, REF_CONFIG_WORDS, REF_STATUS, SPEED_CONFIG_WORDS,
                                       START_CLOCKS, STATUS, EngineCurrentLoop, _clocks, _paths,
                                       current_loop_program, duty_lengths, path_lengths,
                                       speed_run_timing, status_quiet)
@@ -17,21 +16,16 @@ from test_engine import _built_for_signatures
 
 N_CFG = len(CONFIG)
 WORD = {name: N_CFG + j for j, name in enumerate(REF_CONFIG_WORDS)}
-#: refs="ram": the speed reference, the RAM's last word (after the speed loop's four).
-N_RAM = N_CFG + len(REF_CONFIG_WORDS) + len(SPEED_CONFIG_WORDS) + len(REF_SPEED_WORDS)
-WORD["sref"] = N_RAM - 1
-SLEW = SPEED_CONFIG_WORDS.index("slew")
 
 
 class _Pair(Elaboratable):
     """``refs="ports"`` and ``refs="ram"`` side by side (simulation only), both with the speed
     run and the configuration RAM (the iCEBreaker's engine)."""
 
-    def __init__(self, init, refs_init, sref_init=0):
+    def __init__(self, init, refs_init):
         self.ports = EngineCurrentLoop(config="ram", speed=True, config_init=init)
         self.ram = EngineCurrentLoop(config="ram", speed=True, refs="ram",
-                                     config_init=(init[:N_CFG] + refs_init + init[N_CFG:]
-                                                  + [sref_init]))
+                                     config_init=init[:N_CFG] + refs_init + init[N_CFG:])
 
     def elaborate(self, platform):
         m = Module()
@@ -45,14 +39,8 @@ OUTS = ["busy", "done", "overmod", "dc_limited", "overrun", "overruns", "count",
         "speed_sat", "speed_ref_int"]
 
 
-def _outputs(ctx, dut, copy=False):
-    """``copy``: in the clocks of a commit copy's speed-reference and slew words (from the
-    clock after the reference's write to the one after the slew's) ``speed_ref_int`` is left
-    out: the RAM loop holds the new reference from its word's write on (not tracking the speed
-    until the slew's word), the ports loop follows the register clock by clock (docs/AREA.md
-    §7.78; the same value from the clock after the slew's word)."""
-    return [ctx.get(getattr(dut, n)) if not (copy and n == "speed_ref_int") else None
-            for n in OUTS] + [
+def _outputs(ctx, dut):
+    return [ctx.get(getattr(dut, n)) for n in OUTS] + [
         ctx.get(dut.o.valid), ctx.get(dut.o.payload.as_value()), ctx.get(dut.phase.valid),
         ctx.get(dut.phase.payload.as_value()), ctx.get(dut.udc.payload),
         ctx.get(dut.speed_o.valid), ctx.get(dut.speed_o.payload)]
@@ -76,11 +64,7 @@ def test_engine_refs_ram_equals_ports_cycle_by_cycle(seed):
     run's i_q reference in SPEED mode, else 0), ``ol_ud``, ``ol_uq`` and the limits as ports;
     the RAM loop has the six words written into its configuration RAM before the sample (as
     the register file's commit copy writes them before the period, in the top) and rewritten
-    with the same values while it runs; inverted and narrow limits included. The speed
-    reference (the ports loop's port, as the register would change it: the clock after the
-    word's write) and the slew (both loops' words) change with each mode, zero or not, written
-    in the copy's order (the reference's word first, the slew's last), so that the tracking
-    while ``clear`` (the ``held`` clocks) and the fresh run after it are compared too."""
+    with the same values while it runs; inverted and narrow limits included."""
     rng = np.random.default_rng(seed)
     # A working loop (the PIs' outputs follow their references): modest gains, limits ±20000.
     cfg = {"gain_a": 1 << 15, "gain_b": 1 << 15, "kp_d": int(rng.integers(1 << 7, 1 << 9)),
@@ -92,16 +76,15 @@ def test_engine_refs_ram_equals_ports_cycle_by_cycle(seed):
               for side in ("lo", "hi") for ax in "dq"}}
     init = [cfg.get(name, 0) for name in CONFIG] + [
         int(rng.integers(1 << 10, 1 << 14)), int(rng.integers(0, 1 << 16)), 0, 300]
-    ref = int(rng.integers(-(1 << 31), 1 << 31))
-    bench = _Pair(init, [0] * len(REF_CONFIG_WORDS), ref & 0xFFFF_FFFF)
+    bench = _Pair(init, [0] * len(REF_CONFIG_WORDS))
     a, b = bench.ports, bench.ram
     assert not any(hasattr(b, n) for n in ("ol_ud", "ol_uq", "id_ref", "iq_ref", "iq_lim_lo",
-                                           "iq_lim_hi", "speed_ref"))
+                                           "iq_lim_hi"))
     fig = {"modes": [0, 0, 0, 0], "speed_runs": 0, "rewrites": 0, "clamped": 0,
-           "mismatch": None, "copy": True, "slew_falls": 0, "fresh_no_slew": 0}
+           "mismatch": None}
 
     async def tick(ctx, clock):
-        got_a, got_b = _outputs(ctx, a, fig["copy"]), _outputs(ctx, b, fig["copy"])
+        got_a, got_b = _outputs(ctx, a), _outputs(ctx, b)
         if got_a != got_b and fig["mismatch"] is None:
             fig["mismatch"] = (clock, [(k, x, y) for k, (x, y) in enumerate(zip(got_a, got_b))
                                        if x != y])
@@ -112,14 +95,13 @@ def test_engine_refs_ram_equals_ports_cycle_by_cycle(seed):
             ctx.set(dut.speed_valid, 0)
 
     async def testbench(ctx):
-        nonlocal ref
         words = dict.fromkeys(REF_CONFIG_WORDS, 0)
-        slew = 0
+        ref = int(rng.integers(-(1 << 31), 1 << 31))
         for dut in (a, b):
             ctx.set(dut.o.ready, 1)
             ctx.set(dut.speed_rate_div, 0)
             ctx.set(dut.speed_clear, 1)
-        ctx.set(a.speed_ref, ref)
+            ctx.set(dut.speed_ref, ref)
         ctx.set(a.iq_lim_lo, 0)
         ctx.set(a.iq_lim_hi, 0)
         clock = 0
@@ -144,34 +126,12 @@ def test_engine_refs_ram_equals_ports_cycle_by_cycle(seed):
                     lo, hi = hi, lo                                 # inverted limits
             words = {"ol_ud": _s16(rng), "ol_uq": _s16(rng), "idset": _s16(rng),
                      "iqset": iqset, "ilo": lo, "ihi": hi}
-            # The speed reference first, the slew last (their slots' order in the copy).
-            if rng.random() < 0.7:
-                ref = int(rng.integers(-(1 << 31), 1 << 31))
-            old_slew, slew = slew, (0 if rng.random() < 0.5 else int(rng.integers(1, 1 << 20)))
-            fig["slew_falls"] += old_slew != 0 and slew == 0 and mode != 3
-            fig["fresh_no_slew"] += slew == 0 and mode == 3
-            ctx.set(b.config.valid, 1)
-            ctx.set(b.config.index, WORD["sref"])
-            ctx.set(b.config.data, ref & 0xFFFF_FFFF)
-            await tick(ctx, clock)
-            clock += 1
-            fig["copy"] = True
-            ctx.set(a.speed_ref, ref)                   # (the register: a clock later)
             for name, v in words.items():
                 ctx.set(b.config.valid, 1)
                 ctx.set(b.config.index, WORD[name])
                 ctx.set(b.config.data, v & 0xFFFF_FFFF)
                 await tick(ctx, clock)
                 clock += 1
-            for dut, j in ((a, N_CFG + SLEW), (b, N_CFG + len(REF_CONFIG_WORDS) + SLEW)):
-                ctx.set(dut.config.valid, 1)
-                ctx.set(dut.config.index, j)
-                ctx.set(dut.config.data, slew)
-            await tick(ctx, clock)
-            clock += 1
-            await tick(ctx, clock)
-            clock += 1
-            fig["copy"] = False
             ctx.set(a.iq_lim_lo, lo)
             ctx.set(a.iq_lim_hi, hi)
             # A speed run (SPEED mode, or cleared), then the sample after it.
@@ -216,7 +176,6 @@ def test_engine_refs_ram_equals_ports_cycle_by_cycle(seed):
     simulate(bench, [testbench], name="engine_refs_ram")
     assert fig["mismatch"] is None, fig["mismatch"]
     assert fig["modes"] == [6] * 4 and fig["clamped"] >= 4 and fig["rewrites"] > 800
-    assert fig["slew_falls"] >= 1 and fig["fresh_no_slew"] >= 1, fig
 
 
 def _read_clocks(program, name, start=0):
@@ -236,7 +195,7 @@ def test_engine_refs_ram_word_read_when_the_program_reads_it():
     before the reading instruction's R clock, bypassed), not if it comes in that clock or
     later; a latch would take neither. Open loop (``ol_ud``) and CURRENT mode (``idset``), one
     run each."""
-    init = [0] * N_RAM
+    init = [0] * (N_CFG + len(REF_CONFIG_WORDS) + 4)
     # PI_d: kp 1.0, limits ±full scale (its output follows the reference).
     for name, v in {"kp_d": 1 << 8, "lo_d": -32768 & 0xFFFF_FFFF, "hi_d": 32767}.items():
         init[CONFIG.index(name)] = v
@@ -327,9 +286,9 @@ def _check_parameters():
     ports = EngineCurrentLoop(config="ram", speed=True, status="ram")
     ram = EngineCurrentLoop(config="ram", speed=True, status="ram", refs="ram")
     assert set(ports.signature.members) - set(ram.signature.members) == {
-        "ol_ud", "ol_uq", "id_ref", "iq_ref", "iq_lim_lo", "iq_lim_hi", "speed_ref"}
+        "ol_ud", "ol_uq", "id_ref", "iq_ref", "iq_lim_lo", "iq_lim_hi"}
     sig = ram.signature.members["config"].signature
-    assert isinstance(sig, WordWriteSignature) and sig.depth == n + 7 == 27 == N_RAM
+    assert isinstance(sig, WordWriteSignature) and sig.depth == n + 6 == 26
     assert ram.status_words == STATUS + REF_STATUS and ports.status_words == STATUS
     assert ram.signature.members["status_probe"].signature.addr_width == 4
     assert ram.signature.members["status_rd"].signature.addr_width == 3
@@ -343,7 +302,7 @@ def _check_parameters():
                                              r"its configuration RAM, the SPEED mode's i_q the "
                                              r"speed run's\), not config="):
             EngineCurrentLoop(refs="ram", **kw)
-    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 27 "
+    with pytest.raises(ValueError, match=r"^EngineCurrentLoop config_init must be a list of 26 "
                                          r"integers, not \[0\]$"):
         EngineCurrentLoop(config="ram", speed=True, refs="ram", config_init=[0])
 
@@ -355,18 +314,17 @@ def test_engine_refs_sample_behind_a_speed_run_takes_its_result():
     the reference of the accepting clock (the previous run's: here 0, the first after
     ``clear``). PI_q with kp 1, no integral, full-scale limits, zero currents: u_q is the
     reference it used."""
-    init = [0] * N_RAM
+    init = [0] * (N_CFG + len(REF_CONFIG_WORDS) + 4)
     for name, v in {"kp_q": 1 << 8, "lo_q": -32768 & 0xFFFF_FFFF, "hi_q": 32767}.items():
         init[CONFIG.index(name)] = v
     init[WORD["ilo"]], init[WORD["ihi"]] = -5000 & 0xFFFF_FFFF, 5000
     init[N_CFG + len(REF_CONFIG_WORDS)] = 1 << 12                     # speed kp 1.0
-    init[WORD["sref"]] = 1 << 28                                    # the speed reference
     dut = EngineCurrentLoop(config="ram", speed=True, refs="ram", config_init=init)
     seen = {}
 
     async def testbench(ctx):
         ctx.set(dut.o.ready, 1)
-        for port, v in {"speed_clear": 0, "speed": 0, "theta": 0,
+        for port, v in {"speed_clear": 0, "speed_ref": 1 << 28, "speed": 0, "theta": 0,
                         "enable": 1, "ol_enable": 0, "ff_enable": 0, "scale": 1000}.items():
             ctx.set(getattr(dut, port), v)
         ctx.set(dut.i.payload, {"ia": 0, "ib": 0, "udc": 9000, "aux": 0})
@@ -389,67 +347,3 @@ def test_engine_refs_sample_behind_a_speed_run_takes_its_result():
     simulate(dut, [testbench], name="engine_refs_behind_speed")
     assert seen["before"] == 0 and seen["iq"] == 4096 and seen["iq_valid_before_o"]
     assert seen["o"] == 4096
-
-
-def test_engine_refs_speed_ref_tracking_needs_a_copy_while_clear():
-    """The documented difference of the speed reference as a word (docs/AREA.md §7.78): while
-    ``clear`` the RAM loop's ``ref_int`` takes ``speed_ref`` from the word's write, so if
-    ``clear`` rises after a copy's reference word (a trip) and falls again before the next
-    copy (slew 0), the fresh run after it starts from the last run's ``ref_int`` (R1), where
-    the register's forcing gave the new reference (R2); with ``speed_ref_delay`` 1 the PI's
-    reference of that run is ``to_pi`` of it, so the i_q references differ. With the word
-    written while ``clear`` (every commit copy in it) both take R2 (the cycle-by-cycle test)."""
-    r1, r2 = 1 << 20, 2 << 20
-    init = [0] * (N_CFG + 4)
-    init[N_CFG] = 1 << 12                                           # speed kp 1.0
-    bench = _Pair(init, [0, 0, 0, 0, -5000 & 0xFFFF_FFFF, 5000], r1)
-    a, b = bench.ports, bench.ram
-    seen = {}
-
-    async def run(ctx, tag):
-        for dut in (a, b):
-            ctx.set(dut.speed_valid, 1)
-        await ctx.tick()
-        for dut in (a, b):
-            ctx.set(dut.speed_valid, 0)
-        for _ in range(300):
-            for name, dut in (("a", a), ("b", b)):
-                if ctx.get(dut.speed_o.valid):
-                    seen[f"{tag}_{name}"] = ctx.get(dut.speed_o.payload)
-            await ctx.tick()
-
-    async def testbench(ctx):
-        for dut in (a, b):
-            ctx.set(dut.o.ready, 1)
-            ctx.set(dut.speed_clear, 1)             # (as the Servo's in the reset clock)
-            ctx.set(dut.speed_ref_delay, 8)                         # d = 1.0
-        ctx.set(a.speed_ref, r1)
-        ctx.set(a.iq_lim_lo, -5000)
-        ctx.set(a.iq_lim_hi, 5000)
-        await ctx.tick()
-        for dut in (a, b):
-            ctx.set(dut.speed_clear, 0)
-        await ctx.tick()
-        await run(ctx, "first")
-        ctx.set(b.config.valid, 1)                  # a copy while running: R2, then slew 0
-        ctx.set(b.config.index, WORD["sref"])
-        ctx.set(b.config.data, r2)
-        await ctx.tick()
-        ctx.set(a.speed_ref, r2)
-        ctx.set(b.config.index, N_CFG + len(REF_CONFIG_WORDS) + SLEW)
-        ctx.set(b.config.data, 0)
-        await ctx.tick()
-        ctx.set(b.config.valid, 0)
-        for dut in (a, b):                          # a trip: clear, no copy in it
-            ctx.set(dut.speed_clear, 1)
-        await ctx.tick().repeat(10)
-        seen["ref_int"] = (ctx.get(a.speed_ref_int), ctx.get(b.speed_ref_int))
-        for dut in (a, b):
-            ctx.set(dut.speed_clear, 0)
-        await ctx.tick()
-        await run(ctx, "fresh")
-
-    simulate(bench, [testbench], name="engine_refs_sref_tracking")
-    assert seen["first_a"] == seen["first_b"]
-    assert seen["ref_int"] == (r2, r1)
-    assert seen["fresh_a"] != seen["fresh_b"] and seen["fresh_b"] == seen["first_b"], seen
