@@ -141,6 +141,11 @@ MT_CHUNK_MULTIPLIERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": Fals
 #: docs/AREA.md §7.76; needs the block-RAM staging and one multiplier per chunk); the
 #: register file's flip-flops elsewhere. The same speeds either way.
 MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+#: ``Top(ram_loop_count=…)`` per FPGA family (only with ``regs_staging="bram"``):
+#: ``st_current_loops`` counted in the register file's staging RAM on the iCE40 (−32 logic
+#: cells on the iCEBreaker, docs/AREA.md §7.78); the loop's own counter elsewhere (the Arty S7
+#: +23 LUT6 the other way). The same values either way.
+RAM_LOOP_COUNT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
@@ -389,7 +394,8 @@ class BoardTop(Elaboratable):
                                      if self._board.regs_staging == "bram" else "ports"),
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
-                        mt_k_export=MT_K_EXPORT[self._board.family])
+                        mt_k_export=MT_K_EXPORT[self._board.family],
+                        ram_loop_count=RAM_LOOP_COUNT[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

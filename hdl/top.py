@@ -176,7 +176,9 @@ loop overruns (``st_overruns``), dropped ADC strobes (``st_adc_overruns``) and s
 and the sticky ``st_loop_flags`` (over-modulation, PI_d / PI_q / speed PI saturation, DC-bus gain
 limit), set by any loop completing with the condition and cleared by ``clear_faults``. The host
 link's 16-bit counters (``st_link_*``) count the frames before the one that reads them. With
-``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) are words
+``regs_staging="bram"`` these eight counters (:data:`TOP_COUNTERS` and the link's) and
+``st_current_loops`` (the current loop's passes, :data:`RAM_LOOP_COUNTERS`; with
+``ram_loop_count``, the iCE40's) are words
 of the register file's staging RAM, counted from strobes (``RegisterFile(counters=...)``,
 docs/AREA.md §7.59): a read returns the same value as from flip-flops, but a register access
 taken in the clock of a count (or while one is pending) waits until the count is written (two
@@ -288,6 +290,10 @@ MT_TC_WIDTH = 28
 #: The top's own wrapping 16-bit status counters (speed-loop runs, current-loop overruns,
 #: dropped ADC strobes), at most one count per PWM period each.
 TOP_COUNTERS = ("st_speed_loops", "st_overruns", "st_adc_overruns")
+#: With ``regs_staging="bram"`` also the current-loop passes (the duty transfers, ``done``, at
+#: most one a PWM period) are counted in the staging RAM (docs/AREA.md §7.78); with ``"ff"``
+#: ``st_current_loops`` is the loop's own ``count`` (its low 16 bits).
+RAM_LOOP_COUNTERS = ("st_current_loops",)
 
 REF_STEP_REGISTERS = ("mode", "speed_ref", "i_d_ref", "i_q_ref", "ol_u_d", "ol_u_q")
 
@@ -533,6 +539,12 @@ class Top(wiring.Component):
         power-up until the register file's reset walk writes ``mt_k`` (no M/T result reads
         ``k`` that early: the PWM period must exceed the walk, checked). The same speeds; the
         iCE40's choice (default ``False``: it needs the block-RAM staging).
+    ram_loop_count : bool
+        With ``regs_staging="bram"``: ``st_current_loops`` counted in the register file's
+        staging RAM from the loop's ``done`` (:data:`RAM_LOOP_COUNTERS`; the same values, an
+        access in a count's clock acked two clocks later, module docstring "Status"; the
+        iCE40's choice and the default, fewer iCE40 cells, docs/AREA.md §7.78); ``False`` the
+        loop's own ``count`` (the Spartan-7's: fewer LUT6). No effect with ``"ff"``.
 
     Members
     -------
@@ -582,6 +594,9 @@ class Top(wiring.Component):
         The parameters.
     enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
+    ram_loop_count : bool
+        ``st_current_loops`` is a counter of the staging RAM (the parameter with
+        ``regs_staging="bram"``, else ``False``).
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
         ``period_start`` and the new values are all in place in the ``period_start`` clock
@@ -602,8 +617,9 @@ class Top(wiring.Component):
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
                  timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
-                 mt_chunk_multipliers=True, mt_k_export=False):
+                 mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True):
         mul_width = check_mul_width("Top", mul_width)
+        check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
             if not _is_hz(value):
@@ -709,9 +725,12 @@ class Top(wiring.Component):
         # counted in the staging RAM (RegisterFile(counters=...), from count strobes): no
         # 16-bit counter and no read multiplexer term each (docs/AREA.md §7.59).
         self._ram_counters = COUNTERS if regs_staging == "bram" else ()
+        self._ram_loop_count = bool(self._ram_counters) and ram_loop_count
         self._regs = RegisterFile(regmap, staging=regs_staging,
                                   counters=(tuple(f"st_link_{n}" for n in self._ram_counters)
-                                            + (TOP_COUNTERS if self._ram_counters else ())),
+                                            + (TOP_COUNTERS if self._ram_counters else ())
+                                            + (RAM_LOOP_COUNTERS if self._ram_loop_count
+                                               else ())),
                                   copy_last=("pwm_symmetric",) if regs_staging == "bram" else (),
                                   export=((ENGINE_CONFIG + (ENGINE_REFS if refs else ())
                                            if cfg_ram else ())
@@ -864,6 +883,7 @@ class Top(wiring.Component):
     prot_limits = property(lambda self: self._protect.limits)
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
+    ram_loop_count = property(lambda self: self._ram_loop_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
@@ -1217,6 +1237,8 @@ class Top(wiring.Component):
         counted = {"st_speed_loops": servo.speed_valid, "st_overruns": cl.overrun,
                    "st_adc_overruns": adc.overrun}
         assert tuple(counted) == TOP_COUNTERS
+        if self._ram_loop_count:
+            counted["st_current_loops"] = cl.done
         for name, event in counted.items():
             if self._ram_counters:
                 m.d.comb += getattr(regs, f"{name}_inc").eq(event)
@@ -1263,7 +1285,8 @@ class Top(wiring.Component):
             regs.st_theta.eq(theta_status),
             regs.st_speed.eq(speed),
             regs.st_udc.eq(cl.udc.payload),
-            regs.st_current_loops.eq(cl.count[:16]),       # 16-bit register: wraps at 2**16
+            # (16-bit register: wraps at 2**16; with "bram" a counter in the staging RAM)
+            *([] if self._ram_loop_count else [regs.st_current_loops.eq(cl.count[:16])]),
             _raw(regs.st_loop_flags).eq(flags),
             regs.st_uv_armed.eq(prot.uv_armed),
             regs.st_enc_config_error.eq(enc.config_error),

@@ -29,8 +29,8 @@ from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, ENC_FOLD_RELOAD, LINK_READ_HOLD,
                                     MT_CHUNK_MULTIPLIERS, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop, _tool,
-                                    build, pll_config, prepare, synthesis_verilog)
+                                    RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER,
+                                    BoardTop, build, pll_config, prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -250,7 +250,9 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
 #: its own but on the iCE40 (the ECP5's Fmax; the iCE40's cells the other way, the Spartans'
 #: LUT6 unchanged, §7.70); the scope's down-counters on the iCE40 only (its cells; the
 #: Spartan-7's LUT6 the other way, §7.70); the dead-time compensation's clamp in the PWM timer
-#: on the iCE40 only (its cells; the other netlists as before, §7.72).
+#: on the iCE40 only (its cells; the other netlists as before, §7.72); the current loop's pass
+#: count in the register file's staging RAM on the iCE40 only (its cells; the Arty's LUT6 the
+#: other way, §7.78).
 FAMILY_FORMS = [
     ("link_read_hold", LINK_READ_HOLD, (False, True, False, False),
      lambda top: (top.link_read_hold, top._link.core.read_hold)),
@@ -269,6 +271,11 @@ FAMILY_FORMS = [
      lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
     ("mt_k_export", MT_K_EXPORT, (True, False, False, False),
      lambda top: (top.mt_k_export, top._mt.k_steady, bool(top._mt_k_words))),
+    # (st_current_loops a counter of the staging RAM: the iCE40's; the ULX3S stages in
+    # flip-flops, so none there; the Arty S7's LUT6 the other way, §7.78)
+    ("ram_loop_count", RAM_LOOP_COUNT, (True, False, False, False),
+     lambda top: (top.ram_loop_count,
+                  "st_current_loops" in top._regs.counters)),
 ]
 
 

@@ -297,12 +297,13 @@ def test_top_uses_ram_counters_with_bram_staging_and_checks_their_interval():
     from foc_servo.hdl.top import Top
     top = Top(pwm_hz=100e3, baud=50e6 / 8, regs_staging="bram")
     assert top._regs.counters == (tuple(f"st_link_{n}" for n in COUNTERS)
-                                  + ("st_speed_loops", "st_overruns", "st_adc_overruns"))
+                                  + ("st_speed_loops", "st_overruns", "st_adc_overruns",
+                                     "st_current_loops"))
     assert top._link.strobed == COUNTERS
     assert Top(pwm_hz=100e3, baud=50e6 / 8)._link.strobed == ()
     with pytest.raises(ValueError, match=r"^Top: the counters in the register file's RAM "
                                          r"need the PWM period and 2 UART bytes to last at "
-                                         r"least 136 clocks, not 100$"):
+                                         r"least 139 clocks, not 100$"):
         Top(pwm_hz=500e3, baud=50e6 / 8, regs_staging="bram")
 
 
@@ -352,11 +353,11 @@ def test_top_bram_link_counters_read_over_the_uart():
 
 
 def test_top_bram_own_counters_read_the_events_over_the_uart():
-    """The Top with ``regs_staging="bram"`` in speed mode: ``st_speed_loops``,
-    ``st_overruns``, ``st_adc_overruns`` (0x0419 …, counted in the staging RAM from
-    ``servo.speed_valid``, the loop's ``overrun``, the ADC's ``overrun``) read over the UART
-    lie between the events counted at those signals before the request and at the reply; the
-    speed loop has run."""
+    """The Top with ``regs_staging="bram"`` in speed mode: ``st_current_loops``,
+    ``st_speed_loops``, ``st_overruns``, ``st_adc_overruns`` (0x0418 …, counted in the staging
+    RAM from the loop's ``done``, ``servo.speed_valid``, the loop's ``overrun``, the ADC's
+    ``overrun``) read over the UART lie between the events counted at those signals before the
+    request and at the reply; the speed loop has run."""
     from foc_servo.hdl.regmap import Mode
     from foc_servo.hdl.top import Top
     from foc_servo.host.protocol import cobs_decode, decode_reply
@@ -365,7 +366,7 @@ def test_top_bram_own_counters_read_the_events_over_the_uart():
     top = Top(pwm_hz=100e3, baud=BAUD, regs_staging="bram",
               resets={"mode": Mode.SPEED.value, "prot_mask": 0})
     bench = _Bench(top, BAUD)
-    events = {"speed": 0, "overrun": 0, "adc": 0}
+    events = {"done": 0, "speed": 0, "overrun": 0, "adc": 0}
     wire = bytearray()
     seen = []
 
@@ -375,8 +376,9 @@ def test_top_bram_own_counters_read_the_events_over_the_uart():
             wire.append(byte)
 
     async def count(ctx):
-        async for _, _, s, o, a in ctx.tick().sample(top._servo.speed_valid, top._loop.overrun,
-                                                    top._adc.overrun):
+        async for _, _, d, s, o, a in ctx.tick().sample(top._loop.done, top._servo.speed_valid,
+                                                       top._loop.overrun, top._adc.overrun):
+            events["done"] += d
             events["speed"] += s
             events["overrun"] += o
             events["adc"] += a
@@ -386,7 +388,7 @@ def test_top_bram_own_counters_read_the_events_over_the_uart():
         await ctx.tick().repeat(8000)
         for n in (1, 2):
             before = dict(events)
-            for byte in frame(encode_request(Command.READ, n, 0x0419, 3)):
+            for byte in frame(encode_request(Command.READ, n, 0x0418, 4)):
                 for level in _bitbang(byte):
                     ctx.set(bench.inject, level)
                     await ctx.tick().repeat(per_bit)
@@ -399,6 +401,7 @@ def test_top_bram_own_counters_read_the_events_over_the_uart():
     simulate(bench, [testbench], [monitor, count, _encoder_process(top, 25)],
              name="top_bram_own_counters")
     for before, data, after in seen:
-        for value, name in zip(data, ("speed", "overrun", "adc")):
+        for value, name in zip(data, ("done", "speed", "overrun", "adc")):
             assert before[name] <= value <= after[name], (name, before, data, after)
+    assert seen[-1][1][1] >= 10 and seen[-1][1][1] > seen[0][1][1]
     assert seen[-1][1][0] >= 10 and seen[-1][1][0] > seen[0][1][0]

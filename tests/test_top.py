@@ -173,6 +173,7 @@ def _signed(word, bits=32):
     ({"current_loop": "engine", "pwm_hz": 294e3}, ValueError,
      r"^Top current_loop='engine' needs a PWM period longer than the ADC's latency \+ the "
      r"engine's sample hold \(179 clocks\), not 170 clocks$"),
+    ({"ram_loop_count": 1}, TypeError, r"^Top ram_loop_count must be a bool, not 1$"),
     ({"regs_staging": "bram", "pwm_hz": 1.25e6}, ValueError,
      r"^Top regs_staging='bram' needs a PWM period longer than the register copy \(49 clocks\), "
      r"not 40 clocks$"),
