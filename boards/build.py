@@ -115,6 +115,12 @@ TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: logic cells on the iCEBreaker the other way). The same replies and accesses either way.
 LINK_READ_HOLD = {"ice40": False, "ecp5": True, "xc7": False, "xc6s": False}
 
+#: ``Top(link_compact=…)`` per FPGA family: the host link's iCE40 forms (its reply's zero test
+#: on the selected byte, the COBS code byte counted in place, …: fewer logic cells on the
+#: iCEBreaker, docs/AREA.md §7.75); elsewhere the form of before (the ECP5's 100 MHz paths run
+#: through the link, §7.62). The same replies and accesses in the same clocks either way.
+LINK_COMPACT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
 #: fewer than 4 flip-flops share becomes a multiplexer in the LUT in front of each instead of
@@ -357,7 +363,8 @@ class BoardTop(Elaboratable):
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
-                        link_read_hold=LINK_READ_HOLD[self._board.family])
+                        link_read_hold=LINK_READ_HOLD[self._board.family],
+                        link_compact=LINK_COMPACT[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

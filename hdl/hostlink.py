@@ -260,6 +260,11 @@ class LinkCore(wiring.Component):
         ``False``: the address chosen from the state in every clock (fewer iCE40 cells). The
         same replies, accesses and timing either way; ``bus.w_data`` outside accesses (no
         meaning, the bus protocol) may differ.
+    compact : bool
+        The iCE40's forms (fewer logic cells, longer paths; the ECP5's 100 MHz paths run through
+        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte, the
+        COBS code byte counted in place. Default ``False``. The same replies and accesses in
+        the same clocks either way (``bus.w_data`` outside accesses aside, as above).
 
     Members
     -------
@@ -301,11 +306,12 @@ class LinkCore(wiring.Component):
     """
 
     def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=(),
-                 read_hold=False):
+                 read_hold=False, compact=False):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
         self._strobed = _check_strobed("LinkCore", strobed)
         self._read_hold = check_bool("LinkCore", "read_hold", read_hold)
+        self._compact = check_bool("LinkCore", "compact", compact)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -321,6 +327,7 @@ class LinkCore(wiring.Component):
 
     strobed = property(lambda self: self._strobed)
     read_hold = property(lambda self: self._read_hold)
+    compact = property(lambda self: self._compact)
     max_words = property(lambda self: self._max_words)
     address_map = property(lambda self: self._address_map)
     counter_width = property(lambda self: self._counter_width)
@@ -398,7 +405,10 @@ class LinkCore(wiring.Component):
         # block length needs fewer bits, and the tests for such a block are constant false.
         rlen_max = REPLY_HEADER + 4 * mw + CRC_BYTES
         long_blocks = rlen_max >= 254
-        blk = Signal(range(min(255, rlen_max + 1)))     # COBS block length (non-zero bytes)
+        # COBS block length (non-zero bytes), plus ``b1``: 1 in the compact form, where blk
+        # holds the block's code byte itself (no incrementer in front of the reply byte).
+        b1 = int(self._compact)
+        blk = Signal(range(min(255, rlen_max + 1) + b1))
         blk_zero = Signal()                     # the block ended at a zero byte
         j_next = Signal.like(j)                 # j in the next clock
 
@@ -445,12 +455,15 @@ class LinkCore(wiring.Component):
                      Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
-        # the whole top's 100 MHz).
-        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
-        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
-                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
-                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
+        # the whole top's 100 MHz). The compact form tests the selected byte itself.
+        if self._compact:
+            jb_zero = jb == 0
+        else:
+            hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+            dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
+            jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                          Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                              Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
@@ -703,7 +716,7 @@ class LinkCore(wiring.Component):
                             m.d.sync += getattr(self, f"{name}_strobe").eq(1)
                         else:
                             counter(getattr(self, name))
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
+                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(b1)]
                 next_j(0, parts_0)
                 read_flag(rd_rep, 1)
                 m.next = "CRC"
@@ -735,19 +748,19 @@ class LinkCore(wiring.Component):
                     read_flag(rd_at_p, 1)
                     m.d.sync += blk_zero.eq(~scan_end)
                     if long_blocks:
-                        m.d.sync += more254.eq((blk == 254) & (j != rlen))
+                        m.d.sync += more254.eq((blk == 254 + b1) & (j != rlen))
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253) if long_blocks
+                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253 + b1) if long_blocks
                                              else j == rlen_m1),
                                  blk.eq(blk + 1)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
-                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1 - b1)]
                 with m.If(self.o.ready):
                     read_flag(rd_at_p, 0)
-                    with m.If(blk == 0):
+                    with m.If(blk == b1):
                         m.next = "NEXT"
                     with m.Else():
                         m.next = "DATA"
@@ -761,19 +774,19 @@ class LinkCore(wiring.Component):
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
                     m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
-                    with m.If(blk == 1):            # j + 1 = p + blk
+                    with m.If(blk == 1 + b1):       # j + 1 = p + blk
                         m.next = "NEXT"
 
             with m.State("NEXT"):                   # j = p + blk, the block's end
                 if hold:
                     m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
-                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
+                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(b1),
                                  scan_end.eq(j == rlen_m1)]
                     next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
-                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
+                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(b1)]
                     next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
@@ -833,13 +846,15 @@ class HostLink(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
-                 counter_width=16, strobed=(), read_hold=False):
+                 counter_width=16, strobed=(), read_hold=False, compact=False):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
         _check_strobed("HostLink", strobed)
         check_bool("HostLink", "read_hold", read_hold)
+        check_bool("HostLink", "compact", compact)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
-                              counter_width=counter_width, strobed=strobed, read_hold=read_hold)
+                              counter_width=counter_width, strobed=strobed, read_hold=read_hold,
+                              compact=compact)
         self._clk_hz, self._baud = clk_hz, baud
         cw = self._core.counter_width
         super().__init__({
@@ -851,6 +866,7 @@ class HostLink(wiring.Component):
 
     strobed = property(lambda self: self._core.strobed)
     read_hold = property(lambda self: self._core.read_hold)
+    compact = property(lambda self: self._core.compact)
     clk_hz = property(lambda self: self._clk_hz)
     baud = property(lambda self: self._baud)
     core = property(lambda self: self._core)

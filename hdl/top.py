@@ -489,6 +489,10 @@ class Top(wiring.Component):
         :class:`~.hostlink.HostLink` ``read_hold``: the link's frame-buffer read address from
         registered flags (the same replies and accesses; the ECP5 board's choice, for its Fmax;
         default ``False``, fewer iCE40 cells).
+    link_compact : bool
+        :class:`~.hostlink.HostLink` ``compact``: the link's iCE40 forms (the same replies and
+        accesses in the same clocks, fewer iCE40 cells, longer paths; the iCE40 board's choice;
+        default ``False``, the form of the other families' netlists).
 
     Members
     -------
@@ -534,7 +538,7 @@ class Top(wiring.Component):
         The parameter.
     current_loop, scope_ram, regs_staging : str
         The parameters.
-    uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
+    uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp, link_compact : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -555,7 +559,7 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True):
+                 timer_clamp=True, link_compact=False):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -684,7 +688,8 @@ class Top(wiring.Component):
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width,
-                              strobed=self._ram_counters, read_hold=link_read_hold)
+                              strobed=self._ram_counters, read_hold=link_read_hold,
+                              compact=link_compact)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
                                signed_duty=timer_clamp)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
@@ -794,6 +799,7 @@ class Top(wiring.Component):
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     link_read_hold = property(lambda self: self._link.read_hold)
+    link_compact = property(lambda self: self._link.compact)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
     def elaborate(self, platform):

@@ -27,8 +27,8 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_COMPACT, LINK_READ_HOLD, MUL_WIDTH,
+                                    NAME, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
                                     _tool, build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
@@ -249,10 +249,13 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
 #: its own but on the iCE40 (the ECP5's Fmax; the iCE40's cells the other way, the Spartans'
 #: LUT6 unchanged, §7.70); the scope's down-counters on the iCE40 only (its cells; the
 #: Spartan-7's LUT6 the other way, §7.70); the dead-time compensation's clamp in the PWM timer
-#: on the iCE40 only (its cells; the other netlists as before, §7.72).
+#: on the iCE40 only (its cells; the other netlists as before, §7.72); the host link's compact
+#: forms on the iCE40 only (its cells; the ECP5's 100 MHz paths, §7.75).
 FAMILY_FORMS = [
     ("link_read_hold", LINK_READ_HOLD, (False, True, False, False),
      lambda top: (top.link_read_hold, top._link.core.read_hold)),
+    ("link_compact", LINK_COMPACT, (True, False, False, False),
+     lambda top: (top.link_compact, top._link.core.compact)),
     ("trip_register", TRIP_REGISTER, (False, True, True, True),
      lambda top: (top.trip_register, top._protect.trip_register)),
     ("scope_down_counts", SCOPE_DOWN_COUNTS, (True, False, False, False),
