@@ -14,7 +14,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -398,9 +398,23 @@ class LinkCore(wiring.Component):
         r_status = Signal(8)
         framing = Signal()                      # the BAD_CRC is for a damaged frame
         nwords = Signal(range(mw + 1))          # data words in the reply
-        nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
-        j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
+        # Reply byte index. The compact form holds j − 4 (modulo 2**jw; the header's bytes are
+        # the top four values, above every data and CRC byte's): the buffer word of byte j is
+        # then its bits 2 and up, no subtractor in front of the buffer's read address. Every
+        # comparison of j below is with a value of the same form, byte selections use j mod 4
+        # (the same), and the comments speak of j itself.
+        jw = Shape.cast(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1)).width
+        j_off = REPLY_HEADER if self._compact else 0
+        j_0 = -j_off % (1 << jw)                # the register's value for j = 0
+        j = Signal(jw, init=j_0)
         p = Signal.like(j)                      # COBS block start
+        # nwords + 1, set with it (j − 4's form: nwords − 1, jw − 2 bits, modulo)
+        if self._compact:
+            nwords1, nw_step = Signal(jw - 2), -1
+        else:
+            nwords1, nw_step = Signal(range(mw + 2)), 1
+        nwords_d = nwords1 if self._compact else nwords     # the bits above dend's
+        nwords_r = nwords if self._compact else nwords1     # the bits above rlen's
         # A reply of at most 253 bytes (max_words ≤ 61) has no 254-byte COBS block: then the
         # block length needs fewer bits, and the tests for such a block are constant false.
         rlen_max = REPLY_HEADER + 4 * mw + CRC_BYTES
@@ -419,10 +433,10 @@ class LinkCore(wiring.Component):
         # ``nwords`` and ``nwords + 1`` (4 + 4·n = 4·(n + 1)): no adder in front of the reply's
         # byte selection and buffer address (100 MHz).
         # dend = 4 + 4·nwords = Cat(0b00, nwords1) itself is not needed: only its neighbours are.
-        dend_m1 = Cat(Const(3, 2), nwords)      # dend − 1 (the CRC pass's last byte)
-        dend_m2 = Cat(Const(2, 2), nwords)      # dend − 2 (≥ 2)
-        rlen = Cat(Const(2, 2), nwords1)        # dend + 2
-        rlen_m1 = Cat(Const(1, 2), nwords1)     # rlen − 1
+        dend_m1 = Cat(Const(3, 2), nwords_d)    # dend − 1 (the CRC pass's last byte)
+        dend_m2 = Cat(Const(2, 2), nwords_d)    # dend − 2 (≥ 2)
+        rlen = Cat(Const(2, 2), nwords_r)       # dend + 2
+        rlen_m1 = Cat(Const(1, 2), nwords_r)    # rlen − 1
         # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
         # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
         # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
@@ -445,7 +459,6 @@ class LinkCore(wiring.Component):
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
         # are meaningful from CRC to DATA.
         m.d.sync += j.eq(j_next)
-        jw = j.shape().width
         j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
         flags = Cat(j_hdr, j_dat, j_dend)
         flags_next = Signal.like(flags)
@@ -467,14 +480,18 @@ class LinkCore(wiring.Component):
 
         def word(value):
             """Buffer address of reply byte ``value``."""
-            return (Value.cast(value) - REPLY_HEADER)[2:jw]
+            return (Value.cast(value) - REPLY_HEADER + j_off)[2:jw]
 
         # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3;
         # j + 1 < dend as j's own data flag and j ≠ dend − 1, since the flags follow j from
         # REPLY on; j = dend − 1: no adder or magnitude comparison in front), and registers
         # holding those of p (set with p): no comparison of p with dend.
         parts_0 = Const(0b011, 3)
-        parts_j1 = Cat(_below(j, REPLY_HEADER - 1), j_dat & (j != dend_m1), j == dend_m1)
+        if self._compact:                   # j < 3: j − 4 is one of the top four but the last
+            below3 = (j[2:] == (1 << (jw - 2)) - 1) & (j[:2] != 3)
+        else:
+            below3 = _below(j, REPLY_HEADER - 1)
+        parts_j1 = Cat(below3, j_dat & (j != dend_m1), j == dend_m1)
         p_flags = Signal(3)
 
         def set_j(value, value_parts):
@@ -612,7 +629,7 @@ class LinkCore(wiring.Component):
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & _below(count_in, mw + 1)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), a_full.eq(addr_in),
                     framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
@@ -688,7 +705,7 @@ class LinkCore(wiring.Component):
                                          wr.en.eq(0b1111)]
                         with m.If(idx + 1 == count_in):
                             with m.If(~is_write):
-                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + 1),
+                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + nw_step),
                                              r_info.eq(count_in)]
                             m.d.sync += bus_lock.eq(0)
                             m.next = "REPLY"
@@ -716,8 +733,8 @@ class LinkCore(wiring.Component):
                             m.d.sync += getattr(self, f"{name}_strobe").eq(1)
                         else:
                             counter(getattr(self, name))
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(b1)]
-                next_j(0, parts_0)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(j_0), p_flags.eq(parts_0), blk.eq(b1)]
+                next_j(j_0, parts_0)
                 read_flag(rd_rep, 1)
                 m.next = "CRC"
 
@@ -734,7 +751,7 @@ class LinkCore(wiring.Component):
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    next_j(0, parts_0, read=j + 1)
+                    next_j(j_0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
                     m.d.sync += crc_last.eq(j == dend_m2)
