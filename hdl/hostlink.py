@@ -480,7 +480,9 @@ class LinkCore(wiring.Component):
 
         def word(value):
             """Buffer address of reply byte ``value``."""
-            return (Value.cast(value) - REPLY_HEADER + j_off)[2:jw]
+            if self._compact:
+                return Value.cast(value)[2:jw]
+            return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
         # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3;
         # j + 1 < dend as j's own data flag and j ≠ dend − 1, since the flags follow j from
@@ -774,7 +776,7 @@ class LinkCore(wiring.Component):
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
-                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1 - b1)]
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk if b1 else blk + 1)]
                 with m.If(self.o.ready):
                     read_flag(rd_at_p, 0)
                     with m.If(blk == b1):
