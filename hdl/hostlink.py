@@ -825,6 +825,14 @@ class LinkCore(wiring.Component):
             in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
             m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
                                "LinkCore: the buffer's read flags and the state disagree")
+        elif self._compact:
+            # The word of the byte j is set to, in every state but the accesses' (SETUP reads
+            # word idx for the write, ACCESS keeps it): j's own next-state multiplexer, no
+            # second one for the address. The reads this changes are unused: REPLY's, CRC's
+            # last (word(0) now, word(j + 1) before: SCAN's first byte is a header byte) and
+            # those outside the reply's passes (idx before).
+            m.d.comb += rd.addr.eq(Mux(fsm.ongoing("SETUP") | fsm.ongoing("ACCESS"), idx,
+                                       word(j_next)))
         else:
             m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1),
                                        rd_addr))
