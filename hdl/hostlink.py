@@ -588,6 +588,12 @@ class LinkCore(wiring.Component):
             m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
+            # blk's count (SCAN: up, DATA: down): the compact form has one adder for both.
+            if self._compact:
+                blk_up = blk_down = (blk + Mux(fsm.ongoing("DATA"), (1 << len(blk)) - 1, 1)
+                                     )[:len(blk)]
+            else:
+                blk_up, blk_down = blk + 1, blk - 1
             with m.State("RECV"):
                 m.d.comb += self.i.ready.eq(1)
                 with m.If(self.rx_error):
@@ -772,7 +778,7 @@ class LinkCore(wiring.Component):
                 with m.Else():
                     m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253 + b1) if long_blocks
                                              else j == rlen_m1),
-                                 blk.eq(blk + 1)]
+                                 blk.eq(blk_up)]
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
@@ -792,7 +798,7 @@ class LinkCore(wiring.Component):
                     next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
-                    m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
+                    m.d.sync += blk.eq(blk_down)    # bytes of the block still to send
                     with m.If(blk == 1 + b1):       # j + 1 = p + blk
                         m.next = "NEXT"
 
