@@ -448,9 +448,19 @@ class LinkCore(wiring.Component):
         # at j = 0 (dend − 1 ≥ 3), SCAN at j = 0 (rlen ≥ 6, p + 254 = 254), at p + blk + 1
         # after a zero (p + 254 is then farther), or at p + blk ≠ rlen after a 254-byte block.
         # In SCAN, blk counts the bytes scanned (blk = j − p): j = p + 253 is blk = 253.
-        crc_last = Signal()
-        scan_end = Signal()
-        m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
+        # The compact form tests j itself (no flip-flops, no state in their inputs).
+        if self._compact:
+            crc_last = j == dend_m1
+            scan_end = (j == rlen) | (blk == 254 + b1) if long_blocks else j == rlen
+        else:
+            crc_last = Signal()
+            scan_end = Signal()
+            m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
+
+        def set_end(flag, value):
+            """The registered end test ``flag`` := ``value`` (not in the compact form)."""
+            if not self._compact:
+                m.d.sync += flag.eq(value)
 
         # The reply's byte j. The buffer is read one clock ahead (below: ``rd_data`` holds the
         # word of byte j in every clock where ``jb`` is used). Which part of the reply j is in (header, data,
@@ -762,7 +772,7 @@ class LinkCore(wiring.Component):
                     next_j(j_0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
-                    m.d.sync += crc_last.eq(j == dend_m2)
+                    set_end(crc_last, j == dend_m2)
                     next_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
@@ -776,9 +786,9 @@ class LinkCore(wiring.Component):
                         m.d.sync += more254.eq((blk == 254 + b1) & (j != rlen))
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253 + b1) if long_blocks
-                                             else j == rlen_m1),
-                                 blk.eq(blk_up)]
+                    set_end(scan_end, (j == rlen_m1) | (blk == 253 + b1) if long_blocks
+                            else j == rlen_m1)
+                    m.d.sync += blk.eq(blk_up)
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
@@ -806,8 +816,8 @@ class LinkCore(wiring.Component):
                 if hold:
                     m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
-                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(b1),
-                                 scan_end.eq(j == rlen_m1)]
+                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(b1)]
+                    set_end(scan_end, j == rlen_m1)
                     next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
