@@ -469,10 +469,18 @@ class LinkCore(wiring.Component):
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
         # are meaningful from CRC to DATA.
         m.d.sync += j.eq(j_next)
-        j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
-        flags = Cat(j_hdr, j_dat, j_dend)
-        flags_next = Signal.like(flags)
-        m.d.sync += flags.eq(flags_next)
+        # The compact form decodes them from j (j − 4 held: the header is j's top four values,
+        # above every other; dend − 4 = 4·nwords); the registered flags below are then unused.
+        flags_next = Signal(3)
+        if self._compact:
+            j_hdr = j[2:] == (1 << (jw - 2)) - 1
+            j_dat = j[2:] < nwords                                  # (the header's are not)
+            j_dend = j == Cat(Const(0, 2), nwords)
+            flags = Cat(j_hdr, j_dat, j_dend)
+        else:
+            j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
+            flags = Cat(j_hdr, j_dat, j_dend)
+            m.d.sync += flags.eq(flags_next)
         jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
                  Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
                      Mux(j_dend, crc[8:], crc[:8])))
