@@ -450,7 +450,7 @@ class LinkCore(wiring.Component):
         # In SCAN, blk counts the bytes scanned (blk = j − p): j = p + 253 is blk = 253.
         # The compact form tests j itself (no flip-flops, no state in their inputs).
         if self._compact:
-            crc_last = j == dend_m1
+            crc_last = (j + 1)[:jw] == Cat(Const(0, 2), nwords)     # j + 1 = dend (nwords1 unused)
             scan_end = (j == rlen) | (blk == 254 + b1) if long_blocks else j == rlen
         else:
             crc_last = Signal()
