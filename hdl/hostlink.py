@@ -572,9 +572,14 @@ class LinkCore(wiring.Component):
         # the clock before every ACCESS, and `addr` is a_full, which holds word idx's address
         # from SETUP to the access's ack. Outside ACCESS stb and we are 0 (addr is then
         # meaningless, as the bus allows); lock is high in SETUP and ACCESS.
+        # The compact form decodes them from the state instead (ACCESS; SETUP or ACCESS).
         bus_stb = Signal()
         bus_lock = Signal()
         bus_we = Signal()
+
+        def bus_reg(*stmts):
+            if not self._compact:
+                m.d.sync += stmts
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
                      bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd_data)]
 
@@ -705,25 +710,26 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx + 1 == count_in):
-                    m.d.sync += [idx.eq(0), a_full.eq(addr_in), bus_lock.eq(1)]
+                    m.d.sync += [idx.eq(0), a_full.eq(addr_in)]
+                    bus_reg(bus_lock.eq(1))
                     m.next = "SETUP"
                 with m.Else():
                     m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write)]
+                bus_reg(bus_stb.eq(1), bus_we.eq(is_write))
                 m.next = "ACCESS"
 
             with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
-                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0)]
+                    bus_reg(bus_stb.eq(0), bus_we.eq(0))
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
                                             ReplyStatus.READ_ONLY, ReplyStatus.BAD_ADDRESS)),
                             r_info.eq(idx),
-                            bus_lock.eq(0),
                         ]
+                        bus_reg(bus_lock.eq(0))
                         m.next = "REPLY"
                     with m.Else():
                         with m.If(~is_write):
@@ -733,7 +739,7 @@ class LinkCore(wiring.Component):
                             with m.If(~is_write):
                                 m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + nw_step),
                                              r_info.eq(count_in)]
-                            m.d.sync += bus_lock.eq(0)
+                            bus_reg(bus_lock.eq(0))
                             m.next = "REPLY"
                         with m.Else():
                             m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
@@ -844,6 +850,10 @@ class LinkCore(wiring.Component):
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
+        if self._compact:
+            access = fsm.ongoing("ACCESS")
+            m.d.comb += [bus_stb.eq(access), bus_we.eq(access & is_write),
+                         bus_lock.eq(access | fsm.ongoing("SETUP"))]
         if hold:
             # (The read address's flags follow the state: checked in every simulation.)
             in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
