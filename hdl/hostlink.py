@@ -481,9 +481,16 @@ class LinkCore(wiring.Component):
             j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
             flags = Cat(j_hdr, j_dat, j_dend)
             m.d.sync += flags.eq(flags_next)
-        jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
-                 Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
-                     Mux(j_dend, crc[8:], crc[:8])))
+        if self._compact:
+            # The CRC bytes (j = dend, dend + 1: j mod 4 = 0, 1) in the header's first two
+            # byte slots: one selection by j mod 4 for both, no test of j = dend.
+            jb = Mux(j_dat, rd_data.word_select(j[:2], 8),
+                     Cat(Mux(j_hdr, r_cmd, crc[8:]), Mux(j_hdr, r_seq, crc[:8]), r_status,
+                         info8).word_select(j[:2], 8))
+        else:
+            jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
+                     Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
+                         Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
         # the whole top's 100 MHz). The compact form tests the selected byte itself.
