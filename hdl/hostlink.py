@@ -571,8 +571,15 @@ class LinkCore(wiring.Component):
         # (ADDR_WIDTH + 1 bits: no wrap) as a register set with idx (idx = 0 with addr_in, idx
         # + 1 with a_full + 1; the header does not change from CHECK to the reply): no adder in
         # front of the decode (the whole top's 100 MHz).
+        # The compact form adds them (the same value in every clock that uses it).
         a_full = Signal(ADDR_WIDTH + 1)
         a_exists, a_writable = address_decode(a_full, self._address_map)
+        if self._compact:
+            m.d.comb += a_full.eq(addr_in + idx)
+
+        def set_a(value):
+            if not self._compact:
+                m.d.sync += a_full.eq(value)
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
         # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
@@ -667,10 +674,10 @@ class LinkCore(wiring.Component):
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & _below(count_in, mw + 1)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), a_full.eq(addr_in),
-                    framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
+                set_a(addr_in)
                 m.next = "REPLY"
 
                 def status(s):
@@ -717,11 +724,13 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx + 1 == count_in):
-                    m.d.sync += [idx.eq(0), a_full.eq(addr_in)]
+                    m.d.sync += idx.eq(0)
+                    set_a(addr_in)
                     bus_reg(bus_lock.eq(1))
                     m.next = "SETUP"
                 with m.Else():
-                    m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
+                    m.d.sync += idx.eq(idx + 1)
+                    set_a(a_full + 1)
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
                 bus_reg(bus_stb.eq(1), bus_we.eq(is_write))
@@ -749,7 +758,8 @@ class LinkCore(wiring.Component):
                             bus_reg(bus_lock.eq(0))
                             m.next = "REPLY"
                         with m.Else():
-                            m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
+                            m.d.sync += idx.eq(idx + 1)
+                            set_a(a_full + 1)
                             m.next = "SETUP"
 
             with m.State("REPLY"):
