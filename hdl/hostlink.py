@@ -410,9 +410,9 @@ class LinkCore(wiring.Component):
         p = Signal.like(j)                      # COBS block start
         # nwords + 1, set with it (j − 4's form: nwords − 1, jw − 2 bits, modulo)
         if self._compact:
-            nwords1, nw_step = Signal(jw - 2), -1
+            nwords1, nw_step = Signal(jw - 2, name="nwords1"), -1
         else:
-            nwords1, nw_step = Signal(range(mw + 2)), 1
+            nwords1, nw_step = Signal(range(mw + 2), name="nwords1"), 1
         nwords_d = nwords1 if self._compact else nwords     # the bits above dend's
         nwords_r = nwords if self._compact else nwords1     # the bits above rlen's
         # A reply of at most 253 bytes (max_words ≤ 61) has no 254-byte COBS block: then the
@@ -577,9 +577,10 @@ class LinkCore(wiring.Component):
         if self._compact:
             m.d.comb += a_full.eq(addr_in + idx)
 
-        def set_a(value):
-            if not self._compact:
-                m.d.sync += a_full.eq(value)
+        def a_to(value):
+            """a_full := ``value`` (a statement list: none in the compact form)."""
+            return [] if self._compact else [a_full.eq(value)]
+
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
         # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
@@ -591,9 +592,10 @@ class LinkCore(wiring.Component):
         bus_lock = Signal()
         bus_we = Signal()
 
-        def bus_reg(*stmts):
-            if not self._compact:
-                m.d.sync += stmts
+        def bus_to(*stmts):
+            """The bus registers' ``stmts`` (none in the compact form)."""
+            return [] if self._compact else list(stmts)
+
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
                      bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd_data)]
 
@@ -674,10 +676,10 @@ class LinkCore(wiring.Component):
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & _below(count_in, mw + 1)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), framing.eq(0),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), *a_to(addr_in),
+                    framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
-                set_a(addr_in)
                 m.next = "REPLY"
 
                 def status(s):
@@ -724,28 +726,25 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx + 1 == count_in):
-                    m.d.sync += idx.eq(0)
-                    set_a(addr_in)
-                    bus_reg(bus_lock.eq(1))
+                    m.d.sync += [idx.eq(0), *a_to(addr_in), *bus_to(bus_lock.eq(1))]
                     m.next = "SETUP"
                 with m.Else():
-                    m.d.sync += idx.eq(idx + 1)
-                    set_a(a_full + 1)
+                    m.d.sync += [idx.eq(idx + 1), *a_to(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                bus_reg(bus_stb.eq(1), bus_we.eq(is_write))
+                m.d.sync += bus_to(bus_stb.eq(1), bus_we.eq(is_write))
                 m.next = "ACCESS"
 
             with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
-                    bus_reg(bus_stb.eq(0), bus_we.eq(0))
+                    m.d.sync += bus_to(bus_stb.eq(0), bus_we.eq(0))
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
                                             ReplyStatus.READ_ONLY, ReplyStatus.BAD_ADDRESS)),
                             r_info.eq(idx),
+                            *bus_to(bus_lock.eq(0)),
                         ]
-                        bus_reg(bus_lock.eq(0))
                         m.next = "REPLY"
                     with m.Else():
                         with m.If(~is_write):
@@ -755,11 +754,10 @@ class LinkCore(wiring.Component):
                             with m.If(~is_write):
                                 m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + nw_step),
                                              r_info.eq(count_in)]
-                            bus_reg(bus_lock.eq(0))
+                            m.d.sync += bus_to(bus_lock.eq(0))
                             m.next = "REPLY"
                         with m.Else():
-                            m.d.sync += idx.eq(idx + 1)
-                            set_a(a_full + 1)
+                            m.d.sync += [idx.eq(idx + 1), *a_to(a_full + 1)]
                             m.next = "SETUP"
 
             with m.State("REPLY"):
