@@ -392,6 +392,13 @@ def _lockstep_traffic(rng, max_words):
     words and holes) and the malformed kinds."""
     wires = []
     n_max = max_words
+    if max_words >= 62:                 # 254-byte COBS blocks (one ending inside the data)
+        n = min(max_words, 64)
+        wires += [frame(encode_request(Command.WRITE, 250, 0x100, n, [0x01010101] * n)),
+                  frame(encode_request(Command.READ, 251, 0x100, n)),
+                  frame(encode_request(Command.WRITE, 252, 0x100, n, [0x01010100]
+                                       + [0x01010101] * (n - 2) + [0x02010101])),
+                  frame(encode_request(Command.READ, 253, 0x100, n))]
     for seq in range(40):
         kind = rng.randrange(8)
         if kind < 6:
