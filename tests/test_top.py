@@ -411,8 +411,9 @@ def test_top_gates_stay_low_for_a_pwm_period_after_reset():
     assert not any(on)
 
 
-def test_top_register_writes_reach_blocks_through_the_host_link():
-    top = Top(pwm_hz=PWM, baud=BAUD)
+@pytest.mark.parametrize("link_compact", [False, True])
+def test_top_register_writes_reach_blocks_through_the_host_link(link_compact):
+    top = Top(pwm_hz=PWM, baud=BAUD, link_compact=link_compact)
     bench = _Bench(top, BAUD)
     host = _Host(bench)
     rm = top.regmap
