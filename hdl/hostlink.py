@@ -262,9 +262,14 @@ class LinkCore(wiring.Component):
         meaning, the bus protocol) may differ.
     compact : bool
         The iCE40's forms (fewer logic cells, longer paths; the ECP5's 100 MHz paths run through
-        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte, the
-        COBS code byte counted in place. Default ``False``. The same replies and accesses in
-        the same clocks either way (``bus.w_data`` outside accesses aside, as above).
+        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte; the
+        COBS code byte counted in place, up and down by one adder; the reply byte index held
+        as j − 4 and the byte's part (header, data, CRC) decoded from it, the CRC bytes in the
+        header's first two slots; the CRC and SCAN passes' end tests on j itself; the buffer
+        read at j's next value; the word address ``addr + idx`` and the bus's ``stb``, ``we``
+        and ``lock`` combinational (from the header, idx and the state). Default ``False``.
+        The same replies and accesses in the same clocks either way (``bus.addr`` outside
+        accesses, ``bus.w_data`` outside writes, meaningless on the bus, may differ).
 
     Members
     -------
