@@ -262,12 +262,12 @@ class LinkCore(wiring.Component):
         meaning, the bus protocol) may differ.
     compact : bool
         The iCE40's forms (fewer logic cells, longer paths; the ECP5's 100 MHz paths run through
-        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte; the
-        COBS code byte counted in place, up and down by one adder; the reply byte index held
+        the link, docs/AREA.md §7.62, §7.75): the COBS code byte counted in place, up and down
+        by one adder; the reply byte index held
         as j − 4 and the byte's part (header, data, CRC) decoded from it, the CRC bytes in the
         header's first two slots; the CRC and SCAN passes' end tests on j itself; the buffer
-        read at j's next value; the word address ``addr + idx`` and the bus's ``stb``, ``we``
-        and ``lock`` combinational (from the header, idx and the state). Default ``False``.
+        read at j's next value; the bus's ``stb``, ``we`` and ``lock`` decoded from the
+        state. Default ``False``.
         The same replies and accesses in the same clocks either way (``bus.addr`` outside
         accesses, ``bus.w_data`` outside writes, meaningless on the bus, may differ).
 
@@ -488,7 +488,7 @@ class LinkCore(wiring.Component):
             m.d.sync += flags.eq(flags_next)
         if self._compact:
             # The CRC bytes (j = dend, dend + 1: j mod 4 = 0, 1) in the header's first two
-            # byte slots: one selection by j mod 4 for both, no test of j = dend.
+            # byte slots: one selection by j mod 4 for both.
             jb = Mux(j_dat, rd_data.word_select(j[:2], 8),
                      Cat(Mux(j_hdr, r_cmd, crc[8:]), Mux(j_hdr, r_seq, crc[:8]), r_status,
                          info8).word_select(j[:2], 8))
@@ -498,15 +498,13 @@ class LinkCore(wiring.Component):
                          Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
-        # the whole top's 100 MHz). The compact form tests the selected byte itself.
-        if self._compact:
-            jb_zero = jb == 0
-        else:
-            hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-            dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
-            jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
-                          Mux(j_dat, dat_zero.bit_select(j[:2], 1),
-                              Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
+        # the whole top's 100 MHz; in the compact form the iCE40's 33.333 MHz: `jb == 0` after
+        # the selection missed it on one seed of three, docs/AREA.md §7.75).
+        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
+        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
@@ -576,15 +574,12 @@ class LinkCore(wiring.Component):
         # (ADDR_WIDTH + 1 bits: no wrap) as a register set with idx (idx = 0 with addr_in, idx
         # + 1 with a_full + 1; the header does not change from CHECK to the reply): no adder in
         # front of the decode (the whole top's 100 MHz).
-        # The compact form adds them (the same value in every clock that uses it).
         a_full = Signal(ADDR_WIDTH + 1)
         a_exists, a_writable = address_decode(a_full, self._address_map)
-        if self._compact:
-            m.d.comb += a_full.eq(addr_in + idx)
 
         def a_to(value):
-            """a_full := ``value`` (a statement list: none in the compact form)."""
-            return [] if self._compact else [a_full.eq(value)]
+            """a_full := ``value`` (a statement list)."""
+            return [a_full.eq(value)]
 
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
