@@ -262,14 +262,13 @@ class LinkCore(wiring.Component):
         meaning, the bus protocol) may differ.
     compact : bool
         The iCE40's forms (fewer logic cells, longer paths; the ECP5's 100 MHz paths run through
-        the link, docs/AREA.md §7.62, §7.75): the COBS code byte counted in place, up and down
-        by one adder; the reply byte index held
-        as j − 4 and the byte's part (header, data, CRC) decoded from it, the CRC bytes in the
-        header's first two slots; the CRC and SCAN passes' end tests on j itself; the buffer
-        read at j's next value; the bus's ``stb``, ``we`` and ``lock`` decoded from the
-        state. Default ``False``.
-        The same replies and accesses in the same clocks either way (``bus.addr`` outside
-        accesses, ``bus.w_data`` outside writes, meaningless on the bus, may differ).
+        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte; the
+        COBS code byte counted in place, up and down by one adder; the reply byte index held
+        as j − 4, the CRC bytes in the header's first two byte slots; the CRC and SCAN passes'
+        end tests on j itself (not registered); the buffer read at j's next value; the bus's
+        ``stb``, ``we`` and ``lock`` decoded from the state. Default ``False``. The same
+        replies and accesses in the same clocks either way (``bus.w_data`` outside accesses
+        aside, as above).
 
     Members
     -------
@@ -474,22 +473,14 @@ class LinkCore(wiring.Component):
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
         # are meaningful from CRC to DATA.
         m.d.sync += j.eq(j_next)
-        # The compact form decodes them from j (j − 4 held: the header is j's top four values,
-        # above every other; dend − 4 = 4·nwords); the registered flags below are then unused.
-        flags_next = Signal(3)
-        if self._compact:
-            j_hdr = j[2:] == (1 << (jw - 2)) - 1
-            j_dat = j[2:] < nwords                                  # (the header's are not)
-            j_dend = j == Cat(Const(0, 2), nwords)
-            flags = Cat(j_hdr, j_dat, j_dend)
-        else:
-            j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
-            flags = Cat(j_hdr, j_dat, j_dend)
-            m.d.sync += flags.eq(flags_next)
+        j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
+        flags = Cat(j_hdr, j_dat, j_dend)
+        flags_next = Signal.like(flags)
+        m.d.sync += flags.eq(flags_next)
         if self._compact:
             # The CRC bytes (j = dend, dend + 1: j mod 4 = 0, 1) in the header's first two
-            # byte slots: one selection by j mod 4 for both.
-            jb = Mux(j_dat, rd_data.word_select(j[:2], 8),
+            # byte slots: one selection by j mod 4 for both, no j_dend.
+            jb = Mux(j_dat & ~j_hdr, rd_data.word_select(j[:2], 8),
                      Cat(Mux(j_hdr, r_cmd, crc[8:]), Mux(j_hdr, r_seq, crc[:8]), r_status,
                          info8).word_select(j[:2], 8))
         else:
@@ -498,13 +489,15 @@ class LinkCore(wiring.Component):
                          Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
-        # the whole top's 100 MHz; in the compact form the iCE40's 33.333 MHz: `jb == 0` after
-        # the selection missed it on one seed of three, docs/AREA.md §7.75).
-        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
-        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
-                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
-                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
+        # the whole top's 100 MHz). The compact form tests the selected byte itself.
+        if self._compact:
+            jb_zero = jb == 0
+        else:
+            hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+            dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
+            jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                          Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                              Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
