@@ -146,6 +146,11 @@ MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: cells on the iCEBreaker, docs/AREA.md §7.78); the loop's own counter elsewhere (the Arty S7
 #: +23 LUT6 the other way). The same values either way.
 RAM_LOOP_COUNT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+#: ``Top(link_compact=…)`` per FPGA family: the host link's iCE40 forms (its reply's zero test
+#: on the selected byte, the COBS code byte counted in place, …: fewer logic cells on the
+#: iCEBreaker, docs/AREA.md §7.75); elsewhere the form of before (the ECP5's 100 MHz paths run
+#: through the link, §7.62). The same replies and accesses in the same clocks either way.
+LINK_COMPACT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``synth_ice40`` options of the iCE40 boards: ``-dsp`` (``SB_MAC16`` multipliers: without
 #: them the multipliers swamp the UP5K's LUTs) and ``-dffe_min_ce_use 4``: a clock enable that
@@ -395,7 +400,8 @@ class BoardTop(Elaboratable):
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
                         mt_k_export=MT_K_EXPORT[self._board.family],
-                        ram_loop_count=RAM_LOOP_COUNT[self._board.family])
+                        ram_loop_count=RAM_LOOP_COUNT[self._board.family],
+                        link_compact=LINK_COMPACT[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

@@ -757,15 +757,19 @@ class HostLinkSpec(Elaboratable):
         :class:`LinkCore`'s ``read_hold`` (the frame buffer's read with registered flags: the
         ECP5 form, ``boards.build.LINK_READ_HOLD``); its ``Assert`` tying the flags to the
         state is part of the proof.
+    compact : bool
+        :class:`LinkCore`'s ``compact`` (the iCE40's forms, ``boards.build.LINK_COMPACT``).
     broken : bool
         Prove a :func:`mutant` of :class:`LinkCore` whose frame check ignores the CRC.
     """
 
-    def __init__(self, *, max_words=64, regmap=REGMAP, read_hold=False, broken=False):
+    def __init__(self, *, max_words=64, regmap=REGMAP, read_hold=False, compact=False,
+                 broken=False):
         self.max_words = max_words
         self.regmap = regmap
         self.address_map = regmap_address_map(regmap)
         self.read_hold = read_hold
+        self.compact = compact
         self.broken = broken
 
     def elaborate(self, platform):
@@ -775,7 +779,7 @@ class HostLinkSpec(Elaboratable):
             cls = mutant(LinkCore, ("with m.Elif((crc != 0) | _below(length, 2)):",
                                     "with m.Elif(_below(length, 2)):"))
         link = cls(max_words=self.max_words, address_map=self.address_map,
-                   read_hold=self.read_hold)
+                   read_hold=self.read_hold, compact=self.compact)
         m.submodules.link, internal = elaborate_with_internals(link, platform)
         _drive_inputs(m, link)
 
@@ -1092,6 +1096,8 @@ PROOFS = {p.name: p for p in (
           "LinkCore: bus writes only after a valid-CRC WRITE frame, to writable addresses"),
     Proof("hostlink_hold", functools.partial(HostLinkSpec, read_hold=True), 3, 20,
           "LinkCore(read_hold=True), the ECP5's link: the same properties"),
+    Proof("hostlink_compact", functools.partial(HostLinkSpec, compact=True), 3, 20,
+          "LinkCore(compact=True), the iCE40's link: the same properties"),
     Proof("regfile", RegFileSpec, 2, 4,
           "RegisterFile: a register changes only after a bus write to it"),
     Proof("regfile_bram", functools.partial(RegFileSpec, staging="bram"), 2, 10,

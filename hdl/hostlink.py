@@ -14,7 +14,7 @@ and only then does the first bus access start, with ``bus.lock`` high until the 
 frame therefore never writes anything, and a burst writes all its words or none.
 """
 
-from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, Value
+from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value
 from amaranth.lib import stream, wiring
 from amaranth.lib.memory import Memory
 from amaranth.lib.wiring import In, Out
@@ -260,6 +260,15 @@ class LinkCore(wiring.Component):
         ``False``: the address chosen from the state in every clock (fewer iCE40 cells). The
         same replies, accesses and timing either way; ``bus.w_data`` outside accesses (no
         meaning, the bus protocol) may differ.
+    compact : bool
+        The iCE40's forms (fewer logic cells, longer paths; the ECP5's 100 MHz paths run through
+        the link, docs/AREA.md §7.62, §7.75): the reply's zero test on the selected byte; the
+        COBS code byte counted in place, up and down by one adder; the reply byte index held
+        as j − 4, the CRC bytes in the header's first two byte slots; the CRC and SCAN passes'
+        end tests on j itself (not registered); the buffer read at j's next value; the bus's
+        ``stb``, ``we`` and ``lock`` decoded from the state. Default ``False``. The same
+        replies and accesses in the same clocks either way (``bus.w_data`` outside accesses
+        aside, as above).
 
     Members
     -------
@@ -301,11 +310,12 @@ class LinkCore(wiring.Component):
     """
 
     def __init__(self, *, max_words=64, address_map=None, counter_width=16, strobed=(),
-                 read_hold=False):
+                 read_hold=False, compact=False):
         p = hostlink_params(max_words=max_words, address_map=address_map,
                             counter_width=counter_width)
         self._strobed = _check_strobed("LinkCore", strobed)
         self._read_hold = check_bool("LinkCore", "read_hold", read_hold)
+        self._compact = check_bool("LinkCore", "compact", compact)
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -321,6 +331,7 @@ class LinkCore(wiring.Component):
 
     strobed = property(lambda self: self._strobed)
     read_hold = property(lambda self: self._read_hold)
+    compact = property(lambda self: self._compact)
     max_words = property(lambda self: self._max_words)
     address_map = property(lambda self: self._address_map)
     counter_width = property(lambda self: self._counter_width)
@@ -391,14 +402,31 @@ class LinkCore(wiring.Component):
         r_status = Signal(8)
         framing = Signal()                      # the BAD_CRC is for a damaged frame
         nwords = Signal(range(mw + 1))          # data words in the reply
-        nwords1 = Signal(range(mw + 2))         # nwords + 1, set with it
-        j = Signal(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1))   # reply byte index
+        # Reply byte index. The compact form holds j − 4 (modulo 2**jw; the header's bytes are
+        # the top four values, above every data and CRC byte's): the buffer word of byte j is
+        # then its bits 2 and up, no subtractor in front of the buffer's read address. Every
+        # comparison of j below is with a value of the same form, byte selections use j mod 4
+        # (the same), and the comments speak of j itself.
+        jw = Shape.cast(range(REPLY_HEADER + 4 * mw + CRC_BYTES + 1)).width
+        j_off = REPLY_HEADER if self._compact else 0
+        j_0 = -j_off % (1 << jw)                # the register's value for j = 0
+        j = Signal(jw, init=j_0)
         p = Signal.like(j)                      # COBS block start
+        # nwords + 1, set with it (j − 4's form: nwords − 1, jw − 2 bits, modulo)
+        if self._compact:
+            nwords1, nw_step = Signal(jw - 2, name="nwords1"), -1
+        else:
+            nwords1, nw_step = Signal(range(mw + 2), name="nwords1"), 1
+        nwords_d = nwords1 if self._compact else nwords     # the bits above dend's
+        nwords_r = nwords if self._compact else nwords1     # the bits above rlen's
         # A reply of at most 253 bytes (max_words ≤ 61) has no 254-byte COBS block: then the
         # block length needs fewer bits, and the tests for such a block are constant false.
         rlen_max = REPLY_HEADER + 4 * mw + CRC_BYTES
         long_blocks = rlen_max >= 254
-        blk = Signal(range(min(255, rlen_max + 1)))     # COBS block length (non-zero bytes)
+        # COBS block length (non-zero bytes), plus ``b1``: 1 in the compact form, where blk
+        # holds the block's code byte itself (no incrementer in front of the reply byte).
+        b1 = int(self._compact)
+        blk = Signal(range(min(255, rlen_max + 1) + b1))
         blk_zero = Signal()                     # the block ended at a zero byte
         j_next = Signal.like(j)                 # j in the next clock
 
@@ -409,10 +437,10 @@ class LinkCore(wiring.Component):
         # ``nwords`` and ``nwords + 1`` (4 + 4·n = 4·(n + 1)): no adder in front of the reply's
         # byte selection and buffer address (100 MHz).
         # dend = 4 + 4·nwords = Cat(0b00, nwords1) itself is not needed: only its neighbours are.
-        dend_m1 = Cat(Const(3, 2), nwords)      # dend − 1 (the CRC pass's last byte)
-        dend_m2 = Cat(Const(2, 2), nwords)      # dend − 2 (≥ 2)
-        rlen = Cat(Const(2, 2), nwords1)        # dend + 2
-        rlen_m1 = Cat(Const(1, 2), nwords1)     # rlen − 1
+        dend_m1 = Cat(Const(3, 2), nwords_d)    # dend − 1 (the CRC pass's last byte)
+        dend_m2 = Cat(Const(2, 2), nwords_d)    # dend − 2 (≥ 2)
+        rlen = Cat(Const(2, 2), nwords_r)       # dend + 2
+        rlen_m1 = Cat(Const(1, 2), nwords_r)    # rlen − 1
         # NEXT's test for another block after a 254-byte one (blk = 254, p + blk ≠ rlen),
         # registered in SCAN's last clock (j = p + blk then). DATA counts blk down to its last
         # byte, so NEXT finds the block's end p + blk in j: no adder on p, no end register.
@@ -424,9 +452,19 @@ class LinkCore(wiring.Component):
         # at j = 0 (dend − 1 ≥ 3), SCAN at j = 0 (rlen ≥ 6, p + 254 = 254), at p + blk + 1
         # after a zero (p + 254 is then farther), or at p + blk ≠ rlen after a 254-byte block.
         # In SCAN, blk counts the bytes scanned (blk = j − p): j = p + 253 is blk = 253.
-        crc_last = Signal()
-        scan_end = Signal()
-        m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
+        # The compact form tests j itself (no flip-flops, no state in their inputs).
+        if self._compact:
+            crc_last = (j + 1)[:jw] == Cat(Const(0, 2), nwords)     # j + 1 = dend (nwords1 unused)
+            scan_end = (j == rlen) | (blk == 254 + b1) if long_blocks else j == rlen
+        else:
+            crc_last = Signal()
+            scan_end = Signal()
+            m.d.sync += [crc_last.eq(0), scan_end.eq(0)]
+
+        def set_end(flag, value):
+            """The registered end test ``flag`` := ``value`` (not in the compact form)."""
+            if not self._compact:
+                m.d.sync += flag.eq(value)
 
         # The reply's byte j. The buffer is read one clock ahead (below: ``rd_data`` holds the
         # word of byte j in every clock where ``jb`` is used). Which part of the reply j is in (header, data,
@@ -435,25 +473,36 @@ class LinkCore(wiring.Component):
         # is), so no comparison of j sits in front of the byte selection (100 MHz); the flags
         # are meaningful from CRC to DATA.
         m.d.sync += j.eq(j_next)
-        jw = j.shape().width
         j_hdr, j_dat, j_dend = Signal(init=1), Signal(), Signal()   # j < 4, j < dend, j = dend
         flags = Cat(j_hdr, j_dat, j_dend)
         flags_next = Signal.like(flags)
         m.d.sync += flags.eq(flags_next)
-        jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
-                 Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
-                     Mux(j_dend, crc[8:], crc[:8])))
+        if self._compact:
+            # The CRC bytes (j = dend, dend + 1: j mod 4 = 0, 1) in the header's first two
+            # byte slots: one selection by j mod 4 for both, no j_dend.
+            jb = Mux(j_dat & ~j_hdr, rd_data.word_select(j[:2], 8),
+                     Cat(Mux(j_hdr, r_cmd, crc[8:]), Mux(j_hdr, r_seq, crc[:8]), r_status,
+                         info8).word_select(j[:2], 8))
+        else:
+            jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
+                     Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
+                         Mux(j_dend, crc[8:], crc[:8])))
         # jb == 0 as the same selection of per-byte zero tests: the buffer word's four tests
         # run in parallel from its read register, the selection after them (SCAN's end test,
-        # the whole top's 100 MHz).
-        hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
-        dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
-        jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
-                      Mux(j_dat, dat_zero.bit_select(j[:2], 1),
-                          Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
+        # the whole top's 100 MHz). The compact form tests the selected byte itself.
+        if self._compact:
+            jb_zero = jb == 0
+        else:
+            hdr_zero = Cat(b == 0 for b in (r_cmd, r_seq, r_status, r_info))
+            dat_zero = Cat(rd_data.word_select(k, 8) == 0 for k in range(4))
+            jb_zero = Mux(j_hdr, hdr_zero.bit_select(j[:2], 1),
+                          Mux(j_dat, dat_zero.bit_select(j[:2], 1),
+                              Mux(j_dend, crc[8:] == 0, crc[:8] == 0)))
 
         def word(value):
             """Buffer address of reply byte ``value``."""
+            if self._compact:
+                return Value.cast(value)[2:jw]
             return (Value.cast(value) - REPLY_HEADER)[2:jw]
 
         # The part flags of j = 0 (a header byte; dend ≥ 4), of j + 1 from j (j < 3;
@@ -461,7 +510,11 @@ class LinkCore(wiring.Component):
         # REPLY on; j = dend − 1: no adder or magnitude comparison in front), and registers
         # holding those of p (set with p): no comparison of p with dend.
         parts_0 = Const(0b011, 3)
-        parts_j1 = Cat(_below(j, REPLY_HEADER - 1), j_dat & (j != dend_m1), j == dend_m1)
+        if self._compact:                   # j < 3: j − 4 is one of the top four but the last
+            below3 = (j[2:] == (1 << (jw - 2)) - 1) & (j[:2] != 3)
+        else:
+            below3 = _below(j, REPLY_HEADER - 1)
+        parts_j1 = Cat(below3, j_dat & (j != dend_m1), j == dend_m1)
         p_flags = Signal(3)
 
         def set_j(value, value_parts):
@@ -516,15 +569,26 @@ class LinkCore(wiring.Component):
         # front of the decode (the whole top's 100 MHz).
         a_full = Signal(ADDR_WIDTH + 1)
         a_exists, a_writable = address_decode(a_full, self._address_map)
+
+        def a_to(value):
+            """a_full := ``value`` (a statement list)."""
+            return [a_full.eq(value)]
+
         # The bus outputs, registered (the values the FSM's SETUP / ACCESS states imply, set
         # one clock ahead): no state decode or adder in front of the register file's address
         # decode and write enables (the whole top's 100 MHz). idx does not change in SETUP,
         # the clock before every ACCESS, and `addr` is a_full, which holds word idx's address
         # from SETUP to the access's ack. Outside ACCESS stb and we are 0 (addr is then
         # meaningless, as the bus allows); lock is high in SETUP and ACCESS.
+        # The compact form decodes them from the state instead (ACCESS; SETUP or ACCESS).
         bus_stb = Signal()
         bus_lock = Signal()
         bus_we = Signal()
+
+        def bus_to(*stmts):
+            """The bus registers' ``stmts`` (none in the compact form)."""
+            return [] if self._compact else list(stmts)
+
         m.d.comb += [bus.stb.eq(bus_stb), bus.lock.eq(bus_lock), bus.we.eq(bus_we),
                      bus.addr.eq(a_full[:ADDR_WIDTH]), bus.w_data.eq(rd_data)]
 
@@ -556,6 +620,12 @@ class LinkCore(wiring.Component):
             m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
 
         with m.FSM(name="link") as fsm:
+            # blk's count (SCAN: up, DATA: down): the compact form has one adder for both.
+            if self._compact:
+                blk_up = blk_down = (blk + Mux(fsm.ongoing("DATA"), (1 << len(blk)) - 1, 1)
+                                     )[:len(blk)]
+            else:
+                blk_up, blk_down = blk + 1, blk - 1
             with m.State("RECV"):
                 m.d.comb += self.i.ready.eq(1)
                 with m.If(self.rx_error):
@@ -599,7 +669,7 @@ class LinkCore(wiring.Component):
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & _below(count_in, mw + 1)
                 m.d.sync += [
-                    r_info.eq(0), nwords.eq(0), nwords1.eq(1), idx.eq(0), a_full.eq(addr_in),
+                    r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), *a_to(addr_in),
                     framing.eq(0),
                     is_write.eq(cmd_in == Command.WRITE),
                 ]
@@ -649,24 +719,24 @@ class LinkCore(wiring.Component):
                     m.d.sync += [r_status.eq(ReplyStatus.READ_ONLY), r_info.eq(idx)]
                     m.next = "REPLY"
                 with m.Elif(idx + 1 == count_in):
-                    m.d.sync += [idx.eq(0), a_full.eq(addr_in), bus_lock.eq(1)]
+                    m.d.sync += [idx.eq(0), *a_to(addr_in), *bus_to(bus_lock.eq(1))]
                     m.next = "SETUP"
                 with m.Else():
-                    m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
+                    m.d.sync += [idx.eq(idx + 1), *a_to(a_full + 1)]
 
             with m.State("SETUP"):                  # the buffer read of word idx settles
-                m.d.sync += [bus_stb.eq(1), bus_we.eq(is_write)]
+                m.d.sync += bus_to(bus_stb.eq(1), bus_we.eq(is_write))
                 m.next = "ACCESS"
 
             with m.State("ACCESS"):                 # stb, lock, we, addr high (registers)
                 with m.If(bus.ack):
-                    m.d.sync += [bus_stb.eq(0), bus_we.eq(0)]
+                    m.d.sync += bus_to(bus_stb.eq(0), bus_we.eq(0))
                     with m.If(bus.status != Status.OK):     # the map and the slave disagree
                         m.d.sync += [
                             r_status.eq(Mux(bus.status == Status.READ_ONLY,
                                             ReplyStatus.READ_ONLY, ReplyStatus.BAD_ADDRESS)),
                             r_info.eq(idx),
-                            bus_lock.eq(0),
+                            *bus_to(bus_lock.eq(0)),
                         ]
                         m.next = "REPLY"
                     with m.Else():
@@ -675,12 +745,12 @@ class LinkCore(wiring.Component):
                                          wr.en.eq(0b1111)]
                         with m.If(idx + 1 == count_in):
                             with m.If(~is_write):
-                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + 1),
+                                m.d.sync += [nwords.eq(count_in), nwords1.eq(count_in + nw_step),
                                              r_info.eq(count_in)]
-                            m.d.sync += bus_lock.eq(0)
+                            m.d.sync += bus_to(bus_lock.eq(0))
                             m.next = "REPLY"
                         with m.Else():
-                            m.d.sync += [idx.eq(idx + 1), a_full.eq(a_full + 1)]
+                            m.d.sync += [idx.eq(idx + 1), *a_to(a_full + 1)]
                             m.next = "SETUP"
 
             with m.State("REPLY"):
@@ -703,8 +773,8 @@ class LinkCore(wiring.Component):
                             m.d.sync += getattr(self, f"{name}_strobe").eq(1)
                         else:
                             counter(getattr(self, name))
-                m.d.sync += [crc.eq(0xFFFF), p.eq(0), p_flags.eq(parts_0), blk.eq(0)]
-                next_j(0, parts_0)
+                m.d.sync += [crc.eq(0xFFFF), p.eq(j_0), p_flags.eq(parts_0), blk.eq(b1)]
+                next_j(j_0, parts_0)
                 read_flag(rd_rep, 1)
                 m.next = "CRC"
 
@@ -721,10 +791,10 @@ class LinkCore(wiring.Component):
                 m.d.comb += crc_reply.eq(1)
                 m.d.sync += crc.eq(crc_next)
                 with m.If(crc_last):                 # j = dend − 1
-                    next_j(0, parts_0, read=j + 1)
+                    next_j(j_0, parts_0, read=j + 1)
                     m.next = "SCAN"
                 with m.Else():
-                    m.d.sync += crc_last.eq(j == dend_m2)
+                    set_end(crc_last, j == dend_m2)
                     next_j(j + 1, parts_j1)
 
             with m.State("SCAN"):                   # length of the COBS block starting at p
@@ -735,19 +805,19 @@ class LinkCore(wiring.Component):
                     read_flag(rd_at_p, 1)
                     m.d.sync += blk_zero.eq(~scan_end)
                     if long_blocks:
-                        m.d.sync += more254.eq((blk == 254) & (j != rlen))
+                        m.d.sync += more254.eq((blk == 254 + b1) & (j != rlen))
                     m.next = "CODE"
                 with m.Else():
-                    m.d.sync += [scan_end.eq((j == rlen_m1) | (blk == 253) if long_blocks
-                                             else j == rlen_m1),
-                                 blk.eq(blk + 1)]
+                    set_end(scan_end, (j == rlen_m1) | (blk == 253 + b1) if long_blocks
+                            else j == rlen_m1)
+                    m.d.sync += blk.eq(blk_up)
 
             with m.State("CODE"):                   # j = the scan's end + 1 (unused), then p
                 next_j(p, p_flags)
-                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk + 1)]
+                m.d.comb += [self.o.valid.eq(1), self.o.payload.eq(blk if b1 else blk + 1)]
                 with m.If(self.o.ready):
                     read_flag(rd_at_p, 0)
-                    with m.If(blk == 0):
+                    with m.If(blk == b1):
                         m.next = "NEXT"
                     with m.Else():
                         m.next = "DATA"
@@ -760,20 +830,20 @@ class LinkCore(wiring.Component):
                     next_j(j, flags)
                 with m.If(self.o.ready):
                     set_j(j + 1, parts_j1)          # and the buffer reads byte j + 1 (below)
-                    m.d.sync += blk.eq(blk - 1)     # bytes of the block still to send
-                    with m.If(blk == 1):            # j + 1 = p + blk
+                    m.d.sync += blk.eq(blk_down)    # bytes of the block still to send
+                    with m.If(blk == 1 + b1):       # j + 1 = p + blk
                         m.next = "NEXT"
 
             with m.State("NEXT"):                   # j = p + blk, the block's end
                 if hold:
                     m.d.comb += rd_hold.eq(~blk_zero)
                 with m.If(blk_zero):                # the next block starts after the zero
-                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(0),
-                                 scan_end.eq(j == rlen_m1)]
+                    m.d.sync += [p.eq(j + 1), p_flags.eq(parts_j1), blk.eq(b1)]
+                    set_end(scan_end, j == rlen_m1)
                     next_j(j + 1, parts_j1)
                     m.next = "SCAN"
                 with m.Elif(more254):              # blk = 254, p + blk ≠ rlen
-                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(0)]
+                    m.d.sync += [p.eq(j), p_flags.eq(flags), blk.eq(b1)]
                     next_j(j, flags)
                     m.next = "SCAN"
                 with m.Else():
@@ -788,11 +858,23 @@ class LinkCore(wiring.Component):
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
                          bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
+        if self._compact:
+            access = fsm.ongoing("ACCESS")
+            m.d.comb += [bus_stb.eq(access), bus_we.eq(access & is_write),
+                         bus_lock.eq(access | fsm.ongoing("SETUP"))]
         if hold:
             # (The read address's flags follow the state: checked in every simulation.)
             in_rep = Cat(fsm.ongoing(s) for s in ("CRC", "SCAN", "CODE", "DATA", "NEXT")).any()
             m.d.sync += Assert((rd_rep == in_rep) & (rd_at_p == fsm.ongoing("CODE")),
                                "LinkCore: the buffer's read flags and the state disagree")
+        elif self._compact:
+            # The word of the byte j is set to, in every state but the accesses' (SETUP reads
+            # word idx for the write, ACCESS keeps it): j's own next-state multiplexer, no
+            # second one for the address. The reads this changes are unused: REPLY's, CRC's
+            # last (word(0) now, word(j + 1) before: SCAN's first byte is a header byte) and
+            # those outside the reply's passes (idx before).
+            m.d.comb += rd.addr.eq(Mux(fsm.ongoing("SETUP") | fsm.ongoing("ACCESS"), idx,
+                                       word(j_next)))
         else:
             m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1),
                                        rd_addr))
@@ -833,13 +915,15 @@ class HostLink(wiring.Component):
     """
 
     def __init__(self, *, clk_hz=50e6, baud=115200, max_words=64, address_map=None,
-                 counter_width=16, strobed=(), read_hold=False):
+                 counter_width=16, strobed=(), read_hold=False, compact=False):
         uart_params("HostLink", clk_hz, baud)
         hostlink_params(max_words=max_words, address_map=address_map, counter_width=counter_width)
         _check_strobed("HostLink", strobed)
         check_bool("HostLink", "read_hold", read_hold)
+        check_bool("HostLink", "compact", compact)
         self._core = LinkCore(max_words=max_words, address_map=address_map,
-                              counter_width=counter_width, strobed=strobed, read_hold=read_hold)
+                              counter_width=counter_width, strobed=strobed, read_hold=read_hold,
+                              compact=compact)
         self._clk_hz, self._baud = clk_hz, baud
         cw = self._core.counter_width
         super().__init__({
@@ -851,6 +935,7 @@ class HostLink(wiring.Component):
 
     strobed = property(lambda self: self._core.strobed)
     read_hold = property(lambda self: self._core.read_hold)
+    compact = property(lambda self: self._core.compact)
     clk_hz = property(lambda self: self._clk_hz)
     baud = property(lambda self: self._baud)
     core = property(lambda self: self._core)

@@ -545,6 +545,10 @@ class Top(wiring.Component):
         access in a count's clock acked two clocks later, module docstring "Status"; the
         iCE40's choice and the default, fewer iCE40 cells, docs/AREA.md §7.78); ``False`` the
         loop's own ``count`` (the Spartan-7's: fewer LUT6). No effect with ``"ff"``.
+    link_compact : bool
+        :class:`~.hostlink.HostLink` ``compact``: the link's iCE40 forms (the same replies and
+        accesses in the same clocks, fewer iCE40 cells, longer paths; the iCE40 board's choice;
+        default ``False``, the form of the other families' netlists).
 
     Members
     -------
@@ -592,7 +596,7 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
-    enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
+    link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     ram_loop_count : bool
         ``st_current_loops`` is a counter of the staging RAM (the parameter with
@@ -617,7 +621,8 @@ class Top(wiring.Component):
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
                  timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
-                 mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True):
+                 mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
+                 link_compact=False):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -759,7 +764,8 @@ class Top(wiring.Component):
         self._link = HostLink(clk_hz=clk_hz, baud=baud, max_words=max_words,
                               address_map=regmap_address_map(regmap),
                               counter_width=regmap["st_link_frames_ok"].width,
-                              strobed=self._ram_counters, read_hold=link_read_hold)
+                              strobed=self._ram_counters, read_hold=link_read_hold,
+                              compact=link_compact)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
                                signed_duty=timer_clamp)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
@@ -888,6 +894,7 @@ class Top(wiring.Component):
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
     mt_k_export = property(lambda self: self._mt.k_steady)
+    link_compact = property(lambda self: self._link.compact)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
     def _mt_k(self, m, exp):

@@ -27,7 +27,7 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, ENC_FOLD_RELOAD, LINK_READ_HOLD,
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, ENC_FOLD_RELOAD, LINK_COMPACT, LINK_READ_HOLD,
                                     MT_CHUNK_MULTIPLIERS, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
                                     RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER,
                                     BoardTop, build, pll_config, prepare, synthesis_verilog, _tool)
@@ -253,9 +253,13 @@ def test_board_top_uses_the_family_multiplier_width(name, mul_width):
 #: on the iCE40 only (its cells; the other netlists as before, §7.72); the current loop's pass
 #: count in the register file's staging RAM on the iCE40 only (its cells; the Arty's LUT6 the
 #: other way, §7.78).
+#: on the iCE40 only (its cells; the other netlists as before, §7.72); the host link's compact
+#: forms on the iCE40 only (its cells; the ECP5's 100 MHz paths, §7.75).
 FAMILY_FORMS = [
     ("link_read_hold", LINK_READ_HOLD, (False, True, False, False),
      lambda top: (top.link_read_hold, top._link.core.read_hold)),
+    ("link_compact", LINK_COMPACT, (True, False, False, False),
+     lambda top: (top.link_compact, top._link.core.compact)),
     ("trip_register", TRIP_REGISTER, (False, True, True, True),
      lambda top: (top.trip_register, top._protect.trip_register)),
     ("scope_down_counts", SCOPE_DOWN_COUNTS, (True, False, False, False),

@@ -32,6 +32,7 @@ CAUGHT_BY = {
     "speed_loop": r"speed wrap: R written unsaturated out of its range",
     "hostlink": r"hostlink crc: a write without a frame with a valid CRC",
     "hostlink_hold": r"hostlink crc: a write without a frame with a valid CRC",
+    "hostlink_compact": r"hostlink crc: a write without a frame with a valid CRC",
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
     "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }

@@ -417,8 +417,9 @@ def test_top_gates_stay_low_for_a_pwm_period_after_reset():
     assert not any(on)
 
 
-def test_top_register_writes_reach_blocks_through_the_host_link():
-    top = Top(pwm_hz=PWM, baud=BAUD)
+@pytest.mark.parametrize("link_compact", [False, True])
+def test_top_register_writes_reach_blocks_through_the_host_link(link_compact):
+    top = Top(pwm_hz=PWM, baud=BAUD, link_compact=link_compact)
     bench = _Bench(top, BAUD)
     host = _Host(bench)
     rm = top.regmap
@@ -1663,3 +1664,48 @@ def test_top_mt_k_from_the_export_port_is_the_flip_flops_clock_for_clock():
                for v in valid_at if v - lat >= walk)
     assert all(ex[v][4] and ex[v][3] == 0 for v in valid_at if v - lat < walk)
     assert len(valid_at) >= 6
+def test_top_link_compact_form_same_ports_clock_by_clock():
+    """``Top(link_compact=True)`` (the iCEBreaker's link) and the default, fed the same UART
+    bits (writes, a burst across the mode registers, reads of the identification words and the
+    scope window, a write to a read-only register, a hole, a damaged frame): every output port
+    of the two tops is equal in every clock."""
+    tops = [Top(pwm_hz=PWM, baud=BAUD, link_compact=c) for c in (False, True)]
+    m = Module()
+    for k, top in enumerate(tops):
+        m.submodules[f"top{k}"] = top
+    rx = Signal(init=1)
+    m.d.comb += [top.uart_rx.eq(rx) for top in tops]
+    outs = [name for name, member in tops[0].signature.members.items()
+            if member.is_port and member.flow == wiring.Out]
+    t0 = tops[0]
+    frames = [
+        encode_request(Command.WRITE, 1, _addr(t0, "dead_time"), 1, [37]),
+        encode_request(Command.WRITE, 2, _addr(t0, "mode"), 8,
+                       [Mode.OPEN_LOOP.value, 0, 0, 0, 0, 0, 1000, 0xFFFF & -2000]),
+        encode_request(Command.READ, 3, 0x0000, 8),
+        encode_request(Command.READ, 4, 0x1000, 16),
+        encode_request(Command.WRITE, 5, _addr(t0, "st_trip"), 1, [1]),
+        encode_request(Command.READ, 6, 0x0030, 2),
+        encode_request(Command.READ, 7, _addr(t0, "mode"), 8),
+    ]
+    wire = b"".join(frame(f) for f in frames) + b"\x00\x12\x34\x00"
+    per_bit = int(CLK / BAUD)
+    bits = []
+    for b in wire:
+        bits += [0] + [(b >> k) & 1 for k in range(8)] + [1, 1]
+    mismatches, seen = [], {"tx": 0}
+
+    async def bench(ctx):
+        for t in range(len(bits) * per_bit + 6000):
+            ctx.set(rx, bits[t // per_bit] if t // per_bit < len(bits) else 1)
+            await ctx.delay(1e-9)
+            a = [ctx.get(getattr(tops[0], n)) for n in outs]
+            b = [ctx.get(getattr(tops[1], n)) for n in outs]
+            seen["tx"] += ctx.get(tops[0].uart_tx) == 0
+            if a != b and len(mismatches) < 5:
+                mismatches.append((t, [n for n, x, y in zip(outs, a, b) if x != y]))
+            await ctx.tick()
+
+    simulate(m, [bench], clock_hz=CLK, name="test_top_link_compact")
+    assert mismatches == []
+    assert seen["tx"] > 1000                    # the replies went out
