@@ -109,6 +109,13 @@ SCOPE_DOWN_COUNTS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: elsewhere (the netlists of before). The same levels either way.
 TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(gates_dead_n=…)`` per FPGA family: the gates' turn-on compare operand
+#: ``~(max(dead_time, 1) − 1)`` held by the register file's flip-flops (the iCE40: no decrement
+#: and zero test in front of the three compares, −15 logic cells on the iCEBreaker, docs/AREA.md
+#: §7.79); computed in :class:`~foc_servo.hdl.gates.Gates` from ``dead_time`` elsewhere (the
+#: netlists of before). The same gate outputs either way.
+GATES_DEAD_N = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -357,6 +364,7 @@ class BoardTop(Elaboratable):
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
+                        gates_dead_n=GATES_DEAD_N[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)

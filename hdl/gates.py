@@ -16,10 +16,25 @@ from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.wiring import In, Out
 
-__all__ = ["Gates", "PHASES_LAYOUT"]
+from .fixed import check_bool
+
+__all__ = ["Gates", "PHASES_LAYOUT", "dead_n", "dead_n_const"]
 
 #: One bit per phase.
 PHASES_LAYOUT = data.StructLayout({"a": 1, "b": 1, "c": 1})
+
+
+def dead_n(dead_time):
+    """``Gates(dead_n=True)``'s operand from the dead time (a ``Value``):
+    ``~(max(dead_time, 1) − 1)`` in ``len(dead_time)`` bits, the inverted right side of the
+    turn-on compare (``off + 1 ≥ max(dead_time, 1)``)."""
+    return ~Mux(dead_time == 0, 0, dead_time - 1)
+
+
+def dead_n_const(dead_time, dead_width=8):
+    """:func:`dead_n` of an ``int`` dead time, ``dead_width`` bits (the register file's reset
+    value of the operand, the golden models)."""
+    return ~(max(dead_time, 1) - 1) & ((1 << dead_width) - 1)
 
 
 class Gates(wiring.Component):
@@ -63,14 +78,16 @@ class Gates(wiring.Component):
     trip_latency = 1
     latency = 1
 
-    def __init__(self, *, dead_width=8):
+    def __init__(self, *, dead_width=8, dead_n=False):
         if (not isinstance(dead_width, int) or isinstance(dead_width, bool)
                 or not 1 <= dead_width <= 16):
             raise TypeError(f"Gates dead_width must be an integer from 1 to 16, not {dead_width!r}")
+        check_bool("Gates", "dead_n", dead_n)
         self._dead_width = dead_width
+        self._dead_n = dead_n
         super().__init__({
             "pwm": In(PHASES_LAYOUT),
-            "dead_time": In(unsigned(dead_width)),
+            ("dead_n" if dead_n else "dead_time"): In(unsigned(dead_width)),
             "enable": In(1),
             "trip": In(1),
             "high": Out(PHASES_LAYOUT),
@@ -78,6 +95,8 @@ class Gates(wiring.Component):
         })
 
     dead_width = property(lambda self: self._dead_width)
+    #: The dead-time member's name: ``"dead_n"`` (``dead_n=True``) or ``"dead_time"``.
+    dead_input = property(lambda self: "dead_n" if self._dead_n else "dead_time")
 
     def elaborate(self, platform):
         m = Module()
@@ -86,8 +105,9 @@ class Gates(wiring.Component):
         # `off + 1 ≥ max(dead_time, 1)` as `off ≥ dead_time − (dead_time ≠ 0)`: the right side
         # once for the three phases, inverted (d_n), so each phase's compare is one carry chain
         # `off + d_n + 1` with no adder or inverter in front.
+        # (``dead_n``: the port is that operand, from the register file's flip-flops.)
         d_n = Signal(unsigned(dw))
-        m.d.comb += d_n.eq(~Mux(self.dead_time == 0, 0, self.dead_time - 1))
+        m.d.comb += d_n.eq(self.dead_n if self._dead_n else dead_n(self.dead_time))
         stopped = Signal()                      # trip or ~enable on the previous clock
         m.d.sync += stopped.eq(~run)
 

@@ -210,7 +210,7 @@ from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
-from .fixed import at_least, check_choice, round_shift, saturate
+from .fixed import at_least, check_bool, check_choice, round_shift, saturate
 from .foc import SPEED_WIDTH, CurrentLoop
 from .foc_engine import CONFIG as ENGINE_CONFIG_SPECIALS
 from .foc_engine import REF_CONFIG_WORDS as ENGINE_REF_WORDS
@@ -218,6 +218,8 @@ from .foc_engine import REF_STATUS as ENGINE_REF_STATUS
 from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
+from .gates import dead_n as gates_dead_n_value
+from .gates import dead_n_const as gates_dead_n_const
 from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
 from .protect import FAULTS, Protection
@@ -304,7 +306,7 @@ def _is_hz(value):
             and math.isfinite(value) and value > 0)
 
 
-def _operands(scope, regmap):
+def _operands(scope, regmap, gates_dead_n=False):
     """The blocks' operands that are functions of a register's value: register name →
     ``(shape, value, const)`` (:class:`~.regs.Derived`'s fields; the port's shape, the function
     as logic of the raw value and as a Python function of its bits). With ``regs_staging="bram"``
@@ -337,6 +339,11 @@ def _operands(scope, regmap):
         ops[f"scope_chan{c}"] = (
             unsigned(sw), lambda v: Mux(v[sw:].any() | at_least(v[:sw], n_src), unused, v[:sw]),
             lambda x: unused if x >= n_src else x)
+    if gates_dead_n:
+        # The gates' turn-on compare operand ~(max(dead_time, 1) − 1) (Gates(dead_n=True)).
+        dw = regmap["dead_time"].width
+        ops["dead_time"] = (unsigned(dw), gates_dead_n_value,
+                            lambda x: gates_dead_n_const(x, dw))
     return ops
 
 
@@ -555,7 +562,7 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True):
+                 timer_clamp=True, gates_dead_n=True):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -650,7 +657,8 @@ class Top(wiring.Component):
                             down_counts=scope_down_counts)
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
-        self._operands = _operands(self._scope, regmap)
+        check_bool("Top", "gates_dead_n", gates_dead_n)
+        self._operands = _operands(self._scope, regmap, gates_dead_n)
         # With "bram" staging the link's counters and the top's own (TOP_COUNTERS) are
         # counted in the staging RAM (RegisterFile(counters=...), from count strobes): no
         # 16-bit counter and no read multiplexer term each (docs/AREA.md §7.59).
@@ -753,7 +761,7 @@ class Top(wiring.Component):
         self._lead = LeadAngle() if current_loop == "pipelined" else None
         self._protect = Protection(speed_width=32, uv_arm_chain=uv_arm_chain,
                                    trip_register=trip_register)
-        self._gates = Gates()
+        self._gates = Gates(dead_n=gates_dead_n)
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
                              f"after the engine's done, which leaves only "
@@ -793,6 +801,7 @@ class Top(wiring.Component):
     trip_register = property(lambda self: self._protect.trip_register)
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
+    gates_dead_n = property(lambda self: self._gates.dead_input == "dead_n")
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
@@ -1007,7 +1016,8 @@ class Top(wiring.Component):
             timer.symmetric.eq(regs.pwm_symmetric),
             timer.sample_custom.eq(regs.pwm_sample_custom),
             timer.sample_point.eq(regs.pwm_sample_point),
-            gates.dead_time.eq(regs.dead_time),
+            (gates.dead_n.eq(operand("dead_time")) if self._gates.dead_input == "dead_n" else
+             gates.dead_time.eq(regs.dead_time)),
             dtc.symmetric.eq(regs.pwm_symmetric),
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),

@@ -27,7 +27,7 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, LINK_READ_HOLD, MUL_WIDTH, NAME,
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, GATES_DEAD_N, LINK_READ_HOLD, MUL_WIDTH, NAME,
                                     SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
                                     _tool, build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
@@ -259,6 +259,9 @@ FAMILY_FORMS = [
      lambda top: (top.scope_down_counts, top._scope.down_counts)),
     ("timer_clamp", TIMER_CLAMP, (True, False, False, False),
      lambda top: (top.timer_clamp, top._timer.signed_duty, not top._dtc.clamp)),
+    ("gates_dead_n", GATES_DEAD_N, (True, False, False, False),
+     lambda top: (top.gates_dead_n, top._gates.dead_input == "dead_n",
+                  "dead_time" in top._operands)),
 ]
 
 

@@ -259,7 +259,9 @@ def _wiring_table(top):
         "theta_lead": (top._lead.k, same),
         "decouple_l": (cl.ff_l, same), "decouple_psi": (cl.ff_psi, same),
         "pwm_symmetric": (timer.symmetric, same), "pwm_sample_custom": (timer.sample_custom, same),
-        "pwm_sample_point": (timer.sample_point, same), "dead_time": (gates.dead_time, same),
+        "pwm_sample_point": (timer.sample_point, same),
+        "dead_time": ((gates.dead_n, lambda v: ~(max(v, 1) - 1)) if top.gates_dead_n else
+                      (gates.dead_time, same)),
         "dtc_clocks": (top._dtc.clocks, same), "dtc_band": (top._dtc.shift, same),
         "enc_lines": (enc.lines, same), "enc_pole_pairs": (enc.pole_pairs, same),
         "enc_z_offset": (enc.z_offset, same), "enc_hall_offset": (enc.hall_offset, same),
@@ -349,12 +351,15 @@ def test_top_bram_register_file_holds_the_operands():
     n_src = len(scope.source_names)
     conv = {"speed_div": lambda v: max(v, 1) - 1, "scope_decim": lambda v: max(v, 1) - 1,
             "scope_pretrig": lambda v: min(v, scope.depth - 1),     # as _wiring_table's
-            **{f"scope_chan{c}": lambda v: min(v, n_src) for c in range(scope.channels)}}
+            **{f"scope_chan{c}": lambda v: min(v, n_src) for c in range(scope.channels)},
+            "dead_time": lambda v: 255 - (max(v, 1) - 1)}          # Gates(dead_n=True)
     ports = {"speed_div": top._servo.speed_rate_div, "scope_decim": scope.decim,
              "scope_pretrig": scope.pretrigger,
-             **{f"scope_chan{c}": scope.sel[c] for c in range(scope.channels)}}
+             **{f"scope_chan{c}": scope.sel[c] for c in range(scope.channels)},
+             "dead_time": top._gates.dead_n}
+    assert top.gates_dead_n and len(top._gates.dead_n) == 8
     assert set(regs.derived) == set(ops) == {"speed_div", "scope_decim", "scope_pretrig",
-                                             *(f"scope_chan{c}" for c in range(4))}
+                                             *(f"scope_chan{c}" for c in range(4)), "dead_time"}
     assert len(regs.scope_chan0) == top._scope.sel_width and len(regs.scope_pretrig) == 10
     m = Module()
     ins = {n: Signal(top.regmap[n].width, name=f"{n}_raw") for n in ops}
