@@ -747,11 +747,12 @@ class PWMTimer(wiring.Component):
         with m.Else():
             with m.If(k == 1):
                 m.d.sync += down.eq(0)
-            with m.If(sym & down):
-                with m.If(k != 1):
-                    m.d.sync += k_n.eq(k_n + 1)     # k − 1
-            with m.Else():
-                m.d.sync += k_n.eq(k_n - 1)         # k + 1
+            # One adder for both directions: k_n + 1 (k − 1, the triangle's first half, held at
+            # k = 1) or k_n + all ones (k + 1), not two chains and a multiplexer (iCE40: the
+            # timer −24 logic cells alone, docs/AREA.md §7.79).
+            dec = sym & down
+            with m.If(~dec | (k != 1)):
+                m.d.sync += k_n.eq(k_n + Cat(Const(1, 1), (~dec).replicate(kw - 1)))
 
         m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
         for p in "abc":
