@@ -207,3 +207,35 @@ def test_gates_checker_catches_rule_breaks():
     r = check_gates(high, low, np.full(10, 3), pwm)
     # Runts: a (pwm high for 1 clock), b (pwm low), c.
     assert r == {"overlap": 1, "short_dead": 1, "runts": 3}
+
+
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_count_wraps_only_where_it_is_not_read(dead_n):
+    """The off count has no saturation (hdl/gates.py): with a 3-bit dead time it wraps many
+    times in long disabled or tripped stretches and in stretches at the largest dead time
+    (7: the count reaches 6 and the switch turns on), and the dead time changes at random
+    while counts run; the outputs equal the model's (a saturating count) in every clock."""
+    rng = np.random.default_rng(11)
+    t_len = 3000
+    pwm = np.zeros((t_len, 3), dtype=np.int64)
+    for k in range(3):
+        t, level = 0, int(rng.integers(0, 2))
+        while t < t_len:
+            n = int(rng.integers(1, 40))
+            pwm[t:t + n, k] = level
+            t, level = t + n, 1 - level
+    dead = rng.choice([0, 1, 6, 7], t_len)
+    dead[1000:1600] = 7                             # the largest dead time for a while
+    enable = np.ones(t_len, dtype=np.int64)
+    for s in rng.integers(0, t_len - 100, 10):
+        enable[s:s + int(rng.integers(9, 100))] = 0
+    trip = np.zeros(t_len, dtype=np.int64)
+    for s in rng.integers(0, t_len - 30, 6):
+        trip[s:s + int(rng.integers(9, 30))] = 1
+    stim = {"pwm": pwm, "dead": dead, "enable": enable, "trip": trip}
+    high, low = run_gates(stim, dead_width=3, dead_n=dead_n)
+    exp_h, exp_l = gates_model(pwm, dead, enable, trip, dead_width=3)
+    np.testing.assert_array_equal(high, exp_h)
+    np.testing.assert_array_equal(low, exp_l)
+    assert check_gates(high, low, dead, pwm) == {"overlap": 0, "short_dead": 0, "runts": 0}
+    assert high.sum() > 500 and low.sum() > 500
