@@ -44,13 +44,19 @@ class Gates(wiring.Component):
     ----------
     dead_width : int
         Width of ``dead_time``, 1 … 16 bits.
+    dead_n : bool
+        ``True``: the member ``dead_n`` = :func:`dead_n` of the dead time, the turn-on compare's
+        operand, instead of ``dead_time`` (the register file's flip-flops hold it on the iCE40,
+        ``Top(gates_dead_n)``: no decrement and zero test here; the same outputs). Default
+        ``False``.
 
     Members
     -------
     pwm : In(data.StructLayout({"a", "b", "c": 1}))
         Wanted level per phase (1: high-side switch on).
     dead_time : In(unsigned(dead_width))
-        Dead time in clocks, read every clock; 0 acts as 1.
+        Dead time in clocks, read every clock; 0 acts as 1. (``dead_n``: ``dead_n``, that
+        operand of it.)
     enable : In(1)
         Global gate enable; low forces all gates off.
     trip : In(1)
@@ -69,10 +75,13 @@ class Gates(wiring.Component):
         Clocks from a ``pwm`` edge to the conducting switch turning off: 1. The other switch turns
         on ``max(dead_time, 1)`` clocks after that (``1 + max(dead_time, 1)`` after the edge).
 
+    dead_input : str
+        The dead time's member: ``"dead_n"`` or ``"dead_time"``.
+
     Raises
     ------
     TypeError
-        ``dead_width`` of the wrong type or outside its range.
+        ``dead_width`` of the wrong type or outside its range; ``dead_n`` not a bool.
     """
 
     trip_latency = 1
@@ -95,7 +104,6 @@ class Gates(wiring.Component):
         })
 
     dead_width = property(lambda self: self._dead_width)
-    #: The dead-time member's name: ``"dead_n"`` (``dead_n=True``) or ``"dead_time"``.
     dead_input = property(lambda self: "dead_n" if self._dead_n else "dead_time")
 
     def elaborate(self, platform):

@@ -472,8 +472,9 @@ class Top(wiring.Component):
         ``"ff"`` (default, flip-flops; ``commit`` at ``period_start``) or ``"bram"`` (one block
         RAM; the commit copy runs over the :attr:`commit_clocks` clocks before ``period_start``,
         module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF; its flip-flops
-        of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` then hold
-        the blocks' operands, ``RegisterFile(derived=...)``).
+        of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` (and
+        ``dead_time`` with ``gates_dead_n``) then hold the blocks' operands,
+        ``RegisterFile(derived=...)``).
     uv_arm_chain : bool
         :class:`~.protect.Protection` ``uv_arm_chain``: the under-voltage arming's compare on a
         carry chain of its own (the same verdicts; the ECP5 board's choice, for its Fmax;
@@ -488,6 +489,13 @@ class Top(wiring.Component):
         ``signed_duty=True`` (the same levels; the iCE40's choice and the default: the timer's
         shadow and active flip-flops pack with their LUTs; ``False`` clamped in the compensation,
         the ECP5's and the Spartan-7's netlist of before, docs/AREA.md §7.72).
+    gates_dead_n : bool
+        :class:`~.gates.Gates` ``dead_n``: the gates take their turn-on compare's operand
+        ``~(max(dead_time, 1) − 1)`` (:func:`~.gates.dead_n`) instead of ``dead_time``; with
+        ``regs_staging="bram"`` the register file's flip-flops hold it (``Derived``), so no
+        decrement and zero test sit in front of the compares (the same gate outputs; the
+        iCE40's choice and the default; ``False`` the ECP5's and the Spartans' netlist of
+        before, docs/AREA.md §7.79).
     trip_register : bool
         :class:`~.protect.Protection` ``trip_register``: ``present``'s OR in a flip-flop of
         its own (the same trip; the ECP5 board's choice, for its Fmax; default ``False``, the
@@ -542,6 +550,7 @@ class Top(wiring.Component):
     current_loop, scope_ram, regs_staging : str
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
+    gates_dead_n : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
