@@ -577,7 +577,9 @@ def test_pwm_timer_sample_point_and_full_scale():
 def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead():
     """``sample`` in clock t is ``pos == target`` with the target (``sample_point`` or N) of
     clock t − 1: a change acts from the clock after it. Random changes, often to the position
-    of that very clock or the next, and to 0 (after the period's last clock)."""
+    of that very clock or the next, and to 0 (after the period's last clock); also positions
+    that equal one of the period's when cut to fewer bits (2**5, 2**12 or 2**15 above it, and
+    all ones): never a strobe."""
     dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10, period 20
     n, per = dut.half_period, dut.period
     rng = np.random.default_rng(5)
@@ -586,7 +588,9 @@ def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead():
     point = np.zeros(clocks, dtype=int)
     for t in range(clocks):
         point[t] = (point[t - 1] if t and rng.random() < 0.7 else
-                    int(rng.choice([t % per, (t + 1) % per, 0, 1, per - 1, per, 25])))
+                    int(rng.choice([t % per, (t + 1) % per, 0, 1, per - 1, per, 25,
+                                    (1 << 5) + (t + 1) % per, (1 << 12) + (t + 1) % per,
+                                    (1 << 15) + (t + 1) % per, (1 << 16) - 1])))
     actions = {t: [(dut.sample_custom, int(custom[t])), (dut.sample_point, int(point[t]))]
                for t in range(clocks)}
     rec = record_timer(dut, clocks, actions)
