@@ -180,18 +180,13 @@ class DeadTimeComp(wiring.Component):
         fire = Signal()                             # this clock loads comp[turn]
         m.d.comb += fire.eq(~self.phase.valid & ~steps_left & count[:2].any())
         with m.If(self.phase.valid):
-            m.d.sync += limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks))
-        # count − 1 (while not 0, without a transfer) or, at a transfer, shift + sym + 3 (the
-        # constant 3 or 4 as the operand Cat(~sym, ~sym, sym)). The step `step` is both the
-        # decrement's operand on every bit and the select of the load, one kept wire: the LUT
-        # of each bit has four inputs (the load bit, the count bit, step, the carry) and
-        # packs with its carry and flip-flop (iCE40: one logic cell a bit).
-        step = Signal(attrs={"keep": 1})
-        m.d.comb += step.eq(~self.phase.valid & (count != 0))
-        with m.If(self.phase.valid | step):
-            m.d.sync += count.eq(Mux(step, count + step.replicate(len(count)),
-                                     self.shift + Cat(~self.symmetric, ~self.symmetric,
-                                                      self.symmetric)))
+            m.d.sync += [
+                # shift + sym + 3: the constant 3 or 4 as the operand (Cat(~sym, ~sym, sym))
+                count.eq(self.shift + Cat(~self.symmetric, ~self.symmetric, self.symmetric)),
+                limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks)),
+            ]
+        with m.Elif(count != 0):
+            m.d.sync += count.eq(count - 1)
 
         neg, low, high = {}, {}, {}
         for p in "abc":
