@@ -116,6 +116,12 @@ TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: netlists of before). The same gate outputs either way.
 GATES_DEAD_N = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(timer_sample_split=…)`` per FPGA family: the PWM timer's ADC strobe as two
+#: equalities selected after them on the iCE40 (the timer −8 logic cells alone, docs/AREA.md
+#: §7.79); one equality behind a multiplexer of the two positions elsewhere (the Arty S7: the
+#: split form is +18 LUT6). The same strobes either way.
+TIMER_SAMPLE_SPLIT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -365,6 +371,7 @@ class BoardTop(Elaboratable):
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
                         gates_dead_n=GATES_DEAD_N[self._board.family],
+                        timer_sample_split=TIMER_SAMPLE_SPLIT[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)

@@ -489,6 +489,10 @@ class Top(wiring.Component):
         ``signed_duty=True`` (the same levels; the iCE40's choice and the default: the timer's
         shadow and active flip-flops pack with their LUTs; ``False`` clamped in the compensation,
         the ECP5's and the Spartan-7's netlist of before, docs/AREA.md §7.72).
+    timer_sample_split : bool
+        :class:`~.svpwm.PWMTimer` ``sample_split``: the ADC strobe's two equalities selected
+        after them (the same strobes; the iCE40's choice and the default; ``False`` the
+        ECP5's and the Spartans' netlist of before, docs/AREA.md §7.79).
     gates_dead_n : bool
         :class:`~.gates.Gates` ``dead_n``: the gates take their turn-on compare's operand
         ``~(max(dead_time, 1) − 1)`` (:func:`~.gates.dead_n`) instead of ``dead_time``; with
@@ -550,7 +554,7 @@ class Top(wiring.Component):
     current_loop, scope_ram, regs_staging : str
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
-    gates_dead_n : bool
+    gates_dead_n, timer_sample_split : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -571,7 +575,7 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True, gates_dead_n=True):
+                 timer_clamp=True, gates_dead_n=True, timer_sample_split=True):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -703,7 +707,7 @@ class Top(wiring.Component):
                               counter_width=regmap["st_link_frames_ok"].width,
                               strobed=self._ram_counters, read_hold=link_read_hold)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
-                               signed_duty=timer_clamp)
+                               signed_duty=timer_clamp, sample_split=timer_sample_split)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
@@ -811,6 +815,7 @@ class Top(wiring.Component):
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     gates_dead_n = property(lambda self: self._gates.dead_input == "dead_n")
+    timer_sample_split = property(lambda self: self._timer.sample_split)
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 

@@ -28,7 +28,8 @@ from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratabl
 from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, GATES_DEAD_N, LINK_READ_HOLD, MUL_WIDTH, NAME,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER, BoardTop,
+                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_SAMPLE_SPLIT,
+                                    TRIP_REGISTER, BoardTop,
                                     _tool, build, pll_config, prepare, synthesis_verilog)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
@@ -262,6 +263,8 @@ FAMILY_FORMS = [
     ("gates_dead_n", GATES_DEAD_N, (True, False, False, False),
      lambda top: (top.gates_dead_n, top._gates.dead_input == "dead_n",
                   "dead_time" in top._operands)),
+    ("timer_sample_split", TIMER_SAMPLE_SPLIT, (True, False, False, False),
+     lambda top: (top.timer_sample_split, top._timer.sample_split)),
 ]
 
 
