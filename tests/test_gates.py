@@ -167,30 +167,47 @@ def test_gates_zero_dead_time_acts_as_one_clock(dead_n):
     assert not low[9, 0] and not low[15, 0] and low[16, 0]
 
 
-@pytest.mark.parametrize("dead_n", [False, True])
-def test_gates_random_sequences_against_model_and_rules(dead_n):
-    rng = np.random.default_rng(7)
-    t_len = 4000
+def _random_stim(rng, t_len, *, longest, random_start, dead, enables, trips):
+    """Random PWM runs of 1 … ``longest − 1`` clocks a phase (starting low, or at random),
+    the given dead time per clock, and disabled / tripped stretches: ``enables`` and ``trips``
+    are ``(count, start_margin, shortest, longest)`` (starts in 0 … t_len − start_margin,
+    lengths shortest … longest − 1)."""
     pwm = np.zeros((t_len, 3), dtype=np.int64)
-    for k in range(3):                              # runs of random length 1 … 25
-        t, level = 0, 0
+    for k in range(3):
+        t, level = 0, int(rng.integers(0, 2)) if random_start else 0
         while t < t_len:
-            n = int(rng.integers(1, 26))
+            n = int(rng.integers(1, longest))
             pwm[t:t + n, k] = level
             t, level = t + n, 1 - level
-    dead = np.repeat(rng.integers(0, 16, t_len // 200), 200)
-    enable = np.ones(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 40, 8):
-        enable[s:s + int(rng.integers(1, 40))] = 0
-    trip = np.zeros(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 10, 12):
-        trip[s:s + int(rng.integers(1, 6))] = 1
-    stim = {"pwm": pwm, "dead": dead, "enable": enable, "trip": trip}
-    high, low = run_gates(stim, dead_n=dead_n)
-    exp_h, exp_l = gates_model(pwm, dead, enable, trip)
+    dead = dead(rng)
+    stretches = []
+    for count, margin, lo, hi in (enables, trips):
+        mask = np.zeros(t_len, dtype=np.int64)
+        for s in rng.integers(0, t_len - margin, count):
+            mask[s:s + int(rng.integers(lo, hi))] = 1
+        stretches.append(mask)
+    return {"pwm": pwm, "dead": dead, "enable": 1 - stretches[0], "trip": stretches[1]}
+
+
+def _against_model(stim, *, dead_width=8, dead_n=False):
+    """Run ``stim``; the outputs equal the model's in every clock and keep the rules."""
+    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n)
+    exp_h, exp_l = gates_model(stim["pwm"], stim["dead"], stim["enable"], stim["trip"],
+                               dead_width=dead_width)
     np.testing.assert_array_equal(high, exp_h)
     np.testing.assert_array_equal(low, exp_l)
-    assert check_gates(high, low, dead, pwm) == {"overlap": 0, "short_dead": 0, "runts": 0}
+    assert check_gates(high, low, stim["dead"], stim["pwm"]) == {
+        "overlap": 0, "short_dead": 0, "runts": 0}
+    return high, low
+
+
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_random_sequences_against_model_and_rules(dead_n):
+    t_len = 4000
+    stim = _random_stim(np.random.default_rng(7), t_len, longest=26, random_start=False,
+                        dead=lambda rng: np.repeat(rng.integers(0, 16, t_len // 200), 200),
+                        enables=(8, 40, 1, 40), trips=(12, 10, 1, 6))
+    high, low = _against_model(stim, dead_n=dead_n)
     assert high.sum() > 1000 and low.sum() > 1000       # the stimulus did switch
 
 
@@ -215,27 +232,12 @@ def test_gates_count_wraps_only_where_it_is_not_read(dead_n):
     times in long disabled or tripped stretches and in stretches at the largest dead time
     (7: the count reaches 6 and the switch turns on), and the dead time changes at random
     while counts run; the outputs equal the model's (a saturating count) in every clock."""
-    rng = np.random.default_rng(11)
-    t_len = 3000
-    pwm = np.zeros((t_len, 3), dtype=np.int64)
-    for k in range(3):
-        t, level = 0, int(rng.integers(0, 2))
-        while t < t_len:
-            n = int(rng.integers(1, 40))
-            pwm[t:t + n, k] = level
-            t, level = t + n, 1 - level
-    dead = rng.choice([0, 1, 6, 7], t_len)
-    dead[1000:1600] = 7                             # the largest dead time for a while
-    enable = np.ones(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 100, 10):
-        enable[s:s + int(rng.integers(9, 100))] = 0
-    trip = np.zeros(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 30, 6):
-        trip[s:s + int(rng.integers(9, 30))] = 1
-    stim = {"pwm": pwm, "dead": dead, "enable": enable, "trip": trip}
-    high, low = run_gates(stim, dead_width=3, dead_n=dead_n)
-    exp_h, exp_l = gates_model(pwm, dead, enable, trip, dead_width=3)
-    np.testing.assert_array_equal(high, exp_h)
-    np.testing.assert_array_equal(low, exp_l)
-    assert check_gates(high, low, dead, pwm) == {"overlap": 0, "short_dead": 0, "runts": 0}
+    def dead(rng):
+        d = rng.choice([0, 1, 6, 7], 3000)
+        d[1000:1600] = 7                            # the largest dead time for a while
+        return d
+
+    stim = _random_stim(np.random.default_rng(11), 3000, longest=40, random_start=True,
+                        dead=dead, enables=(10, 100, 9, 100), trips=(6, 30, 9, 30))
+    high, low = _against_model(stim, dead_width=3, dead_n=dead_n)
     assert high.sum() > 500 and low.sum() > 500
