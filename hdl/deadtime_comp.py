@@ -53,7 +53,7 @@ so each period's duties are corrected with its own sample's currents.
 """
 
 
-from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
@@ -165,28 +165,26 @@ class DeadTimeComp(wiring.Component):
         # Sequential trapezoid: load the currents' magnitudes, shift right one bit per clock,
         # then clamp and restore the sign of one phase per clock (a, b, c: `turn`) on one
         # shared clamp and negation.
-        # One count for the whole sequence: `shift + sym` shift clocks then the three phases'
-        # clamps, `count` = shift clocks left + 3 while shifting, then 3, 2, 1 (phase
-        # `turn` = 3 − count = ~count[:2]: a, b, c), 0 idle; no separate step count, turn and
-        # pending flag.
-        count = Signal(range((1 << self._shift_width) + 4))
-        steps_left = count[2:].any()                # count ≥ 4: shifting
+        steps = Signal(range((1 << self._shift_width) + 1))
+        pending = Signal()
         turn = Signal(range(3))
-        m.d.comb += turn.eq(~count[:2])
-        # Loaded at every phase.valid before any fire reads it (count, reset 0): its reset
+        # Loaded at every phase.valid before any fire reads it (pending, reset 0): its reset
         # value is never used, so reset_less with init all ones (the iCE40 stores it inverted,
         # which gives the compare u > limit its ~limit without an inverter LUT per bit).
         limit = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)
         fire = Signal()                             # this clock loads comp[turn]
-        m.d.comb += fire.eq(~self.phase.valid & ~steps_left & count[:2].any())
+        m.d.comb += fire.eq(~self.phase.valid & (steps == 0) & pending)
         with m.If(self.phase.valid):
             m.d.sync += [
-                # shift + sym + 3: the constant 3 or 4 as the operand (Cat(~sym, ~sym, sym))
-                count.eq(self.shift + Cat(~self.symmetric, ~self.symmetric, self.symmetric)),
+                steps.eq(self.shift + self.symmetric),
+                pending.eq(1),
+                turn.eq(0),
                 limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks)),
             ]
-        with m.Elif(count != 0):
-            m.d.sync += count.eq(count - 1)
+        with m.Elif(steps != 0):
+            m.d.sync += steps.eq(steps - 1)
+        with m.Elif(pending):
+            m.d.sync += [turn.eq(turn + 1), pending.eq(turn != 2)]
 
         neg, low, high = {}, {}, {}
         for p in "abc":
@@ -198,7 +196,7 @@ class DeadTimeComp(wiring.Component):
             mag = Signal(unsigned(w - 1), name=f"mag_{p}")
             with m.If(self.phase.valid):
                 m.d.sync += [neg[p].eq(i[-1]), mag.eq(i[:-1] ^ i[-1].replicate(w - 1))]
-            with m.Elif(steps_left):
+            with m.Elif(steps != 0):
                 m.d.sync += mag.eq(mag >> 1)
             low[p] = mag[:cw]
             high[p] = mag[cw:].any() if w - 1 > cw else Const(0)
