@@ -122,6 +122,13 @@ GATES_DEAD_N = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: split form is +18 LUT6). The same strobes either way.
 TIMER_SAMPLE_SPLIT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(dtc_one_count=…)`` per family: the dead-time compensation's sequence on one count on
+#: the iCE40 (−5 cells alone) and the Spartan-7 (the Arty S7 6 597 against 6 616 LUT6); the
+#: ECP5 keeps the netlist of its 100 MHz build (with it, seed 2 missed 100 MHz on a path in
+#: the current loop's PI: placement, docs/AREA.md §7.79), the Spartan-6 the netlist of before
+#: (not measured). The same corrections either way.
+DTC_ONE_COUNT = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -372,6 +379,7 @@ class BoardTop(Elaboratable):
                         timer_clamp=TIMER_CLAMP[self._board.family],
                         gates_dead_n=GATES_DEAD_N[self._board.family],
                         timer_sample_split=TIMER_SAMPLE_SPLIT[self._board.family],
+                        dtc_one_count=DTC_ONE_COUNT[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)

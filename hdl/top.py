@@ -493,6 +493,10 @@ class Top(wiring.Component):
         :class:`~.svpwm.PWMTimer` ``sample_split``: the ADC strobe's two equalities selected
         after them (the same strobes; the iCE40's choice and the default; ``False`` the
         ECP5's and the Spartans' netlist of before, docs/AREA.md §7.79).
+    dtc_one_count : bool
+        :class:`~.deadtime_comp.DeadTimeComp` ``one_count``: its sequence on one count (the
+        same corrections; the iCE40's and the Spartan-7's choice and the default; ``False`` the
+        ECP5's netlist of before, docs/AREA.md §7.79).
     gates_dead_n : bool
         :class:`~.gates.Gates` ``dead_n``: the gates take their turn-on compare's operand
         ``~(max(dead_time, 1) − 1)`` (:func:`~.gates.dead_n`) instead of ``dead_time``; with
@@ -554,7 +558,7 @@ class Top(wiring.Component):
     current_loop, scope_ram, regs_staging : str
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
-    gates_dead_n, timer_sample_split : bool
+    gates_dead_n, timer_sample_split, dtc_one_count : bool
         The parameters.
     commit_clocks : int
         Clocks the register commit takes: it starts ``commit_clocks`` clocks before
@@ -575,7 +579,8 @@ class Top(wiring.Component):
                  mt_edges=MT_EDGES, current_loop="pipelined", scope_ram="bram",
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
-                 timer_clamp=True, gates_dead_n=True, timer_sample_split=True):
+                 timer_clamp=True, gates_dead_n=True, timer_sample_split=True,
+                 dtc_one_count=True):
         mul_width = check_mul_width("Top", mul_width)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
                             ("sclk_hz", sclk_hz)):
@@ -728,7 +733,8 @@ class Top(wiring.Component):
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
-                                 shift_width=regmap["dtc_band"].width, clamp=not timer_clamp)
+                                 shift_width=regmap["dtc_band"].width, clamp=not timer_clamp,
+                                 one_count=dtc_one_count)
         # (the decoder's configuration after reset: the registers', which give no change strobe)
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
@@ -816,6 +822,7 @@ class Top(wiring.Component):
     timer_clamp = property(lambda self: self._timer.signed_duty)
     gates_dead_n = property(lambda self: self._gates.dead_input == "dead_n")
     timer_sample_split = property(lambda self: self._timer.sample_split)
+    dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 

@@ -27,7 +27,8 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, GATES_DEAD_N, LINK_READ_HOLD, MUL_WIDTH, NAME,
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, GATES_DEAD_N, LINK_READ_HOLD,
+                                    MUL_WIDTH, NAME,
                                     SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_SAMPLE_SPLIT,
                                     TRIP_REGISTER, BoardTop,
                                     _tool, build, pll_config, prepare, synthesis_verilog)
@@ -265,6 +266,8 @@ FAMILY_FORMS = [
                   "dead_time" in top._operands)),
     ("timer_sample_split", TIMER_SAMPLE_SPLIT, (True, False, False, False),
      lambda top: (top.timer_sample_split, top._timer.sample_split)),
+    ("dtc_one_count", DTC_ONE_COUNT, (True, False, True, False),
+     lambda top: (top.dtc_one_count, top._dtc.one_count)),
 ]
 
 
