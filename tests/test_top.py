@@ -17,6 +17,7 @@ from amaranth.lib import wiring
 from amaranth.lib.wiring import In
 
 from foc_servo.hdl.fixed import UQ, round_shift_np, saturate_np
+from foc_servo.hdl.gates import dead_n_const
 from foc_servo.hdl.regmap import LOOP_FLAG_FIELDS, Access, Mode, Scales
 from foc_servo.hdl.top import LeadAngle, Top, _raw, regmap_address_map
 from foc_servo.hdl.uart import UartRx, UartTx
@@ -431,7 +432,8 @@ def test_top_register_writes_reach_blocks_through_the_host_link():
         await host.write(ctx, _addr(top, "dead_time"), 37)
         seen["dead_staged"] = (await host.read(ctx, _addr(top, "dead_time")))[0]
         await host.next_period(ctx, top)
-        seen["dead_port"] = ctx.get(top._gates.dead_time)
+        seen["dead_port"] = (ctx.get(top._gates.dead_n) if top.gates_dead_n else
+                             ctx.get(top._gates.dead_time))
         # Mode and the open-loop set-points in one frame (0x0010 … 0x0017).
         await host.write(ctx, _addr(top, "mode"),
                          Mode.OPEN_LOOP.value, 0, 0, 0, 0, 0, 1000, 0xFFFF & -2000)
@@ -451,7 +453,8 @@ def test_top_register_writes_reach_blocks_through_the_host_link():
     assert ids[3] == 50_000_000 and ids[4] == 100_000_000
     assert tuple(ids[5:8]) == (rm["id_i_fs_ma"].reset, rm["id_u_fs_uv"].reset,
                                rm["id_n_fs_rpm"].reset)
-    assert seen["dead_staged"] == 37 and seen["dead_port"] == 37
+    assert seen["dead_staged"] == 37
+    assert seen["dead_port"] == (dead_n_const(37) if top.gates_dead_n else 37)
     assert seen["servo_mode"] == Mode.OPEN_LOOP.value
     assert (seen["ud_set"], seen["uq_set"]) == (1000, -2000)
     assert seen["st_mode"] == Mode.OPEN_LOOP.value
@@ -485,7 +488,8 @@ def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
     rm = top.regmap
     regs, timer = top._regs, top._timer
     ports = {"pwm_symmetric": timer.symmetric, "pwm_sample_custom": timer.sample_custom,
-             "pwm_sample_point": timer.sample_point, "dead_time": top._gates.dead_time,
+             "pwm_sample_point": timer.sample_point,
+             "dead_time": top._gates.dead_n if top.gates_dead_n else top._gates.dead_time,
              "pi_q_kp": top._loop.kp_q}
     slots = [r.name for _, r, _ in staging_slots(rm, ("pwm_symmetric",))]
     assert slots[-1] == "pwm_symmetric"
@@ -523,14 +527,17 @@ def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
     assert list(seen["staged"]) == list(new.values())
     trace = host.trace
     # The first clock each port shows its new value, and the period_start after it.
-    first = {n: next(t for t, (_, _, v) in enumerate(trace) if v[n] == new[n]) for n in new}
+    # (the gates' port with gates_dead_n, the default: the operand of the dead time)
+    port_value = {**new, "dead_time": dead_n_const(new["dead_time"])} if top.gates_dead_n else new
+    first = {n: next(t for t, (_, _, v) in enumerate(trace) if v[n] == port_value[n])
+             for n in new}
     p = next(t for t, (start, _, _) in enumerate(trace) if start and t >= max(first.values()))
     s = p - top.commit_clocks                          # the copy's first clock
     assert trace[s][1] == 0                            # lock low when it starts
     assert all(not start for start, _, _ in trace[s:p])
     for n in new:
         assert first[n] == s + 2 + slots.index(n), (n, first[n] - s)
-        assert all(v[n] == new[n] for _, _, v in trace[first[n]:p + 2])
+        assert all(v[n] == port_value[n] for _, _, v in trace[first[n]:p + 2])
     assert first["pwm_symmetric"] == p                 # the last word: after the timer's latch
     assert trace[p][2]["pi_q_kp"] == rm["pi_q_kp"].reset   # an unwritten register kept
     assert seen["servo_mode"] == Mode.OPEN_LOOP.value
