@@ -109,6 +109,26 @@ SCOPE_DOWN_COUNTS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: elsewhere (the netlists of before). The same levels either way.
 TIMER_CLAMP = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(gates_dead_n=…)`` per FPGA family: the gates' turn-on compare operand
+#: ``~(max(dead_time, 1) − 1)`` held by the register file's flip-flops (the iCE40: no decrement
+#: and zero test in front of the three compares, −15 logic cells on the iCEBreaker, docs/AREA.md
+#: §7.79); computed in :class:`~foc_servo.hdl.gates.Gates` from ``dead_time`` elsewhere (the
+#: netlists of before). The same gate outputs either way.
+GATES_DEAD_N = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(timer_sample_split=…)`` per FPGA family: the PWM timer's ADC strobe as two
+#: equalities selected after them on the iCE40 (the timer −8 logic cells alone, docs/AREA.md
+#: §7.79); one equality behind a multiplexer of the two positions elsewhere (the Arty S7: the
+#: split form is +18 LUT6). The same strobes either way.
+TIMER_SAMPLE_SPLIT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(dtc_one_count=…)`` per family: the dead-time compensation's sequence on one count on
+#: the iCE40 (−5 cells alone) and the Spartan-7 (the Arty S7 6 597 against 6 616 LUT6); the
+#: ECP5 keeps the netlist of its 100 MHz build (with it, seed 2 missed 100 MHz on a path in
+#: the current loop's PI: placement, docs/AREA.md §7.79), the Spartan-6 the netlist of before
+#: (not measured). The same corrections either way.
+DTC_ONE_COUNT = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
+
 #: ``Top(link_read_hold=…)`` per FPGA family: the host link's frame-buffer read address from
 #: registered flags on the ECP5 (the state decode in front of its distributed-RAM read was a
 #: 100 MHz critical path, docs/AREA.md §7.62); chosen from the state elsewhere (iCE40: +31
@@ -394,14 +414,17 @@ class BoardTop(Elaboratable):
                         trip_register=TRIP_REGISTER[self._board.family],
                         scope_down_counts=SCOPE_DOWN_COUNTS[self._board.family],
                         timer_clamp=TIMER_CLAMP[self._board.family],
-                        link_read_hold=LINK_READ_HOLD[self._board.family],
                         prot_limits=(PROT_LIMITS[self._board.family]
                                      if self._board.regs_staging == "bram" else "ports"),
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
                         mt_k_export=MT_K_EXPORT[self._board.family],
                         ram_loop_count=RAM_LOOP_COUNT[self._board.family],
-                        link_compact=LINK_COMPACT[self._board.family])
+                        link_compact=LINK_COMPACT[self._board.family],
+                        gates_dead_n=GATES_DEAD_N[self._board.family],
+                        timer_sample_split=TIMER_SAMPLE_SPLIT[self._board.family],
+                        dtc_one_count=DTC_ONE_COUNT[self._board.family],
+                        link_read_hold=LINK_READ_HOLD[self._board.family])
 
     board = property(lambda self: self._board)
     pll = property(lambda self: self._pll)

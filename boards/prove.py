@@ -47,6 +47,7 @@ from amaranth.lib.wiring import In
 from ..hdl.fixed import abs_exceeds
 from ..hdl.foc import CurrentLoop
 from ..hdl.gates import Gates
+from ..hdl.gates import dead_n as gates_dead_n
 from ..hdl.hostlink import LinkCore
 from ..hdl.pi import PI
 from ..hdl.protect import (FAULTS, LIMITS, STEPS, Protection, step_compare, store_limit,
@@ -148,24 +149,33 @@ class DeadTimeSpec(Elaboratable):
     ----------
     dead_width : int
         Width of ``dead_time`` (8 in the top).
+    dead_n : bool
+        Prove ``Gates(dead_n=True)`` (the iCE40's form), its ``dead_n`` port driven with
+        :func:`~foc_servo.hdl.gates.dead_n` of a ``dead_time`` that takes any value in every
+        clock (what the register file's flip-flops hold, ``Top(gates_dead_n)``).
     broken : bool
         Prove a :func:`mutant` of :class:`Gates` whose turn-on ignores the dead-time count (the
         dead time removed: a switch turns on one clock after the other turned off).
     """
 
-    def __init__(self, *, dead_width=8, broken=False):
+    def __init__(self, *, dead_width=8, dead_n=False, broken=False):
         self.dead_width = dead_width
+        self.dead_n = dead_n
         self.broken = broken
 
     def elaborate(self, platform):
         m = Module()
         dw = self.dead_width
         cls = mutant(Gates, ("steady & long_enough", "steady")) if self.broken else Gates
-        gates = cls(dead_width=dw)
+        gates = cls(dead_width=dw, dead_n=self.dead_n)
         m.submodules.gates, internal = elaborate_with_internals(gates, platform)
 
-        _drive_inputs(m, gates)
-        dead_time = gates.dead_time                 # programmed value, any in every clock
+        _drive_inputs(m, gates, skip=("dead_n",))
+        if self.dead_n:
+            dead_time = Signal(dw)                  # programmed value, any in every clock
+            m.d.comb += [dead_time.eq(AnySeq(dw)), gates.dead_n.eq(gates_dead_n(dead_time))]
+        else:
+            dead_time = gates.dead_time             # programmed value, any in every clock
         dead = Signal(dw)                           # the dead time in force: 0 acts as 1
         m.d.comb += dead.eq(Mux(dead_time == 0, 1, dead_time))
         dead_prev = Signal(dw)
@@ -1069,6 +1079,9 @@ class Proof:
 PROOFS = {p.name: p for p in (
     Proof("deadtime", DeadTimeSpec, 2, 8,
           "Gates: never high and low together; every turn-on after >= the dead time off"),
+    Proof("deadtime_n", functools.partial(DeadTimeSpec, dead_n=True), 2, 8,
+          "Gates(dead_n=True), the iCE40's (the operand ~(max(dead_time, 1) - 1) from the "
+          "register file): the same properties"),
     Proof("fault", FaultSpec, 4, 8,
           "Protection + Gates: all gates off within 3 clocks of a fault, until a clear"),
     Proof("fault_or", functools.partial(FaultSpec, trip_register=False), 4, 8,

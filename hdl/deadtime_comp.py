@@ -53,7 +53,7 @@ so each period's duties are corrected with its own sample's currents.
 """
 
 
-from amaranth.hdl import Const, Module, Mux, Signal, signed, unsigned
+from amaranth.hdl import Cat, Const, Module, Mux, Signal, signed, unsigned
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
@@ -82,6 +82,11 @@ class DeadTimeComp(wiring.Component):
         :class:`~.svpwm.PWMTimer` ``signed_duty=True``, which clamps it in its shadow and active
         registers' LUTs (the iCE40's form, ``Top(timer_clamp)``: the same levels; docs/AREA.md
         §7.72).
+    one_count : bool
+        ``True``: the shift clocks and the three phases' clamps sequenced by one count (the
+        same ``comp`` in the same clocks; the iCE40's and the Spartan-7's form,
+        ``Top(dtc_one_count)``: −5 iCE40 cells, −19 LUT6 on the Arty S7; the ECP5 keeps the
+        netlist its 100 MHz build was made with, docs/AREA.md §7.79). Default ``False``.
 
     Members
     -------
@@ -124,8 +129,10 @@ class DeadTimeComp(wiring.Component):
 
     latency = 0
 
-    def __init__(self, *, width=16, count_width=16, clocks_width=8, shift_width=4, clamp=True):
+    def __init__(self, *, width=16, count_width=16, clocks_width=8, shift_width=4, clamp=True,
+                 one_count=False):
         check_bool("DeadTimeComp", "clamp", clamp)
+        check_bool("DeadTimeComp", "one_count", one_count)
         for name, value, lo, hi in (("width", width, 8, 23), ("count_width", count_width, 4, 24),
                                     ("clocks_width", clocks_width, 1, 16),
                                     ("shift_width", shift_width, 1, 5)):
@@ -135,6 +142,7 @@ class DeadTimeComp(wiring.Component):
         self._clocks_width = clocks_width
         self._shift_width = shift_width
         self._clamp = clamp
+        self._one_count = one_count
         duties = data.StructLayout({p: unsigned(count_width) for p in "abc"})
         sums = data.StructLayout({p: signed(count_width + 2) for p in "abc"})
         super().__init__({
@@ -153,6 +161,7 @@ class DeadTimeComp(wiring.Component):
     clocks_width = property(lambda self: self._clocks_width)
     shift_width = property(lambda self: self._shift_width)
     clamp = property(lambda self: self._clamp)
+    one_count = property(lambda self: self._one_count)
 
     @property
     def comp_latency(self):
@@ -165,26 +174,47 @@ class DeadTimeComp(wiring.Component):
         # Sequential trapezoid: load the currents' magnitudes, shift right one bit per clock,
         # then clamp and restore the sign of one phase per clock (a, b, c: `turn`) on one
         # shared clamp and negation.
-        steps = Signal(range((1 << self._shift_width) + 1))
-        pending = Signal()
-        turn = Signal(range(3))
-        # Loaded at every phase.valid before any fire reads it (pending, reset 0): its reset
-        # value is never used, so reset_less with init all ones (the iCE40 stores it inverted,
-        # which gives the compare u > limit its ~limit without an inverter LUT per bit).
-        limit = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)
-        fire = Signal()                             # this clock loads comp[turn]
-        m.d.comb += fire.eq(~self.phase.valid & (steps == 0) & pending)
-        with m.If(self.phase.valid):
-            m.d.sync += [
-                steps.eq(self.shift + self.symmetric),
-                pending.eq(1),
-                turn.eq(0),
-                limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks)),
-            ]
-        with m.Elif(steps != 0):
-            m.d.sync += steps.eq(steps - 1)
-        with m.Elif(pending):
-            m.d.sync += [turn.eq(turn + 1), pending.eq(turn != 2)]
+        if not self._one_count:
+            steps = Signal(range((1 << self._shift_width) + 1))
+            pending = Signal()
+            turn = Signal(range(3))
+            # Loaded at every phase.valid before any fire reads it (pending, reset 0): its
+            # reset value is never used, so reset_less with init all ones (the iCE40 stores it
+            # inverted, which gives the compare u > limit its ~limit without an inverter LUT
+            # per bit).
+            limit = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)
+            fire = Signal()                             # this clock loads comp[turn]
+            m.d.comb += fire.eq(~self.phase.valid & (steps == 0) & pending)
+            with m.If(self.phase.valid):
+                m.d.sync += [
+                    steps.eq(self.shift + self.symmetric),
+                    pending.eq(1),
+                    turn.eq(0),
+                    limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks)),
+                ]
+            with m.Elif(steps != 0):
+                m.d.sync += steps.eq(steps - 1)
+            with m.Elif(pending):
+                m.d.sync += [turn.eq(turn + 1), pending.eq(turn != 2)]
+        else:
+            # One count for the whole sequence: `shift + sym` shift clocks then the three
+            # phases' clamps, `count` = shift clocks left + 3 while shifting, then 3, 2, 1
+            # (phase `turn` = 3 − count = ~count[:2]: a, b, c), 0 idle; no separate step
+            # count, turn and pending flag (docs/AREA.md §7.79).
+            count = Signal(range((1 << self._shift_width) + 4))
+            turn = Signal(range(3))
+            limit = Signal(unsigned(cw), init=(1 << cw) - 1, reset_less=True)   # (as above)
+            fire = Signal()
+            m.d.comb += [turn.eq(~count[:2]),
+                         fire.eq(~self.phase.valid & ~count[2:].any() & count[:2].any())]
+            with m.If(self.phase.valid):
+                m.d.sync += [
+                    # shift + sym + 3: the constant 3 or 4 as the operand (Cat(~sym, ~sym, sym))
+                    count.eq(self.shift + Cat(~self.symmetric, ~self.symmetric, self.symmetric)),
+                    limit.eq(Mux(self.symmetric, (self.clocks + 1) >> 1, self.clocks)),
+                ]
+            with m.Elif(count != 0):
+                m.d.sync += count.eq(count - 1)
 
         neg, low, high = {}, {}, {}
         for p in "abc":
@@ -196,7 +226,7 @@ class DeadTimeComp(wiring.Component):
             mag = Signal(unsigned(w - 1), name=f"mag_{p}")
             with m.If(self.phase.valid):
                 m.d.sync += [neg[p].eq(i[-1]), mag.eq(i[:-1] ^ i[-1].replicate(w - 1))]
-            with m.Elif(steps != 0):
+            with m.Elif((count[2:].any()) if self._one_count else (steps != 0)):
                 m.d.sync += mag.eq(mag >> 1)
             low[p] = mag[:cw]
             high[p] = mag[cw:].any() if w - 1 > cw else Const(0)

@@ -16,10 +16,25 @@ from amaranth.hdl import Assert, Cat, Const, Module, Mux, Signal, unsigned
 from amaranth.lib import data, wiring
 from amaranth.lib.wiring import In, Out
 
-__all__ = ["Gates", "PHASES_LAYOUT"]
+from .fixed import check_bool
+
+__all__ = ["Gates", "PHASES_LAYOUT", "dead_n", "dead_n_const"]
 
 #: One bit per phase.
 PHASES_LAYOUT = data.StructLayout({"a": 1, "b": 1, "c": 1})
+
+
+def dead_n(dead_time):
+    """``Gates(dead_n=True)``'s operand from the dead time (a ``Value``):
+    ``~(max(dead_time, 1) − 1)`` in ``len(dead_time)`` bits, the inverted right side of the
+    turn-on compare (``off + 1 ≥ max(dead_time, 1)``)."""
+    return ~Mux(dead_time == 0, 0, dead_time - 1)
+
+
+def dead_n_const(dead_time, dead_width=8):
+    """:func:`dead_n` of an ``int`` dead time, ``dead_width`` bits (the register file's reset
+    value of the operand, the golden models)."""
+    return ~(max(dead_time, 1) - 1) & ((1 << dead_width) - 1)
 
 
 class Gates(wiring.Component):
@@ -29,13 +44,19 @@ class Gates(wiring.Component):
     ----------
     dead_width : int
         Width of ``dead_time``, 1 … 16 bits.
+    dead_n : bool
+        ``True``: the member ``dead_n`` = :func:`dead_n` of the dead time, the turn-on compare's
+        operand, instead of ``dead_time`` (the register file's flip-flops hold it on the iCE40,
+        ``Top(gates_dead_n)``: no decrement and zero test here; the same outputs). Default
+        ``False``.
 
     Members
     -------
     pwm : In(data.StructLayout({"a", "b", "c": 1}))
         Wanted level per phase (1: high-side switch on).
     dead_time : In(unsigned(dead_width))
-        Dead time in clocks, read every clock; 0 acts as 1.
+        Dead time in clocks, read every clock; 0 acts as 1. (``dead_n``: ``dead_n``, that
+        operand of it.)
     enable : In(1)
         Global gate enable; low forces all gates off.
     trip : In(1)
@@ -54,23 +75,28 @@ class Gates(wiring.Component):
         Clocks from a ``pwm`` edge to the conducting switch turning off: 1. The other switch turns
         on ``max(dead_time, 1)`` clocks after that (``1 + max(dead_time, 1)`` after the edge).
 
+    dead_input : str
+        The dead time's member: ``"dead_n"`` or ``"dead_time"``.
+
     Raises
     ------
     TypeError
-        ``dead_width`` of the wrong type or outside its range.
+        ``dead_width`` of the wrong type or outside its range; ``dead_n`` not a bool.
     """
 
     trip_latency = 1
     latency = 1
 
-    def __init__(self, *, dead_width=8):
+    def __init__(self, *, dead_width=8, dead_n=False):
         if (not isinstance(dead_width, int) or isinstance(dead_width, bool)
                 or not 1 <= dead_width <= 16):
             raise TypeError(f"Gates dead_width must be an integer from 1 to 16, not {dead_width!r}")
+        check_bool("Gates", "dead_n", dead_n)
         self._dead_width = dead_width
+        self._dead_n = dead_n
         super().__init__({
             "pwm": In(PHASES_LAYOUT),
-            "dead_time": In(unsigned(dead_width)),
+            ("dead_n" if dead_n else "dead_time"): In(unsigned(dead_width)),
             "enable": In(1),
             "trip": In(1),
             "high": Out(PHASES_LAYOUT),
@@ -78,6 +104,7 @@ class Gates(wiring.Component):
         })
 
     dead_width = property(lambda self: self._dead_width)
+    dead_input = property(lambda self: "dead_n" if self._dead_n else "dead_time")
 
     def elaborate(self, platform):
         m = Module()
@@ -86,15 +113,21 @@ class Gates(wiring.Component):
         # `off + 1 ≥ max(dead_time, 1)` as `off ≥ dead_time − (dead_time ≠ 0)`: the right side
         # once for the three phases, inverted (d_n), so each phase's compare is one carry chain
         # `off + d_n + 1` with no adder or inverter in front.
+        # (``dead_n``: the port is that operand, from the register file's flip-flops.)
         d_n = Signal(unsigned(dw))
-        m.d.comb += d_n.eq(~Mux(self.dead_time == 0, 0, self.dead_time - 1))
+        m.d.comb += d_n.eq(self.dead_n if self._dead_n else dead_n(self.dead_time))
         stopped = Signal()                      # trip or ~enable on the previous clock
         m.d.sync += stopped.eq(~run)
 
         for p in "abc":
             high, low = self.high[p], self.low[p]
             # Clocks before this one with both switches off and the wanted state unchanged,
-            # saturating at 2**dw - 1.
+            # modulo 2**dw. It needs no saturation: with the wanted state steady and both off
+            # the count starts at 0 (a change of the wanted state, or of `run`, which changes
+            # it, resets it) and the wanted switch turns on once `off + 1 ≥ max(dead_time, 1)`,
+            # so it never passes 2**dw − 2 while `run`; without `run` it is not read (and the
+            # clock `run` rises is not steady). (iCE40: no `off == 2**dw − 1` test in front of
+            # each counter, docs/AREA.md §7.79.)
             off = Signal(unsigned(dw), name=f"off_{p}")
             want_h = run & self.pwm[p]
             want_l = run & ~self.pwm[p]
@@ -104,7 +137,7 @@ class Gates(wiring.Component):
             steady = (want_h == prev_h) & (want_l == prev_l)
             both_off = ~high & ~low
             with m.If(both_off & steady):
-                m.d.sync += off.eq(Mux(off == (1 << dw) - 1, off, off + 1))
+                m.d.sync += off.eq(off + 1)
             with m.Else():
                 m.d.sync += off.eq(0)
 

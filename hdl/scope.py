@@ -441,10 +441,7 @@ class Scope(wiring.Component):
             m.d.sync += [
                 state.eq(ScopeState.PRE),
                 done.eq(0),
-                need.eq(self.pretrigger) if down else filled.eq(0),
-                # (down_counts: the post count's ~pre from arm on; nothing else writes it
-                # before POST, so no copy of pre is kept)
-                *([post_left.eq(~self.pretrigger)] if down else []),
+                *([] if down else [filled.eq(0)]),  # (down_counts: need, post_left below)
                 dcount.eq(0),
                 dzero.eq(1),
                 sel.eq(self.sel),
@@ -472,10 +469,7 @@ class Scope(wiring.Component):
                             m.d.sync += post_extra.eq(~take)
                         else:
                             m.d.sync += post_left.eq(Mux(take, ~pre, ~pre + 1))
-                if down:
-                    with m.Elif(take & ~full):
-                        m.d.sync += need.eq(need - 1)
-                else:
+                if not down:
                     with m.Elif(take & (filled != depth - 1)):
                         m.d.sync += filled.eq(filled + 1)
             with m.Elif(state == ScopeState.POST):
@@ -483,12 +477,32 @@ class Scope(wiring.Component):
                     if down:
                         with m.If(post_extra):
                             m.d.sync += post_extra.eq(0)
-                        with m.Else():
-                            m.d.sync += post_left.eq(post_left - 1)
                         last = (post_left[1:] == 0) & (post_left[0] ^ post_extra)
                     else:
                         m.d.sync += post_left.eq(post_left - 1)
                         last = post_left == 1
                     with m.If(last):
                         m.d.sync += [state.eq(ScopeState.IDLE), done.eq(1)]
+        if down:
+            # The two down-counters: loaded at arm (need with the pre-trigger count,
+            # post_left with ~pretrigger: nothing else writes it before POST, so no copy of
+            # pre is kept), need − 1 for each take in PRE while not full, post_left − 1 for
+            # each take in POST but the extra one. Each as one LUT a bit on its carry: the
+            # count's step `dec` (0 in the arm clock: `take` excludes it) is both the adder's
+            # operand on every bit (−1 or 0) and the select of the load, so the LUT has four
+            # inputs (the load bit, the count bit, dec, the carry) and packs with its carry
+            # and flip-flop (iCE40: one logic cell a bit, not two; docs/AREA.md §7.79). The
+            # steps are kept wires: one net for both uses.
+            keep = {"keep": 1}
+            dec = Signal(attrs=keep)
+            post_dec = Signal(attrs=keep)
+            m.d.comb += [
+                dec.eq((state == ScopeState.PRE) & take & ~full),
+                post_dec.eq((state == ScopeState.POST) & take & ~post_extra),
+            ]
+            with m.If(self.arm | dec):
+                m.d.sync += need.eq(Mux(dec, need + dec.replicate(ab), self.pretrigger))
+            with m.If(self.arm | post_dec):
+                m.d.sync += post_left.eq(Mux(post_dec, post_left + post_dec.replicate(ab),
+                                             ~self.pretrigger))
         return m

@@ -582,6 +582,12 @@ class PWMTimer(wiring.Component):
         :class:`~.deadtime_comp.DeadTimeComp` ``clamp=False``) and those below 0 act as 0: the
         clamp in the shadow's and the active register's LUTs (the iCE40's form,
         ``Top(timer_clamp)``; the same levels as the clamped sums). Default ``False``.
+    sample_split : bool
+        ``True``: the ``sample`` strobe as the custom position's equality and the centre's
+        (a compare of ``pos`` with a constant) selected by ``sample_custom`` after them, not
+        one equality behind a multiplexer of the two positions (the iCE40's form,
+        ``Top(timer_sample_split)``: the timer −8 logic cells, docs/AREA.md §7.79; +18 LUT6
+        on the Arty S7). The same strobes. Default ``False``.
 
     Members
     -------
@@ -627,9 +633,11 @@ class PWMTimer(wiring.Component):
         ``N < 4`` or ``2·N ≥ 2**count_width``.
     """
 
-    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16, signed_duty=False):
+    def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16, signed_duty=False,
+                 sample_split=False):
         clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
         check_bool("PWMTimer", "signed_duty", signed_duty)
+        check_bool("PWMTimer", "sample_split", sample_split)
         pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
         check_param("PWMTimer", "count_width", count_width, 4, 24)
         n = pwm_half_period(clk_hz, pwm_hz)
@@ -645,6 +653,7 @@ class PWMTimer(wiring.Component):
         self._count_width = count_width
         self._n = n
         self._signed_duty = signed_duty
+        self._sample_split = sample_split
         duties = (data.StructLayout({p: signed(count_width + 2) for p in "abc"}) if signed_duty
                   else _duty_layout(count_width))
         super().__init__({
@@ -664,6 +673,7 @@ class PWMTimer(wiring.Component):
     count_width = property(lambda self: self._count_width)
     half_period = property(lambda self: self._n)
     signed_duty = property(lambda self: self._signed_duty)
+    sample_split = property(lambda self: self._sample_split)
 
     @property
     def period(self):
@@ -747,11 +757,12 @@ class PWMTimer(wiring.Component):
         with m.Else():
             with m.If(k == 1):
                 m.d.sync += down.eq(0)
-            with m.If(sym & down):
-                with m.If(k != 1):
-                    m.d.sync += k_n.eq(k_n + 1)     # k − 1
-            with m.Else():
-                m.d.sync += k_n.eq(k_n - 1)         # k + 1
+            # One adder for both directions: k_n + 1 (k − 1, the triangle's first half, held at
+            # k = 1) or k_n + all ones (k + 1), not two chains and a multiplexer (iCE40: the
+            # timer −24 logic cells alone, docs/AREA.md §7.79).
+            dec = sym & down
+            with m.If(~dec | (k != 1)):
+                m.d.sync += k_n.eq(k_n + Cat(Const(1, 1), (~dec).replicate(kw - 1)))
 
         m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
         for p in "abc":
@@ -766,6 +777,14 @@ class PWMTimer(wiring.Component):
         # The ADC strobe from a flip-flop too: the compare of the next clock's position with
         # the sample position of this clock (pos + 1 = target, or target = 0 after the last
         # clock), so the counter's and the register file's paths end here, not at the ADC.
-        target = Mux(self.sample_custom, self.sample_point, n)
-        m.d.sync += sample.eq(Mux(last, target == 0, pos + 1 == target))
+        if self._sample_split:
+            # The selection after the two equalities, not a multiplexer in front of one: the
+            # custom one takes two bits a LUT, the centre is a compare of pos with a constant
+            # (the timer alone on the iCE40: −8 logic cells, docs/AREA.md §7.79).
+            m.d.sync += sample.eq(Mux(self.sample_custom,
+                                      Mux(last, 0, pos + 1) == self.sample_point,
+                                      pos == n - 1))
+        else:
+            target = Mux(self.sample_custom, self.sample_point, n)
+            m.d.sync += sample.eq(Mux(last, target == 0, pos + 1 == target))
         return m

@@ -230,6 +230,8 @@ from .foc_engine import REF_STATUS as ENGINE_REF_STATUS
 from .foc_engine import STATUS as ENGINE_STATUS
 from .foc_engine import EngineCurrentLoop
 from .gates import Gates
+from .gates import dead_n as gates_dead_n_value
+from .gates import dead_n_const as gates_dead_n_const
 from .hostlink import COUNTERS, HostLink
 from .mt_speed import MTSpeed
 from .protect import FAULTS, LIMIT_FORMS, LIMITS, Protection
@@ -324,7 +326,7 @@ def _is_hz(value):
             and math.isfinite(value) and value > 0)
 
 
-def _operands(scope, regmap):
+def _operands(scope, regmap, gates_dead_n=False):
     """The blocks' operands that are functions of a register's value: register name →
     ``(shape, value, const)`` (:class:`~.regs.Derived`'s fields; the port's shape, the function
     as logic of the raw value and as a Python function of its bits). With ``regs_staging="bram"``
@@ -357,6 +359,11 @@ def _operands(scope, regmap):
         ops[f"scope_chan{c}"] = (
             unsigned(sw), lambda v: Mux(v[sw:].any() | at_least(v[:sw], n_src), unused, v[:sw]),
             lambda x: unused if x >= n_src else x)
+    if gates_dead_n:
+        # The gates' turn-on compare operand ~(max(dead_time, 1) − 1) (Gates(dead_n=True)).
+        dw = regmap["dead_time"].width
+        ops["dead_time"] = (unsigned(dw), gates_dead_n_value,
+                            lambda x: gates_dead_n_const(x, dw))
     return ops
 
 
@@ -485,8 +492,9 @@ class Top(wiring.Component):
         ``"ff"`` (default, flip-flops; ``commit`` at ``period_start``) or ``"bram"`` (one block
         RAM; the commit copy runs over the :attr:`commit_clocks` clocks before ``period_start``,
         module docstring; the iCEBreaker's and the Arty S7's choice: −≈ 600 FF; its flip-flops
-        of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` then hold
-        the blocks' operands, ``RegisterFile(derived=...)``).
+        of ``speed_div``, ``scope_decim``, ``scope_pretrig`` and ``scope_chan0…3`` (and
+        ``dead_time`` with ``gates_dead_n``) then hold the blocks' operands,
+        ``RegisterFile(derived=...)``).
     uv_arm_chain : bool
         :class:`~.protect.Protection` ``uv_arm_chain``: the under-voltage arming's compare on a
         carry chain of its own (the same verdicts; the ECP5 board's choice, for its Fmax;
@@ -501,6 +509,21 @@ class Top(wiring.Component):
         ``signed_duty=True`` (the same levels; the iCE40's choice and the default: the timer's
         shadow and active flip-flops pack with their LUTs; ``False`` clamped in the compensation,
         the ECP5's and the Spartan-7's netlist of before, docs/AREA.md §7.72).
+    timer_sample_split : bool
+        :class:`~.svpwm.PWMTimer` ``sample_split``: the ADC strobe's two equalities selected
+        after them (the same strobes; the iCE40's choice and the default; ``False`` the
+        ECP5's and the Spartans' netlist of before, docs/AREA.md §7.79).
+    dtc_one_count : bool
+        :class:`~.deadtime_comp.DeadTimeComp` ``one_count``: its sequence on one count (the
+        same corrections; the iCE40's and the Spartan-7's choice and the default; ``False`` the
+        ECP5's netlist of before, docs/AREA.md §7.79).
+    gates_dead_n : bool
+        :class:`~.gates.Gates` ``dead_n``: the gates take their turn-on compare's operand
+        ``~(max(dead_time, 1) − 1)`` (:func:`~.gates.dead_n`) instead of ``dead_time``; with
+        ``regs_staging="bram"`` the register file's flip-flops hold it (``Derived``), so no
+        decrement and zero test sit in front of the compares (the same gate outputs; the
+        iCE40's choice and the default; ``False`` the ECP5's and the Spartans' netlist of
+        before, docs/AREA.md §7.79).
     trip_register : bool
         :class:`~.protect.Protection` ``trip_register``: ``present``'s OR in a flip-flop of
         its own (the same trip; the ECP5 board's choice, for its Fmax; default ``False``, the
@@ -596,6 +619,8 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
+    gates_dead_n, timer_sample_split, dtc_one_count : bool
+        The parameters.
     link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     ram_loop_count : bool
@@ -622,7 +647,8 @@ class Top(wiring.Component):
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
                  timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
-                 link_compact=False):
+                 link_compact=False, gates_dead_n=True, timer_sample_split=True,
+                 dtc_one_count=True):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -725,7 +751,8 @@ class Top(wiring.Component):
                             down_counts=scope_down_counts)
         # The operands of the blocks that take a function of a register's value (_operands):
         # with "bram" staging the register file's active flip-flops hold them (Derived).
-        self._operands = _operands(self._scope, regmap)
+        check_bool("Top", "gates_dead_n", gates_dead_n)
+        self._operands = _operands(self._scope, regmap, gates_dead_n)
         # With "bram" staging the link's counters and the top's own (TOP_COUNTERS) are
         # counted in the staging RAM (RegisterFile(counters=...), from count strobes): no
         # 16-bit counter and no read multiplexer term each (docs/AREA.md §7.59).
@@ -767,7 +794,7 @@ class Top(wiring.Component):
                               strobed=self._ram_counters, read_hold=link_read_hold,
                               compact=link_compact)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
-                               signed_duty=timer_clamp)
+                               signed_duty=timer_clamp, sample_split=timer_sample_split)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
@@ -788,7 +815,8 @@ class Top(wiring.Component):
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
                                  clocks_width=regmap["dtc_clocks"].width,
-                                 shift_width=regmap["dtc_band"].width, clamp=not timer_clamp)
+                                 shift_width=regmap["dtc_band"].width, clamp=not timer_clamp,
+                                 one_count=dtc_one_count)
         # (the decoder's configuration after reset: the registers', which give no change strobe)
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
@@ -848,7 +876,7 @@ class Top(wiring.Component):
                                    trip_register=trip_register, limits=prot_limits,
                                    **({"limit_init": tuple(self._regs.mirror_init)}
                                       if prot_limits != "ports" else {}))
-        self._gates = Gates()
+        self._gates = Gates(dead_n=gates_dead_n)
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
                              f"after the engine's done, which leaves only "
@@ -890,6 +918,9 @@ class Top(wiring.Component):
     scope_down_counts = property(lambda self: self._scope.down_counts)
     timer_clamp = property(lambda self: self._timer.signed_duty)
     ram_loop_count = property(lambda self: self._ram_loop_count)
+    gates_dead_n = property(lambda self: self._gates.dead_input == "dead_n")
+    timer_sample_split = property(lambda self: self._timer.sample_split)
+    dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
@@ -1120,7 +1151,8 @@ class Top(wiring.Component):
             timer.symmetric.eq(regs.pwm_symmetric),
             timer.sample_custom.eq(regs.pwm_sample_custom),
             timer.sample_point.eq(regs.pwm_sample_point),
-            gates.dead_time.eq(regs.dead_time),
+            (gates.dead_n.eq(operand("dead_time")) if self._gates.dead_input == "dead_n" else
+             gates.dead_time.eq(regs.dead_time)),
             dtc.symmetric.eq(regs.pwm_symmetric),
             dtc.clocks.eq(regs.dtc_clocks),
             dtc.shift.eq(regs.dtc_band),

@@ -27,10 +27,11 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, ENC_FOLD_RELOAD, LINK_COMPACT, LINK_READ_HOLD,
-                                    MT_CHUNK_MULTIPLIERS, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
-                                    RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TRIP_REGISTER,
-                                    BoardTop, build, pll_config, prepare, synthesis_verilog, _tool)
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD, GATES_DEAD_N,
+                                    LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS, MT_K_EXPORT,
+                                    MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS,
+                                    TIMER_CLAMP, TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build,
+                                    pll_config, prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -280,6 +281,13 @@ FAMILY_FORMS = [
     ("ram_loop_count", RAM_LOOP_COUNT, (True, False, False, False),
      lambda top: (top.ram_loop_count,
                   "st_current_loops" in top._regs.counters)),
+    ("gates_dead_n", GATES_DEAD_N, (True, False, False, False),
+     lambda top: (top.gates_dead_n, top._gates.dead_input == "dead_n",
+                  "dead_time" in top._operands)),
+    ("timer_sample_split", TIMER_SAMPLE_SPLIT, (True, False, False, False),
+     lambda top: (top.timer_sample_split, top._timer.sample_split)),
+    ("dtc_one_count", DTC_ONE_COUNT, (True, False, True, False),
+     lambda top: (top.dtc_one_count, top._dtc.one_count)),
 ]
 
 

@@ -36,6 +36,11 @@ def test_deadtime_comp_parameter_validation(kwargs, message):
         gc.collect()
 
 
+def test_deadtime_comp_one_count_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^DeadTimeComp one_count must be a bool, not 1$"):
+        DeadTimeComp(one_count=1)
+
+
 def test_deadtime_comp_clamp_must_be_a_bool():
     with pytest.raises(TypeError, match=r"^DeadTimeComp clamp must be a bool, not 1$"):
         DeadTimeComp(clamp=1)
@@ -134,10 +139,16 @@ def model_of(stim, shift_width=4, count_width=16):
     # clamp=False (the iCE40's form): o is the sum duty + comp unclamped, signed(count_width + 2)
     (6, {"clamp": False}),
     (7, {"width": 12, "count_width": 10, "clocks_width": 5, "shift_width": 3, "clamp": False}),
+    # one_count=True (the iCE40's and the Spartan-7's sequencer)
+    (8, {"one_count": True}),
+    (9, {"width": 23, "count_width": 24, "clocks_width": 16, "shift_width": 5,
+         "one_count": True}),
+    (10, {"width": 12, "count_width": 10, "clocks_width": 5, "shift_width": 3, "clamp": False,
+          "one_count": True}),
 ])
 def test_deadtime_comp_matches_model_bit_for_bit(seed, params):
     rng = np.random.default_rng(seed)
-    gen = {k: v for k, v in params.items() if k != "clamp"}
+    gen = {k: v for k, v in params.items() if k not in ("clamp", "one_count")}
     clamp = params.get("clamp", True)
     stim = random_stim(rng, 3000, **gen)
     comp, out, valid = run_dut(stim, **params)
@@ -175,7 +186,8 @@ def test_deadtime_comp_output_beyond_full_scale_gives_the_full_scale_levels(symm
                                           pwm_levels(clamped, n, symmetric))
 
 
-def test_deadtime_comp_latency_cycle_by_cycle():
+@pytest.mark.parametrize("one_count", [False, True])
+def test_deadtime_comp_latency_cycle_by_cycle(one_count):
     t_len = 80
     z = np.zeros(t_len, dtype=np.int64)
     for shift, sym in ((0, 0), (3, 0), (3, 1), (11, 1)):
@@ -186,7 +198,7 @@ def test_deadtime_comp_latency_cycle_by_cycle():
         k = shift + sym
         small = min(3 << k, 32767)
         stim["phase"][10] = [30000, -30000, small]
-        comp, out, _ = run_dut(stim)
+        comp, out, _ = run_dut(stim, one_count=one_count)
         want = model.trapezoid(stim["phase"][10], 50, shift, sym)
         assert want.all()
         # Phase a from 13 + k, b one clock later, c two (one shared clamp and negation).

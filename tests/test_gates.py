@@ -9,15 +9,16 @@ from amaranth.back import verilog
 from amaranth.hdl import UnusedElaboratable
 
 from foc_servo.boards.area import ports
-from foc_servo.hdl.gates import Gates
+from foc_servo.hdl.gates import Gates, dead_n_const
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.gates import check_gates, gates as gates_model
 
 
-def run_gates(stim, *, dead_width=8):
+def run_gates(stim, *, dead_width=8, dead_n=False):
     """Drive Gates clock by clock from ``stim`` (dict of arrays: ``pwm`` (T, 3), ``dead``,
-    ``enable``, ``trip`` (T,)); return the outputs during each clock, ``high``, ``low`` (T, 3)."""
-    dut = Gates(dead_width=dead_width)
+    ``enable``, ``trip`` (T,)); return the outputs during each clock, ``high``, ``low`` (T, 3).
+    ``dead_n``: ``Gates(dead_n=True)``, its port driven with :func:`dead_n_const` of ``dead``."""
+    dut = Gates(dead_width=dead_width, dead_n=dead_n)
     t_len = len(stim["dead"])
     high = np.zeros((t_len, 3), dtype=np.int64)
     low = np.zeros((t_len, 3), dtype=np.int64)
@@ -26,7 +27,10 @@ def run_gates(stim, *, dead_width=8):
         for t in range(t_len):
             p = stim["pwm"][t]
             ctx.set(dut.pwm, {"a": int(p[0]), "b": int(p[1]), "c": int(p[2])})
-            ctx.set(dut.dead_time, int(stim["dead"][t]))
+            if dead_n:
+                ctx.set(dut.dead_n, dead_n_const(int(stim["dead"][t]), dead_width))
+            else:
+                ctx.set(dut.dead_time, int(stim["dead"][t]))
             ctx.set(dut.enable, int(stim["enable"][t]))
             ctx.set(dut.trip, int(stim["trip"][t]))
             h, lo = ctx.get(dut.high), ctx.get(dut.low)
@@ -53,14 +57,48 @@ def test_gates_parameter_validation(value):
         gc.collect()
 
 
-def test_gates_convert_to_verilog():
-    dut = Gates()
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_convert_to_verilog(dead_n):
+    dut = Gates(dead_n=dead_n)
     assert "module" in verilog.convert(dut, ports=ports(dut))
+    assert dut.dead_input == ("dead_n" if dead_n else "dead_time")
 
 
-def test_gates_all_off_at_reset_then_dead_time_before_first_turn_on():
+def test_gates_dead_n_parameter_validation():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UnusedElaboratable)
+        with pytest.raises(TypeError, match=r"^Gates dead_n must be a bool, not 1$"):
+            Gates(dead_n=1)
+        gc.collect()
+
+
+@pytest.mark.parametrize("dead_width", [1, 3, 8])
+def test_gates_dead_n_const_is_the_gateware_operand(dead_width):
+    """:func:`dead_n_const` (the register file's reset value, the tests' drive) equals
+    :func:`~foc_servo.hdl.gates.dead_n` (the gateware's, ``Gates(dead_n=False)`` and the Top's
+    operand) on every code."""
+    from amaranth.hdl import Module, Signal
+    from foc_servo.hdl.gates import dead_n
+    m = Module()
+    d = Signal(dead_width)
+    out = Signal(dead_width)
+    m.d.comb += out.eq(dead_n(d))
+    bad = []
+
+    async def bench(ctx):
+        for v in range(1 << dead_width):
+            ctx.set(d, v)
+            if ctx.get(out) != dead_n_const(v, dead_width):
+                bad.append(v)
+
+    simulate(m, [bench], name="test_gates_dead_n")
+    assert not bad
+
+
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_all_off_at_reset_then_dead_time_before_first_turn_on(dead_n):
     stim = constant(12, pwm=(1, 0, 1), dead=5)
-    high, low = run_gates(stim)
+    high, low = run_gates(stim, dead_n=dead_n)
     # Clock 0: reset state, and the wanted state appears (a change: the count starts at 1).
     # Both off for clocks 0 … 5, the wanted side on from clock 1 + 5.
     assert not high[:6].any() and not low[:6].any()
@@ -68,11 +106,12 @@ def test_gates_all_off_at_reset_then_dead_time_before_first_turn_on():
     np.testing.assert_array_equal(low[6:], np.tile([0, 1, 0], (6, 1)))
 
 
-def test_gates_edge_timing_cycle_by_cycle():
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_edge_timing_cycle_by_cycle(dead_n):
     dead = 4
     stim = constant(40, pwm=(0, 0, 0), dead=dead)
     stim["pwm"][15:30, 0] = 1                       # phase a: a pulse of 15 clocks
-    high, low = run_gates(stim)
+    high, low = run_gates(stim, dead_n=dead_n)
     # Low side on after reset; the rising pwm edge at 15 turns it off at 16, the high side on
     # dead clocks later (20); the falling edge at 30 turns the high side off at 31, low on at 35.
     np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(16 + dead, 31))
@@ -83,13 +122,14 @@ def test_gates_edge_timing_cycle_by_cycle():
 
 
 @pytest.mark.parametrize("dead", [1, 6, 20])
-def test_gates_pulse_shorter_than_dead_time_is_dropped(dead):
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_pulse_shorter_than_dead_time_is_dropped(dead, dead_n):
     t0 = 2 * dead + 5                               # low side on by then
     stim = constant(t0 + 3 * dead + 10, dead=dead)
     stim["pwm"][t0:t0 + dead - 1, 0] = 1            # high pulse one clock short of the dead time
     stim["pwm"][t0:t0 + dead, 1] = 1                # exactly the dead time
     stim["pwm"][t0:t0 + dead + 1, 2] = 1            # one clock longer
-    high, low = run_gates(stim)
+    high, low = run_gates(stim, dead_n=dead_n)
     assert low[t0].all()
     assert not high[:, 0].any() and not high[:, 1].any()        # dropped: no runt
     # A pulse of L clocks gives L − dead clocks on the high side.
@@ -100,12 +140,13 @@ def test_gates_pulse_shorter_than_dead_time_is_dropped(dead):
         "overlap": 0, "short_dead": 0, "runts": 0}
 
 
-def test_gates_trip_and_enable_force_all_off_within_one_clock():
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_trip_and_enable_force_all_off_within_one_clock(dead_n):
     stim = constant(60, pwm=(1, 0, 1), dead=2)
     stim["trip"][20:23] = 1
     stim["enable"][40:45] = 0
     stim["pwm"][41:52, 1] = 1                       # pwm changes while disabled
-    high, low = run_gates(stim)
+    high, low = run_gates(stim, dead_n=dead_n)
     assert Gates.trip_latency == 1
     assert (high[19] | low[19]).all()
     assert not high[21:24].any() and not low[21:24].any()      # off the clock after trip
@@ -117,37 +158,56 @@ def test_gates_trip_and_enable_force_all_off_within_one_clock():
         "overlap": 0, "short_dead": 0, "runts": 0}
 
 
-def test_gates_zero_dead_time_acts_as_one_clock():
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_zero_dead_time_acts_as_one_clock(dead_n):
     stim = constant(20, dead=0)
     stim["pwm"][8:14, 0] = 1
-    high, low = run_gates(stim)
+    high, low = run_gates(stim, dead_n=dead_n)
     np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(10, 15))
     assert not low[9, 0] and not low[15, 0] and low[16, 0]
 
 
-def test_gates_random_sequences_against_model_and_rules():
-    rng = np.random.default_rng(7)
-    t_len = 4000
+def _random_stim(rng, t_len, *, longest, random_start, dead, enables, trips):
+    """Random PWM runs of 1 … ``longest − 1`` clocks a phase (starting low, or at random),
+    the given dead time per clock, and disabled / tripped stretches: ``enables`` and ``trips``
+    are ``(count, start_margin, shortest, longest)`` (starts in 0 … t_len − start_margin,
+    lengths shortest … longest − 1)."""
     pwm = np.zeros((t_len, 3), dtype=np.int64)
-    for k in range(3):                              # runs of random length 1 … 25
-        t, level = 0, 0
+    for k in range(3):
+        t, level = 0, int(rng.integers(0, 2)) if random_start else 0
         while t < t_len:
-            n = int(rng.integers(1, 26))
+            n = int(rng.integers(1, longest))
             pwm[t:t + n, k] = level
             t, level = t + n, 1 - level
-    dead = np.repeat(rng.integers(0, 16, t_len // 200), 200)
-    enable = np.ones(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 40, 8):
-        enable[s:s + int(rng.integers(1, 40))] = 0
-    trip = np.zeros(t_len, dtype=np.int64)
-    for s in rng.integers(0, t_len - 10, 12):
-        trip[s:s + int(rng.integers(1, 6))] = 1
-    stim = {"pwm": pwm, "dead": dead, "enable": enable, "trip": trip}
-    high, low = run_gates(stim)
-    exp_h, exp_l = gates_model(pwm, dead, enable, trip)
+    dead = dead(rng)
+    stretches = []
+    for count, margin, lo, hi in (enables, trips):
+        mask = np.zeros(t_len, dtype=np.int64)
+        for s in rng.integers(0, t_len - margin, count):
+            mask[s:s + int(rng.integers(lo, hi))] = 1
+        stretches.append(mask)
+    return {"pwm": pwm, "dead": dead, "enable": 1 - stretches[0], "trip": stretches[1]}
+
+
+def _against_model(stim, *, dead_width=8, dead_n=False):
+    """Run ``stim``; the outputs equal the model's in every clock and keep the rules."""
+    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n)
+    exp_h, exp_l = gates_model(stim["pwm"], stim["dead"], stim["enable"], stim["trip"],
+                               dead_width=dead_width)
     np.testing.assert_array_equal(high, exp_h)
     np.testing.assert_array_equal(low, exp_l)
-    assert check_gates(high, low, dead, pwm) == {"overlap": 0, "short_dead": 0, "runts": 0}
+    assert check_gates(high, low, stim["dead"], stim["pwm"]) == {
+        "overlap": 0, "short_dead": 0, "runts": 0}
+    return high, low
+
+
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_random_sequences_against_model_and_rules(dead_n):
+    t_len = 4000
+    stim = _random_stim(np.random.default_rng(7), t_len, longest=26, random_start=False,
+                        dead=lambda rng: np.repeat(rng.integers(0, 16, t_len // 200), 200),
+                        enables=(8, 40, 1, 40), trips=(12, 10, 1, 6))
+    high, low = _against_model(stim, dead_n=dead_n)
     assert high.sum() > 1000 and low.sum() > 1000       # the stimulus did switch
 
 
@@ -164,3 +224,20 @@ def test_gates_checker_catches_rule_breaks():
     r = check_gates(high, low, np.full(10, 3), pwm)
     # Runts: a (pwm high for 1 clock), b (pwm low), c.
     assert r == {"overlap": 1, "short_dead": 1, "runts": 3}
+
+
+@pytest.mark.parametrize("dead_n", [False, True])
+def test_gates_count_wraps_only_where_it_is_not_read(dead_n):
+    """The off count has no saturation (hdl/gates.py): with a 3-bit dead time it wraps many
+    times in long disabled or tripped stretches and in stretches at the largest dead time
+    (7: the count reaches 6 and the switch turns on), and the dead time changes at random
+    while counts run; the outputs equal the model's (a saturating count) in every clock."""
+    def dead(rng):
+        d = rng.choice([0, 1, 6, 7], 3000)
+        d[1000:1600] = 7                            # the largest dead time for a while
+        return d
+
+    stim = _random_stim(np.random.default_rng(11), 3000, longest=40, random_start=True,
+                        dead=dead, enables=(10, 100, 9, 100), trips=(6, 30, 9, 30))
+    high, low = _against_model(stim, dead_width=3, dead_n=dead_n)
+    assert high.sum() > 500 and low.sum() > 500

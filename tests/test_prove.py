@@ -22,6 +22,7 @@ from foc_servo.host.protocol import crc16
 # assertions).
 CAUGHT_BY = {
     "deadtime": r"deadtime: phase [abc] turned on after less than the dead time off",
+    "deadtime_n": r"deadtime: phase [abc] turned on after less than the dead time off",
     "fault": r"fault bound: a gate on 3 clocks after a fault",
     "fault_or": r"fault bound: a gate on 3 clocks after a fault",
     "fault_ram": r"fault bound: a gate on 3 clocks after a fault",
@@ -36,7 +37,7 @@ CAUGHT_BY = {
     "regfile": r"regfile: \w+ (changed|pulsed) unwritten",
     "regfile_bram": r"regfile: \w+ (changed|pulsed) unwritten",
 }
-QUICK = ("deadtime", "fault", "fault_or", "fault_ram", "abs_compare")
+QUICK = ("deadtime", "deadtime_n", "fault", "fault_or", "fault_ram", "abs_compare")
 SLOW = tuple(name for name in PROOFS if name not in QUICK)
 
 

@@ -454,6 +454,11 @@ def record_timer(dut, clocks, actions):
     return np.array(rec)
 
 
+def test_pwm_timer_sample_split_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^PWMTimer sample_split must be a bool, not 1$"):
+        PWMTimer(sample_split=1)
+
+
 def test_pwm_timer_signed_duty_must_be_a_bool():
     with pytest.raises(TypeError, match=r"^PWMTimer signed_duty must be a bool, not 1$"):
         PWMTimer(signed_duty=1)
@@ -556,8 +561,9 @@ def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_w
     assert 0.2 < want.mean() < 0.8 and len(set(map(tuple, want.tolist()))) >= 6
 
 
-def test_pwm_timer_sample_point_and_full_scale():
-    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10
+@pytest.mark.parametrize("sample_split", [False, True])
+def test_pwm_timer_sample_point_and_full_scale(sample_split):
+    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3, sample_split=sample_split)     # N = 10
     actions = {0: [(dut.sample_custom, 1), (dut.sample_point, 3)],
                25: [(dut.sample_point, 19)], 45: [(dut.sample_point, 20)]}   # 20 ≥ 2N: never
     rec = record_timer(dut, 60, actions)
@@ -574,11 +580,14 @@ def test_pwm_timer_sample_point_and_full_scale():
     assert seen == [10, 20]
 
 
-def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead():
+@pytest.mark.parametrize("sample_split", [False, True])
+def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead(sample_split):
     """``sample`` in clock t is ``pos == target`` with the target (``sample_point`` or N) of
     clock t − 1: a change acts from the clock after it. Random changes, often to the position
-    of that very clock or the next, and to 0 (after the period's last clock)."""
-    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3)                # N = 10, period 20
+    of that very clock or the next, and to 0 (after the period's last clock); also positions
+    that equal one of the period's when cut to fewer bits (2**5, 2**12 or 2**15 above it, and
+    all ones): never a strobe."""
+    dut = PWMTimer(clk_hz=2e6, pwm_hz=100e3, sample_split=sample_split)    # N = 10, period 20
     n, per = dut.half_period, dut.period
     rng = np.random.default_rng(5)
     clocks = 400
@@ -586,7 +595,9 @@ def test_pwm_timer_sample_takes_the_sample_position_one_clock_ahead():
     point = np.zeros(clocks, dtype=int)
     for t in range(clocks):
         point[t] = (point[t - 1] if t and rng.random() < 0.7 else
-                    int(rng.choice([t % per, (t + 1) % per, 0, 1, per - 1, per, 25])))
+                    int(rng.choice([t % per, (t + 1) % per, 0, 1, per - 1, per, 25,
+                                    (1 << 5) + (t + 1) % per, (1 << 12) + (t + 1) % per,
+                                    (1 << 15) + (t + 1) % per, (1 << 16) - 1])))
     actions = {t: [(dut.sample_custom, int(custom[t])), (dut.sample_point, int(point[t]))]
                for t in range(clocks)}
     rec = record_timer(dut, clocks, actions)

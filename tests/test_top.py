@@ -17,6 +17,7 @@ from amaranth.lib import wiring
 from amaranth.lib.wiring import In
 
 from foc_servo.hdl.fixed import UQ, round_shift_np, saturate_np
+from foc_servo.hdl.gates import dead_n_const
 from foc_servo.hdl.regmap import LOOP_FLAG_FIELDS, Access, Mode, Scales
 from foc_servo.hdl.top import LeadAngle, Top, _raw, regmap_address_map
 from foc_servo.hdl.uart import UartRx, UartTx
@@ -265,7 +266,9 @@ def _wiring_table(top):
         "theta_lead": (top._lead.k, same),
         "decouple_l": (cl.ff_l, same), "decouple_psi": (cl.ff_psi, same),
         "pwm_symmetric": (timer.symmetric, same), "pwm_sample_custom": (timer.sample_custom, same),
-        "pwm_sample_point": (timer.sample_point, same), "dead_time": (gates.dead_time, same),
+        "pwm_sample_point": (timer.sample_point, same),
+        "dead_time": ((gates.dead_n, lambda v: ~(max(v, 1) - 1)) if top.gates_dead_n else
+                      (gates.dead_time, same)),
         "dtc_clocks": (top._dtc.clocks, same), "dtc_band": (top._dtc.shift, same),
         "enc_lines": (enc.lines, same), "enc_pole_pairs": (enc.pole_pairs, same),
         "enc_z_offset": (enc.z_offset, same), "enc_hall_offset": (enc.hall_offset, same),
@@ -355,12 +358,15 @@ def test_top_bram_register_file_holds_the_operands():
     n_src = len(scope.source_names)
     conv = {"speed_div": lambda v: max(v, 1) - 1, "scope_decim": lambda v: max(v, 1) - 1,
             "scope_pretrig": lambda v: min(v, scope.depth - 1),     # as _wiring_table's
-            **{f"scope_chan{c}": lambda v: min(v, n_src) for c in range(scope.channels)}}
+            **{f"scope_chan{c}": lambda v: min(v, n_src) for c in range(scope.channels)},
+            "dead_time": lambda v: 255 - (max(v, 1) - 1)}          # Gates(dead_n=True)
     ports = {"speed_div": top._servo.speed_rate_div, "scope_decim": scope.decim,
              "scope_pretrig": scope.pretrigger,
-             **{f"scope_chan{c}": scope.sel[c] for c in range(scope.channels)}}
+             **{f"scope_chan{c}": scope.sel[c] for c in range(scope.channels)},
+             "dead_time": top._gates.dead_n}
+    assert top.gates_dead_n and len(top._gates.dead_n) == 8
     assert set(regs.derived) == set(ops) == {"speed_div", "scope_decim", "scope_pretrig",
-                                             *(f"scope_chan{c}" for c in range(4))}
+                                             *(f"scope_chan{c}" for c in range(4)), "dead_time"}
     assert len(regs.scope_chan0) == top._scope.sel_width and len(regs.scope_pretrig) == 10
     m = Module()
     ins = {n: Signal(top.regmap[n].width, name=f"{n}_raw") for n in ops}
@@ -433,7 +439,8 @@ def test_top_register_writes_reach_blocks_through_the_host_link(link_compact):
         await host.write(ctx, _addr(top, "dead_time"), 37)
         seen["dead_staged"] = (await host.read(ctx, _addr(top, "dead_time")))[0]
         await host.next_period(ctx, top)
-        seen["dead_port"] = ctx.get(top._gates.dead_time)
+        seen["dead_port"] = (ctx.get(top._gates.dead_n) if top.gates_dead_n else
+                             ctx.get(top._gates.dead_time))
         # Mode and the open-loop set-points in one frame (0x0010 … 0x0017).
         await host.write(ctx, _addr(top, "mode"),
                          Mode.OPEN_LOOP.value, 0, 0, 0, 0, 0, 1000, 0xFFFF & -2000)
@@ -453,7 +460,8 @@ def test_top_register_writes_reach_blocks_through_the_host_link(link_compact):
     assert ids[3] == 50_000_000 and ids[4] == 100_000_000
     assert tuple(ids[5:8]) == (rm["id_i_fs_ma"].reset, rm["id_u_fs_uv"].reset,
                                rm["id_n_fs_rpm"].reset)
-    assert seen["dead_staged"] == 37 and seen["dead_port"] == 37
+    assert seen["dead_staged"] == 37
+    assert seen["dead_port"] == (dead_n_const(37) if top.gates_dead_n else 37)
     assert seen["servo_mode"] == Mode.OPEN_LOOP.value
     assert (seen["ud_set"], seen["uq_set"]) == (1000, -2000)
     assert seen["st_mode"] == Mode.OPEN_LOOP.value
@@ -487,7 +495,8 @@ def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
     rm = top.regmap
     regs, timer = top._regs, top._timer
     ports = {"pwm_symmetric": timer.symmetric, "pwm_sample_custom": timer.sample_custom,
-             "pwm_sample_point": timer.sample_point, "dead_time": top._gates.dead_time,
+             "pwm_sample_point": timer.sample_point,
+             "dead_time": top._gates.dead_n if top.gates_dead_n else top._gates.dead_time,
              "pi_q_kp": top._loop.kp_q}
     slots = [r.name for _, r, _ in staging_slots(rm, ("pwm_symmetric",))]
     assert slots[-1] == "pwm_symmetric"
@@ -525,14 +534,17 @@ def test_top_bram_staging_applies_a_frame_word_by_word_ending_at_period_start():
     assert list(seen["staged"]) == list(new.values())
     trace = host.trace
     # The first clock each port shows its new value, and the period_start after it.
-    first = {n: next(t for t, (_, _, v) in enumerate(trace) if v[n] == new[n]) for n in new}
+    # (the gates' port with gates_dead_n, the default: the operand of the dead time)
+    port_value = {**new, "dead_time": dead_n_const(new["dead_time"])} if top.gates_dead_n else new
+    first = {n: next(t for t, (_, _, v) in enumerate(trace) if v[n] == port_value[n])
+             for n in new}
     p = next(t for t, (start, _, _) in enumerate(trace) if start and t >= max(first.values()))
     s = p - top.commit_clocks                          # the copy's first clock
     assert trace[s][1] == 0                            # lock low when it starts
     assert all(not start for start, _, _ in trace[s:p])
     for n in new:
         assert first[n] == s + 2 + slots.index(n), (n, first[n] - s)
-        assert all(v[n] == new[n] for _, _, v in trace[first[n]:p + 2])
+        assert all(v[n] == port_value[n] for _, _, v in trace[first[n]:p + 2])
     assert first["pwm_symmetric"] == p                 # the last word: after the timer's latch
     assert trace[p][2]["pi_q_kp"] == rm["pi_q_kp"].reset   # an unwritten register kept
     assert seen["servo_mode"] == Mode.OPEN_LOOP.value
