@@ -37,6 +37,34 @@ def unpack_flags(value):
     return tuple(n for n in FAULTS if int(value) & _BIT[n])
 
 
+def _causes(now, pins, t, uv_checked):
+    """The cause flags of clock ``t``: the sampled verdicts ``now`` (``oc_a`` … ``os``, held
+    between samples), the pin columns of ``pins`` in clock ``t``, and the under-voltage verdict
+    only while ``uv_checked`` (enabled and armed)."""
+    b = _BIT
+    cause = 0 if pins["fault_n"][t] else b["external"]
+    for p in "abc":
+        if now[f"oc_{p}"]:
+            cause |= b[f"overcurrent_{p}"]
+    for flag, name in ((pins["oc_comp"][t], "overcurrent_comparator"), (now["ov"], "overvoltage"),
+                       (uv_checked and now["uv"], "undervoltage"), (now["os"], "overspeed"),
+                       (pins["encoder_illegal"][t], "encoder"), (pins["hall_invalid"][t], "hall"),
+                       (pins["encoder_hall"][t], "encoder_hall")):
+        if flag:
+            cause |= b[name]
+    return cause
+
+
+def _latch(clear, present, latched, first, seen):
+    """The latch, ``first`` and ``seen`` after a clock edge: cleared by ``clear`` while no
+    cause is present, else set by any present cause (``first`` the set that set it)."""
+    if clear and present == 0:
+        return 0, 0, 0
+    if present:
+        return 1, (first if latched else present), seen | present
+    return latched, first, seen
+
+
 def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), speed_width=16,
                limit_init=None):
     """Outputs of the protection block, clock by clock.
@@ -81,7 +109,6 @@ def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), 
     o_trip, o_present, o_first, o_seen, o_armed = ([0] * n for _ in range(5))
     held = {"oc_a": 0, "oc_b": 0, "oc_c": 0, "ov": 0, "uv": 0, "os": 0}
     armed = latched = present = first = seen = 0
-    b = _BIT
     for t in range(n):
         o_trip[t] = int(latched or present != 0)
         o_present[t], o_first[t], o_seen[t], o_armed[t] = present, first, seen, armed
@@ -94,37 +121,10 @@ def protect_np(cols, *, limits="ports", current_width=16, udc_shape=signed(16), 
         now["uv"] = uv_l[t] if uvv else held["uv"]
         now["os"] = os_l[t] if sv else held["os"]
         uv_en = lists["uv_enable"][t]
-        cause = 0
-        if not lists["fault_n"][t]:
-            cause |= b["external"]
-        if now["oc_a"]:
-            cause |= b["overcurrent_a"]
-        if now["oc_b"]:
-            cause |= b["overcurrent_b"]
-        if now["oc_c"]:
-            cause |= b["overcurrent_c"]
-        if lists["oc_comp"][t]:
-            cause |= b["overcurrent_comparator"]
-        if now["ov"]:
-            cause |= b["overvoltage"]
-        if uv_en and armed and now["uv"]:
-            cause |= b["undervoltage"]
-        if now["os"]:
-            cause |= b["overspeed"]
-        if lists["encoder_illegal"][t]:
-            cause |= b["encoder"]
-        if lists["hall_invalid"][t]:
-            cause |= b["hall"]
-        if lists["encoder_hall"][t]:
-            cause |= b["encoder_hall"]
+        cause = _causes(now, lists, t, uv_en and armed)
 
         # The clock edge.
-        if lists["clear"][t] and present == 0:
-            latched, first, seen = 0, 0, 0
-        elif present:
-            if not latched:
-                first = present
-            latched, seen = 1, seen | present
+        latched, first, seen = _latch(lists["clear"][t], present, latched, first, seen)
         if not uv_en:
             armed = 0
         elif uvv and arm_l[t]:
@@ -178,7 +178,6 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
     go = None                       # the step compared in this clock, its limit and operand
     go_limit = go_value = 0
     armed = latched = present = first = seen = 0
-    b = _BIT
     for t in range(n):
         out["trip"][t] = int(latched or present != 0)
         out["present"][t], out["first"][t], out["seen"][t] = present, first, seen
@@ -201,26 +200,7 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
             else:
                 now[name] = int(verdict)
         uv_en = c["uv_enable"][t]
-        cause = 0
-        if not c["fault_n"][t]:
-            cause |= b["external"]
-        for p in "abc":
-            if now[f"oc_{p}"]:
-                cause |= b[f"overcurrent_{p}"]
-        if c["oc_comp"][t]:
-            cause |= b["overcurrent_comparator"]
-        if now["ov"]:
-            cause |= b["overvoltage"]
-        if uv_en and armed and now["uv"]:
-            cause |= b["undervoltage"]
-        if now["os"]:
-            cause |= b["overspeed"]
-        if c["encoder_illegal"][t]:
-            cause |= b["encoder"]
-        if c["hall_invalid"][t]:
-            cause |= b["hall"]
-        if c["encoder_hall"][t]:
-            cause |= b["encoder_hall"]
+        cause = _causes(now, c, t, uv_en and armed)
 
         # The sequencer: this clock's requests, the first one taken unless the RAM is written.
         want = [pend[k] or c[src_valid[s[1]]][t] for k, s in enumerate(STEPS)]
@@ -229,12 +209,7 @@ def _protect_ram(cols, current_width, udc_shape, speed_width, limit_init, wide=T
             pick = next((k for k in range(len(STEPS)) if want[k]), None)
 
         # The clock edge.
-        if c["clear"][t] and present == 0:
-            latched, first, seen = 0, 0, 0
-        elif present:
-            if not latched:
-                first = present
-            latched, seen = 1, seen | present
+        latched, first, seen = _latch(c["clear"][t], present, latched, first, seen)
         if not uv_en:
             armed = 0
         elif arm_now:
