@@ -673,15 +673,13 @@ def test_mt_division_random_windows_through_the_gateware(config, k_values, chunk
         assert out["fresh"].sum() >= 20
 
 
-@pytest.mark.parametrize("k_width", [16, 20, 48])
-def test_mt_chunk_multipliers_sample_k_as_the_chunk_select(k_width):
-    """``chunk_multipliers=True`` against the default form, clock for clock, with ``k`` changing
-    in every clock (random, so that each chunk's sampling clock u + c matters), random edges
-    both ways and updates early, late and while busy: the same outputs in the same clocks."""
+_LOCKSTEP_KW = dict(clk_hz=50e6, tc_width=10, out_width=32, m_width=6)
+
+
+def _lockstep(forms, k_width):
+    """A module holding the two M/T ``forms`` side by side and their shared inputs
+    ``(k, step, neg, update)``."""
     from amaranth.hdl import Module, Signal
-    kw = dict(clk_hz=50e6, tc_width=10, out_width=32, k_width=k_width, m_width=6)
-    forms = [MTSpeed(**kw), MTSpeed(chunk_multipliers=True, **kw)]
-    assert forms[1].chunk_multipliers and not forms[0].chunk_multipliers
     m = Module()
     k = Signal(k_width)
     step, neg, update = Signal(), Signal(), Signal()
@@ -689,6 +687,29 @@ def test_mt_chunk_multipliers_sample_k_as_the_chunk_select(k_width):
         m.submodules[f"dut{i}"] = dut
         m.d.comb += [dut.k.eq(k), dut.edge.step.eq(step), dut.edge.neg.eq(neg),
                      dut.update.eq(update)]
+    return m, (k, step, neg, update)
+
+
+def _same_outputs(ctx, forms, c, seen):
+    """Both forms' outputs equal in clock ``c``; the kinds of results counted in ``seen``."""
+    got = [(ctx.get(d.o.valid), ctx.get(d.o.payload.as_value())) for d in forms]
+    assert got[0] == got[1], c
+    if got[0][0]:
+        p = ctx.get(forms[0].o.payload)
+        seen["fresh"] += p.fresh
+        seen["bound"] += not p.fresh and not p.stopped
+        seen["unsaturated"] += p.fresh and 0 < abs(p.speed) < 2 ** 31 - 1
+
+
+@pytest.mark.parametrize("k_width", [16, 20, 48])
+def test_mt_chunk_multipliers_sample_k_as_the_chunk_select(k_width):
+    """``chunk_multipliers=True`` against the default form, clock for clock, with ``k`` changing
+    in every clock (random, so that each chunk's sampling clock u + c matters), random edges
+    both ways and updates early, late and while busy: the same outputs in the same clocks."""
+    forms = [MTSpeed(**_LOCKSTEP_KW, k_width=k_width),
+             MTSpeed(chunk_multipliers=True, **_LOCKSTEP_KW, k_width=k_width)]
+    assert forms[1].chunk_multipliers and not forms[0].chunk_multipliers
+    m, (k, step, neg, update) = _lockstep(forms, k_width)
     rng = np.random.default_rng(17)
     lat = forms[0].latency
     seen = {"fresh": 0, "bound": 0, "unsaturated": 0}
@@ -701,13 +722,7 @@ def test_mt_chunk_multipliers_sample_k_as_the_chunk_select(k_width):
             ctx.set(step, int(rng.random() < (0.3 if (c // 400) % 2 else 0.02)))
             ctx.set(neg, int(rng.random() < 0.2))
             ctx.set(update, int(rng.random() < 1.5 / lat))
-            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload.as_value())) for d in forms]
-            assert got[0] == got[1], c
-            if got[0][0]:
-                p = ctx.get(forms[0].o.payload)
-                seen["fresh"] += p.fresh
-                seen["bound"] += not p.fresh and not p.stopped
-                seen["unsaturated"] += p.fresh and 0 < abs(p.speed) < 2 ** 31 - 1
+            _same_outputs(ctx, forms, c, seen)
             await ctx.tick()
 
     simulate(m, [testbench], clock_hz=50e6, name="mt_chunk_multipliers")
@@ -720,17 +735,10 @@ def test_mt_k_steady_against_the_default_form(k_width):
     the clock before each update (updates ``latency + 2`` … apart: so steady through every
     computation, as the Top's committed ``mt_k``), random edges both ways: the same outputs in
     the same clocks. A ``k`` change during a computation is what the form does not follow."""
-    from amaranth.hdl import Module, Signal
-    kw = dict(clk_hz=50e6, tc_width=10, out_width=32, k_width=k_width, m_width=6)
-    forms = [MTSpeed(**kw), MTSpeed(chunk_multipliers=True, k_steady=True, **kw)]
+    forms = [MTSpeed(**_LOCKSTEP_KW, k_width=k_width),
+             MTSpeed(chunk_multipliers=True, k_steady=True, **_LOCKSTEP_KW, k_width=k_width)]
     assert forms[1].k_steady and not forms[0].k_steady
-    m = Module()
-    k = Signal(k_width)
-    step, neg, update = Signal(), Signal(), Signal()
-    for i, dut in enumerate(forms):
-        m.submodules[f"dut{i}"] = dut
-        m.d.comb += [dut.k.eq(k), dut.edge.step.eq(step), dut.edge.neg.eq(neg),
-                     dut.update.eq(update)]
+    m, (k, step, neg, update) = _lockstep(forms, k_width)
     rng = np.random.default_rng(23)
     lat = forms[0].latency
     seen = {"fresh": 0, "bound": 0, "unsaturated": 0}
@@ -746,13 +754,7 @@ def test_mt_k_steady_against_the_default_form(k_width):
                 next_up += lat + 2 + int(rng.integers(0, 40))
             ctx.set(step, int(rng.random() < (0.3 if (c // 400) % 2 else 0.02)))
             ctx.set(neg, int(rng.random() < 0.2))
-            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload.as_value())) for d in forms]
-            assert got[0] == got[1], c
-            if got[0][0]:
-                p = ctx.get(forms[0].o.payload)
-                seen["fresh"] += p.fresh
-                seen["bound"] += not p.fresh and not p.stopped
-                seen["unsaturated"] += p.fresh and 0 < abs(p.speed) < 2 ** 31 - 1
+            _same_outputs(ctx, forms, c, seen)
             await ctx.tick()
 
     simulate(m, [testbench], clock_hz=50e6, name="mt_k_steady")
