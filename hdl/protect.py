@@ -221,8 +221,8 @@ class Protection(wiring.Component):
     without a ``limit_wr`` write the first requested step in :data:`STEPS` order (this clock's
     requests included) is taken: its limit word is read from the RAM and its operand taken from
     the payload in that clock (both registered), and in the next the one comparator compares
-    them and its verdict acts as the parallel form's verdict in a ``valid`` clock. So a step's verdict reaches ``present`` two
-    clocks after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
+    them and its verdict acts as the parallel form's verdict in a ``valid`` clock. So a step's
+    verdict reaches ``present`` two clocks after it is taken, i.e. ``1 + (steps taken before it) + (write clocks waited)`` clocks
     later than the parallel form's (the first over-current 1, the third 3; all seven requested
     at once: the over-speed 7 clocks later); a step compares the payload of the clock it is
     taken in, so the payload must hold until then (the Top's are registers that hold for a PWM

@@ -467,8 +467,9 @@ def test_engine_hdl_post_path_matches_interpreter_cycle_by_cycle():
     interpreter, every write back cycle by cycle: P near every power of two up to P_WORD bits
     (set exactly by a MUL and a MAC) through posts of every shift 0 … 31, floor and rounding,
     both saturation widths (and no saturation where the result fits WORD), and the ALU's
-    33-bit sum with shifts 0 … 3 saturated, and PQ rounded by 1 … 17. The programs use only some of these shifts and
-    saturation thresholds: this covers the rest of the shifter and of the saturation test."""
+    33-bit sum with shifts 0 … 3 saturated, and PQ rounded by 1 … 17. The programs use only
+    some of these shifts and saturation thresholds: this covers the rest of the shifter and of
+    the saturation test."""
     A = Assembler(specials=("y1", "y2", "a", "b"), bspecials=("y1", "y2", "b"), conds=(),
                   outs=("ang",))
     A.mul(1 << 17, "b.y1")                          # P = 2**17 · (t >> 17) + (t mod 2**17)
