@@ -122,6 +122,19 @@ GATES_DEAD_N = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: split form is +18 LUT6). The same strobes either way.
 TIMER_SAMPLE_SPLIT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
+#: ``Top(timer_one_adder=…)`` per FPGA family: the PWM timer's triangle counter on one adder on
+#: the iCE40 (the timer −24 logic cells alone, docs/AREA.md §7.79) and the Spartan-7 (−3
+#: LUT6); the ECP5 keeps the netlist of its session-16 builds (with the one adder and the
+#: gates' wrapping counts the ULX3S made 100.57 / 102.17 / 96.78 MHz on seeds 1 / 2 / 3: seed
+#: 3 missed, docs/AREA.md §7.80), the Spartan-6 the netlist of before. The same outputs.
+TIMER_ONE_ADDER = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
+
+#: ``Top(gates_wrap=…)`` per FPGA family: the gates' off counts without saturation on the iCE40
+#: and the Spartan-7 (the Arty S7 6 597 against 6 618 LUT6 the other way, docs/AREA.md §7.80);
+#: saturating on the ECP5 (its session-16 netlist, as :data:`TIMER_ONE_ADDER`) and the
+#: Spartan-6. The same gate outputs.
+GATES_WRAP = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
+
 #: ``Top(dtc_one_count=…)`` per family: the dead-time compensation's sequence on one count on
 #: the iCE40 (−5 cells alone) and the Spartan-7 (the Arty S7 6 597 against 6 616 LUT6); the
 #: ECP5 keeps the netlist of its 100 MHz build (with it, seed 2 missed 100 MHz on a path in
@@ -423,6 +436,8 @@ class BoardTop(Elaboratable):
                         link_compact=LINK_COMPACT[self._board.family],
                         gates_dead_n=GATES_DEAD_N[self._board.family],
                         timer_sample_split=TIMER_SAMPLE_SPLIT[self._board.family],
+                        timer_one_adder=TIMER_ONE_ADDER[self._board.family],
+                        gates_wrap=GATES_WRAP[self._board.family],
                         dtc_one_count=DTC_ONE_COUNT[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 

@@ -49,6 +49,11 @@ class Gates(wiring.Component):
         operand, instead of ``dead_time`` (the register file's flip-flops hold it on the iCE40,
         ``Top(gates_dead_n)``: no decrement and zero test here; the same outputs). Default
         ``False``.
+    wrap : bool
+        ``True``: the off counts modulo ``2**dead_width`` instead of saturating (never read
+        past ``2**dead_width − 2``, docs/AREA.md §7.79; the iCE40's and the Spartan-7's form,
+        ``Top(gates_wrap)``; the ECP5 keeps the saturating counts, §7.80). The same outputs.
+        Default ``False``.
 
     Members
     -------
@@ -81,19 +86,22 @@ class Gates(wiring.Component):
     Raises
     ------
     TypeError
-        ``dead_width`` of the wrong type or outside its range; ``dead_n`` not a bool.
+        ``dead_width`` of the wrong type or outside its range; ``dead_n`` or ``wrap`` not a
+        bool.
     """
 
     trip_latency = 1
     latency = 1
 
-    def __init__(self, *, dead_width=8, dead_n=False):
+    def __init__(self, *, dead_width=8, dead_n=False, wrap=False):
         if (not isinstance(dead_width, int) or isinstance(dead_width, bool)
                 or not 1 <= dead_width <= 16):
             raise TypeError(f"Gates dead_width must be an integer from 1 to 16, not {dead_width!r}")
         check_bool("Gates", "dead_n", dead_n)
+        check_bool("Gates", "wrap", wrap)
         self._dead_width = dead_width
         self._dead_n = dead_n
+        self._wrap = wrap
         super().__init__({
             "pwm": In(PHASES_LAYOUT),
             ("dead_n" if dead_n else "dead_time"): In(unsigned(dead_width)),
@@ -105,6 +113,7 @@ class Gates(wiring.Component):
 
     dead_width = property(lambda self: self._dead_width)
     dead_input = property(lambda self: "dead_n" if self._dead_n else "dead_time")
+    wrap = property(lambda self: self._wrap)
 
     def elaborate(self, platform):
         m = Module()
@@ -121,8 +130,8 @@ class Gates(wiring.Component):
 
         for p in "abc":
             high, low = self.high[p], self.low[p]
-            # Clocks before this one with both switches off and the wanted state unchanged,
-            # modulo 2**dw. It needs no saturation: with the wanted state steady and both off
+            # Clocks before this one with both switches off and the wanted state unchanged:
+            # saturating at 2**dw − 1, or with ``wrap`` modulo 2**dw. It needs no saturation: with the wanted state steady and both off
             # the count starts at 0 (a change of the wanted state, or of `run`, which changes
             # it, resets it) and the wanted switch turns on once `off + 1 ≥ max(dead_time, 1)`,
             # so it never passes 2**dw − 2 while `run`; without `run` it is not read (and the
@@ -137,7 +146,8 @@ class Gates(wiring.Component):
             steady = (want_h == prev_h) & (want_l == prev_l)
             both_off = ~high & ~low
             with m.If(both_off & steady):
-                m.d.sync += off.eq(off + 1)
+                m.d.sync += off.eq(off + 1 if self._wrap else
+                                   Mux(off == (1 << dw) - 1, off, off + 1))
             with m.Else():
                 m.d.sync += off.eq(0)
 

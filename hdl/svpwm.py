@@ -588,6 +588,11 @@ class PWMTimer(wiring.Component):
         one equality behind a multiplexer of the two positions (the iCE40's form,
         ``Top(timer_sample_split)``: the timer −8 logic cells, docs/AREA.md §7.79; +18 LUT6
         on the Arty S7). The same strobes. Default ``False``.
+    one_adder : bool
+        ``True``: the triangle counter steps both ways on one adder (``k_n + 1`` or ``k_n +``
+        all ones), not two chains and a multiplexer (the iCE40's and the Spartan-7's form,
+        ``Top(timer_one_adder)``: the timer −24 logic cells alone, docs/AREA.md §7.79;
+        ``False`` the ECP5's netlist of before, §7.80). The same outputs. Default ``True``.
 
     Members
     -------
@@ -628,16 +633,18 @@ class PWMTimer(wiring.Component):
     Raises
     ------
     TypeError
-        A parameter of the wrong type (``signed_duty`` not a bool).
+        A parameter of the wrong type (``signed_duty``, ``sample_split`` or ``one_adder`` not
+        a bool).
     ValueError
         ``N < 4`` or ``2·N ≥ 2**count_width``.
     """
 
     def __init__(self, *, clk_hz=50e6, pwm_hz=10e3, count_width=16, signed_duty=False,
-                 sample_split=False):
+                 sample_split=False, one_adder=True):
         clk_hz = _check_hz("PWMTimer", "clk_hz", clk_hz)
         check_bool("PWMTimer", "signed_duty", signed_duty)
         check_bool("PWMTimer", "sample_split", sample_split)
+        check_bool("PWMTimer", "one_adder", one_adder)
         pwm_hz = _check_hz("PWMTimer", "pwm_hz", pwm_hz)
         check_param("PWMTimer", "count_width", count_width, 4, 24)
         n = pwm_half_period(clk_hz, pwm_hz)
@@ -654,6 +661,7 @@ class PWMTimer(wiring.Component):
         self._n = n
         self._signed_duty = signed_duty
         self._sample_split = sample_split
+        self._one_adder = one_adder
         duties = (data.StructLayout({p: signed(count_width + 2) for p in "abc"}) if signed_duty
                   else _duty_layout(count_width))
         super().__init__({
@@ -674,6 +682,7 @@ class PWMTimer(wiring.Component):
     half_period = property(lambda self: self._n)
     signed_duty = property(lambda self: self._signed_duty)
     sample_split = property(lambda self: self._sample_split)
+    one_adder = property(lambda self: self._one_adder)
 
     @property
     def period(self):
@@ -757,12 +766,20 @@ class PWMTimer(wiring.Component):
         with m.Else():
             with m.If(k == 1):
                 m.d.sync += down.eq(0)
-            # One adder for both directions: k_n + 1 (k − 1, the triangle's first half, held at
-            # k = 1) or k_n + all ones (k + 1), not two chains and a multiplexer (iCE40: the
-            # timer −24 logic cells alone, docs/AREA.md §7.79).
-            dec = sym & down
-            with m.If(~dec | (k != 1)):
-                m.d.sync += k_n.eq(k_n + Cat(Const(1, 1), (~dec).replicate(kw - 1)))
+            if self._one_adder:
+                # One adder for both directions: k_n + 1 (k − 1, the triangle's first half,
+                # held at k = 1) or k_n + all ones (k + 1), not two chains and a multiplexer
+                # (iCE40: the timer −24 logic cells alone, docs/AREA.md §7.79).
+                dec = sym & down
+                with m.If(~dec | (k != 1)):
+                    m.d.sync += k_n.eq(k_n + Cat(Const(1, 1), (~dec).replicate(kw - 1)))
+            else:
+                # Two chains and a multiplexer (the ECP5's netlist of before, docs/AREA.md §7.80).
+                with m.If(sym & down):
+                    with m.If(k != 1):
+                        m.d.sync += k_n.eq(k_n + 1)     # k − 1
+                with m.Else():
+                    m.d.sync += k_n.eq(k_n - 1)         # k + 1
 
         m.d.comb += self.full_scale.eq(Mux(self.symmetric, n, 2 * n))
         for p in "abc":

@@ -513,6 +513,14 @@ class Top(wiring.Component):
         :class:`~.svpwm.PWMTimer` ``sample_split``: the ADC strobe's two equalities selected
         after them (the same strobes; the iCE40's choice and the default; ``False`` the
         ECP5's and the Spartans' netlist of before, docs/AREA.md §7.79).
+    gates_wrap : bool
+        :class:`~.gates.Gates` ``wrap``: the off counts without saturation (the same gate
+        outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
+        netlist of before, docs/AREA.md §7.80).
+    timer_one_adder : bool
+        :class:`~.svpwm.PWMTimer` ``one_adder``: the triangle counter on one adder (the same
+        outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
+        netlist of before: with it the ULX3S missed 100 MHz on seed 3, docs/AREA.md §7.80).
     dtc_one_count : bool
         :class:`~.deadtime_comp.DeadTimeComp` ``one_count``: its sequence on one count (the
         same corrections; the iCE40's and the Spartan-7's choice and the default; ``False`` the
@@ -619,7 +627,7 @@ class Top(wiring.Component):
         The parameters.
     uv_arm_chain, trip_register, link_read_hold, scope_down_counts, timer_clamp : bool
         The parameters.
-    gates_dead_n, timer_sample_split, dtc_one_count : bool
+    gates_dead_n, gates_wrap, timer_sample_split, timer_one_adder, dtc_one_count : bool
         The parameters.
     link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
@@ -648,6 +656,7 @@ class Top(wiring.Component):
                  timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
+                 timer_one_adder=True, gates_wrap=True,
                  dtc_one_count=True):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
@@ -794,7 +803,8 @@ class Top(wiring.Component):
                               strobed=self._ram_counters, read_hold=link_read_hold,
                               compact=link_compact)
         self._timer = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=COUNT_WIDTH,
-                               signed_duty=timer_clamp, sample_split=timer_sample_split)
+                               signed_duty=timer_clamp, sample_split=timer_sample_split,
+                               one_adder=timer_one_adder)
         # No code held between samples: the current loop latches i_a, i_b and U_dc with the
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
@@ -876,7 +886,7 @@ class Top(wiring.Component):
                                    trip_register=trip_register, limits=prot_limits,
                                    **({"limit_init": tuple(self._regs.mirror_init)}
                                       if prot_limits != "ports" else {}))
-        self._gates = Gates(dead_n=gates_dead_n)
+        self._gates = Gates(dead_n=gates_dead_n, wrap=gates_wrap)
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
                              f"after the engine's done, which leaves only "
@@ -920,6 +930,8 @@ class Top(wiring.Component):
     ram_loop_count = property(lambda self: self._ram_loop_count)
     gates_dead_n = property(lambda self: self._gates.dead_input == "dead_n")
     timer_sample_split = property(lambda self: self._timer.sample_split)
+    timer_one_adder = property(lambda self: self._timer.one_adder)
+    gates_wrap = property(lambda self: self._gates.wrap)
     dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)

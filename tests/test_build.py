@@ -28,10 +28,11 @@ from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratabl
 from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD, GATES_DEAD_N,
-                                    LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS, MT_K_EXPORT,
-                                    MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS,
-                                    TIMER_CLAMP, TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build,
-                                    pll_config, prepare, synthesis_verilog, _tool)
+                                    GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
+                                    MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
+                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
+                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
+                                    prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -286,6 +287,10 @@ FAMILY_FORMS = [
                   "dead_time" in top._operands)),
     ("timer_sample_split", TIMER_SAMPLE_SPLIT, (True, False, False, False),
      lambda top: (top.timer_sample_split, top._timer.sample_split)),
+    ("gates_wrap", GATES_WRAP, (True, False, True, False),
+     lambda top: (top.gates_wrap, top._gates.wrap)),
+    ("timer_one_adder", TIMER_ONE_ADDER, (True, False, True, False),
+     lambda top: (top.timer_one_adder, top._timer.one_adder)),
     ("dtc_one_count", DTC_ONE_COUNT, (True, False, True, False),
      lambda top: (top.dtc_one_count, top._dtc.one_count)),
 ]

@@ -14,11 +14,11 @@ from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.gates import check_gates, gates as gates_model
 
 
-def run_gates(stim, *, dead_width=8, dead_n=False):
+def run_gates(stim, *, dead_width=8, dead_n=False, wrap=False):
     """Drive Gates clock by clock from ``stim`` (dict of arrays: ``pwm`` (T, 3), ``dead``,
     ``enable``, ``trip`` (T,)); return the outputs during each clock, ``high``, ``low`` (T, 3).
     ``dead_n``: ``Gates(dead_n=True)``, its port driven with :func:`dead_n_const` of ``dead``."""
-    dut = Gates(dead_width=dead_width, dead_n=dead_n)
+    dut = Gates(dead_width=dead_width, dead_n=dead_n, wrap=wrap)
     t_len = len(stim["dead"])
     high = np.zeros((t_len, 3), dtype=np.int64)
     low = np.zeros((t_len, 3), dtype=np.int64)
@@ -69,6 +69,8 @@ def test_gates_dead_n_parameter_validation():
         warnings.simplefilter("ignore", UnusedElaboratable)
         with pytest.raises(TypeError, match=r"^Gates dead_n must be a bool, not 1$"):
             Gates(dead_n=1)
+        with pytest.raises(TypeError, match=r"^Gates wrap must be a bool, not 1$"):
+            Gates(wrap=1)
         gc.collect()
 
 
@@ -189,9 +191,9 @@ def _random_stim(rng, t_len, *, longest, random_start, dead, enables, trips):
     return {"pwm": pwm, "dead": dead, "enable": 1 - stretches[0], "trip": stretches[1]}
 
 
-def _against_model(stim, *, dead_width=8, dead_n=False):
+def _against_model(stim, *, dead_width=8, dead_n=False, wrap=False):
     """Run ``stim``; the outputs equal the model's in every clock and keep the rules."""
-    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n)
+    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n, wrap=wrap)
     exp_h, exp_l = gates_model(stim["pwm"], stim["dead"], stim["enable"], stim["trip"],
                                dead_width=dead_width)
     np.testing.assert_array_equal(high, exp_h)
@@ -201,13 +203,13 @@ def _against_model(stim, *, dead_width=8, dead_n=False):
     return high, low
 
 
-@pytest.mark.parametrize("dead_n", [False, True])
-def test_gates_random_sequences_against_model_and_rules(dead_n):
+@pytest.mark.parametrize("dead_n, wrap", [(False, False), (False, True), (True, True)])
+def test_gates_random_sequences_against_model_and_rules(dead_n, wrap):
     t_len = 4000
     stim = _random_stim(np.random.default_rng(7), t_len, longest=26, random_start=False,
                         dead=lambda rng: np.repeat(rng.integers(0, 16, t_len // 200), 200),
                         enables=(8, 40, 1, 40), trips=(12, 10, 1, 6))
-    high, low = _against_model(stim, dead_n=dead_n)
+    high, low = _against_model(stim, dead_n=dead_n, wrap=wrap)
     assert high.sum() > 1000 and low.sum() > 1000       # the stimulus did switch
 
 
@@ -226,12 +228,13 @@ def test_gates_checker_catches_rule_breaks():
     assert r == {"overlap": 1, "short_dead": 1, "runts": 3}
 
 
-@pytest.mark.parametrize("dead_n", [False, True])
-def test_gates_count_wraps_only_where_it_is_not_read(dead_n):
-    """The off count has no saturation (hdl/gates.py): with a 3-bit dead time it wraps many
-    times in long disabled or tripped stretches and in stretches at the largest dead time
-    (7: the count reaches 6 and the switch turns on), and the dead time changes at random
-    while counts run; the outputs equal the model's (a saturating count) in every clock."""
+@pytest.mark.parametrize("dead_n, wrap", [(False, False), (False, True), (True, True)])
+def test_gates_count_wraps_only_where_it_is_not_read(dead_n, wrap):
+    """The off count without saturation (``wrap``, hdl/gates.py): with a 3-bit dead time it
+    wraps many times in long disabled or tripped stretches and in stretches at the largest
+    dead time (7: the count reaches 6 and the switch turns on), and the dead time changes at
+    random while counts run; the outputs equal the model's (a saturating count) in every
+    clock. (``wrap=False``: the saturating form on the same stimulus.)"""
     def dead(rng):
         d = rng.choice([0, 1, 6, 7], 3000)
         d[1000:1600] = 7                            # the largest dead time for a while
@@ -239,5 +242,5 @@ def test_gates_count_wraps_only_where_it_is_not_read(dead_n):
 
     stim = _random_stim(np.random.default_rng(11), 3000, longest=40, random_start=True,
                         dead=dead, enables=(10, 100, 9, 100), trips=(6, 30, 9, 30))
-    high, low = _against_model(stim, dead_width=3, dead_n=dead_n)
+    high, low = _against_model(stim, dead_width=3, dead_n=dead_n, wrap=wrap)
     assert high.sum() > 500 and low.sum() > 500

@@ -459,6 +459,11 @@ def test_pwm_timer_sample_split_must_be_a_bool():
         PWMTimer(sample_split=1)
 
 
+def test_pwm_timer_one_adder_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^PWMTimer one_adder must be a bool, not 1$"):
+        PWMTimer(one_adder=1)
+
+
 def test_pwm_timer_signed_duty_must_be_a_bool():
     with pytest.raises(TypeError, match=r"^PWMTimer signed_duty must be a bool, not 1$"):
         PWMTimer(signed_duty=1)
@@ -504,17 +509,18 @@ def test_pwm_timer_mid_period_duty_writes_wait_for_the_boundary():
     (1.1e6, 100e3, 5),      # N = 6 (5.5 rounds up), compares from 2**4 up saturate
     (1e6, 19e3, 8),         # N = 26
 ])
-@pytest.mark.parametrize("signed_duty", [False, True])
+@pytest.mark.parametrize("signed_duty, one_adder", [(False, True), (True, True), (False, False)])
 def test_pwm_timer_random_writes_and_modes_against_model(clk_hz, pwm_hz, count_width,
-                                                         signed_duty):
+                                                         signed_duty, one_adder):
     """Levels clock by clock against :func:`model.pwm_levels` of the period's active compares
     and mode, under random duty writes (often on the boundary clock, values at every edge:
     0, 1, N − 1 … N + 1, 2N − 1 … 2N + 1, the counter's and the port's largest) and random
     mode changes; ``period_start`` and ``position`` too. ``signed_duty`` (the iCE40's form, the
     dead-time compensation's sums unclamped): also duties below 0 (acting as 0) and from
-    2**count_width up to the port's largest, signed(count_width + 2)."""
+    2**count_width up to the port's largest, signed(count_width + 2). ``one_adder=False``: the
+    ECP5's triangle counter on two chains."""
     dut = PWMTimer(clk_hz=clk_hz, pwm_hz=pwm_hz, count_width=count_width,
-                   signed_duty=signed_duty)
+                   signed_duty=signed_duty, one_adder=one_adder)
     n, per = dut.half_period, dut.period
     top = (1 << count_width) - 1
     kw = (2 * n).bit_length()
