@@ -131,12 +131,12 @@ class Gates(wiring.Component):
         for p in "abc":
             high, low = self.high[p], self.low[p]
             # Clocks before this one with both switches off and the wanted state unchanged:
-            # saturating at 2**dw − 1, or with ``wrap`` modulo 2**dw. It needs no saturation: with the wanted state steady and both off
-            # the count starts at 0 (a change of the wanted state, or of `run`, which changes
-            # it, resets it) and the wanted switch turns on once `off + 1 ≥ max(dead_time, 1)`,
-            # so it never passes 2**dw − 2 while `run`; without `run` it is not read (and the
-            # clock `run` rises is not steady). (iCE40: no `off == 2**dw − 1` test in front of
-            # each counter, docs/AREA.md §7.79.)
+            # saturating at 2**dw − 1, or with `wrap` modulo 2**dw. It needs no saturation:
+            # with the wanted state steady and both off the count starts at 0 (a change of the
+            # wanted state, or of `run`, which changes it, resets it) and the wanted switch
+            # turns on once `off + 1 ≥ max(dead_time, 1)`, so it never passes 2**dw − 2 while
+            # `run`; without `run` it is not read (and the clock `run` rises is not steady).
+            # (iCE40: no `off == 2**dw − 1` test in front of each counter, docs/AREA.md §7.79.)
             off = Signal(unsigned(dw), name=f"off_{p}")
             want_h = run & self.pwm[p]
             want_l = run & ~self.pwm[p]
