@@ -158,23 +158,14 @@ def _limit_writes(rng, cols):
 
 
 def _in_layout(dut):
+    """The per-clock input word: the columns of :data:`INPUTS` (``limits="ram"``:
+    :data:`RAM_INPUTS`), in their order."""
     w, sw, us = dut.current_width, dut.speed_width, dut.udc_shape
-    if dut.limits != "ports":
-        return data.StructLayout({
-            "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
-            "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
-            "encoder_illegal": 1, "hall_invalid": 1, "encoder_hall": 1, "uv_enable": 1,
-            "mask": FAULT_LAYOUT, "clear": 1, "lim_valid": 1, "lim_index": 2, "lim_data": 32,
-        })
-    return data.StructLayout({
-        "fault_n": 1, "oc_comp": 1, "i_valid": 1, "a": signed(w), "b": signed(w),
-        "c": signed(w), "udc_valid": 1, "udc": us, "speed_valid": 1, "speed": signed(sw),
-        "encoder_illegal": 1, "hall_invalid": 1, "encoder_hall": 1, "oc_limit": unsigned(w),
-        "ov_limit": us, "uv_limit": us, "uv_enable": 1, "os_limit": unsigned(sw),
-        "mask": FAULT_LAYOUT, "clear": 1,
-    })
-
-
+    shapes = {"a": signed(w), "b": signed(w), "c": signed(w), "udc": us, "speed": signed(sw),
+              "oc_limit": unsigned(w), "ov_limit": us, "uv_limit": us, "os_limit": unsigned(sw),
+              "mask": FAULT_LAYOUT, "lim_index": 2, "lim_data": 32}
+    names = INPUTS if dut.limits == "ports" else RAM_INPUTS
+    return data.StructLayout({k: shapes.get(k, 1) for k in names})
 
 
 class _ProtectBench(wiring.Component):
