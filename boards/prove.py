@@ -768,7 +768,9 @@ class HostLinkSpec(Elaboratable):
         ECP5 form, ``boards.build.LINK_READ_HOLD``); its ``Assert`` tying the flags to the
         state is part of the proof.
     compact : bool
-        :class:`LinkCore`'s ``compact`` (the iCE40's forms, ``boards.build.LINK_COMPACT``).
+        :class:`LinkCore`'s ``compact`` (the iCE40's forms, ``boards.build.LINK_COMPACT``);
+        the header's first four bytes are then the buffer's header word (``hdr_word``, a read
+        port of it for the proof).
     broken : bool
         Prove a :func:`mutant` of :class:`LinkCore` whose frame check ignores the CRC.
     """
@@ -864,7 +866,11 @@ class HostLinkSpec(Elaboratable):
 
         dut = {n: internal[n] for n in ("crc", "length", "cobs_left", "cobs_ff", "started",
                                         "skip", "idx", "is_write")}
-        dut_hdr = [internal[f"hdr{k}"] for k in range(REQUEST_HEADER)]
+        if self.compact:                # (cmd, seq, addr in the buffer's header word)
+            dut_hdr = [internal["hdr_word"].word_select(k, 8) for k in range(4)]
+            dut_hdr += [internal[f"hdr{k}"] for k in range(4, REQUEST_HEADER)]
+        else:
+            dut_hdr = [internal[f"hdr{k}"] for k in range(REQUEST_HEADER)]
         full = Mux(length == 0, crc, Mux(length == 1, crc16_step(m, crc, b1, "crc_b1"),
                                          crc16_step(m, crc_b2, b1, "crc_b2b1")))
         count_in, addr_in = dut_hdr[4], Cat(dut_hdr[2], dut_hdr[3])

@@ -316,6 +316,9 @@ class LinkCore(wiring.Component):
         self._strobed = _check_strobed("LinkCore", strobed)
         self._read_hold = check_bool("LinkCore", "read_hold", read_hold)
         self._compact = check_bool("LinkCore", "compact", compact)
+        if read_hold and compact:
+            raise ValueError("LinkCore read_hold and compact are exclusive (the compact form's "
+                             "buffer reads at j's next value), not both True")
         self._max_words = p["max_words"]
         self._address_map = p["address_map"]
         self._counter_width = p["counter_width"]
@@ -361,9 +364,26 @@ class LinkCore(wiring.Component):
         # access's ack writes word ``idx`` and reads it, and the next clock (RECV, CHECK, SETUP,
         # REPLY) uses ``rd_data`` nowhere (``bus.w_data`` matters only under ``stb``). In
         # simulation the register samples the old word, as the synchronous port did.
-        m.submodules.mem = mem = Memory(shape=32, depth=mw, init=[], attrs={"no_rw_check": 1})
+        # The compact form keeps the request header's first four bytes (cmd, seq, addr) in
+        # the buffer too, in the word ``hdr_addr`` (all ones of the index's bits, above every
+        # data word): the reply reads cmd and seq from there as the header's first two bytes
+        # (the word of reply byte j < 4 is j's bits 2 and up, all ones), the checks read cmd
+        # and addr from the read register. No flip-flops for them (iCE40: a lone flip-flop
+        # each, loaded from one shared LUT per bit). The buffer is ``2**ab`` words deep then
+        # (``ab`` = the bits of ``idx``: the same block RAMs for max_words ≤ 255).
+        hdr_ram = self._compact
+        ab = Shape.cast(range(mw + 1)).width
+        hdr_addr = (1 << ab) - 1
+        m.submodules.mem = mem = Memory(shape=32, depth=(1 << ab) if hdr_ram else mw, init=[],
+                                        attrs={"no_rw_check": 1})
         wr = mem.write_port(granularity=8)      # request bytes land in their lane directly
         rd = mem.read_port(domain="comb")
+        if hdr_ram:
+            # The header word as the proof sees it (boards/prove.py, HostLinkSpec's aux
+            # invariants): a read port whose data nothing in the block uses (yosys removes it).
+            probe = mem.read_port(domain="comb")
+            hdr_word = Signal(32)
+            m.d.comb += [probe.addr.eq(hdr_addr), hdr_word.eq(probe.data)]
         rd_data = Signal(32, reset_less=True)   # the buffer's read data (the RAM's register)
         hold = self._read_hold
         if not hold:
@@ -385,6 +405,8 @@ class LinkCore(wiring.Component):
         hdr = [Signal(8, name=f"hdr{k}") for k in range(REQUEST_HEADER)]
         cmd_in, seq_in, count_in = hdr[0], hdr[1], hdr[4]
         addr_in = Cat(hdr[2], hdr[3])
+        if hdr_ram:                             # (the read register holds the header word)
+            cmd_in, seq_in, addr_in = rd_data[:8], None, rd_data[16:32]
         bpos = Signal(2)                        # byte lane of the next data byte (little endian)
 
         # --- execution and reply state -----------------------------------------------------
@@ -480,9 +502,9 @@ class LinkCore(wiring.Component):
         if self._compact:
             # The CRC bytes (j = dend, dend + 1: j mod 4 = 0, 1) in the header's first two
             # byte slots: one selection by j mod 4 for both, no j_dend.
-            jb = Mux(j_dat & ~j_hdr, rd_data.word_select(j[:2], 8),
-                     Cat(Mux(j_hdr, r_cmd, crc[8:]), Mux(j_hdr, r_seq, crc[:8]), r_status,
-                         info8).word_select(j[:2], 8))
+            # cmd and seq (j = 0, 1) are the buffer's header word's first two bytes.
+            jb = Mux(j_dat & ~(j_hdr & j[1]), rd_data.word_select(j[:2], 8),
+                     Cat(crc[8:], crc[:8], r_status, info8).word_select(j[:2], 8))
         else:
             jb = Mux(j_hdr, Cat(r_cmd, r_seq, r_status, info8).word_select(j[:2], 8),
                      Mux(j_dat, rd_data.word_select(j[:2], 8),       # (j − 4) mod 4 = j mod 4
@@ -617,7 +639,9 @@ class LinkCore(wiring.Component):
             m.d.comb += [j_next.eq(j), flags_next.eq(flags), wr.addr.eq(idx)]
         else:
             rd_addr = Signal.like(rd.addr)
-            m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx), wr.addr.eq(idx)]
+            m.d.comb += [j_next.eq(j), flags_next.eq(flags), rd_addr.eq(idx)]
+            if not hdr_ram:
+                m.d.comb += wr.addr.eq(idx)
 
         with m.FSM(name="link") as fsm:
             # blk's count (SCAN: up, DATA: down): the compact form has one adder for both.
@@ -657,7 +681,11 @@ class LinkCore(wiring.Component):
                     with m.Switch(length):
                         for k in range(REQUEST_HEADER):
                             with m.Case(k):
-                                m.d.sync += hdr[k].eq(dbyte)
+                                if hdr_ram and k < 4:   # (into the header word's lane k)
+                                    m.d.comb += [wr.data.eq(dbyte.replicate(4)),
+                                                 wr.en.eq(1 << k)]
+                                else:
+                                    m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
                             m.d.sync += bpos.eq(bpos + 1)
                             with m.If(_below(idx, mw)):
@@ -668,6 +696,15 @@ class LinkCore(wiring.Component):
 
             with m.State("CHECK"):
                 count_ok = (count_in != 0) & _below(count_in, mw + 1)
+                if hdr_ram:
+                    # The reply's cmd and seq cleared here (REPLY clears the registers of the
+                    # other form): a BAD_CRC reply, decided in this clock (bad, the CRC, fewer
+                    # than 2 bytes), or a request too short to hold them. Zeros written into the
+                    # header word (the clock after, REPLY, does not use the read register; the
+                    # CRC pass reads the word from REPLY on).
+                    bad_crc = bad | (crc != 0) | _below(length, 2)
+                    m.d.comb += wr.en.eq(Cat(bad_crc | _below(length, 3),
+                                             bad_crc | _below(length, 4)))
                 m.d.sync += [
                     r_info.eq(0), nwords.eq(0), nwords1.eq(nw_step), idx.eq(0), *a_to(addr_in),
                     framing.eq(0),
@@ -757,10 +794,11 @@ class LinkCore(wiring.Component):
                 # The reply's cmd and seq: 0 for BAD_CRC, and where the request was too short
                 # to hold them (hdr0 / hdr1 then hold CRC bytes, or nothing). Cleared here, from
                 # registers, before the CRC pass reads them.
-                with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 3)):
-                    m.d.sync += r_cmd.eq(0)
-                with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 4)):
-                    m.d.sync += r_seq.eq(0)
+                if not hdr_ram:                 # (the header word's were cleared in CHECK)
+                    with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 3)):
+                        m.d.sync += r_cmd.eq(0)
+                    with m.If((r_status == ReplyStatus.BAD_CRC) | _below(length, 4)):
+                        m.d.sync += r_seq.eq(0)
                 # One of the four reply counters counts per reply. Each has its own
                 # incrementer: on the iCE40 a counter bit is one logic cell (LUT, carry and
                 # flip-flop together), less than a shared incrementer's select in front.
@@ -848,6 +886,12 @@ class LinkCore(wiring.Component):
                     m.next = "SCAN"
                 with m.Else():
                     read_flag(rd_rep, 0)
+                    if hdr_ram:
+                        # j back to 0 (a header byte) until the next reply: the buffer reads
+                        # the header word in RECV, CHECK and ACHECK (the read register holds
+                        # it in CHECK and ACHECK; no other byte of it is written in the
+                        # closing 0x00's clock, nor in CHECK on the way to ACHECK).
+                        next_j(j_0, parts_0)
                     m.next = "END"
 
             with m.State("END"):
@@ -875,6 +919,10 @@ class LinkCore(wiring.Component):
             # those outside the reply's passes (idx before).
             m.d.comb += rd.addr.eq(Mux(fsm.ongoing("SETUP") | fsm.ongoing("ACCESS"), idx,
                                        word(j_next)))
+            # The header word's writes (the first four bytes received, the clears in CHECK):
+            # idx is 0 while the header arrives, and any value ORed with all ones in CHECK.
+            hdr_at = _below(length, 4) | fsm.ongoing("CHECK")
+            m.d.comb += wr.addr.eq(idx | hdr_at.replicate(ab))
         else:
             m.d.comb += rd.addr.eq(Mux(fsm.ongoing("DATA") & self.o.ready, word(j + 1),
                                        rd_addr))
