@@ -56,7 +56,7 @@ from ..hdl.regmap import REGMAP, Access, RegMap
 from ..hdl.regs import RegisterFile, ram_slots, staging_slots
 from ..hdl.servo import Servo
 from ..hdl.top import regmap_address_map
-from ..host.protocol import CRC_BYTES, REQUEST_HEADER, Command
+from ..host.protocol import CRC_BYTES, REPLY_HEADER, REQUEST_HEADER, Command
 
 __all__ = ["PROOFS", "ENGINE", "Proof", "DeadTimeSpec", "FaultSpec", "PISpec", "HostLinkSpec",
            "RegFileSpec",
@@ -909,6 +909,16 @@ class HostLinkSpec(Elaboratable):
                    & (internal["bus_we"] == (in_state("ACCESS") & dut["is_write"])),
                    "aux: hostlink bus registers"),
         ]
+        if self.compact:
+            # The header word is read at j = 0 (the register's value −4) from the reply's end
+            # to the accesses, and the read register holds it in CHECK and ACHECK.
+            j = internal["j"]
+            m.d.comb += [
+                Assert(~in_state("END", "RECV", "CHECK", "ACHECK")
+                       | (j == (-REPLY_HEADER) % (1 << len(j))), "aux: hostlink j at the header"),
+                Assert(~in_state("CHECK", "ACHECK") | (internal["rd_data"] == internal["hdr_word"]),
+                       "aux: hostlink header word read"),
+            ]
         return m
 
 

@@ -49,6 +49,10 @@ def test_hostlink_parameter_validation():
     with pytest.raises(TypeError, match=r"^HostLink read_hold must be a bool, not None$"):
         HostLink(read_hold=None)
     assert HostLink(read_hold=True).core.read_hold and not LinkCore().read_hold
+    with pytest.raises(ValueError, match=r"^LinkCore read_hold and compact are exclusive \(the "
+                                         r"compact form's buffer reads at j's next value\), not "
+                                         r"both True$"):
+        HostLink(read_hold=True, compact=True)
 
 
 def test_address_map_normalisation():
@@ -418,6 +422,12 @@ def _lockstep_traffic(rng, max_words):
             wires.append(frame(encode_request(Command.PING, seq)))
         else:
             wires.append(verify.malformed_frame(rng, rng.choice(verify.KINDS), max_words))
+    # Frames too short for a header but with a valid CRC (2 … 6 decoded bytes: BAD_LENGTH),
+    # each after a request whose header bytes they leave behind: the reply's cmd is 0 below 3
+    # bytes, its seq 0 below 4, else the short frame's own bytes.
+    for n in range(5):
+        wires.append(frame(encode_request(Command.READ, 200 + n, 0x10, 1)))
+        wires.append(frame(bytes(rng.randrange(1, 256) for _ in range(n))))
     return b"".join(wires)
 
 
