@@ -538,8 +538,10 @@ class LinkCore(wiring.Component):
             below3 = _below(j, REPLY_HEADER - 1)
         # (compact: j = dend − 1 as crc_last's j + 1 = dend, so nwords1 has no reader and
         # synthesis drops it and its decrementer)
-        at_dend_m1 = crc_last if self._compact else j == dend_m1
-        parts_j1 = Cat(below3, j_dat & ~at_dend_m1, at_dend_m1)
+        if self._compact:
+            parts_j1 = Cat(below3, j_dat & ~crc_last, crc_last)
+        else:
+            parts_j1 = Cat(below3, j_dat & (j != dend_m1), j == dend_m1)
         p_flags = Signal(3)
 
         def set_j(value, value_parts):
