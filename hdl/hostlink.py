@@ -7,11 +7,12 @@ in front of it. The protocol constants come from :mod:`foc_servo.host.protocol`,
 golden model of the framing, so gateware and host cannot disagree on them.
 
 A request is buffered whole (header in registers, which keep the previous frame's bytes until
-overwritten; data words in a ``max_words``-deep :class:`~amaranth.lib.memory.Memory`) while its
-CRC runs; only after the frame's closing 0x00 are
-the CRC, the length, the command and every address of the burst checked against ``address_map``,
-and only then does the first bus access start, with ``bus.lock`` high until the last. A malformed
-frame therefore never writes anything, and a burst writes all its words or none.
+overwritten, or with ``compact`` its first four bytes in a word of the buffer; data words in a
+``max_words``-deep :class:`~amaranth.lib.memory.Memory`) while its CRC runs; only after the
+frame's closing 0x00 are the CRC, the length, the command and every address of the burst
+checked against ``address_map``, and only then does the first bus access start, with
+``bus.lock`` high until the last. A malformed frame therefore never writes anything, and a burst
+writes all its words or none.
 """
 
 from amaranth.hdl import Assert, Cat, Const, Module, Mux, Shape, Signal, Value
@@ -266,9 +267,12 @@ class LinkCore(wiring.Component):
         COBS code byte counted in place, up and down by one adder; the reply byte index held
         as j − 4, the CRC bytes in the header's first two byte slots; the CRC and SCAN passes'
         end tests on j itself (not registered); the buffer read at j's next value; the bus's
-        ``stb``, ``we`` and ``lock`` decoded from the state. Default ``False``. The same
-        replies and accesses in the same clocks either way (``bus.w_data`` outside accesses
-        aside, as above).
+        ``stb``, ``we`` and ``lock`` decoded from the state; the request header's cmd, seq and
+        addr bytes in a word of the frame buffer (its header word, above the data words: the
+        buffer is then ``2**ceil_log2(max_words + 1)`` words deep), read back as the reply's
+        first two bytes and by the checks, cmd and seq cleared there in CHECK (docs/AREA.md
+        §7.85). Default ``False``; not with ``read_hold``. The same replies and accesses in the
+        same clocks either way (``bus.w_data`` outside accesses aside, as above).
 
     Members
     -------

@@ -579,7 +579,8 @@ class Top(wiring.Component):
     link_compact : bool
         :class:`~.hostlink.HostLink` ``compact``: the link's iCE40 forms (the same replies and
         accesses in the same clocks, fewer iCE40 cells, longer paths; the iCE40 board's choice;
-        default ``False``, the form of the other families' netlists).
+        default ``False``, the form of the other families' netlists); not with
+        ``link_read_hold`` (``ValueError``).
 
     Members
     -------
