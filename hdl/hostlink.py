@@ -412,6 +412,12 @@ class LinkCore(wiring.Component):
         if hdr_ram:                             # (the read register holds the header word)
             cmd_in, seq_in, addr_in = rd_data[:8], None, rd_data[16:32]
         bpos = Signal(2)                        # byte lane of the next data byte (little endian)
+        if self._compact:
+            # The lane as length − 5 mod 4 (the data bytes are bytes 5, 6, … of the frame; only
+            # used while length counts, below lmax + 1: writes stop at idx = max_words, byte
+            # 5 + 4·max_words, and CHECK reads it only for a length ≤ lmax): no register.
+            assert REQUEST_HEADER % 4 == 1          # (length − 5 mod 4 = length − 1 mod 4)
+            bpos = Cat(~length[0], ~(length[1] ^ length[0]))
 
         # --- execution and reply state -----------------------------------------------------
         # Word index: of the request's data words while receiving (saturating at max_words),
@@ -696,7 +702,8 @@ class LinkCore(wiring.Component):
                                 else:
                                     m.d.sync += hdr[k].eq(dbyte)
                         with m.Default():
-                            m.d.sync += bpos.eq(bpos + 1)
+                            if not self._compact:
+                                m.d.sync += bpos.eq(bpos + 1)
                             with m.If(_below(idx, mw)):
                                 m.d.comb += [wr.data.eq(dbyte.replicate(4)),
                                              wr.en.eq(1 << bpos)]
@@ -910,7 +917,8 @@ class LinkCore(wiring.Component):
                     m.next = "RECV"
         with m.If(new_frame):
             m.d.sync += [length.eq(0), cobs_run.eq(1), cobs_ff.eq(0), started.eq(0),
-                         bad.eq(0), crc.eq(0xFFFF), bpos.eq(0), idx.eq(0)]
+                         bad.eq(0), crc.eq(0xFFFF), idx.eq(0),
+                         *([] if self._compact else [bpos.eq(0)])]
         if self._compact:
             access = fsm.ongoing("ACCESS")
             m.d.comb += [bus_stb.eq(access), bus_we.eq(access & is_write),
