@@ -366,8 +366,11 @@ class LinkCore(wiring.Component):
         # behaviour in the fabric (32 flip-flops and their multiplexers on the iCE40). No read
         # is used in a clock that writes its word: RECV writes word ``idx`` and reads it, a read
         # access's ack writes word ``idx`` and reads it, and the next clock (RECV, CHECK, SETUP,
-        # REPLY) uses ``rd_data`` nowhere (``bus.w_data`` matters only under ``stb``). In
-        # simulation the register samples the old word, as the synchronous port did.
+        # REPLY) uses ``rd_data`` nowhere (``bus.w_data`` matters only under ``stb``); the
+        # compact form's header word (below) is written in RECV while RECV reads it, and in
+        # CHECK on the way to REPLY: neither next clock uses ``rd_data`` either (CHECK's comes
+        # from the closing 0x00's clock, which writes nothing). In simulation the register
+        # samples the old word, as the synchronous port did.
         # The compact form keeps the request header's first four bytes (cmd, seq, addr) in
         # the buffer too, in the word ``hdr_addr`` (all ones of the index's bits, above every
         # data word): the reply reads cmd and seq from there as the header's first two bytes
