@@ -29,6 +29,19 @@ def fold_form(request, monkeypatch):
     return request.param
 
 
+@pytest.fixture(params=[True, False], ids=["complement", "difference"])
+def complement_form(request, monkeypatch):
+    """Both forms of the plausibility check's differences (``complement``: ``~d`` and
+    ``d_prev − d``, the iCE40's and the front end's default; ``d`` and ``d − d_prev`` behind an
+    operand select, the ECP5's and the Spartan-7's): the default of the check's and the front
+    end's constructors (also where sim.verify.encoder builds the front end) set to one, the
+    test run once with each."""
+    monkeypatch.setitem(HallPlausibility.__init__.__kwdefaults__, "complement", request.param)
+    monkeypatch.setitem(EncoderFrontEnd.__init__.__kwdefaults__, "plausibility_complement",
+                        request.param)
+    return request.param
+
+
 def pins(a=0, b=0, z=0, hall=HALL_CODES[0]):
     return a | (b << 1) | (z << 2) | (hall << 3)
 
@@ -678,12 +691,17 @@ def test_hall_boundaries_are_the_sector_starts():
         assert abs(first - b) <= 1
 
 
-def test_plausibility_theta_registered_matches_the_default_block():
+@pytest.mark.parametrize("complement", [False, True])
+def test_plausibility_theta_registered_matches_the_default_block(complement):
     """With ``theta_registered`` the block takes the angle one clock late (the front end's
-    register) and gives the default block's outputs, clock for clock, on random inputs (edges
-    in consecutive clocks, alignment, restarts and tolerances included)."""
-    plain, late = HallPlausibility(), HallPlausibility(theta_registered=True)
+    register, with ``complement`` one stored inverted as the front end's) and gives the default
+    block's outputs, clock for clock, on random inputs (edges in consecutive clocks,
+    alignment, restarts and tolerances included; with ``complement`` also ``d − d_prev`` at
+    −180° and the tolerance at its edges, where ``d_prev − d`` must compare alike)."""
+    plain = HallPlausibility(complement=False)
+    late = HallPlausibility(theta_registered=True, complement=complement)
     assert (plain.theta_registered, late.theta_registered) == (False, True)
+    assert (plain.complement, late.complement) == (False, complement)
     rng = np.random.default_rng(11)
     n = 3000
     stim = {"theta": rng.integers(0, TURN, n), "sector": rng.integers(0, 6, n),
@@ -691,8 +709,19 @@ def test_plausibility_theta_registered_matches_the_default_block():
             "valid": rng.random(n) < 0.95, "hold": rng.random(n) < 0.02,
             "offset": rng.integers(0, TURN, n), "tolerance": rng.integers(0, TURN, n),
             "misses": rng.integers(0, 16, n)}
+    # θ from a few values a boundary step apart or half a turn apart, so that d − d_prev is
+    # often exactly ±(60°·k) or −180° (the one x with −x = x), and tolerances at 180° ± 1
+    # and at those magnitudes.
+    few = np.array([0, 1, 32767, 32768, 32769, TURN - 1] + list(B))
+    part = rng.random(n) < 0.5
+    stim["theta"] = np.where(part, (few[rng.integers(0, len(few), n)]
+                                    + rng.choice(B, n)) % TURN, stim["theta"])
+    stim["offset"] = np.where(part, rng.choice([0, 0, 1, 32768], n), stim["offset"])
+    stim["tolerance"] = np.where(part, rng.choice([0, 1, 10922, 10923, 21845, 32767, 32768,
+                                                   32769], n), stim["tolerance"])
     outs = ("edge", "miss", "fault", "error")
     got = {"plain": [], "late": []}
+    theta_q = Signal(16, init=TURN - 1 if complement else 0, reset_less=complement)
 
     class Pair(wiring.Component):
         def __init__(self):
@@ -701,7 +730,6 @@ def test_plausibility_theta_registered_matches_the_default_block():
         def elaborate(self, platform):
             m = Module()
             m.submodules.plain, m.submodules.late = plain, late
-            theta_q = Signal(16)
             m.d.sync += theta_q.eq(plain.theta)
             m.d.comb += late.theta.eq(theta_q)
             for name in stim:
@@ -720,6 +748,42 @@ def test_plausibility_theta_registered_matches_the_default_block():
     simulate(Pair(), [testbench], name="test_plausibility_theta_registered")
     assert got["late"] == got["plain"]
     assert sum(e for e, *_ in got["plain"]) > 100
+    assert sum(m for _, m, *_ in got["plain"]) > 100
+
+
+def test_plausibility_complement_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^HallPlausibility complement must be a bool, not 1$"):
+        HallPlausibility(complement=1)
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd plausibility_complement must be a "
+                                        r"bool, not None$"):
+        EncoderFrontEnd(plausibility_complement=None)
+    assert HallPlausibility().complement is False
+    assert EncoderFrontEnd().plausibility_complement is True
+    assert EncoderFrontEnd(plausibility_complement=False).plausibility_complement is False
+
+
+@pytest.mark.usefixtures("complement_form")
+def test_plausibility_relative_check_at_half_a_turn_and_the_tolerance_edges():
+    """The relative check's ``|d − d_prev|`` where the complement form compares
+    ``|d_prev − d|``: at −180° (d − d_prev = −32768, whose negation is itself) and ±1 of the
+    tolerance on both sides, against the model clock for clock (run_plausibility)."""
+    t0 = 777
+    v = {"valid": 1, "misses": 1}
+    out = run_plausibility([
+        {**v, "sector": 0, "theta": t0},
+        {"sector": 1, "theta": t0 + B[1]},                      # first edge: no check
+        {"tolerance": 32767, "sector": 2, "theta": t0 + B[2] + 32768},   # −180°: miss
+        {"tolerance": 32768, "sector": 3, "theta": t0 + B[3] + 32768},   # 0 after: pass
+        {"sector": 4, "theta": t0 + B[4]},                      # −180° again, tol 180°: pass
+        {"tolerance": 100, "sector": 5, "theta": t0 + B[5] + 100},      # +100: pass
+        {"sector": 0, "theta": t0 + 99},                        # −1: pass
+        {"sector": 1, "theta": t0 + B[1] + 200},                # +101: miss
+        {"sector": 2, "theta": t0 + B[2] + 99},                 # −101: miss
+        {"sector": 3, "theta": t0 + B[3] - 1},                  # −100: pass
+    ])
+    edge, miss, fault, _ = (list(x) for x in zip(*out))
+    assert edge == [0] + [1] * 9
+    assert miss == [0, 0, 1, 0, 0, 0, 0, 1, 1, 0]
 
 
 def test_plausibility_theta_registered_must_be_a_bool():
@@ -728,6 +792,7 @@ def test_plausibility_theta_registered_must_be_a_bool():
         HallPlausibility(theta_registered=1)
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_latency_cycle_by_cycle():
     """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3,
     once; ``error`` holds its d from t + 2 (one clock before the check's strobes)."""
@@ -753,6 +818,7 @@ def test_plausibility_latency_cycle_by_cycle():
     assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 3
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_absolute_check_threshold_count_and_reset():
     al = {"aligned": 1, "valid": 1}
     out = run_plausibility([
@@ -778,6 +844,7 @@ def test_plausibility_absolute_check_threshold_count_and_reset():
     assert err[11] == -8193
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_tolerance_edges():
     """``|d| > tolerance`` at its edges: d = ±tolerance passes, one more misses; tolerance 0
     passes only d = 0; tolerance ≥ 180° never misses (|d| ≤ 180°)."""
@@ -798,6 +865,7 @@ def test_plausibility_tolerance_edges():
     assert err[1] == -8192 and err[5] == -32768
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_relative_check_before_alignment():
     t0 = 12345                                                  # unknown encoder offset
     v = {"valid": 1}
@@ -823,6 +891,7 @@ def test_plausibility_relative_check_before_alignment():
     assert fault == [0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0]
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_random_inputs_every_clock_against_model():
     """Inputs changed in every clock (Hall edges in consecutive clocks, adjacent or not, both
     directions, alignment and restart toggling, small tolerances and every ``misses``): the
@@ -988,6 +1057,7 @@ def test_angle_no_drift_model_against_exact_formula():
 
 # --- whole front end against the model ------------------------------------------------------
 
+@pytest.mark.usefixtures("complement_form")
 @pytest.mark.parametrize("z_gate", [None, 0])
 def test_front_end_random_pins_vs_model(z_gate):
     r = verify_encoder.run_random(3000, seed=2, z_gate=z_gate)
@@ -996,6 +1066,7 @@ def test_front_end_random_pins_vs_model(z_gate):
     assert r["index_strobes_model"] > 0
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_front_end_short_segments_invalid_configurations_vs_model():
     """Many short configuration segments (invalid ones included) in a short run: the default
     run above sees one segment only. Catches the session-3 regression (the pipelined output
