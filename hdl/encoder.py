@@ -827,7 +827,7 @@ class HallPlausibility(wiring.Component):
         # The complement form: ~d = bo1 + ~θ, and not aligned x = d_prev − d (= −(d − d_prev),
         # whose magnitude the check compares): x2's sum d_q + ~d + 1 and the select of d = ~(~d)
         # in the aligned case read the same three signals and the carry, one LUT per bit with
-        # no operand select in front of the carry (iCE40: 16 logic cells fewer).
+        # no operand select in front of the carry (iCE40: −12 logic cells, docs/AREA.md §7.84).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
