@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Cat, Module, Signal
+from amaranth.hdl import Cat, Module, ResetInserter, Signal
 from amaranth.lib import wiring
 
 import foc_servo.hdl.encoder as hdl_encoder
@@ -1077,6 +1077,77 @@ def test_front_end_short_segments_invalid_configurations_vs_model():
     assert r["config_commits_model"] >= 10
     assert r["mismatches"] == 0 and r["vectors"] == 6001
     assert 0 < r["hall_misses_model"] < r["hall_edges_model"]
+
+
+def test_front_end_plausibility_complement_is_the_difference_form_clock_for_clock():
+    """The two forms of the plausibility check's differences in two front ends on the same
+    random pins and configuration (Hall edges at any clock, invalid codes, alignment, realign,
+    configuration changes with their strobes, tolerances at their edges) and synchronous resets
+    in the middle of the run: every output equal in every clock (the complement form's
+    reset_less angle register ``theta_q`` is not read in the clocks after a reset)."""
+    on = EncoderFrontEnd(max_length=7, plausibility_complement=True)
+    off = EncoderFrontEnd(max_length=7, plausibility_complement=False)
+    assert (on.plausibility_complement, off.plausibility_complement) == (True, False)
+    ins = ("a", "b", "z", "hall", "length", "lines", "pole_pairs", "z_offset", "hall_offset",
+           "hall_tolerance", "hall_misses", "lp_changed", "z_changed", "realign")
+    outs = model.OUTPUTS
+
+    rst = Signal()
+
+    class Pair(wiring.Component):
+        def __init__(self):
+            super().__init__({})
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.on, m.submodules.off = on, off
+            m.d.comb += [getattr(off, k).eq(getattr(on, k)) for k in ins]
+            return ResetInserter(rst)(m)        # a synchronous reset of both
+
+    rng = np.random.default_rng(23)
+    n = 6000
+    mism, resets, edges, aligned_resets = [], [], [0], [0]
+
+    async def testbench(ctx):
+        pos, hall_k = 0, 0
+        ctx.set(on.lines, 16)
+        ctx.set(on.length, 1)
+        for t in range(n):
+            pos += int(rng.choice([0, 0, 1, -1]))
+            a, b = AB[pos % 4]
+            if rng.random() < 0.05:
+                hall_k = (hall_k + int(rng.choice([1, -1, 1, 2]))) % 6
+            code = HALL_CODES[hall_k] if rng.random() > 0.01 else int(rng.choice([0, 7]))
+            ctx.set(Cat(on.a, on.b, on.z, on.hall), a | (b << 1) | ((pos % 16 == 0) << 2)
+                    | (code << 3))
+            ctx.set(on.hall_tolerance, int(rng.choice([0, 1, 5461, 10922, 32767, 32768])))
+            if rng.random() < 0.01:
+                ctx.set(on.hall_offset, int(rng.integers(0, TURN)))
+            ctx.set(on.realign, int(rng.random() < 0.002))
+            ctx.set(on.hall_misses, int(rng.integers(0, 4)))
+            lp = rng.random() < 0.002
+            zc = rng.random() < 0.003
+            if lp:
+                ctx.set(on.lines, int(rng.choice([0, 1, 16, 16, 17, 17])))
+                ctx.set(on.pole_pairs, int(rng.choice([0, 1, 3, 3, 4, 70])))
+            if zc:
+                ctx.set(on.z_offset, int(rng.integers(0, 80)))
+            ctx.set(on.lp_changed, int(lp))
+            ctx.set(on.z_changed, int(zc))
+            reset = t % 397 in (300, 301)
+            ctx.set(rst, int(reset))
+            resets.append(reset)
+            aligned_resets[0] += reset and ctx.get(on.aligned)
+            await ctx.tick()
+            got_on = tuple(ctx.get(getattr(on, k)) for k in outs)
+            got_off = tuple(ctx.get(getattr(off, k)) for k in outs)
+            if got_on != got_off:
+                mism.append((t, got_on, got_off))
+            edges[0] += ctx.get(on.hall_edge)
+
+    simulate(Pair(), [testbench], name="test_front_end_plausibility_complement")
+    assert mism == []
+    assert sum(resets) >= 20 and aligned_resets[0] >= 4 and edges[0] > 50
 
 
 def test_front_end_converts_to_verilog():
