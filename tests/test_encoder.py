@@ -757,9 +757,8 @@ def test_plausibility_complement_must_be_a_bool():
     with pytest.raises(TypeError, match=r"^EncoderFrontEnd plausibility_complement must be a "
                                         r"bool, not None$"):
         EncoderFrontEnd(plausibility_complement=None)
-    assert HallPlausibility().complement is False
-    assert EncoderFrontEnd().plausibility_complement is True
-    assert EncoderFrontEnd(plausibility_complement=False).plausibility_complement is False
+    assert HallPlausibility.__init__.__kwdefaults__["complement"] is False
+    assert EncoderFrontEnd.__init__.__kwdefaults__["plausibility_complement"] is True
 
 
 @pytest.mark.usefixtures("complement_form")
