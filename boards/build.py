@@ -161,6 +161,11 @@ PROT_LIMITS = {"ice40": "ram", "ecp5": "ports", "xc7": "ports", "xc6s": "ports"}
 #: cells for the encoder alone, docs/AREA.md §7.76); ``rem − 1`` and a select elsewhere (the
 #: netlists of before; the other form costs the Spartan-7 ≈ 60 LUT6). The same outputs.
 ENC_FOLD_RELOAD = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+#: ``Top(enc_plausibility_complement=…)`` per FPGA family: the encoder/Hall check's differences
+#: as ``~d = (boundary + offset) + ~θ`` and ``d_prev − d`` on the iCE40 (no operand select in
+#: front of a carry: −12 logic cells for the encoder alone, docs/AREA.md §7.84); ``θ − …`` and
+#: ``d − d_prev`` elsewhere (the netlists of before). The same outputs.
+ENC_PLAUSIBILITY_COMPLEMENT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``Top(mt_chunk_multipliers=…)`` per FPGA family: M/T's product ``k·|ΔM|`` on one SB_MAC16
 #: per 16-bit chunk of ``k`` on the iCE40 (no 3-way chunk select in front of one multiplier,
@@ -430,6 +435,8 @@ class BoardTop(Elaboratable):
                         prot_limits=(PROT_LIMITS[self._board.family]
                                      if self._board.regs_staging == "bram" else "ports"),
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
+                        enc_plausibility_complement=ENC_PLAUSIBILITY_COMPLEMENT[
+                            self._board.family],
                         mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
                         mt_k_export=MT_K_EXPORT[self._board.family],
                         ram_loop_count=RAM_LOOP_COUNT[self._board.family],

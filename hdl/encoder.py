@@ -693,6 +693,17 @@ class HallPlausibility(wiring.Component):
         :class:`EncoderFrontEnd`'s copy ``theta_q``): the check takes it as its clock-1 value
         instead of registering it again (16 flip-flops, each a logic cell of its own on the
         iCE40). The outputs are then those of the default block fed the undelayed angle.
+    complement : bool
+        The differences' form (the same outputs either way): ``False`` (the default, the
+        ECP5's and the Spartan-7's) ``d = θ − (boundary + offset)`` and ``x = d − d_prev``
+        behind a select of ``d_prev`` or 0 on the second subtraction's operand; ``True`` (the
+        iCE40's, docs/AREA.md §7.84) ``~d = (boundary + offset) + ~θ`` on one carry chain and
+        ``x = d_prev − d = d_prev + ~d + 1`` (``|x|`` is the same: ``|−x| = |x|`` also for
+        −180°), the aligned case's ``x = d`` selected behind that adder (in its LUT: both read
+        ``~d``): no operand select and no inverter in front of a carry. The angle register
+        (``theta1``, or the caller's with ``theta_registered``) is then best one the iCE40
+        stores inverted (init all ones, reset_less: its value is read only at an edge, never in
+        the clock after a reset), so that the carries take ``~θ`` from its flip-flops.
 
     Members
     -------
@@ -739,9 +750,10 @@ class HallPlausibility(wiring.Component):
 
     latency = 3
 
-    def __init__(self, *, theta_registered=False):
+    def __init__(self, *, theta_registered=False, complement=False):
         self._theta_registered = check_bool("HallPlausibility", "theta_registered",
                                             theta_registered)
+        self._complement = check_bool("HallPlausibility", "complement", complement)
         super().__init__({
             "theta": In(ANGLE.shape),
             "aligned": In(1),
@@ -759,6 +771,7 @@ class HallPlausibility(wiring.Component):
         })
 
     theta_registered = property(lambda self: self._theta_registered)
+    complement = property(lambda self: self._complement)
 
     def elaborate(self, platform):
         m = Module()
@@ -786,11 +799,14 @@ class HallPlausibility(wiring.Component):
         edge1, fwd1, adjacent1, aligned1, restart1, jump1 = (
             Signal(name=f"{n}1") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
-        theta1 = Signal(aw, name="theta1")
         # Loaded every clock and read only at an edge (edge1, reset 0): its reset value is
         # never used, so reset_less with init all ones, which the iCE40 stores inverted and
-        # so hands the subtraction below its ~bo1 without an inverter LUT per bit.
-        bo1 = Signal(aw, name="bo1", init=(1 << aw) - 1, reset_less=True)
+        # so hands the subtraction below its ~bo1 without an inverter LUT per bit (the
+        # complement form adds bo1 itself and takes θ inverted: the same for θ's register).
+        cpl = self._complement
+        theta1 = (Signal(aw, name="theta1", init=(1 << aw) - 1, reset_less=True) if cpl else
+                  Signal(aw, name="theta1"))
+        bo1 = Signal(aw, name="bo1", init=0 if cpl else (1 << aw) - 1, reset_less=True)
         m.d.sync += [
             edge1.eq(edge), fwd1.eq(fwd), adjacent1.eq(fwd | bwd), aligned1.eq(self.aligned),
             restart1.eq(self.restart), jump1.eq(self.restart | (self.aligned != aligned_q)),
@@ -808,6 +824,10 @@ class HallPlausibility(wiring.Component):
         # adjacent sectors goes straight into d_q (the ``error`` output) in this clock: so the
         # next edge's d_prev is d_q, also for edges in consecutive clocks (the block alone may
         # see them), and no copy of d waits for clock 3 (iCE40: 16 flip-flops of their own).
+        # The complement form: ~d = bo1 + ~θ, and not aligned x = d_prev − d (= −(d − d_prev),
+        # whose magnitude the check compares): x2's sum d_q + ~d + 1 and the select of d = ~(~d)
+        # in the aligned case read the same three signals and the carry, one LUT per bit with
+        # no operand select in front of the carry (iCE40: −12 logic cells, docs/AREA.md §7.84).
         edge2, fwd2, adjacent2, aligned2, restart2, jump2 = (
             Signal(name=f"{n}2") for n in ("edge", "fwd", "adjacent", "aligned", "restart",
                                            "jump"))
@@ -815,11 +835,17 @@ class HallPlausibility(wiring.Component):
         dir_q = Signal()                # the previous edge went forward
         d_q = self.error                # d at the previous edge between adjacent sectors
         d_new = Signal(aw)
-        m.d.comb += d_new.eq(theta1 - bo1)
+        if cpl:
+            nd = Signal(aw)             # ~d
+            m.d.comb += [nd.eq(bo1 + ~theta1), d_new.eq(~nd)]
+            x_new = Mux(aligned1, d_new, d_q + nd + 1)
+        else:
+            m.d.comb += d_new.eq(theta1 - bo1)
+            x_new = d_new - Mux(aligned1, 0, d_q)
         m.d.sync += [
             edge2.eq(edge1), fwd2.eq(fwd1), adjacent2.eq(adjacent1), aligned2.eq(aligned1),
             restart2.eq(restart1), jump2.eq(jump1),
-            x2.eq(d_new - Mux(aligned1, 0, d_q)),
+            x2.eq(x_new),
         ]
         with m.If(edge1 & adjacent1):
             m.d.sync += d_q.eq(d_new)
@@ -889,6 +915,11 @@ class EncoderFrontEnd(wiring.Component):
         See :class:`QuadratureDecoder`.
     fold_reload : bool
         See :class:`GlitchFilter`.
+    plausibility_complement : bool
+        See :class:`HallPlausibility` ``complement`` (default ``True``, the iCE40's form); with
+        it the decoder's angle register ``theta_q`` is reset_less with init all ones (stored
+        inverted on the iCE40; its value in the clock after a reset is never read: ``theta``
+        shows the Hall angle then and no Hall edge is taken).
 
     Members
     -------
@@ -940,15 +971,16 @@ class EncoderFrontEnd(wiring.Component):
     sync_stages = 2
 
     def __init__(self, *, max_length=255, z_gate=None, lines_init=5000, pole_pairs_init=4,
-                 z_offset_init=0, fold_reload=True):
+                 z_offset_init=0, fold_reload=True, plausibility_complement=True):
         self._max_length = check_param("EncoderFrontEnd", "max_length", max_length, 1, 65535)
         _check_z_gate("EncoderFrontEnd", z_gate)   # before any child exists (no unused child)
+        cpl = check_bool("EncoderFrontEnd", "plausibility_complement", plausibility_complement)
         init = _check_config_init("EncoderFrontEnd", lines_init, pole_pairs_init, z_offset_init)
         self._decoder = QuadratureDecoder(z_gate=z_gate, lines_init=init[0],
                                           pole_pairs_init=init[1], z_offset_init=init[2])
         self._filter = GlitchFilter(width=6, max_length=max_length, fold_reload=fold_reload)
         self._hall = HallSensor()
-        self._plausibility = HallPlausibility(theta_registered=True)
+        self._plausibility = HallPlausibility(theta_registered=True, complement=cpl)
         super().__init__({
             "a": In(1), "b": In(1), "z": In(1), "hall": In(3),
             "length": In(range(max_length + 1)),
@@ -972,6 +1004,7 @@ class EncoderFrontEnd(wiring.Component):
     max_length = property(lambda self: self._max_length)
     z_gate = property(lambda self: self._decoder.z_gate)
     fold_reload = property(lambda self: self._filter.fold_reload)
+    plausibility_complement = property(lambda self: self._plausibility.complement)
     config_latency = property(lambda self: self._decoder.config_latency)
 
     def elaborate(self, platform):
@@ -1004,7 +1037,8 @@ class EncoderFrontEnd(wiring.Component):
         ]
         # The decoder's angle (a sum and a wrap test) and its alignment, registered: θ's source
         # when aligned, and the plausibility check's clock-1 copy of the angle.
-        theta_q = Signal(ANGLE.shape)
+        theta_q = (Signal(ANGLE.shape, init=ANGLE.turn - 1, reset_less=True)
+                   if self._plausibility.complement else Signal(ANGLE.shape))
         aligned_q = Signal()
         m.d.sync += [theta_q.eq(dec.theta), aligned_q.eq(dec.aligned)]
         for name in ("count", "e", "step", "up", "a_rise", "illegal", "index", "aligned", "busy",

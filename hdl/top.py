@@ -556,6 +556,11 @@ class Top(wiring.Component):
         their decrement's LUTs (the same filtered pins; the iCE40's choice and the default,
         fewer logic cells; ``False`` the ECP5's and the Spartan-7's netlist of before, fewer
         LUT6, docs/AREA.md §7.76).
+    enc_plausibility_complement : bool
+        :class:`~.encoder.EncoderFrontEnd` ``plausibility_complement``: the encoder/Hall check's
+        differences as ``~d`` and ``d_prev − d`` (the same outputs; the iCE40's choice and the
+        default, 12 logic cells fewer for the encoder alone; ``False`` the ECP5's and the
+        Spartan-7's netlist of before, docs/AREA.md §7.84).
     mt_chunk_multipliers : bool
         :class:`~.mt_speed.MTSpeed` ``chunk_multipliers``: one multiplier per 16-bit chunk of
         ``mt_k`` (three), no chunk select (the same speeds in the same clocks; the iCE40's
@@ -630,7 +635,9 @@ class Top(wiring.Component):
         The parameters.
     gates_dead_n, gates_wrap, timer_sample_split, timer_one_adder, dtc_one_count : bool
         The parameters.
-    link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
+    link_compact, enc_fold_reload, enc_plausibility_complement : bool
+        The parameters.
+    mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     ram_loop_count : bool
         ``st_current_loops`` is a counter of the staging RAM (the parameter with
@@ -655,6 +662,7 @@ class Top(wiring.Component):
                  regs_staging="ff", speed_loop="sequential", uv_arm_chain=False,
                  trip_register=False, link_read_hold=False, scope_down_counts=True,
                  timer_clamp=True, prot_limits="ports", enc_fold_reload=True,
+                 enc_plausibility_complement=True,
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
                  timer_one_adder=True, gates_wrap=True,
@@ -832,7 +840,8 @@ class Top(wiring.Component):
         self._encoder = EncoderFrontEnd(lines_init=regmap["enc_lines"].reset,
                                         pole_pairs_init=regmap["enc_pole_pairs"].reset,
                                         z_offset_init=regmap["enc_z_offset"].reset,
-                                        fold_reload=enc_fold_reload)
+                                        fold_reload=enc_fold_reload,
+                                        plausibility_complement=enc_plausibility_complement)
         self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
                            chunk_multipliers=mt_chunk_multipliers,
                            k_steady=mt_k_export)
@@ -936,6 +945,7 @@ class Top(wiring.Component):
     dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
+    enc_plausibility_complement = property(lambda self: self._encoder.plausibility_complement)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
     mt_k_export = property(lambda self: self._mt.k_steady)
     link_compact = property(lambda self: self._link.compact)

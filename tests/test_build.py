@@ -27,7 +27,8 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD, GATES_DEAD_N,
+from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD,
+                                    ENC_PLAUSIBILITY_COMPLEMENT, GATES_DEAD_N,
                                     GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
                                     MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
                                     SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
@@ -273,6 +274,9 @@ FAMILY_FORMS = [
     ("enc_fold_reload", ENC_FOLD_RELOAD, (True, False, False, False),
      lambda top: (top.enc_fold_reload, top._encoder.fold_reload,
                   top._encoder._filter.fold_reload)),
+    ("enc_plausibility_complement", ENC_PLAUSIBILITY_COMPLEMENT, (True, False, False, False),
+     lambda top: (top.enc_plausibility_complement, top._encoder.plausibility_complement,
+                  top._encoder._plausibility.complement)),
     ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
      lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
     ("mt_k_export", MT_K_EXPORT, (True, False, False, False),

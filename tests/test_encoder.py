@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 from amaranth.back import verilog
-from amaranth.hdl import Cat, Module, Signal
+from amaranth.hdl import Cat, Module, ResetInserter, Signal
 from amaranth.lib import wiring
 
 import foc_servo.hdl.encoder as hdl_encoder
@@ -26,6 +26,19 @@ def fold_form(request, monkeypatch):
     test run once with each."""
     for cls in (GlitchFilter, EncoderFrontEnd):
         monkeypatch.setitem(cls.__init__.__kwdefaults__, "fold_reload", request.param)
+    return request.param
+
+
+@pytest.fixture(params=[True, False], ids=["complement", "difference"])
+def complement_form(request, monkeypatch):
+    """Both forms of the plausibility check's differences (``complement``: ``~d`` and
+    ``d_prev − d``, the iCE40's and the front end's default; ``d`` and ``d − d_prev`` behind an
+    operand select, the ECP5's and the Spartan-7's): the default of the check's and the front
+    end's constructors (also where sim.verify.encoder builds the front end) set to one, the
+    test run once with each."""
+    monkeypatch.setitem(HallPlausibility.__init__.__kwdefaults__, "complement", request.param)
+    monkeypatch.setitem(EncoderFrontEnd.__init__.__kwdefaults__, "plausibility_complement",
+                        request.param)
     return request.param
 
 
@@ -678,12 +691,17 @@ def test_hall_boundaries_are_the_sector_starts():
         assert abs(first - b) <= 1
 
 
-def test_plausibility_theta_registered_matches_the_default_block():
+@pytest.mark.parametrize("complement", [False, True])
+def test_plausibility_theta_registered_matches_the_default_block(complement):
     """With ``theta_registered`` the block takes the angle one clock late (the front end's
-    register) and gives the default block's outputs, clock for clock, on random inputs (edges
-    in consecutive clocks, alignment, restarts and tolerances included)."""
-    plain, late = HallPlausibility(), HallPlausibility(theta_registered=True)
+    register, with ``complement`` one stored inverted as the front end's) and gives the default
+    block's outputs, clock for clock, on random inputs (edges in consecutive clocks,
+    alignment, restarts and tolerances included; with ``complement`` also ``d − d_prev`` at
+    −180° and the tolerance at its edges, where ``d_prev − d`` must compare alike)."""
+    plain = HallPlausibility(complement=False)
+    late = HallPlausibility(theta_registered=True, complement=complement)
     assert (plain.theta_registered, late.theta_registered) == (False, True)
+    assert (plain.complement, late.complement) == (False, complement)
     rng = np.random.default_rng(11)
     n = 3000
     stim = {"theta": rng.integers(0, TURN, n), "sector": rng.integers(0, 6, n),
@@ -691,8 +709,19 @@ def test_plausibility_theta_registered_matches_the_default_block():
             "valid": rng.random(n) < 0.95, "hold": rng.random(n) < 0.02,
             "offset": rng.integers(0, TURN, n), "tolerance": rng.integers(0, TURN, n),
             "misses": rng.integers(0, 16, n)}
+    # θ from a few values a boundary step apart or half a turn apart, so that d − d_prev is
+    # often exactly ±(60°·k) or −180° (the one x with −x = x), and tolerances at 180° ± 1
+    # and at those magnitudes.
+    few = np.array([0, 1, 32767, 32768, 32769, TURN - 1] + list(B))
+    part = rng.random(n) < 0.5
+    stim["theta"] = np.where(part, (few[rng.integers(0, len(few), n)]
+                                    + rng.choice(B, n)) % TURN, stim["theta"])
+    stim["offset"] = np.where(part, rng.choice([0, 0, 1, 32768], n), stim["offset"])
+    stim["tolerance"] = np.where(part, rng.choice([0, 1, 10922, 10923, 21845, 32767, 32768,
+                                                   32769], n), stim["tolerance"])
     outs = ("edge", "miss", "fault", "error")
     got = {"plain": [], "late": []}
+    theta_q = Signal(16, init=TURN - 1 if complement else 0, reset_less=complement)
 
     class Pair(wiring.Component):
         def __init__(self):
@@ -701,7 +730,6 @@ def test_plausibility_theta_registered_matches_the_default_block():
         def elaborate(self, platform):
             m = Module()
             m.submodules.plain, m.submodules.late = plain, late
-            theta_q = Signal(16)
             m.d.sync += theta_q.eq(plain.theta)
             m.d.comb += late.theta.eq(theta_q)
             for name in stim:
@@ -720,6 +748,41 @@ def test_plausibility_theta_registered_matches_the_default_block():
     simulate(Pair(), [testbench], name="test_plausibility_theta_registered")
     assert got["late"] == got["plain"]
     assert sum(e for e, *_ in got["plain"]) > 100
+    assert sum(m for _, m, *_ in got["plain"]) > 100
+
+
+def test_plausibility_complement_must_be_a_bool():
+    with pytest.raises(TypeError, match=r"^HallPlausibility complement must be a bool, not 1$"):
+        HallPlausibility(complement=1)
+    with pytest.raises(TypeError, match=r"^EncoderFrontEnd plausibility_complement must be a "
+                                        r"bool, not None$"):
+        EncoderFrontEnd(plausibility_complement=None)
+    assert HallPlausibility.__init__.__kwdefaults__["complement"] is False
+    assert EncoderFrontEnd.__init__.__kwdefaults__["plausibility_complement"] is True
+
+
+@pytest.mark.usefixtures("complement_form")
+def test_plausibility_relative_check_at_half_a_turn_and_the_tolerance_edges():
+    """The relative check's ``|d − d_prev|`` where the complement form compares
+    ``|d_prev − d|``: at −180° (d − d_prev = −32768, whose negation is itself) and ±1 of the
+    tolerance on both sides, against the model clock for clock (run_plausibility)."""
+    t0 = 777
+    v = {"valid": 1, "misses": 1}
+    out = run_plausibility([
+        {**v, "sector": 0, "theta": t0},
+        {"sector": 1, "theta": t0 + B[1]},                      # first edge: no check
+        {"tolerance": 32767, "sector": 2, "theta": t0 + B[2] + 32768},   # −180°: miss
+        {"tolerance": 32768, "sector": 3, "theta": t0 + B[3] + 32768},   # 0 after: pass
+        {"sector": 4, "theta": t0 + B[4]},                      # −180° again, tol 180°: pass
+        {"tolerance": 100, "sector": 5, "theta": t0 + B[5] + 100},      # +100: pass
+        {"sector": 0, "theta": t0 + 99},                        # −1: pass
+        {"sector": 1, "theta": t0 + B[1] + 200},                # +101: miss
+        {"sector": 2, "theta": t0 + B[2] + 99},                 # −101: miss
+        {"sector": 3, "theta": t0 + B[3] - 1},                  # −100: pass
+    ])
+    edge, miss, fault, _ = (list(x) for x in zip(*out))
+    assert edge == [0] + [1] * 9
+    assert miss == [0, 0, 1, 0, 0, 0, 0, 1, 1, 0]
 
 
 def test_plausibility_theta_registered_must_be_a_bool():
@@ -728,6 +791,7 @@ def test_plausibility_theta_registered_must_be_a_bool():
         HallPlausibility(theta_registered=1)
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_latency_cycle_by_cycle():
     """An edge into a sector seen in clock t shows on ``edge``/``miss``/``fault`` in t + 3,
     once; ``error`` holds its d from t + 2 (one clock before the check's strobes)."""
@@ -753,6 +817,7 @@ def test_plausibility_latency_cycle_by_cycle():
     assert EncoderFrontEnd.plausibility_latency == EncoderFrontEnd.latency + 3
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_absolute_check_threshold_count_and_reset():
     al = {"aligned": 1, "valid": 1}
     out = run_plausibility([
@@ -778,6 +843,7 @@ def test_plausibility_absolute_check_threshold_count_and_reset():
     assert err[11] == -8193
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_tolerance_edges():
     """``|d| > tolerance`` at its edges: d = ±tolerance passes, one more misses; tolerance 0
     passes only d = 0; tolerance ≥ 180° never misses (|d| ≤ 180°)."""
@@ -798,6 +864,7 @@ def test_plausibility_tolerance_edges():
     assert err[1] == -8192 and err[5] == -32768
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_relative_check_before_alignment():
     t0 = 12345                                                  # unknown encoder offset
     v = {"valid": 1}
@@ -823,6 +890,7 @@ def test_plausibility_relative_check_before_alignment():
     assert fault == [0, 0, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0]
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_plausibility_random_inputs_every_clock_against_model():
     """Inputs changed in every clock (Hall edges in consecutive clocks, adjacent or not, both
     directions, alignment and restart toggling, small tolerances and every ``misses``): the
@@ -988,6 +1056,7 @@ def test_angle_no_drift_model_against_exact_formula():
 
 # --- whole front end against the model ------------------------------------------------------
 
+@pytest.mark.usefixtures("complement_form")
 @pytest.mark.parametrize("z_gate", [None, 0])
 def test_front_end_random_pins_vs_model(z_gate):
     r = verify_encoder.run_random(3000, seed=2, z_gate=z_gate)
@@ -996,6 +1065,7 @@ def test_front_end_random_pins_vs_model(z_gate):
     assert r["index_strobes_model"] > 0
 
 
+@pytest.mark.usefixtures("complement_form")
 def test_front_end_short_segments_invalid_configurations_vs_model():
     """Many short configuration segments (invalid ones included) in a short run: the default
     run above sees one segment only. Catches the session-3 regression (the pipelined output
@@ -1006,6 +1076,77 @@ def test_front_end_short_segments_invalid_configurations_vs_model():
     assert r["config_commits_model"] >= 10
     assert r["mismatches"] == 0 and r["vectors"] == 6001
     assert 0 < r["hall_misses_model"] < r["hall_edges_model"]
+
+
+def test_front_end_plausibility_complement_is_the_difference_form_clock_for_clock():
+    """The two forms of the plausibility check's differences in two front ends on the same
+    random pins and configuration (Hall edges at any clock, invalid codes, alignment, realign,
+    configuration changes with their strobes, tolerances at their edges) and synchronous resets
+    in the middle of the run: every output equal in every clock (the complement form's
+    reset_less angle register ``theta_q`` is not read in the clocks after a reset)."""
+    on = EncoderFrontEnd(max_length=7, plausibility_complement=True)
+    off = EncoderFrontEnd(max_length=7, plausibility_complement=False)
+    assert (on.plausibility_complement, off.plausibility_complement) == (True, False)
+    ins = ("a", "b", "z", "hall", "length", "lines", "pole_pairs", "z_offset", "hall_offset",
+           "hall_tolerance", "hall_misses", "lp_changed", "z_changed", "realign")
+    outs = model.OUTPUTS
+
+    rst = Signal()
+
+    class Pair(wiring.Component):
+        def __init__(self):
+            super().__init__({})
+
+        def elaborate(self, platform):
+            m = Module()
+            m.submodules.on, m.submodules.off = on, off
+            m.d.comb += [getattr(off, k).eq(getattr(on, k)) for k in ins]
+            return ResetInserter(rst)(m)        # a synchronous reset of both
+
+    rng = np.random.default_rng(23)
+    n = 6000
+    mism, resets, edges, aligned_resets = [], [], [0], [0]
+
+    async def testbench(ctx):
+        pos, hall_k = 0, 0
+        ctx.set(on.lines, 16)
+        ctx.set(on.length, 1)
+        for t in range(n):
+            pos += int(rng.choice([0, 0, 1, -1]))
+            a, b = AB[pos % 4]
+            if rng.random() < 0.05:
+                hall_k = (hall_k + int(rng.choice([1, -1, 1, 2]))) % 6
+            code = HALL_CODES[hall_k] if rng.random() > 0.01 else int(rng.choice([0, 7]))
+            ctx.set(Cat(on.a, on.b, on.z, on.hall), a | (b << 1) | ((pos % 16 == 0) << 2)
+                    | (code << 3))
+            ctx.set(on.hall_tolerance, int(rng.choice([0, 1, 5461, 10922, 32767, 32768])))
+            if rng.random() < 0.01:
+                ctx.set(on.hall_offset, int(rng.integers(0, TURN)))
+            ctx.set(on.realign, int(rng.random() < 0.002))
+            ctx.set(on.hall_misses, int(rng.integers(0, 4)))
+            lp = rng.random() < 0.002
+            zc = rng.random() < 0.003
+            if lp:
+                ctx.set(on.lines, int(rng.choice([0, 1, 16, 16, 17, 17])))
+                ctx.set(on.pole_pairs, int(rng.choice([0, 1, 3, 3, 4, 70])))
+            if zc:
+                ctx.set(on.z_offset, int(rng.integers(0, 80)))
+            ctx.set(on.lp_changed, int(lp))
+            ctx.set(on.z_changed, int(zc))
+            reset = t % 397 in (300, 301)
+            ctx.set(rst, int(reset))
+            resets.append(reset)
+            aligned_resets[0] += reset and ctx.get(on.aligned)
+            await ctx.tick()
+            got_on = tuple(ctx.get(getattr(on, k)) for k in outs)
+            got_off = tuple(ctx.get(getattr(off, k)) for k in outs)
+            if got_on != got_off:
+                mism.append((t, got_on, got_off))
+            edges[0] += ctx.get(on.hall_edge)
+
+    simulate(Pair(), [testbench], name="test_front_end_plausibility_complement")
+    assert mism == []
+    assert sum(resets) >= 20 and aligned_resets[0] >= 4 and edges[0] > 50
 
 
 def test_front_end_converts_to_verilog():
