@@ -517,6 +517,12 @@ class Top(wiring.Component):
         :class:`~.gates.Gates` ``wrap``: the off counts without saturation (the same gate
         outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
         netlist of before, docs/AREA.md §7.80).
+    adc_marker : bool
+        :class:`~.adc.AdcInterface` ``marker``: the read frame's bits counted by a marker bit
+        in the first channel's shift register instead of a counter (the same pins and codes:
+        that register is read only between a frame's last bit and the next sample strobe;
+        the iCE40's choice and the default; ``False`` the ECP5's and the Spartans' netlist
+        of before, docs/AREA.md §7.86).
     timer_one_adder : bool
         :class:`~.svpwm.PWMTimer` ``one_adder``: the triangle counter on one adder (the same
         outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
@@ -629,6 +635,8 @@ class Top(wiring.Component):
         The parameters.
     gates_dead_n, gates_wrap, timer_sample_split, timer_one_adder, dtc_one_count : bool
         The parameters.
+    adc_marker : bool
+        The parameter.
     link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     ram_loop_count : bool
@@ -657,7 +665,7 @@ class Top(wiring.Component):
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
                  timer_one_adder=True, gates_wrap=True,
-                 dtc_one_count=True):
+                 dtc_one_count=True, adc_marker=True):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -809,7 +817,7 @@ class Top(wiring.Component):
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
         # `udc` output, module docstring "Status").
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=())
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=(), marker=adc_marker)
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
@@ -932,6 +940,7 @@ class Top(wiring.Component):
     timer_sample_split = property(lambda self: self._timer.sample_split)
     timer_one_adder = property(lambda self: self._timer.one_adder)
     gates_wrap = property(lambda self: self._gates.wrap)
+    adc_marker = property(lambda self: self._adc.marker)
     dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
