@@ -20,6 +20,8 @@ def test_uart_parameter_validation():
     with pytest.raises(ValueError, match=r"^UartTx baud must be at most clk_hz / 8 = 6.25e\+06, "
                                          r"not 7000000.0$"):
         UartTx(clk_hz=50e6, baud=7e6)
+    with pytest.raises(TypeError, match=r"^UartTx compact must be a bool, not 1$"):
+        UartTx(compact=1)
 
 
 def test_uart_fractional_increment():
@@ -28,10 +30,10 @@ def test_uart_fractional_increment():
     assert abs(tx.increment * 50e6 / 2**PHASE_BITS / 3e6 - 1) < 1e-6
 
 
-def _loopback(clk_hz, baud_rx, baud_tx, data):
+def _loopback(clk_hz, baud_rx, baud_tx, data, *, compact=False):
     """Send `data` back to back from a UartTx at baud_tx into a UartRx at baud_rx."""
     m = Module()
-    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud_tx)
+    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud_tx, compact=compact)
     m.submodules.rx = rx = UartRx(clk_hz=clk_hz, baud=baud_rx)
     m.d.comb += [rx.rx.eq(tx.tx), rx.o.ready.eq(1)]
     got, errors = [], []
@@ -59,12 +61,13 @@ def _loopback(clk_hz, baud_rx, baud_tx, data):
     return got, errors
 
 
+@pytest.mark.parametrize("compact", [False, True])
 @pytest.mark.parametrize("clk_hz, baud, nbytes, error", [
     (50e6, 115200, 2, -0.03), (50e6, 115200, 2, 0.03),
     *[(clk, baud, 24, e) for clk, baud in ((50e6, 3e6), (33.333e6, 3e6), (50e6, 50e6 / 8))
       for e in (-0.03, 0.0, 0.03)],
 ])
-def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error):
+def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error, compact):
     """The sender's rate is off by `error` relative to the receiver's."""
     rng = random.Random(int(baud) ^ int(error * 100))
     data = [0x00, 0xFF, 0x55, 0xAA, 0x80, 0x01][:nbytes]
@@ -72,15 +75,16 @@ def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error):
     baud_tx, baud_rx = baud * (1 + error), baud
     if baud_tx * 8 > clk_hz:                    # the sender may not exceed clk/8: slow the receiver
         baud_tx, baud_rx = baud, baud / (1 + error)
-    got, errors = _loopback(clk_hz, baud_rx, baud_tx, data)
+    got, errors = _loopback(clk_hz, baud_rx, baud_tx, data, compact=compact)
     assert got == data
     assert errors == []
 
 
-def test_uart_tx_bit_timing_and_latency():
+@pytest.mark.parametrize("compact", [False, True])
+def test_uart_tx_bit_timing_and_latency(compact):
     clk_hz, baud = 50e6, 3e6
     m = Module()
-    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud)
+    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud, compact=compact)
     trace = []
     accepted = []
 
@@ -106,6 +110,55 @@ def test_uart_tx_bit_timing_and_latency():
         assert abs((e - edges[0]) - k * per_bit) < 1.0
     # the line stays high after the stop bit
     assert all(trace[int(edges[0] + 10 * per_bit) + 2:])
+
+
+@pytest.mark.parametrize("clk_hz, baud", [(33e6, 115200), (50e6, 3e6), (33.333e6, 33.333e6 / 8)])
+def test_uart_tx_compact_lockstep(clk_hz, baud):
+    """``UartTx(compact=True)`` against the counter form, every clock: the same ``tx``,
+    ``busy`` and ``i.ready`` for random bytes offered with random gaps (none, a clock, a few
+    clocks, longer than a byte), i.e. back-to-back bytes, bytes from idle and offers that
+    wait."""
+    m = Module()
+    m.submodules.old = old = UartTx(clk_hz=clk_hz, baud=baud)
+    m.submodules.new = new = UartTx(clk_hz=clk_hz, baud=baud, compact=True)
+    per_byte = int(10 * clk_hz / baud) + 2
+    rng = random.Random(int(baud))
+    plan = [(rng.randrange(256), rng.choice([0, 0, 1, 3, rng.randrange(per_byte + 40)]))
+            for _ in range(24)]
+    mismatches, sent = [], []
+
+    async def bench(ctx):
+        t = 0
+        for byte, gap in plan:
+            for _ in range(gap):
+                ctx.set(old.i.valid, 0)
+                ctx.set(new.i.valid, 0)
+                await ctx.tick()
+                t += 1
+            for dut in (old, new):
+                ctx.set(dut.i.payload, byte)
+                ctx.set(dut.i.valid, 1)
+            while True:
+                got = [(ctx.get(d.tx), ctx.get(d.busy), ctx.get(d.i.ready)) for d in (old, new)]
+                if got[0] != got[1]:
+                    mismatches.append((t, got))
+                await ctx.tick()
+                t += 1
+                if got[0][2]:
+                    sent.append(byte)
+                    break
+        ctx.set(old.i.valid, 0)
+        ctx.set(new.i.valid, 0)
+        for _ in range(per_byte + 4):
+            got = [(ctx.get(d.tx), ctx.get(d.busy), ctx.get(d.i.ready)) for d in (old, new)]
+            if got[0] != got[1]:
+                mismatches.append((t, got))
+            await ctx.tick()
+            t += 1
+
+    simulate(m, [bench], clock_hz=clk_hz, name="uart_tx_compact")
+    assert sent == [b for b, _ in plan]
+    assert mismatches == []
 
 
 def _rx_bench(bits_per_event, *, per_bit=16, ready=True):
