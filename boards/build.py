@@ -146,12 +146,6 @@ ADC_MARKER = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: their netlists. The same gate outputs.
 GATES_PREV_PWM = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
-#: ``Top(adc_one_count=…)`` per FPGA family: the ADC's transaction on one down count on the
-#: iCE40 (no state machine, wait timer or bit counter: −10 logic cells alone against
-#: :data:`ADC_MARKER`'s form, docs/AREA.md §7.86; where its SCLK half period is one clock);
-#: the other families keep their netlists. The same pins, codes and strobes.
-ADC_ONE_COUNT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
-
 #: ``Top(dtc_one_count=…)`` per family: the dead-time compensation's sequence on one count on
 #: the iCE40 (−5 cells alone) and the Spartan-7 (the Arty S7 6 597 against 6 616 LUT6); the
 #: ECP5 keeps the netlist of its 100 MHz build (with it, seed 2 missed 100 MHz on a path in
@@ -457,7 +451,6 @@ class BoardTop(Elaboratable):
                         gates_wrap=GATES_WRAP[self._board.family],
                         adc_marker=ADC_MARKER[self._board.family],
                         gates_prev_pwm=GATES_PREV_PWM[self._board.family],
-                        adc_one_count=ADC_ONE_COUNT[self._board.family],
                         dtc_one_count=DTC_ONE_COUNT[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 

@@ -37,9 +37,9 @@ from amaranth.hdl import Module, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
-from .fixed import at_least, check_bool
+from .fixed import check_bool
 
-__all__ = ["AdcPart", "AD7380_4", "PARTS", "AdcInterface", "CHANNELS", "sclk_half_period"]
+__all__ = ["AdcPart", "AD7380_4", "PARTS", "AdcInterface", "CHANNELS"]
 
 #: Payload fields, in SDO-line order (SDOA, SDOB, SDOC, SDOD).
 CHANNELS = ("ia", "ib", "udc", "aux")
@@ -101,15 +101,6 @@ AD7380_4 = AdcPart(
 PARTS = {AD7380_4.name: AD7380_4}
 
 
-def sclk_half_period(clk_hz, sclk_hz, part=AD7380_4):
-    """``h``, system clocks per SCLK half period, of :class:`AdcInterface` at ``clk_hz``
-    with the highest SCLK ``sclk_hz`` (``part``: an :class:`AdcPart`); the parameters as
-    :class:`AdcInterface` validates them."""
-    h = max(1, math.ceil(clk_hz / (2 * sclk_hz) - 1e-9))
-    # Half periods must also meet t_SCLKH / t_SCLKL (a slow part, or a very slow clock).
-    return max(h, _clocks(part.t_sclkh_s, clk_hz), _clocks(part.t_sclkl_s, clk_hz))
-
-
 def _clocks(t_s, clk_hz):
     """Smallest whole number of clocks lasting at least ``t_s`` (a 1e-6 clock tolerance absorbs
     float rounding such as 190e-9 · 50e6 = 9.500000000000002)."""
@@ -145,15 +136,6 @@ class AdcInterface(wiring.Component):
         and compare cost logic cells; docs/AREA.md §7.86). The same pins, ``o.valid`` and
         codes; only the first channel's shift register differs between frames' last bits, and
         :attr:`hold` is ``2·h`` clocks shorter. Default ``False``.
-    one_count : bool
-        ``True``: the whole transaction sequenced by one down count (loaded with
-        ``min_period − 1`` by a served strobe, 0 when idle) instead of a state machine, a
-        wait timer and a bit counter: each pin level and strobe is a range (and for SCLK and
-        the SDO sampling a parity) of the count, compared with constants as logic (the iCE40's
-        form, ``Top(adc_one_count)``: fewer logic cells, docs/AREA.md §7.86). Only with one
-        system clock per SCLK half period (``h = 1``). The same pins, ``o.valid``, ``busy``,
-        ``overrun`` and payload in every clock (``marker`` then has no effect). Default
-        ``False``.
 
     Members
     -------
@@ -195,24 +177,23 @@ class AdcInterface(wiring.Component):
         2·h·bits``, the first channel's loaded with the marker ``2·h·bits`` clocks before it).
     held : tuple of str
         The parameter.
-    marker, one_count : bool
-        The parameters.
+    marker : bool
+        The parameter.
     half_period : int
         ``h``, system clocks per SCLK half period; ``sclk_actual_hz = clk_hz / (2·h)``.
 
     Raises
     ------
     TypeError
-        A parameter of the wrong type (``marker``, ``one_count`` not a bool).
+        A parameter of the wrong type (``marker`` not a bool).
     ValueError
-        A frequency out of range, an SCLK faster than the part allows, or ``one_count`` with
-        more than one clock per SCLK half period.
+        A frequency out of range, or an SCLK faster than the part allows.
     """
 
     sample_delay = 1
 
     def __init__(self, *, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4", held=None,
-                 marker=False, one_count=False):
+                 marker=False):
         if isinstance(part, str):
             if part not in PARTS:
                 raise ValueError(f"AdcInterface part must be one of {sorted(PARTS)}, "
@@ -241,18 +222,15 @@ class AdcInterface(wiring.Component):
             raise ValueError(f"AdcInterface held must name channels of {names!r}, "
                              f"not {held!r}")
         check_bool("AdcInterface", "marker", marker)
-        check_bool("AdcInterface", "one_count", one_count)
-        h = sclk_half_period(clk_hz, sclk_hz, part)
+        h = max(1, math.ceil(clk_hz / (2 * sclk_hz) - 1e-9))
+        # Half periods must also meet t_SCLKH / t_SCLKL (a slow part, or a very slow clock).
+        h = max(h, _clocks(part.t_sclkh_s, clk_hz), _clocks(part.t_sclkl_s, clk_hz))
 
         self._clk_hz = float(clk_hz)
         self._part = part
         self._h = h
         self._held = tuple(n for n in names if n in held)     # in channel order
         self._marker = marker
-        self._one_count = one_count
-        if one_count and h != 1:
-            raise ValueError(f"AdcInterface one_count needs one clock per SCLK half period, "
-                             f"not {h} (clk_hz {clk_hz!r}, sclk_hz {sclk_hz!r})")
         n_csh = max(1, _clocks(part.t_csh_s, clk_hz))
         n_conv = max(_clocks(part.t_convert_s, clk_hz), _clocks(part.t_cyc_s, clk_hz))
         # Convert pulse: CS low for t_CSH clocks too (no separate minimum low time is used).
@@ -291,13 +269,10 @@ class AdcInterface(wiring.Component):
     min_period = property(lambda self: self._min_period)
     held = property(lambda self: self._held)
     marker = property(lambda self: self._marker)
-    one_count = property(lambda self: self._one_count)
-    hold = property(lambda self: self._min_period - 2 * self._h * (
-        self._part.bits - (0 if self._marker and not self._one_count else 1)))
+    hold = property(lambda self: self._min_period
+                    - 2 * self._h * (self._part.bits - (0 if self._marker else 1)))
 
     def elaborate(self, platform):
-        if self._one_count:
-            return self._elaborate_one_count()
         m = Module()
         part = self._part
         h = self._h
@@ -385,55 +360,4 @@ class AdcInterface(wiring.Component):
         m.d.comb += self.busy.eq(~fsm.ongoing("IDLE"))
         with m.If(self.sample & ~fsm.ongoing("IDLE")):
             m.d.sync += self.overrun.eq(1)
-        return m
-
-    def _elaborate_one_count(self):
-        """``one_count``: the transaction on one down count ``c`` (``min_period − 1`` at the
-        strobe, 0 when idle); each pin and strobe is a range (and parity) of ``c``."""
-        m = Module()
-        bits = self._part.bits
-        names = CHANNELS[:self._part.lines]
-        n_all, lat = self._min_period, self._latency
-        s_first = self._n_fall2 + self._n_sclked + 1       # clock of the first SCLK fall
-
-        def between(value, lo, hi):
-            return at_least(value, lo) & ~at_least(value, hi + 1)
-
-        c = Signal(range(n_all))
-        idle = c == 0
-        start = self.sample & idle
-        with m.If(start):
-            m.d.sync += c.eq(n_all - 1)
-        with m.Elif(~idle):
-            m.d.sync += c.eq(c - 1)
-        m.d.comb += self.busy.eq(~idle)
-        m.d.sync += self.overrun.eq(self.sample & ~idle)
-
-        # In clock t after the strobe (c = n_all − t): CS low in 1 … n_csl and n_fall2 + 1 …
-        # latency − 1; SCLK low in s_first + 2k (k = 0 … bits − 1); SDO sampled in
-        # s_first + 2k + 1; o.valid in latency. The registered pins and o.valid of clock t
-        # from c of clock t − 1, n_all + 1 − t (the strobe's clock: c = 0 and `start`).
-        cs_low = (start | at_least(c, n_all + 1 - self._n_csl)
-                  | between(c, n_all + 2 - lat, n_all - self._n_fall2))
-        sclk_low = (between(c, n_all + 3 - lat, n_all + 1 - s_first)
-                    & (c[0] == ((n_all + 1 - s_first) & 1)))
-        cs_n = Signal(init=1)
-        sclk = Signal(init=1)
-        valid = Signal()
-        m.d.sync += [cs_n.eq(~cs_low), sclk.eq(~sclk_low),
-                     valid.eq(c == n_all + 1 - lat)]
-        shift = (between(c, n_all + 1 - lat, n_all - 1 - s_first)
-                 & (c[0] == ((n_all - 1 - s_first) & 1)))
-        last = c == n_all + 1 - lat
-        m.d.comb += [self.cs_n.eq(cs_n), self.sclk.eq(sclk), self.o.valid.eq(valid)]
-
-        shreg = [Signal(bits, name=f"sh_{n}") for n in names]
-        m.d.comb += [self.o.payload[n].eq(sh) for n, sh in zip(names, shreg)
-                     if n not in self._held]
-        with m.If(shift):
-            for k, (n, sh) in enumerate(zip(names, shreg)):
-                m.d.sync += sh.eq((sh << 1) | self.sdo[k])
-                if n in self._held:
-                    with m.If(last):
-                        m.d.sync += self.o.payload[n].eq((sh << 1) | self.sdo[k])
         return m

@@ -218,7 +218,7 @@ from amaranth.lib import wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
-from .adc import AdcInterface, sclk_half_period
+from .adc import AdcInterface
 from .deadtime_comp import DeadTimeComp
 from .dsp import MUL_WIDTH, check_mul_width
 from .encoder import EncoderFrontEnd
@@ -521,11 +521,6 @@ class Top(wiring.Component):
         :class:`~.gates.Gates` ``prev_pwm``: the gates' "wanted state unchanged" from the
         previous ``pwm`` levels and ``run`` (the same gate outputs; the iCE40's choice and the
         default; ``False`` the ECP5's and the Spartans' netlist of before, docs/AREA.md §7.86).
-    adc_one_count : bool
-        :class:`~.adc.AdcInterface` ``one_count`` where the ADC's SCLK half period is one
-        clock (``sclk_hz`` ≥ ``clk_hz / 2``; else ``adc_marker`` alone): the transaction on one
-        count (the same pins, codes and strobes; the iCE40's choice and the default; ``False``
-        the ECP5's and the Spartans' netlist of before, docs/AREA.md §7.86).
     adc_marker : bool
         :class:`~.adc.AdcInterface` ``marker``: the read frame's bits counted by a marker bit
         in the first channel's shift register instead of a counter (the same pins and codes:
@@ -646,8 +641,6 @@ class Top(wiring.Component):
         The parameters.
     adc_marker, gates_prev_pwm : bool
         The parameters.
-    adc_one_count : bool
-        The ADC's ``one_count`` (the parameter where it applies).
     link_compact, enc_fold_reload, mt_chunk_multipliers, mt_k_export : bool
         The parameters.
     ram_loop_count : bool
@@ -676,8 +669,7 @@ class Top(wiring.Component):
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
                  timer_one_adder=True, gates_wrap=True,
-                 dtc_one_count=True, adc_marker=True, gates_prev_pwm=True,
-                 adc_one_count=True):
+                 dtc_one_count=True, adc_marker=True, gates_prev_pwm=True):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -829,10 +821,7 @@ class Top(wiring.Component):
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
         # `udc` output, module docstring "Status").
-        check_bool("Top", "adc_one_count", adc_one_count)
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=(), marker=adc_marker,
-                                 one_count=(adc_one_count
-                                            and sclk_half_period(clk_hz, sclk_hz) == 1))
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=(), marker=adc_marker)
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
@@ -956,7 +945,6 @@ class Top(wiring.Component):
     timer_one_adder = property(lambda self: self._timer.one_adder)
     gates_wrap = property(lambda self: self._gates.wrap)
     adc_marker = property(lambda self: self._adc.marker)
-    adc_one_count = property(lambda self: self._adc.one_count)
     gates_prev_pwm = property(lambda self: self._gates.prev_pwm)
     dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)

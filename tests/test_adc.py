@@ -16,11 +16,10 @@ from foc_servo.sim.models.adc import code_from_volts_np, schedule_np, volts_from
 CORNERS = [(-32768, 32767, 0, -1), (1, -2, 0x5555, -0x5556), (32767, -32768, -1, 0)]
 
 
-def run_interface(dut, strobes, clocks, *, sim_hz=None, codes=None, seed=0, busy=None):
+def run_interface(dut, strobes, clocks, *, sim_hz=None, codes=None, seed=0):
     """Simulate ``dut`` with the AD7380-4 model; ``sample`` high in the clocks ``strobes``.
 
-    Returns the per-clock record (cs_n, sclk, valid, overrun, payload tuple) and the model
-    (and appends ``busy`` of each clock to the list ``busy`` if given)."""
+    Returns the per-clock record (cs_n, sclk, valid, overrun, payload tuple) and the model."""
     sim_hz = sim_hz or dut.clk_hz
     if codes is None:
         rng = np.random.default_rng(seed)
@@ -38,8 +37,6 @@ def run_interface(dut, strobes, clocks, *, sim_hz=None, codes=None, seed=0, busy
             p = ctx.get(dut.o.payload)
             record.append((ctx.get(dut.cs_n), ctx.get(dut.sclk), ctx.get(dut.o.valid),
                            ctx.get(dut.overrun), tuple(p[n] for n in CHANNELS)))
-            if busy is not None:
-                busy.append(ctx.get(dut.busy))
             await ctx.tick()
 
     simulate(dut, [testbench], [model.process], clock_hz=sim_hz, name="test_adc")
@@ -97,13 +94,13 @@ def test_adc_codes_round_trip_and_latency_cycle_by_cycle(clk_hz, marker):
     assert all(r[1] for r in rec if r[0])
 
 
-@pytest.mark.parametrize("marker, one_count", [(False, False), (True, False), (False, True)])
+@pytest.mark.parametrize("marker", [False, True])
 @pytest.mark.parametrize("held", [None, ("udc",), (), ("ia", "aux")])
-def test_adc_held_channels_and_hold_window(held, marker, one_count):
+def test_adc_held_channels_and_hold_window(held, marker):
     # Back-to-back strobes (min_period apart): a held channel keeps its code until the next
     # valid; another (its shift register) for exactly `hold` clocks from its valid (with the
     # marker the first channel's; the others' 2·h clocks longer, as without it).
-    dut = AdcInterface(clk_hz=33.333e6, held=held, marker=marker, one_count=one_count)
+    dut = AdcInterface(clk_hz=33.333e6, held=held, marker=marker)
     assert dut.held == (CHANNELS if held is None else held)
     p = dut.min_period
     strobes = [1, 1 + p, 1 + 2 * p]
@@ -233,9 +230,9 @@ def test_adc_random_vs_model_50mhz():
     assert result["vectors"] == 300 and result["overruns"] > 5
 
 
-@pytest.mark.parametrize("marker, one_count", [(False, False), (True, False), (False, True)])
-def test_adc_random_vs_model_33mhz(marker, one_count):
-    result = verify_adc.run(150, seed=6, clk_hz=33.333e6, marker=marker, one_count=one_count)
+@pytest.mark.parametrize("marker", [False, True])
+def test_adc_random_vs_model_33mhz(marker):
+    result = verify_adc.run(150, seed=6, clk_hz=33.333e6, marker=marker)
     assert result["mismatches"] == 0, result
 
 
@@ -286,34 +283,3 @@ def test_adc_converts_to_verilog():
 def test_adc_10k_conversions_vs_model():
     result = verify_adc.run(10_000)
     assert result["mismatches"] == 0, result
-
-
-@pytest.mark.parametrize("held", [(), None, ("udc",)])
-@pytest.mark.parametrize("clk_hz, sclk_hz", [(33.0e6, 25e6), (33.333e6, 25e6), (50e6, 25e6),
-                                             (20e6, 10e6), (2e6, 1e6)])
-def test_adc_one_count_lockstep_with_the_state_machine(clk_hz, sclk_hz, held):
-    """``one_count=True`` against the state machine, every clock, on the same strobes (served,
-    dropped, back to back, one clock late, idle gaps) and codes: the same pins, ``o.valid``,
-    ``overrun``, payload (every channel, held or not) and ``busy``."""
-    recs = {}
-    for one_count in (False, True):
-        dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=held, one_count=one_count)
-        p = dut.min_period
-        strobes = [1, 1 + p, 1 + 2 * p - 1, 1 + 2 * p + 3, 2 + 3 * p + 11, 2 + 4 * p + 11,
-                   2 + 5 * p + 12, 2 + 5 * p + 14, 40 + 7 * p]
-        busy = []
-        recs[one_count] = run_interface(dut, strobes, 45 + 8 * p, seed=4, busy=busy)[0], busy
-    (old, old_busy), (new, new_busy) = recs[False], recs[True]
-    assert sum(r[2] for r in old) == 7 and sum(r[3] for r in old) == 2
-    assert old == new
-    assert old_busy == new_busy
-
-
-def test_adc_one_count_needs_one_clock_per_half_period():
-    assert AdcInterface(clk_hz=50e6, one_count=True).half_period == 1
-    with pytest.raises(ValueError, match=r"^AdcInterface one_count needs one clock per SCLK "
-                                         r"half period, not 2 \(clk_hz 100000000\.0, "
-                                         r"sclk_hz 25000000\.0\)$"):
-        AdcInterface(clk_hz=100e6, one_count=True)
-    with pytest.raises(TypeError, match=r"^AdcInterface one_count must be a bool, not 1$"):
-        AdcInterface(one_count=1)

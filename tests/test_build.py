@@ -27,12 +27,12 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (ADC_MARKER, ADC_ONE_COUNT, CLOCK_RANGE_HZ, DTC_ONE_COUNT,
-                                    ENC_FOLD_RELOAD, GATES_DEAD_N, GATES_PREV_PWM, GATES_WRAP,
-                                    LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS, MT_K_EXPORT,
-                                    MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS,
-                                    TIMER_CLAMP, TIMER_ONE_ADDER, TIMER_SAMPLE_SPLIT, TRIP_REGISTER,
-                                    BoardTop, build, pll_config, prepare, synthesis_verilog, _tool)
+from foc_servo.boards.build import (ADC_MARKER, CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD,
+                                    GATES_DEAD_N, GATES_PREV_PWM, GATES_WRAP, LINK_COMPACT,
+                                    LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS, MT_K_EXPORT, MUL_WIDTH,
+                                    NAME, PROT_LIMITS, RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
+                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
+                                    prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -297,8 +297,6 @@ FAMILY_FORMS = [
      lambda top: (top.adc_marker, top._adc.marker)),
     ("gates_prev_pwm", GATES_PREV_PWM, (True, False, False, False),
      lambda top: (top.gates_prev_pwm, top._gates.prev_pwm)),
-    ("adc_one_count", ADC_ONE_COUNT, (True, False, False, False),
-     lambda top: (top.adc_one_count, top._adc.one_count)),
 ]
 
 

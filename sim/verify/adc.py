@@ -115,10 +115,10 @@ def _pack(codes, bits):
 
 
 def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4",
-        marker=False, one_count=False):
+        marker=False):
     """Simulate :class:`AdcInterface` with the pin-level part model over ``count`` conversions
     (plus dropped strobes) and compare every output with the codes the model converted
-    (``marker``, ``one_count``: the interface's parameters).
+    (``marker``: the interface's parameter).
 
     Returns
     -------
@@ -133,8 +133,7 @@ def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, par
     foc_servo.sim.adc_part.AdcTimingError
         The interface violated a datasheet timing parameter of the part.
     """
-    dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, part=part, marker=marker,
-                       one_count=one_count)
+    dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, part=part, marker=marker)
     bits, lines = dut.part.bits, dut.part.lines
     intervals, codes = stimulus(count, seed=seed, bits=bits, lines=lines,
                                 min_period=dut.min_period)
