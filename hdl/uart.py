@@ -202,6 +202,11 @@ class UartRx(_UartBase):
         Clock frequency, Hz.
     baud : float
         Bit rate, bit/s; at most ``clk_hz / 8``.
+    compact : bool
+        ``True``: no BREAK state: after a framing error the receiver returns to IDLE at
+        once, which starts a byte only at a falling edge of the line, i.e. not before the line
+        has been high, as BREAK waits for (the iCE40's form, with the host link's
+        ``compact``, docs/AREA.md §7.86). The same outputs. Default ``False``.
 
     Members
     -------
@@ -228,7 +233,7 @@ class UartRx(_UartBase):
     Raises
     ------
     TypeError, ValueError
-        See :func:`uart_params`.
+        See :func:`uart_params`; ``compact`` not a bool (``TypeError``).
     """
 
     rx: In(1, init=1)
@@ -237,6 +242,12 @@ class UartRx(_UartBase):
     overrun: Out(1)
 
     latency_bits = 9.5
+
+    def __init__(self, *, clk_hz=50e6, baud=115200, compact=False):
+        self._compact = check_bool("UartRx", "compact", compact)
+        super().__init__(clk_hz=clk_hz, baud=baud)
+
+    compact = property(lambda self: self._compact)
 
     def elaborate(self, platform):
         m = Module()
@@ -296,7 +307,9 @@ class UartRx(_UartBase):
                         m.next = "IDLE"
                     with m.Else():
                         m.d.sync += self.error.eq(1)
-                        m.next = "BREAK"
+                        # (compact: IDLE at once; it starts only at a falling edge, so not
+                        # before the line has been high: the same as BREAK's wait)
+                        m.next = "IDLE" if self._compact else "BREAK"
             with m.State("BREAK"):
                 with m.If(line):
                     m.next = "IDLE"

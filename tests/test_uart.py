@@ -22,6 +22,8 @@ def test_uart_parameter_validation():
         UartTx(clk_hz=50e6, baud=7e6)
     with pytest.raises(TypeError, match=r"^UartTx compact must be a bool, not 1$"):
         UartTx(compact=1)
+    with pytest.raises(TypeError, match=r"^UartRx compact must be a bool, not 1$"):
+        UartRx(compact=1)
 
 
 def test_uart_fractional_increment():
@@ -34,7 +36,7 @@ def _loopback(clk_hz, baud_rx, baud_tx, data, *, compact=False):
     """Send `data` back to back from a UartTx at baud_tx into a UartRx at baud_rx."""
     m = Module()
     m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud_tx, compact=compact)
-    m.submodules.rx = rx = UartRx(clk_hz=clk_hz, baud=baud_rx)
+    m.submodules.rx = rx = UartRx(clk_hz=clk_hz, baud=baud_rx, compact=compact)
     m.d.comb += [rx.rx.eq(tx.tx), rx.o.ready.eq(1)]
     got, errors = [], []
     limit = int((len(data) + 2) * 10 * clk_hz / min(baud_rx, baud_tx))
@@ -188,6 +190,62 @@ def _rx_bench(bits_per_event, *, per_bit=16, ready=True):
 
     simulate(rx, [driver, monitor], clock_hz=clk_hz, name="uart_rx")
     return got, errors, overruns
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_uart_rx_compact_lockstep(seed):
+    """``UartRx(compact=True)`` (no BREAK state) against the other form, every clock: the
+    same ``o.valid``, ``o.payload``, ``error`` and ``overrun`` for a random line of good
+    bytes, bytes with a low stop bit, breaks (long lows), glitches and false starts, at
+    slightly wrong rates, with ``o.ready`` random."""
+    per_bit = 16
+    rng = random.Random(seed)
+    events = [(1, 30)]
+    for _ in range(60):
+        kind = rng.choice(["byte", "byte", "bad_stop", "break", "glitch", "false_start",
+                           "short_high"])
+        if kind in ("byte", "bad_stop"):
+            n = per_bit + rng.choice([-1, 0, 0, 1])
+            events += _byte_events(rng.randrange(256), per_bit=n,
+                                   stop=int(kind == "byte"))
+        elif kind == "break":
+            events.append((0, rng.randrange(per_bit * 10, per_bit * 30)))
+        elif kind == "glitch":
+            events.append((0, rng.randrange(1, 3)))
+        elif kind == "false_start":
+            events.append((0, rng.randrange(3, per_bit // 2)))
+        else:
+            events.append((1, rng.randrange(1, 4)))
+        events.append((1, rng.choice([0, 1, 2, per_bit, 3 * per_bit])))
+    events = [(level, n) for level, n in events if n] + [(1, 40)]
+    m = Module()
+    m.submodules.old = old = UartRx(clk_hz=50e6, baud=50e6 / per_bit)
+    m.submodules.new = new = UartRx(clk_hz=50e6, baud=50e6 / per_bit, compact=True)
+    total = sum(n for _, n in events)
+    mismatches, counts = [], [0, 0]
+
+    async def driver(ctx):
+        for level, n in events:
+            ctx.set(old.rx, level)
+            ctx.set(new.rx, level)
+            await ctx.tick().repeat(n)
+
+    async def monitor(ctx):
+        for t in range(total):
+            ready = rng.random() < 0.7
+            ctx.set(old.o.ready, ready)
+            ctx.set(new.o.ready, ready)
+            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload), ctx.get(d.error),
+                    ctx.get(d.overrun)) for d in (old, new)]
+            if got[0] != got[1]:
+                mismatches.append((t, got))
+            counts[0] += got[0][0] and ready
+            counts[1] += got[0][2]
+            await ctx.tick()
+
+    simulate(m, [driver, monitor], clock_hz=50e6, name="uart_rx_compact")
+    assert counts[0] >= 5 and counts[1] >= 3
+    assert mismatches == []
 
 
 def _byte_events(b, per_bit=16, stop=1):
