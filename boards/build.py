@@ -136,8 +136,9 @@ TIMER_ONE_ADDER = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
 GATES_WRAP = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
 
 #: ``Top(adc_marker=…)`` per FPGA family: the ADC's read frame counted by a marker bit in its
-#: first channel's shift register on the iCE40 (no bit counter: −7 logic cells alone,
-#: docs/AREA.md §7.86); the other families keep their netlists. The same pins and codes.
+#: first channel's shift register on the iCE40 (no bit counter: the top's ADC module 104 → 93
+#: logic cells, docs/AREA.md §7.86); the other families keep their netlists. The same pins and
+#: codes.
 ADC_MARKER = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 
 #: ``Top(gates_prev_pwm=…)`` per FPGA family: the gates' "wanted state unchanged" from the

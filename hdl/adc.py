@@ -134,8 +134,9 @@ class AdcInterface(wiring.Component):
         a marker bit at bit 0), and the frame's last bit is the one sampled while the marker
         is at the top bit (the iCE40's form, ``Top(adc_marker)``: the counter, its increment
         and compare cost logic cells; docs/AREA.md §7.86). The same pins, ``o.valid`` and
-        codes; only the first channel's shift register differs between frames' last bits, and
-        :attr:`hold` is ``2·h`` clocks shorter. Default ``False``.
+        codes; only the first channel's shift register differs, from a read frame's first
+        SCLK falling edge until its ``o.valid``, and :attr:`hold` is ``2·h`` clocks shorter.
+        Default ``False``.
 
     Members
     -------
