@@ -135,6 +135,18 @@ TIMER_ONE_ADDER = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
 #: Spartan-6. The same gate outputs.
 GATES_WRAP = {"ice40": True, "ecp5": False, "xc7": True, "xc6s": False}
 
+#: ``Top(adc_marker=…)`` per FPGA family: the ADC's read frame counted by a marker bit in its
+#: first channel's shift register on the iCE40 (no bit counter: the top's ADC module 104 → 93
+#: logic cells, docs/AREA.md §7.86); the other families keep their netlists. The same pins and
+#: codes.
+ADC_MARKER = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
+#: ``Top(gates_prev_pwm=…)`` per FPGA family: the gates' "wanted state unchanged" from the
+#: previous clock's ``pwm`` levels and ``run`` on the iCE40 (4 flip-flops for 6, each of the
+#: 6 alone in its logic cell: −2 cells alone, docs/AREA.md §7.86); the other families keep
+#: their netlists. The same gate outputs.
+GATES_PREV_PWM = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+
 #: ``Top(dtc_one_count=…)`` per family: the dead-time compensation's sequence on one count on
 #: the iCE40 (−5 cells alone) and the Spartan-7 (the Arty S7 6 597 against 6 616 LUT6); the
 #: ECP5 keeps the netlist of its 100 MHz build (with it, seed 2 missed 100 MHz on a path in
@@ -445,6 +457,8 @@ class BoardTop(Elaboratable):
                         timer_sample_split=TIMER_SAMPLE_SPLIT[self._board.family],
                         timer_one_adder=TIMER_ONE_ADDER[self._board.family],
                         gates_wrap=GATES_WRAP[self._board.family],
+                        adc_marker=ADC_MARKER[self._board.family],
+                        gates_prev_pwm=GATES_PREV_PWM[self._board.family],
                         dtc_one_count=DTC_ONE_COUNT[self._board.family],
                         link_read_hold=LINK_READ_HOLD[self._board.family])
 

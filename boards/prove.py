@@ -150,9 +150,10 @@ class DeadTimeSpec(Elaboratable):
     dead_width : int
         Width of ``dead_time`` (8 in the top).
     dead_n : bool
-        Prove ``Gates(dead_n=True, wrap=True)`` (the iCE40's form), its ``dead_n`` port driven with
-        :func:`~foc_servo.hdl.gates.dead_n` of a ``dead_time`` that takes any value in every
-        clock (what the register file's flip-flops hold, ``Top(gates_dead_n)``).
+        Prove ``Gates(dead_n=True, wrap=True, prev_pwm=True)`` (the iCE40's form), its
+        ``dead_n`` port driven with :func:`~foc_servo.hdl.gates.dead_n` of a ``dead_time`` that
+        takes any value in every clock (what the register file's flip-flops hold,
+        ``Top(gates_dead_n)``).
     broken : bool
         Prove a :func:`mutant` of :class:`Gates` whose turn-on ignores the dead-time count (the
         dead time removed: a switch turns on one clock after the other turned off).
@@ -167,7 +168,7 @@ class DeadTimeSpec(Elaboratable):
         m = Module()
         dw = self.dead_width
         cls = mutant(Gates, ("steady & long_enough", "steady")) if self.broken else Gates
-        gates = cls(dead_width=dw, dead_n=self.dead_n, wrap=self.dead_n)
+        gates = cls(dead_width=dw, dead_n=self.dead_n, wrap=self.dead_n, prev_pwm=self.dead_n)
         m.submodules.gates, internal = elaborate_with_internals(gates, platform)
 
         _drive_inputs(m, gates, skip=("dead_n",))

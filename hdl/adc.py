@@ -37,6 +37,8 @@ from amaranth.hdl import Module, Signal, signed
 from amaranth.lib import data, stream, wiring
 from amaranth.lib.wiring import In, Out
 
+from .fixed import check_bool
+
 __all__ = ["AdcPart", "AD7380_4", "PARTS", "AdcInterface", "CHANNELS"]
 
 #: Payload fields, in SDO-line order (SDOA, SDOB, SDOC, SDOD).
@@ -126,6 +128,15 @@ class AdcInterface(wiring.Component):
         register loaded from a register costs a logic cell per bit); a consumer that needs it
         longer latches it at ``o.valid``, as the current loops do (:class:`~.top.Top` holds
         only ``udc``, for its status register and the scope).
+    marker : bool
+        ``True``: no bit counter; the first channel's shift register (``ia``) is loaded with 1
+        in the clock before the read frame's first SCLK falling edge (its code then zeros with
+        a marker bit at bit 0), and the frame's last bit is the one sampled while the marker
+        is at the top bit (the iCE40's form, ``Top(adc_marker)``: the counter, its increment
+        and compare cost logic cells; docs/AREA.md §7.86). The same pins, ``o.valid`` and
+        codes; only the first channel's shift register differs, from a read frame's first
+        SCLK falling edge until its ``o.valid``, and :attr:`hold` is ``2·h`` clocks shorter.
+        Default ``False``.
 
     Members
     -------
@@ -163,8 +174,11 @@ class AdcInterface(wiring.Component):
     hold : int
         Clocks (the ``o.valid`` clock included) that a channel not ``held`` keeps its code at
         least: ``min_period − 2·h·(bits − 1)``, the next read frame shifting its first bit in
-        ``2·h·(bits − 1)`` clocks before its own ``o.valid``.
+        ``2·h·(bits − 1)`` clocks before its own ``o.valid`` (``marker``: ``min_period −
+        2·h·bits``, the first channel's loaded with the marker ``2·h·bits`` clocks before it).
     held : tuple of str
+        The parameter.
+    marker : bool
         The parameter.
     half_period : int
         ``h``, system clocks per SCLK half period; ``sclk_actual_hz = clk_hz / (2·h)``.
@@ -172,14 +186,15 @@ class AdcInterface(wiring.Component):
     Raises
     ------
     TypeError
-        A parameter of the wrong type.
+        A parameter of the wrong type (``marker`` not a bool).
     ValueError
         A frequency out of range, or an SCLK faster than the part allows.
     """
 
     sample_delay = 1
 
-    def __init__(self, *, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4", held=None):
+    def __init__(self, *, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4", held=None,
+                 marker=False):
         if isinstance(part, str):
             if part not in PARTS:
                 raise ValueError(f"AdcInterface part must be one of {sorted(PARTS)}, "
@@ -207,6 +222,7 @@ class AdcInterface(wiring.Component):
         if not set(held) <= set(names):
             raise ValueError(f"AdcInterface held must name channels of {names!r}, "
                              f"not {held!r}")
+        check_bool("AdcInterface", "marker", marker)
         h = max(1, math.ceil(clk_hz / (2 * sclk_hz) - 1e-9))
         # Half periods must also meet t_SCLKH / t_SCLKL (a slow part, or a very slow clock).
         h = max(h, _clocks(part.t_sclkh_s, clk_hz), _clocks(part.t_sclkl_s, clk_hz))
@@ -215,6 +231,7 @@ class AdcInterface(wiring.Component):
         self._part = part
         self._h = h
         self._held = tuple(n for n in names if n in held)     # in channel order
+        self._marker = marker
         n_csh = max(1, _clocks(part.t_csh_s, clk_hz))
         n_conv = max(_clocks(part.t_convert_s, clk_hz), _clocks(part.t_cyc_s, clk_hz))
         # Convert pulse: CS low for t_CSH clocks too (no separate minimum low time is used).
@@ -252,7 +269,9 @@ class AdcInterface(wiring.Component):
     latency_s = property(lambda self: self._latency / self._clk_hz)
     min_period = property(lambda self: self._min_period)
     held = property(lambda self: self._held)
-    hold = property(lambda self: self._min_period - 2 * self._h * (self._part.bits - 1))
+    marker = property(lambda self: self._marker)
+    hold = property(lambda self: self._min_period
+                    - 2 * self._h * (self._part.bits - (0 if self._marker else 1)))
 
     def elaborate(self, platform):
         m = Module()
@@ -266,8 +285,15 @@ class AdcInterface(wiring.Component):
         longest = max(self._n_csl - 1, self._n_fall2 - self._n_csl - 1, self._n_sclked - 1,
                       h - 1, self._n_recover - 1)
         timer = Signal(range(longest + 1))
-        nbit = Signal(range(bits + 1))     # SDO bits sampled so far in this frame
         shreg = [Signal(bits, name=f"sh_{n}") for n in names]
+        if self._marker:
+            # The first channel's register carries a marker bit, loaded at bit 0 with the
+            # frame's first falling edge (the bits above it 0): it is at the top bit while the
+            # frame's last bit is sampled, and that shift moves it out (no bit counter).
+            last_bit = shreg[0][bits - 1]
+        else:
+            nbit = Signal(range(bits + 1))     # SDO bits sampled so far in this frame
+            last_bit = nbit == bits - 1
         cs_n = Signal(init=1)
         sclk = Signal(init=1)
         valid = Signal()
@@ -301,7 +327,8 @@ class AdcInterface(wiring.Component):
 
             with m.State("LEAD"):
                 with m.If(done):
-                    m.d.sync += [sclk.eq(0), nbit.eq(0), timer.eq(h - 1)]
+                    m.d.sync += [sclk.eq(0), timer.eq(h - 1)]
+                    m.d.sync += shreg[0].eq(1) if self._marker else nbit.eq(0)
                     m.next = "SHIFT"
 
             with m.State("SHIFT"):
@@ -311,10 +338,11 @@ class AdcInterface(wiring.Component):
                         m.d.sync += sclk.eq(1)
                     with m.Else():
                         # One full SCLK period after the launching falling edge: sample SDOx.
-                        m.d.sync += nbit.eq(nbit + 1)
+                        if not self._marker:
+                            m.d.sync += nbit.eq(nbit + 1)
                         for k, sh in enumerate(shreg):
                             m.d.sync += sh.eq((sh << 1) | self.sdo[k])
-                        with m.If(nbit == bits - 1):
+                        with m.If(last_bit):
                             m.d.sync += [cs_n.eq(1), valid.eq(1),
                                          timer.eq(self._n_recover - 1)]
                             for k, (n, sh) in enumerate(zip(names, shreg)):

@@ -54,6 +54,12 @@ class Gates(wiring.Component):
         past ``2**dead_width − 2``, docs/AREA.md §7.79; the iCE40's and the Spartan-7's form,
         ``Top(gates_wrap)``; the ECP5 keeps the saturating counts, §7.80). The same outputs.
         Default ``False``.
+    prev_pwm : bool
+        ``True``: "the wanted state unchanged" from the previous clock's ``pwm`` level (a
+        flip-flop a phase) and ``run`` (one for the three phases) instead of the previous
+        wanted states (two flip-flops a phase, each loaded from a LUT that also feeds the
+        compare: the iCE40's form, ``Top(gates_prev_pwm)``, docs/AREA.md §7.86). The same
+        outputs. Default ``False``.
 
     Members
     -------
@@ -86,19 +92,21 @@ class Gates(wiring.Component):
     Raises
     ------
     TypeError
-        ``dead_width`` of the wrong type or outside its range; ``dead_n`` or ``wrap`` not a
-        bool.
+        ``dead_width`` of the wrong type or outside its range; ``dead_n``, ``wrap`` or
+        ``prev_pwm`` not a bool.
     """
 
     trip_latency = 1
     latency = 1
 
-    def __init__(self, *, dead_width=8, dead_n=False, wrap=False):
+    def __init__(self, *, dead_width=8, dead_n=False, wrap=False, prev_pwm=False):
         if (not isinstance(dead_width, int) or isinstance(dead_width, bool)
                 or not 1 <= dead_width <= 16):
             raise TypeError(f"Gates dead_width must be an integer from 1 to 16, not {dead_width!r}")
         check_bool("Gates", "dead_n", dead_n)
         check_bool("Gates", "wrap", wrap)
+        check_bool("Gates", "prev_pwm", prev_pwm)
+        self._prev_pwm = prev_pwm
         self._dead_width = dead_width
         self._dead_n = dead_n
         self._wrap = wrap
@@ -114,6 +122,7 @@ class Gates(wiring.Component):
     dead_width = property(lambda self: self._dead_width)
     dead_input = property(lambda self: "dead_n" if self._dead_n else "dead_time")
     wrap = property(lambda self: self._wrap)
+    prev_pwm = property(lambda self: self._prev_pwm)
 
     def elaborate(self, platform):
         m = Module()
@@ -128,6 +137,9 @@ class Gates(wiring.Component):
         stopped = Signal()                      # trip or ~enable on the previous clock
         m.d.sync += stopped.eq(~run)
 
+        if self._prev_pwm:
+            was_run = Signal()                  # run on the previous clock (0 at reset)
+            m.d.sync += was_run.eq(run)
         for p in "abc":
             high, low = self.high[p], self.low[p]
             # Clocks before this one with both switches off and the wanted state unchanged:
@@ -140,10 +152,17 @@ class Gates(wiring.Component):
             off = Signal(unsigned(dw), name=f"off_{p}")
             want_h = run & self.pwm[p]
             want_l = run & ~self.pwm[p]
-            prev_h = Signal(name=f"want_h_{p}")
-            prev_l = Signal(name=f"want_l_{p}")
-            m.d.sync += [prev_h.eq(want_h), prev_l.eq(want_l)]
-            steady = (want_h == prev_h) & (want_l == prev_l)
+            if self._prev_pwm:
+                # The wanted state is (0, 0) without `run`, else (pwm, ~pwm): unchanged iff
+                # `run` was low too, or `run` was high and `pwm` is unchanged.
+                prev_pwm = Signal(name=f"pwm_prev_{p}")
+                m.d.sync += prev_pwm.eq(self.pwm[p])
+                steady = Mux(run, was_run & (self.pwm[p] == prev_pwm), ~was_run)
+            else:
+                prev_h = Signal(name=f"want_h_{p}")
+                prev_l = Signal(name=f"want_l_{p}")
+                m.d.sync += [prev_h.eq(want_h), prev_l.eq(want_l)]
+                steady = (want_h == prev_h) & (want_l == prev_l)
             both_off = ~high & ~low
             with m.If(both_off & steady):
                 m.d.sync += off.eq(off + 1 if self._wrap else

@@ -960,6 +960,10 @@ class HostLink(wiring.Component):
         UART bit rate, bit/s; at most ``clk_hz / 8``.
     max_words, address_map, counter_width, strobed, read_hold
         See :class:`LinkCore`.
+    compact : bool
+        See :class:`LinkCore`; also :class:`UartTx`'s and :class:`UartRx`'s ``compact`` (the
+        iCE40's transmitter without its bit count, receiver without its BREAK state,
+        docs/AREA.md §7.86).
 
     Members
     -------
@@ -1013,8 +1017,10 @@ class HostLink(wiring.Component):
 
     def elaborate(self, platform):
         m = Module()
-        m.submodules.uart_rx = urx = UartRx(clk_hz=self._clk_hz, baud=self._baud)
-        m.submodules.uart_tx = utx = UartTx(clk_hz=self._clk_hz, baud=self._baud)
+        m.submodules.uart_rx = urx = UartRx(clk_hz=self._clk_hz, baud=self._baud,
+                                            compact=self.compact)
+        m.submodules.uart_tx = utx = UartTx(clk_hz=self._clk_hz, baud=self._baud,
+                                            compact=self.compact)
         m.submodules.core = core = self._core
         m.d.comb += [
             urx.rx.eq(self.rx),

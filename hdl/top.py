@@ -517,6 +517,16 @@ class Top(wiring.Component):
         :class:`~.gates.Gates` ``wrap``: the off counts without saturation (the same gate
         outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
         netlist of before, docs/AREA.md §7.80).
+    gates_prev_pwm : bool
+        :class:`~.gates.Gates` ``prev_pwm``: the gates' "wanted state unchanged" from the
+        previous ``pwm`` levels and ``run`` (the same gate outputs; the iCE40's choice and the
+        default; ``False`` the ECP5's and the Spartans' netlist of before, docs/AREA.md §7.86).
+    adc_marker : bool
+        :class:`~.adc.AdcInterface` ``marker``: the read frame's bits counted by a marker bit
+        in the first channel's shift register instead of a counter (the same pins and codes:
+        that register is read only between a frame's last bit and the next sample strobe;
+        the iCE40's choice and the default; ``False`` the ECP5's and the Spartans' netlist
+        of before, docs/AREA.md §7.86).
     timer_one_adder : bool
         :class:`~.svpwm.PWMTimer` ``one_adder``: the triangle counter on one adder (the same
         outputs; the iCE40's and the Spartan-7's choice and the default; ``False`` the ECP5's
@@ -635,6 +645,8 @@ class Top(wiring.Component):
         The parameters.
     gates_dead_n, gates_wrap, timer_sample_split, timer_one_adder, dtc_one_count : bool
         The parameters.
+    adc_marker, gates_prev_pwm : bool
+        The parameters.
     link_compact, enc_fold_reload, enc_plausibility_complement : bool
         The parameters.
     mt_chunk_multipliers, mt_k_export : bool
@@ -666,7 +678,7 @@ class Top(wiring.Component):
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
                  timer_one_adder=True, gates_wrap=True,
-                 dtc_one_count=True):
+                 dtc_one_count=True, adc_marker=True, gates_prev_pwm=True):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -818,7 +830,7 @@ class Top(wiring.Component):
         # sample, so the payload is the shift registers (no FF; held=("udc",) until session
         # 11, all three before that); st_udc and the scope take the loop's latched U_dc (its
         # `udc` output, module docstring "Status").
-        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=())
+        self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=(), marker=adc_marker)
         self._mul_width = mul_width
         self._current_loop = current_loop
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
@@ -896,7 +908,7 @@ class Top(wiring.Component):
                                    trip_register=trip_register, limits=prot_limits,
                                    **({"limit_init": tuple(self._regs.mirror_init)}
                                       if prot_limits != "ports" else {}))
-        self._gates = Gates(dead_n=gates_dead_n, wrap=gates_wrap)
+        self._gates = Gates(dead_n=gates_dead_n, wrap=gates_wrap, prev_pwm=gates_prev_pwm)
         if cfg_ram and self._scope.channels > self._loop.status_quiet:   # pragma: no cover
             raise ValueError(f"Top: the scope's {self._scope.channels} channels are sampled "
                              f"after the engine's done, which leaves only "
@@ -942,6 +954,8 @@ class Top(wiring.Component):
     timer_sample_split = property(lambda self: self._timer.sample_split)
     timer_one_adder = property(lambda self: self._timer.one_adder)
     gates_wrap = property(lambda self: self._gates.wrap)
+    adc_marker = property(lambda self: self._adc.marker)
+    gates_prev_pwm = property(lambda self: self._gates.prev_pwm)
     dtc_one_count = property(lambda self: self._dtc.one_count)
     link_read_hold = property(lambda self: self._link.read_hold)
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
@@ -1130,7 +1144,8 @@ class Top(wiring.Component):
             # engine's speed run the speed loop's words after them too: all of them).
             n_cfg = len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
                                           if self._speed_loop == "engine" else 0)
-            m.d.comb += [cl.config.valid.eq(exp.valid & (exp.index < n_cfg)),
+            # (`index < n_cfg` against the constant as logic, fixed.at_least: no carry chain)
+            m.d.comb += [cl.config.valid.eq(exp.valid & ~at_least(exp.index, n_cfg)),
                          cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
             m.d.comb += [

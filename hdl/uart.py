@@ -12,6 +12,8 @@ from amaranth.lib import stream, wiring
 from amaranth.lib.cdc import FFSynchronizer
 from amaranth.lib.wiring import In, Out
 
+from .fixed import check_bool
+
 __all__ = ["PHASE_BITS", "uart_params", "UartRx", "UartTx"]
 
 #: Width of the baud phase accumulators.
@@ -60,6 +62,14 @@ class UartTx(_UartBase):
         Clock frequency, Hz.
     baud : float
         Bit rate, bit/s; at most ``clk_hz / 8``.
+    compact : bool
+        ``True``: no bit count and no ``busy`` flip-flop; the shift register holds the data
+        bits, the stop bit and a marker bit (all ones above the data), shifted out with zeros
+        behind them, so the byte is busy while the register is not zero and in its last bit
+        time while only the marker is left (the iCE40's form, with the host link's
+        ``compact``: fewer logic cells, docs/AREA.md §7.86; the ECP5 keeps the registered
+        last-bit flag on its 100 MHz path). The same ``tx``, ``busy`` and ``i.ready``. Default
+        ``False``.
 
     Members
     -------
@@ -81,7 +91,7 @@ class UartTx(_UartBase):
     Raises
     ------
     TypeError, ValueError
-        See :func:`uart_params`.
+        See :func:`uart_params`; ``compact`` not a bool (``TypeError``).
     """
 
     i: In(stream.Signature(8))
@@ -90,7 +100,15 @@ class UartTx(_UartBase):
 
     latency = 1
 
+    def __init__(self, *, clk_hz=50e6, baud=115200, compact=False):
+        self._compact = check_bool("UartTx", "compact", compact)
+        super().__init__(clk_hz=clk_hz, baud=baud)
+
+    compact = property(lambda self: self._compact)
+
     def elaborate(self, platform):
+        if self._compact:
+            return self._elaborate_compact()
         m = Module()
         # The phase is loaded when a byte starts from idle and advances only while busy (its
         # carry is used only then), and it has no reset: its flip-flops' synchronous
@@ -131,6 +149,34 @@ class UartTx(_UartBase):
             ]
         return m
 
+    def _elaborate_compact(self):
+        m = Module()
+        phase = Signal(PHASE_BITS + 1, reset_less=True)     # as in the other form
+        # Data bits, the stop bit and a marker bit, shifted out LSB first with zeros in behind:
+        # after k of the byte's bit times it holds its bits k … 9, so it is zero from the end
+        # of the stop bit (k = 10) and exactly the marker in the stop bit (k = 9).
+        shreg = Signal(10)
+        above = Signal()                        # a bit above bit 0 is set
+        m.d.comb += [above.eq(shreg[1:].any()), self.busy.eq(shreg[0] | above)]
+        last_bit = shreg[0] & ~above            # only the marker left: the stop bit's time
+
+        carry = phase[-1]
+        with m.If(self.i.valid & ~self.busy):
+            m.d.sync += phase.eq(self._increment)               # a full bit from now
+        with m.Elif(self.busy):
+            m.d.sync += phase.eq(phase[:-1] + self._increment)
+        last = carry & last_bit
+        m.d.comb += self.i.ready.eq(~self.busy | last)
+
+        with m.If(self.busy & carry):
+            m.d.sync += [self.tx.eq(shreg[0]), shreg.eq(shreg >> 1)]     # (the marker: 1)
+        with m.If(self.i.valid & self.i.ready):
+            m.d.sync += [
+                self.tx.eq(0),                                  # start bit
+                shreg.eq(Cat(self.i.payload, Const(0b11, 2))),
+            ]
+        return m
+
 
 class UartRx(_UartBase):
     """UART receiver (8N1, LSB first) with a 2-flop synchroniser and 3-sample majority.
@@ -156,6 +202,11 @@ class UartRx(_UartBase):
         Clock frequency, Hz.
     baud : float
         Bit rate, bit/s; at most ``clk_hz / 8``.
+    compact : bool
+        ``True``: no BREAK state: after a framing error the receiver returns to IDLE at
+        once, which starts a byte only at a falling edge of the line, i.e. not before the line
+        has been high, as BREAK waits for (the iCE40's form, with the host link's
+        ``compact``, docs/AREA.md §7.86). The same outputs. Default ``False``.
 
     Members
     -------
@@ -182,7 +233,7 @@ class UartRx(_UartBase):
     Raises
     ------
     TypeError, ValueError
-        See :func:`uart_params`.
+        See :func:`uart_params`; ``compact`` not a bool (``TypeError``).
     """
 
     rx: In(1, init=1)
@@ -191,6 +242,12 @@ class UartRx(_UartBase):
     overrun: Out(1)
 
     latency_bits = 9.5
+
+    def __init__(self, *, clk_hz=50e6, baud=115200, compact=False):
+        self._compact = check_bool("UartRx", "compact", compact)
+        super().__init__(clk_hz=clk_hz, baud=baud)
+
+    compact = property(lambda self: self._compact)
 
     def elaborate(self, platform):
         m = Module()
@@ -250,7 +307,9 @@ class UartRx(_UartBase):
                         m.next = "IDLE"
                     with m.Else():
                         m.d.sync += self.error.eq(1)
-                        m.next = "BREAK"
+                        # (compact: IDLE at once; it starts only at a falling edge, so not
+                        # before the line has been high: the same as BREAK's wait)
+                        m.next = "IDLE" if self._compact else "BREAK"
             with m.State("BREAK"):
                 with m.If(line):
                     m.next = "IDLE"

@@ -55,6 +55,7 @@ def run_interface(dut, strobes, clocks, *, sim_hz=None, codes=None, seed=0):
      r"^AdcInterface part must be one of \['AD7380-4'\], not 'AD7606'$"),
     ({"part": 7380}, TypeError, r"^AdcInterface part must be a part name or an AdcPart, "
                                 r"not 7380$"),
+    ({"marker": 1}, TypeError, r"^AdcInterface marker must be a bool, not 1$"),
 ])
 def test_adc_parameter_validation(kwargs, exc, message):
     with pytest.raises(exc, match=message):
@@ -70,9 +71,10 @@ def test_adc_timing_attributes(clk_hz, latency, h):
     assert dut.min_period > dut.latency
 
 
+@pytest.mark.parametrize("marker", [False, True])
 @pytest.mark.parametrize("clk_hz", [50e6, 33.333e6])
-def test_adc_codes_round_trip_and_latency_cycle_by_cycle(clk_hz):
-    dut = AdcInterface(clk_hz=clk_hz)
+def test_adc_codes_round_trip_and_latency_cycle_by_cycle(clk_hz, marker):
+    dut = AdcInterface(clk_hz=clk_hz, marker=marker)
     period = dut.min_period
     strobes = [2, 2 + period, 2 + 2 * period + 7]
     rec, model, codes = run_interface(dut, strobes, strobes[-1] + period + 2)
@@ -92,11 +94,13 @@ def test_adc_codes_round_trip_and_latency_cycle_by_cycle(clk_hz):
     assert all(r[1] for r in rec if r[0])
 
 
-@pytest.mark.parametrize("held", [None, ("udc",), ()])
-def test_adc_held_channels_and_hold_window(held):
+@pytest.mark.parametrize("marker", [False, True])
+@pytest.mark.parametrize("held", [None, ("udc",), (), ("ia", "aux")])
+def test_adc_held_channels_and_hold_window(held, marker):
     # Back-to-back strobes (min_period apart): a held channel keeps its code until the next
-    # valid; another (its shift register) for exactly `hold` clocks from its valid.
-    dut = AdcInterface(clk_hz=33.333e6, held=held)
+    # valid; another (its shift register) for exactly `hold` clocks from its valid (with the
+    # marker the first channel's; the others' 2·h clocks longer, as without it).
+    dut = AdcInterface(clk_hz=33.333e6, held=held, marker=marker)
     assert dut.held == (CHANNELS if held is None else held)
     p = dut.min_period
     strobes = [1, 1 + p, 1 + 2 * p]
@@ -112,10 +116,11 @@ def test_adc_held_channels_and_hold_window(held):
             if name in dut.held:
                 assert set(seq) == {seq[0]}, name
             else:
-                assert seq[:dut.hold] == [seq[0]] * dut.hold, name
-                # Then the next frame's bits come in.
-                assert seq[dut.hold] != seq[0], name
-    assert dut.hold == p - 2 * dut.half_period * (AD7380_4.bits - 1)
+                hold = dut.hold + (2 * dut.half_period if marker and c else 0)
+                assert seq[:hold] == [seq[0]] * hold, name
+                # Then the next frame's bits (or the marker) come in.
+                assert seq[hold] != seq[0], name
+    assert dut.hold == p - 2 * dut.half_period * (AD7380_4.bits - (0 if marker else 1))
 
 
 def test_adc_held_validation():
@@ -225,9 +230,43 @@ def test_adc_random_vs_model_50mhz():
     assert result["vectors"] == 300 and result["overruns"] > 5
 
 
-def test_adc_random_vs_model_33mhz():
-    result = verify_adc.run(150, seed=6, clk_hz=33.333e6)
+@pytest.mark.parametrize("marker", [False, True])
+def test_adc_random_vs_model_33mhz(marker):
+    result = verify_adc.run(150, seed=6, clk_hz=33.333e6, marker=marker)
     assert result["mismatches"] == 0, result
+
+
+@pytest.mark.parametrize("held", [(), None])
+@pytest.mark.parametrize("clk_hz, sclk_hz", [(33.333e6, 25e6), (100e6, 25e6), (50e6, 5e6)])
+def test_adc_marker_lockstep_with_the_counter(clk_hz, sclk_hz, held):
+    """``marker=True`` against the counter form, every clock, on the same strobes (served,
+    dropped, back to back) and codes: the same pins, ``valid``, ``overrun``, ``busy`` and
+    payload but, not held, the first channel's between its load with the marker (2·h·bits
+    clocks before a frame's ``o.valid``) and that ``o.valid``, where the marker form's register
+    holds the bits sampled so far below a marker bit (zeros above it)."""
+    h = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz).half_period
+    recs = {}
+    for marker in (False, True):
+        dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, marker=marker, held=held)
+        p = dut.min_period
+        strobes = [1, 1 + p, 1 + 2 * p - 1, 1 + 2 * p + 3, 2 + 3 * p + 11, 2 + 4 * p + 11]
+        recs[marker] = run_interface(dut, strobes, 4 + 5 * p + 11, seed=3)[0]
+    old, new = recs[False], recs[True]
+    valid_at = [t for t, r in enumerate(old) if r[2]]
+    assert len(valid_at) == 5
+    window = {t for v in valid_at for t in range(v - 2 * h * AD7380_4.bits, v)}
+    for t, (a, b) in enumerate(zip(old, new)):
+        assert a[:4] == b[:4], t
+        assert a[4][1:] == b[4][1:], t
+        if t not in window or held is None:
+            assert a[4][0] == b[4][0], t
+        else:
+            # The marker at bit k with the k bits sampled so far below it.
+            k = (t - (valid_at[0] if t < valid_at[0] else
+                      min(v for v in valid_at if v > t)) + 2 * h * AD7380_4.bits) // (2 * h)
+            got = b[4][0] & 0xFFFF
+            assert got >> k == 1, t
+            assert got & ((1 << k) - 1) == (a[4][0] & 0xFFFF) & ((1 << k) - 1), t
 
 
 def test_adc_converts_to_verilog():

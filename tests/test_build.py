@@ -27,13 +27,13 @@ from amaranth.back import rtlil, verilog
 from amaranth.hdl import Assert, Module, Print, Shape, Signal, UnusedElaboratable
 from amaranth.lib import wiring
 
-from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD,
-                                    ENC_PLAUSIBILITY_COMPLEMENT, GATES_DEAD_N,
+from foc_servo.boards.build import (ADC_MARKER, CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD,
+                                    ENC_PLAUSIBILITY_COMPLEMENT, GATES_DEAD_N, GATES_PREV_PWM,
                                     GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
                                     MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
                                     SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
-                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
-                                    prepare, synthesis_verilog, _tool)
+                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, pll_config, prepare,
+                                    synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
@@ -297,6 +297,10 @@ FAMILY_FORMS = [
      lambda top: (top.timer_one_adder, top._timer.one_adder)),
     ("dtc_one_count", DTC_ONE_COUNT, (True, False, True, False),
      lambda top: (top.dtc_one_count, top._dtc.one_count)),
+    ("adc_marker", ADC_MARKER, (True, False, False, False),
+     lambda top: (top.adc_marker, top._adc.marker)),
+    ("gates_prev_pwm", GATES_PREV_PWM, (True, False, False, False),
+     lambda top: (top.gates_prev_pwm, top._gates.prev_pwm)),
 ]
 
 

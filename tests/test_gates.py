@@ -14,11 +14,11 @@ from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.gates import check_gates, gates as gates_model
 
 
-def run_gates(stim, *, dead_width=8, dead_n=False, wrap=False):
+def run_gates(stim, *, dead_width=8, dead_n=False, wrap=False, prev_pwm=False):
     """Drive Gates clock by clock from ``stim`` (dict of arrays: ``pwm`` (T, 3), ``dead``,
     ``enable``, ``trip`` (T,)); return the outputs during each clock, ``high``, ``low`` (T, 3).
     ``dead_n``: ``Gates(dead_n=True)``, its port driven with :func:`dead_n_const` of ``dead``."""
-    dut = Gates(dead_width=dead_width, dead_n=dead_n, wrap=wrap)
+    dut = Gates(dead_width=dead_width, dead_n=dead_n, wrap=wrap, prev_pwm=prev_pwm)
     t_len = len(stim["dead"])
     high = np.zeros((t_len, 3), dtype=np.int64)
     low = np.zeros((t_len, 3), dtype=np.int64)
@@ -71,6 +71,8 @@ def test_gates_dead_n_parameter_validation():
             Gates(dead_n=1)
         with pytest.raises(TypeError, match=r"^Gates wrap must be a bool, not 1$"):
             Gates(wrap=1)
+        with pytest.raises(TypeError, match=r"^Gates prev_pwm must be a bool, not 1$"):
+            Gates(prev_pwm=1)
         gc.collect()
 
 
@@ -100,7 +102,7 @@ def test_gates_dead_n_const_is_the_gateware_operand(dead_width):
 @pytest.mark.parametrize("dead_n", [False, True])
 def test_gates_all_off_at_reset_then_dead_time_before_first_turn_on(dead_n):
     stim = constant(12, pwm=(1, 0, 1), dead=5)
-    high, low = run_gates(stim, dead_n=dead_n)
+    high, low = run_gates(stim, dead_n=dead_n, prev_pwm=dead_n)
     # Clock 0: reset state, and the wanted state appears (a change: the count starts at 1).
     # Both off for clocks 0 … 5, the wanted side on from clock 1 + 5.
     assert not high[:6].any() and not low[:6].any()
@@ -113,7 +115,7 @@ def test_gates_edge_timing_cycle_by_cycle(dead_n):
     dead = 4
     stim = constant(40, pwm=(0, 0, 0), dead=dead)
     stim["pwm"][15:30, 0] = 1                       # phase a: a pulse of 15 clocks
-    high, low = run_gates(stim, dead_n=dead_n)
+    high, low = run_gates(stim, dead_n=dead_n, prev_pwm=dead_n)
     # Low side on after reset; the rising pwm edge at 15 turns it off at 16, the high side on
     # dead clocks later (20); the falling edge at 30 turns the high side off at 31, low on at 35.
     np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(16 + dead, 31))
@@ -131,7 +133,7 @@ def test_gates_pulse_shorter_than_dead_time_is_dropped(dead, dead_n):
     stim["pwm"][t0:t0 + dead - 1, 0] = 1            # high pulse one clock short of the dead time
     stim["pwm"][t0:t0 + dead, 1] = 1                # exactly the dead time
     stim["pwm"][t0:t0 + dead + 1, 2] = 1            # one clock longer
-    high, low = run_gates(stim, dead_n=dead_n)
+    high, low = run_gates(stim, dead_n=dead_n, prev_pwm=dead_n)
     assert low[t0].all()
     assert not high[:, 0].any() and not high[:, 1].any()        # dropped: no runt
     # A pulse of L clocks gives L − dead clocks on the high side.
@@ -148,7 +150,7 @@ def test_gates_trip_and_enable_force_all_off_within_one_clock(dead_n):
     stim["trip"][20:23] = 1
     stim["enable"][40:45] = 0
     stim["pwm"][41:52, 1] = 1                       # pwm changes while disabled
-    high, low = run_gates(stim, dead_n=dead_n)
+    high, low = run_gates(stim, dead_n=dead_n, prev_pwm=dead_n)
     assert Gates.trip_latency == 1
     assert (high[19] | low[19]).all()
     assert not high[21:24].any() and not low[21:24].any()      # off the clock after trip
@@ -164,7 +166,7 @@ def test_gates_trip_and_enable_force_all_off_within_one_clock(dead_n):
 def test_gates_zero_dead_time_acts_as_one_clock(dead_n):
     stim = constant(20, dead=0)
     stim["pwm"][8:14, 0] = 1
-    high, low = run_gates(stim, dead_n=dead_n)
+    high, low = run_gates(stim, dead_n=dead_n, prev_pwm=dead_n)
     np.testing.assert_array_equal(np.flatnonzero(high[:, 0]), np.arange(10, 15))
     assert not low[9, 0] and not low[15, 0] and low[16, 0]
 
@@ -191,9 +193,10 @@ def _random_stim(rng, t_len, *, longest, random_start, dead, enables, trips):
     return {"pwm": pwm, "dead": dead, "enable": 1 - stretches[0], "trip": stretches[1]}
 
 
-def _against_model(stim, *, dead_width=8, dead_n=False, wrap=False):
+def _against_model(stim, *, dead_width=8, dead_n=False, wrap=False, prev_pwm=False):
     """Run ``stim``; the outputs equal the model's in every clock and keep the rules."""
-    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n, wrap=wrap)
+    high, low = run_gates(stim, dead_width=dead_width, dead_n=dead_n, wrap=wrap,
+                          prev_pwm=prev_pwm)
     exp_h, exp_l = gates_model(stim["pwm"], stim["dead"], stim["enable"], stim["trip"],
                                dead_width=dead_width)
     np.testing.assert_array_equal(high, exp_h)
@@ -203,13 +206,15 @@ def _against_model(stim, *, dead_width=8, dead_n=False, wrap=False):
     return high, low
 
 
-@pytest.mark.parametrize("dead_n, wrap", [(False, False), (False, True), (True, True)])
-def test_gates_random_sequences_against_model_and_rules(dead_n, wrap):
+@pytest.mark.parametrize("dead_n, wrap, prev_pwm", [(False, False, False), (False, True, False),
+                                                    (True, True, False), (True, True, True),
+                                                    (False, False, True)])
+def test_gates_random_sequences_against_model_and_rules(dead_n, wrap, prev_pwm):
     t_len = 4000
     stim = _random_stim(np.random.default_rng(7), t_len, longest=26, random_start=False,
                         dead=lambda rng: np.repeat(rng.integers(0, 16, t_len // 200), 200),
                         enables=(8, 40, 1, 40), trips=(12, 10, 1, 6))
-    high, low = _against_model(stim, dead_n=dead_n, wrap=wrap)
+    high, low = _against_model(stim, dead_n=dead_n, wrap=wrap, prev_pwm=prev_pwm)
     assert high.sum() > 1000 and low.sum() > 1000       # the stimulus did switch
 
 
@@ -228,8 +233,9 @@ def test_gates_checker_catches_rule_breaks():
     assert r == {"overlap": 1, "short_dead": 1, "runts": 3}
 
 
-@pytest.mark.parametrize("dead_n, wrap", [(False, False), (False, True), (True, True)])
-def test_gates_count_wraps_only_where_it_is_not_read(dead_n, wrap):
+@pytest.mark.parametrize("dead_n, wrap, prev_pwm", [(False, False, False), (False, True, False),
+                                                    (True, True, False), (True, True, True)])
+def test_gates_count_wraps_only_where_it_is_not_read(dead_n, wrap, prev_pwm):
     """The off count without saturation (``wrap``, hdl/gates.py): with a 3-bit dead time it
     wraps many times in long disabled or tripped stretches and in stretches at the largest
     dead time (7: the count reaches 6 and the switch turns on), and the dead time changes at
@@ -242,5 +248,6 @@ def test_gates_count_wraps_only_where_it_is_not_read(dead_n, wrap):
 
     stim = _random_stim(np.random.default_rng(11), 3000, longest=40, random_start=True,
                         dead=dead, enables=(10, 100, 9, 100), trips=(6, 30, 9, 30))
-    high, low = _against_model(stim, dead_width=3, dead_n=dead_n, wrap=wrap)
+    high, low = _against_model(stim, dead_width=3, dead_n=dead_n, wrap=wrap,
+                               prev_pwm=prev_pwm)
     assert high.sum() > 500 and low.sum() > 500

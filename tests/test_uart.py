@@ -20,6 +20,10 @@ def test_uart_parameter_validation():
     with pytest.raises(ValueError, match=r"^UartTx baud must be at most clk_hz / 8 = 6.25e\+06, "
                                          r"not 7000000.0$"):
         UartTx(clk_hz=50e6, baud=7e6)
+    with pytest.raises(TypeError, match=r"^UartTx compact must be a bool, not 1$"):
+        UartTx(compact=1)
+    with pytest.raises(TypeError, match=r"^UartRx compact must be a bool, not 1$"):
+        UartRx(compact=1)
 
 
 def test_uart_fractional_increment():
@@ -28,11 +32,11 @@ def test_uart_fractional_increment():
     assert abs(tx.increment * 50e6 / 2**PHASE_BITS / 3e6 - 1) < 1e-6
 
 
-def _loopback(clk_hz, baud_rx, baud_tx, data):
+def _loopback(clk_hz, baud_rx, baud_tx, data, *, compact=False):
     """Send `data` back to back from a UartTx at baud_tx into a UartRx at baud_rx."""
     m = Module()
-    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud_tx)
-    m.submodules.rx = rx = UartRx(clk_hz=clk_hz, baud=baud_rx)
+    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud_tx, compact=compact)
+    m.submodules.rx = rx = UartRx(clk_hz=clk_hz, baud=baud_rx, compact=compact)
     m.d.comb += [rx.rx.eq(tx.tx), rx.o.ready.eq(1)]
     got, errors = [], []
     limit = int((len(data) + 2) * 10 * clk_hz / min(baud_rx, baud_tx))
@@ -59,12 +63,13 @@ def _loopback(clk_hz, baud_rx, baud_tx, data):
     return got, errors
 
 
+@pytest.mark.parametrize("compact", [False, True])
 @pytest.mark.parametrize("clk_hz, baud, nbytes, error", [
     (50e6, 115200, 2, -0.03), (50e6, 115200, 2, 0.03),
     *[(clk, baud, 24, e) for clk, baud in ((50e6, 3e6), (33.333e6, 3e6), (50e6, 50e6 / 8))
       for e in (-0.03, 0.0, 0.03)],
 ])
-def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error):
+def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error, compact):
     """The sender's rate is off by `error` relative to the receiver's."""
     rng = random.Random(int(baud) ^ int(error * 100))
     data = [0x00, 0xFF, 0x55, 0xAA, 0x80, 0x01][:nbytes]
@@ -72,15 +77,16 @@ def test_uart_loopback_with_baud_error(clk_hz, baud, nbytes, error):
     baud_tx, baud_rx = baud * (1 + error), baud
     if baud_tx * 8 > clk_hz:                    # the sender may not exceed clk/8: slow the receiver
         baud_tx, baud_rx = baud, baud / (1 + error)
-    got, errors = _loopback(clk_hz, baud_rx, baud_tx, data)
+    got, errors = _loopback(clk_hz, baud_rx, baud_tx, data, compact=compact)
     assert got == data
     assert errors == []
 
 
-def test_uart_tx_bit_timing_and_latency():
+@pytest.mark.parametrize("compact", [False, True])
+def test_uart_tx_bit_timing_and_latency(compact):
     clk_hz, baud = 50e6, 3e6
     m = Module()
-    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud)
+    m.submodules.tx = tx = UartTx(clk_hz=clk_hz, baud=baud, compact=compact)
     trace = []
     accepted = []
 
@@ -106,6 +112,55 @@ def test_uart_tx_bit_timing_and_latency():
         assert abs((e - edges[0]) - k * per_bit) < 1.0
     # the line stays high after the stop bit
     assert all(trace[int(edges[0] + 10 * per_bit) + 2:])
+
+
+@pytest.mark.parametrize("clk_hz, baud", [(33e6, 115200), (50e6, 3e6), (33.333e6, 33.333e6 / 8)])
+def test_uart_tx_compact_lockstep(clk_hz, baud):
+    """``UartTx(compact=True)`` against the counter form, every clock: the same ``tx``,
+    ``busy`` and ``i.ready`` for random bytes offered with random gaps (none, a clock, a few
+    clocks, longer than a byte), i.e. back-to-back bytes, bytes from idle and offers that
+    wait."""
+    m = Module()
+    m.submodules.old = old = UartTx(clk_hz=clk_hz, baud=baud)
+    m.submodules.new = new = UartTx(clk_hz=clk_hz, baud=baud, compact=True)
+    per_byte = int(10 * clk_hz / baud) + 2
+    rng = random.Random(int(baud))
+    plan = [(rng.randrange(256), rng.choice([0, 0, 1, 3, rng.randrange(per_byte + 40)]))
+            for _ in range(24)]
+    mismatches, sent = [], []
+
+    async def bench(ctx):
+        t = 0
+        for byte, gap in plan:
+            for _ in range(gap):
+                ctx.set(old.i.valid, 0)
+                ctx.set(new.i.valid, 0)
+                await ctx.tick()
+                t += 1
+            for dut in (old, new):
+                ctx.set(dut.i.payload, byte)
+                ctx.set(dut.i.valid, 1)
+            while True:
+                got = [(ctx.get(d.tx), ctx.get(d.busy), ctx.get(d.i.ready)) for d in (old, new)]
+                if got[0] != got[1]:
+                    mismatches.append((t, got))
+                await ctx.tick()
+                t += 1
+                if got[0][2]:
+                    sent.append(byte)
+                    break
+        ctx.set(old.i.valid, 0)
+        ctx.set(new.i.valid, 0)
+        for _ in range(per_byte + 4):
+            got = [(ctx.get(d.tx), ctx.get(d.busy), ctx.get(d.i.ready)) for d in (old, new)]
+            if got[0] != got[1]:
+                mismatches.append((t, got))
+            await ctx.tick()
+            t += 1
+
+    simulate(m, [bench], clock_hz=clk_hz, name="uart_tx_compact")
+    assert sent == [b for b, _ in plan]
+    assert mismatches == []
 
 
 def _rx_bench(bits_per_event, *, per_bit=16, ready=True):
@@ -135,6 +190,62 @@ def _rx_bench(bits_per_event, *, per_bit=16, ready=True):
 
     simulate(rx, [driver, monitor], clock_hz=clk_hz, name="uart_rx")
     return got, errors, overruns
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_uart_rx_compact_lockstep(seed):
+    """``UartRx(compact=True)`` (no BREAK state) against the other form, every clock: the
+    same ``o.valid``, ``o.payload``, ``error`` and ``overrun`` for a random line of good
+    bytes, bytes with a low stop bit, breaks (long lows), glitches and false starts, at
+    slightly wrong rates, with ``o.ready`` random."""
+    per_bit = 16
+    rng = random.Random(seed)
+    events = [(1, 30)]
+    for _ in range(60):
+        kind = rng.choice(["byte", "byte", "bad_stop", "break", "glitch", "false_start",
+                           "short_high"])
+        if kind in ("byte", "bad_stop"):
+            n = per_bit + rng.choice([-1, 0, 0, 1])
+            events += _byte_events(rng.randrange(256), per_bit=n,
+                                   stop=int(kind == "byte"))
+        elif kind == "break":
+            events.append((0, rng.randrange(per_bit * 10, per_bit * 30)))
+        elif kind == "glitch":
+            events.append((0, rng.randrange(1, 3)))
+        elif kind == "false_start":
+            events.append((0, rng.randrange(3, per_bit // 2)))
+        else:
+            events.append((1, rng.randrange(1, 4)))
+        events.append((1, rng.choice([0, 1, 2, per_bit, 3 * per_bit])))
+    events = [(level, n) for level, n in events if n] + [(1, 40)]
+    m = Module()
+    m.submodules.old = old = UartRx(clk_hz=50e6, baud=50e6 / per_bit)
+    m.submodules.new = new = UartRx(clk_hz=50e6, baud=50e6 / per_bit, compact=True)
+    total = sum(n for _, n in events)
+    mismatches, counts = [], [0, 0]
+
+    async def driver(ctx):
+        for level, n in events:
+            ctx.set(old.rx, level)
+            ctx.set(new.rx, level)
+            await ctx.tick().repeat(n)
+
+    async def monitor(ctx):
+        for t in range(total):
+            ready = rng.random() < 0.7
+            ctx.set(old.o.ready, ready)
+            ctx.set(new.o.ready, ready)
+            got = [(ctx.get(d.o.valid), ctx.get(d.o.payload), ctx.get(d.error),
+                    ctx.get(d.overrun)) for d in (old, new)]
+            if got[0] != got[1]:
+                mismatches.append((t, got))
+            counts[0] += got[0][0] and ready
+            counts[1] += got[0][2]
+            await ctx.tick()
+
+    simulate(m, [driver, monitor], clock_hz=50e6, name="uart_rx_compact")
+    assert counts[0] >= 5 and counts[1] >= 3
+    assert mismatches == []
 
 
 def _byte_events(b, per_bit=16, stop=1):

@@ -114,9 +114,11 @@ def _pack(codes, bits):
     return words
 
 
-def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4"):
+def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, part="AD7380-4",
+        marker=False):
     """Simulate :class:`AdcInterface` with the pin-level part model over ``count`` conversions
-    (plus dropped strobes) and compare every output with the codes the model converted.
+    (plus dropped strobes) and compare every output with the codes the model converted
+    (``marker``: the interface's parameter).
 
     Returns
     -------
@@ -131,7 +133,7 @@ def run(count=100_000, *, seed=0, progress=False, clk_hz=50e6, sclk_hz=25e6, par
     foc_servo.sim.adc_part.AdcTimingError
         The interface violated a datasheet timing parameter of the part.
     """
-    dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, part=part)
+    dut = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, part=part, marker=marker)
     bits, lines = dut.part.bits, dut.part.lines
     intervals, codes = stimulus(count, seed=seed, bits=bits, lines=lines,
                                 min_period=dut.min_period)
