@@ -32,8 +32,8 @@ from foc_servo.boards.build import (ADC_MARKER, CLOCK_RANGE_HZ, DTC_ONE_COUNT, E
                                     GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
                                     MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
                                     SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
-                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, pll_config, prepare,
-                                    synthesis_verilog, _tool)
+                                    TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
+                                    prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
 from foc_servo.hdl.top import Top
 
