@@ -27,7 +27,7 @@ from amaranth.lib.wiring import In, Out
 
 from .bus import WordWriteSignature
 from .dsp import saturate_bits
-from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
+from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Fetch, Op
 from .fixed import Q, UQ, check_bool, check_choice, round_shift_plain
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
@@ -274,10 +274,11 @@ def _lead_lim(A, gain_limit_raw):
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
-                         schedule=True, speed=False, refs=False):
+                         schedule=True, fold=True, speed=False, refs=False):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
-    straight-line code (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
+    straight-line code, ``fold`` fold NOPs into the word before them as its bubbles
+    (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
     (:func:`speed_loop_program`) follows at the label ``speed`` (its entry), its temporaries in
     the current loop's registers (:data:`CURRENT_STATE` excepted), its specials, conditions
     and outputs after the current loop's (whose words are then the same but for the constants'
@@ -462,40 +463,49 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
         A.label("speed")
         _speed_loop(_Renamed(A, pool))
         A.end()
-    return A.assemble(fuse=fuse, schedule=schedule)
+    return A.assemble(fuse=fuse, schedule=schedule, fold=fold)
 
 
 def _paths(program, start=0):
     """Every path through ``program`` from ``start`` (it has no loops; each branch taken or
-    not, delay slots counted): the executed addresses, in order, one list per path."""
+    not, delay slots counted): the executed addresses, in order, one list per path (a word
+    once, however many clocks it takes: :func:`_clocks`). The fetch as the gateware's
+    (:class:`~.engine.Fetch`: a branch's delay slots are the clocks after it, which a word
+    with repeats or bubbles fills alone)."""
     instrs = program.instrs
     paths = []
 
-    def walk(queue, trail):
-        queue = list(queue)
-        trail = list(trail)
+    def walk(fetch, issue, trail):
         while True:
-            pc = queue.pop(0)
+            pc, rep, _ = issue
             ins = instrs[pc]
-            trail.append(pc)
-            if ins.op == Op.END:
-                paths.append(trail)
-                return
-            nxt = queue[-1] + 1
-            if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
-                always = ins.cond == 0 and ins.inv
-                walk(queue + [ins.tgt], trail)
-                if always:
+            taken = None
+            if not rep:
+                trail.append(pc)
+                if ins.op == Op.END:
+                    paths.append(trail)
                     return
-            queue.append(nxt)
+                if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
+                    taken = fetch.copy()
+            issue = fetch.issue()
+            if taken is not None:
+                taken.step(ins.tgt)
+                walk(taken, issue, list(trail))
+                if ins.cond == 0 and ins.inv:       # always taken
+                    return
+            fetch.step()
 
-    walk([start, start + 1, start + 2], [])
+    fetch = Fetch(instrs, start)
+    issue = fetch.issue()
+    fetch.step()
+    walk(fetch, issue, [])
     return paths
 
 
 def _clocks(ins):
-    """Clocks (issues) of one instruction word: a repeated DIV ``sh + 1``, else 1."""
-    return ins.sh + 1 if ins.op == Op.DIV else 1
+    """Clocks (of the execute stage) of one instruction word: a repeated DIV ``sh + 1``, a word
+    with bubbles (folded NOPs) ``nb + 1``, else 1 (:attr:`~.engine.Instr.clocks`)."""
+    return ins.clocks
 
 
 def path_lengths(program):
@@ -516,7 +526,8 @@ def duty_lengths(program):
         writes = [k for k, pc in enumerate(path) if instrs[pc].out == dc]
         if not writes:
             raise ValueError("engine program: a path without a write of the duty dc")
-        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1] + 1]))
+        # (The writer's own issue, not its bubbles: a duty is never written by a DIV.)
+        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1]]) + 1)
     return sorted(counts)
 
 
@@ -1194,7 +1205,7 @@ class EngineCurrentLoop(wiring.Component):
 # --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
 
 
-def speed_loop_program(*, schedule=True):
+def speed_loop_program(*, schedule=True, fold=True):
     """Assemble a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
     the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
     reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
@@ -1203,7 +1214,7 @@ def speed_loop_program(*, schedule=True):
     file), the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three runs before
     the last), and the speed PI with the feed-forward (:func:`_speed_pi`) → the ``iq`` and
     ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
-    ``int_guard`` 16 (the top's).
+    ``int_guard`` 16 (the top's). ``schedule``, ``fold``: as for :meth:`Assembler.assemble`.
 
     In the profile every value stays within the 32-bit ``WORD``: a difference of two 32-bit
     values (33 bits) is only compared (the ALU's flags are those of its 33-bit sum) or halved;
@@ -1218,7 +1229,7 @@ def speed_loop_program(*, schedule=True):
     A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
     _speed_loop(A)
     A.end()
-    return A.assemble(schedule=schedule)
+    return A.assemble(schedule=schedule, fold=fold)
 
 
 class _Renamed:
