@@ -5,6 +5,7 @@ fault path latency, one current-loop pass from the ADC model.
 The simulations run at 100 kHz PWM (500 clocks per period at 50 MHz) and a UART at clk_hz / 8
 (80 clocks per byte) to keep pysim cheap (~1.5 k clocks/s for the whole top)."""
 
+import dataclasses
 import itertools
 import math
 import re
@@ -1721,3 +1722,77 @@ def test_top_link_compact_form_same_ports_clock_by_clock():
     simulate(m, [bench], clock_hz=CLK, name="test_top_link_compact")
     assert mismatches == []
     assert seen["tx"] > 1000                    # the replies went out
+
+
+def test_top_mt_engine_speed_matches_the_model():
+    """``Top(mt_engine=True)``: M/T's window logic (``MTSpeed(arith="engine")``, 27-bit TC)
+    with its multiply and divide as the engine's run ``mt`` (``k`` the reset value's two words
+    in the engine's configuration RAM), beside the current loop's samples: the edge strobes
+    from the encoder pins (forward, a pause of more than two periods, backward, fast forward)
+    and the top's update strobes into ``MTSpeedModel`` with the 27-bit TC give every output
+    (fresh, bounded, stopped), in the clock ``Top.mt_latency`` after its update (the engine
+    idle at ``period_start``)."""
+    from foc_servo.hdl.engine_mt import MT_ENGINE_PARAMS
+    from foc_servo.sim.models import mt_speed as model
+
+    top = Top(pwm_hz=50e3, baud=BAUD, current_loop="engine", regs_staging="bram",
+              mt_k_export=True, mt_chunk_multipliers=False, mt_engine=True)
+    mt = top._mt
+    assert top.mt_engine and mt.arith == "engine" and mt.tc_width == 27
+    assert top.mt_latency == 1 + top._loop.mt_latency == 112
+    k = top.regmap["mt_k"].reset
+    plan = [(300, 0)] + [(60 + 7 * (i % 5), 1) for i in range(40)]
+    plan += [(2600, 0)] + [(70 + 5 * (i % 3), -1) for i in range(30)]
+    plan += [(21 + (i % 4), 1) for i in range(40)]
+    clock, pos, at = 0, 0, {}
+    for dwell, step in plan:
+        clock += dwell
+        if step:
+            pos += step
+            at[clock] = pos
+    end = clock + 2000
+    ab = ((0, 0), (1, 0), (1, 1), (0, 1))
+    rec = {key: [] for key in ("step", "neg", "update", "valid", "speed", "stopped", "fresh",
+                               "cl_start")}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        pos = 0
+        for c in range(end):
+            pos = at.get(c, pos)
+            a, b = ab[pos % 4]
+            ctx.set(top.enc_a, a)
+            ctx.set(top.enc_b, b)
+            p = ctx.get(mt.o.payload)
+            for key, v in (("step", mt.edge.step), ("neg", mt.edge.neg), ("update", mt.update),
+                           ("valid", mt.o.valid), ("cl_start", top._loop.done)):
+                rec[key].append(ctx.get(v))
+            rec["speed"].append(p.speed)
+            rec["stopped"].append(p.stopped)
+            rec["fresh"].append(p.fresh)
+            await ctx.tick()
+
+    simulate(top, [testbench], name="test_top_mt_engine")
+    r = {key: np.array(v, dtype=np.int64) for key, v in rec.items()}
+    assert r["cl_start"].sum() >= 10                    # the current loop ran beside it
+    edges = np.flatnonzero(r["step"])
+    ups = np.flatnonzero(r["update"])
+    assert len(edges) == 110 and 0 < r["neg"][edges].sum() < len(edges)
+
+    @dataclasses.dataclass(frozen=True)
+    class Params(model.MTParams):
+        @property
+        def latency(self):
+            return top.mt_latency
+
+    params = Params(1, MT_ENGINE_PARAMS["tc_width"], 32, 48, 16)
+    want = model.simulate(edges, r["neg"][edges].astype(bool), ups, k=k, params=params,
+                          end_cycle=end)
+    got_v = np.flatnonzero(r["valid"])
+    np.testing.assert_array_equal(got_v, want["cycle"])
+    np.testing.assert_array_equal(got_v - want["update"], top.mt_latency)
+    for f in ("speed", "stopped", "fresh"):
+        np.testing.assert_array_equal(r[f][got_v], want[f], err_msg=f)
+    kinds = set(zip(want["stopped"].tolist(), want["fresh"].tolist()))
+    assert kinds == {(1, 0), (0, 1), (0, 0)}, kinds
+    assert (want["speed"] < 0).any() and (want["speed"] > 0).any()
