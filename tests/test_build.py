@@ -29,8 +29,8 @@ from amaranth.lib import wiring
 
 from foc_servo.boards.build import (CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD, GATES_DEAD_N,
                                     GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
-                                    MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
+                                    MT_ENGINE, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
+                                    RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
                                     TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
                                     prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
@@ -275,6 +275,9 @@ FAMILY_FORMS = [
                   top._encoder._filter.fold_reload)),
     ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
      lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
+    ("mt_engine", MT_ENGINE, (False, False, False, False),
+     lambda top: (top.mt_engine, top._mt.arith == "engine",
+                  getattr(top._loop, "mt_mode", False))),
     ("mt_k_export", MT_K_EXPORT, (True, False, False, False),
      lambda top: (top.mt_k_export, top._mt.k_steady, bool(top._mt_k_words))),
     # (st_current_loops a counter of the staging RAM: the iCE40's; the ULX3S stages in
