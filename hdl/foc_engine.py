@@ -872,6 +872,7 @@ class EngineCurrentLoop(wiring.Component):
         check_choice("EngineCurrentLoop", "status", status, STATUSES)
         self._status = status
         self._status_mems = {}                  # status="ram": made by elaborate()
+        self._engine = None                     # made by elaborate()
         self._config = config
         self._config_init = list(config_init) if config_init is not None else [0] * n_config
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
@@ -1008,6 +1009,9 @@ class EngineCurrentLoop(wiring.Component):
                              else max(t["latency"] for t in self._speed_timing.values()))
     speed_read = property(lambda self: None if self._speed_timing is None
                           else max(t["speed_read"] for t in self._speed_timing.values()))
+    #: The :class:`~.engine.Engine` of the last elaboration, for a testbench (its trace
+    #: port); ``None`` before it.
+    engine = property(lambda self: self._engine)
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
@@ -1054,6 +1058,7 @@ class EngineCurrentLoop(wiring.Component):
                                            config_init=self._config_init if ram else None,
                                            config_slices=SPEED_SLICES if spd else None,
                                            strobe_outs=strobe_outs)
+        self._engine = eng
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program

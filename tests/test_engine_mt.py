@@ -244,3 +244,67 @@ def test_engine_mt_on_the_gateware_engine_cycle_by_cycle():
     hdl_simulate(dut, [testbench], name="engine_mt")
     assert errors == []
     assert done[0] == len(jobs)
+
+
+def test_engine_mt_run_in_the_current_loop_engine_cycle_by_cycle():
+    """The run ``mt`` of ``EngineCurrentLoop(mt=True)`` (the current loop's program with the
+    M/T piece at the label ``mt``, ``k`` as the two configuration words ``mtk0``, ``mtk1``
+    written through the ``config`` port as the register file's export port writes ``mt_k``)
+    against :class:`EngineMTModel` on the same program: every executed instruction's write
+    back (pc, P, destination, value) in the same clock, ``mt_res`` (the output ``mtspd``
+    and its write strobe) after each run; updates in sequence (``mt_pm`` kept), ``k`` with bit
+    31 set (``mtk0`` negative as the engine reads it), saturated, bounded and stopped."""
+    from foc_servo.hdl.engine_mt import MT_CONFIG_WORDS, mt_k_words
+    from foc_servo.hdl.foc_engine import CONFIG, OUTS, EngineCurrentLoop
+    from foc_servo.sim.harness import simulate as hdl_simulate
+
+    from engine_trace import follow_trace
+
+    cl = EngineCurrentLoop(config="ram", mt=True)
+    prog = cl.program
+    assert prog.labels["mt"] > 0 and cl.mt_timing == mt_run_timing(prog)
+    model = EngineMTModel(program=prog, out_widths={**OUTS, "mtspd": 32})
+    jobs = [(K_MAX, FRESH, -M_MAX, 1), (K_MAX, FRESH, 3, D_MAX), ((1 << 31) | 5, FRESH, 7, 999),
+            (1, FRESH, 1, D_MAX), (0, FRESH, 5, 0), (1 << 40, FRESH, -3, 1 << 20),
+            (1 << 40, BOUND, 1, 1 << 18), (1 << 40, BOUND, 1, 1 << 22), (1 << 40, STOPPED, 0, 0),
+            (1 << 40, BOUND, 1, 7), ((1 << 48) - (1 << 31), FRESH, 2, 3)]
+    jobs += [(k, FRESH, dm, dt) for k, dm, dt in _random(11, 20)]
+    errors, done, last = [], [0], [0]
+    cfg = {name: len(CONFIG) + j for j, name in enumerate(MT_CONFIG_WORDS)}
+
+    async def testbench(ctx):
+        eng = cl.engine
+        for n, (k, mode, dm, dt) in enumerate(jobs):
+            for name, v in mt_k_words(k).items():
+                ctx.set(cl.config.valid, 1)
+                ctx.set(cl.config.index, cfg[name])
+                ctx.set(cl.config.data, v % (1 << 32))
+                await ctx.tick()
+            ctx.set(cl.config.valid, 0)
+            want = model.update(k, mode, dm, dt)
+            op = mt_operands(mode, dm, dt, last[0])
+            last[0] = want
+            ctx.set(cl.mt_run.payload, {"m": op["mtm"], "d": op["mtd"], "s": op["mts"],
+                                        "b": op["mtb"]})
+            ctx.set(cl.mt_run.valid, 1)
+            await ctx.tick()
+            ctx.set(cl.mt_run.valid, 0)
+            error, _ = await follow_trace(ctx, eng, model.trace)
+            if error is not None:
+                errors.append((n, *error))
+                return
+            for _ in range(8):
+                await ctx.tick()
+            if (strobes[0], ctx.get(cl.mt_res.payload)) != (n + 1, want):
+                errors.append((n, "mt_res", strobes[0], ctx.get(cl.mt_res.payload), want))
+            done[0] += 1
+
+    strobes = [0]
+
+    async def count(ctx):
+        async for *_, valid in ctx.tick().sample(cl.mt_res.valid):
+            strobes[0] += valid
+
+    hdl_simulate(cl, [testbench], [count], name="engine_mt_run")
+    assert errors == []
+    assert done[0] == len(jobs)
