@@ -9,7 +9,7 @@ import pytest
 
 from foc_servo.hdl.engine import MUL_B, Assembler, Op
 from foc_servo.hdl.engine_mt import (MT_ENGINE_PARAMS, MT_SAT, MT_SPECIALS, mt_k_slices,
-                                     mt_operands, mt_program, mt_run_timing)
+                                     mt_k_words, mt_operands, mt_program, mt_run_timing)
 from foc_servo.hdl.foc_engine import _clocks, _paths
 from foc_servo.sim.models.engine import EngineModel
 from foc_servo.sim.models.engine_mt import EngineMTModel
@@ -254,7 +254,7 @@ def test_engine_mt_run_in_the_current_loop_engine_cycle_by_cycle():
     back (pc, P, destination, value) in the same clock, ``mt_res`` (the output ``mtspd``
     and its write strobe) after each run; updates in sequence (``mt_pm`` kept), ``k`` with bit
     31 set (``mtk0`` negative as the engine reads it), saturated, bounded and stopped."""
-    from foc_servo.hdl.engine_mt import MT_CONFIG_WORDS, mt_k_words
+    from foc_servo.hdl.engine_mt import MT_CONFIG_WORDS
     from foc_servo.hdl.foc_engine import CONFIG, OUTS, EngineCurrentLoop
     from foc_servo.sim.harness import simulate as hdl_simulate
 
@@ -308,3 +308,98 @@ def test_engine_mt_run_in_the_current_loop_engine_cycle_by_cycle():
     hdl_simulate(cl, [testbench], [count], name="engine_mt_run")
     assert errors == []
     assert done[0] == len(jobs)
+
+
+def test_engine_mt_run_start_arbitration():
+    """``EngineCurrentLoop(mt=True)``: a current-loop sample and an M/T request in the same
+    clock (the sample's program first, the M/T run at its END), an M/T request while the
+    current loop runs (it waits for the END), a sample while the M/T run runs (latched, its
+    program at the M/T run's END). The duties equal those of the same loop without the M/T run
+    fed the same samples (alone, undelayed), every M/T result the interpreter's."""
+    from amaranth.hdl import Module
+
+    from foc_servo.hdl.foc_engine import CONFIG, OUTS, EngineCurrentLoop
+    from foc_servo.sim.harness import simulate as hdl_simulate
+
+    rng = np.random.default_rng(5)
+    init = [int(rng.integers(0, 1 << 14)) for _ in CONFIG]
+    k = (1 << 40) + 12345
+    kw = mt_k_words(k)
+    cl = EngineCurrentLoop(config="ram", mt=True,
+                           config_init=init + [kw["mtk0"] % (1 << 32), kw["mtk1"]])
+    ref = EngineCurrentLoop(config="ram", config_init=init)
+    m = Module()
+    m.submodules.cl, m.submodules.ref = cl, ref
+    model = EngineMTModel(program=cl.program, out_widths={**OUTS, "mtspd": 32})
+    mt_at = cl.program.labels["mt"]
+    # (clock offsets: sample, M/T request) per scenario
+    plan = [(0, 0), (0, 50), (30, 0)]
+    starts, ends, duties, ref_duties, results, want = [], [], [], [], [], []
+
+    async def record(ctx):
+        eng = cl.engine
+        clock, after = 0, 0
+        async for _, _, go, run, pc, v, p, rv, rp, mv, mp, end in ctx.tick().sample(
+                eng.start, eng.running, eng.start_pc, cl.o.valid, cl.o.payload, ref.o.valid,
+                ref.o.payload, cl.mt_res.valid, cl.mt_res.payload, eng.end):
+            if end:
+                ends.append(clock)
+            if go and not run:
+                starts.append((clock, pc))
+            if v:
+                duties.append(p.as_value().value)
+            if rv:
+                ref_duties.append(rp.as_value().value)
+            if after:                   # (the register holds the result the clock after
+                results.append(mp)      # its write strobe)
+            after = mv
+            clock += 1
+
+    async def testbench(ctx):
+        for dut in (cl, ref):
+            ctx.set(dut.o.ready, 1)
+        last = 0
+        for n, (t_sample, t_mt) in enumerate(plan):
+            sample, values = _sample(rng)
+            op = mt_operands(FRESH, 3 + n, 1000 + n, last)
+            last = model.update(k, FRESH, 3 + n, 1000 + n)
+            want.append(last)
+            for c in range(max(t_sample, t_mt) + 1):
+                if c == t_sample:
+                    for dut in (cl, ref):
+                        ctx.set(dut.i.payload, sample)
+                        for name, v in values.items():
+                            ctx.set(getattr(dut, name), v)
+                        ctx.set(dut.i.valid, 1)
+                if c == t_mt:
+                    ctx.set(cl.mt_run.payload, {"m": op["mtm"], "d": op["mtd"],
+                                                "s": op["mts"], "b": op["mtb"]})
+                    ctx.set(cl.mt_run.valid, 1)
+                await ctx.tick()
+                for dut in (cl, ref):
+                    ctx.set(dut.i.valid, 0)
+                ctx.set(cl.mt_run.valid, 0)
+            for _ in range(800):
+                await ctx.tick()
+
+    hdl_simulate(m, [testbench], [record], name="engine_mt_arbitration")
+    assert results == want and len(want) == 3
+    assert duties == ref_duties and len(duties) == 3
+    pcs = [pc for _, pc in starts]
+    assert pcs == [0, mt_at, 0, mt_at, mt_at, 0], starts
+    # The waits: each second start in its scenario comes right after the first run's END
+    # (the engine takes the next start a clock before its end strobe, as back to back samples
+    # do), the M/T run's at its length.
+    for i in (0, 2, 4):
+        end = min(e for e in ends if e > starts[i][0])
+        assert starts[i + 1][0] == end - 1, (i, starts, ends)
+    assert starts[5][0] - starts[4][0] == max(length for _, length in cl.mt_timing)
+
+
+def _sample(rng):
+    sample = {"ia": int(rng.integers(-2000, 2000)), "ib": int(rng.integers(-2000, 2000)),
+              "udc": int(rng.integers(10000, 30000)), "aux": 0}
+    values = {"theta": int(rng.integers(1 << 16)), "enable": 1, "ol_enable": 0,
+              "ff_enable": 1, "speed": int(rng.integers(-(1 << 30), 1 << 30)),
+              "id_ref": 100, "iq_ref": -300, "scale": 1000}
+    return sample, values
