@@ -100,6 +100,30 @@ likewise not fall in a current-loop run, i.e. the sample must come more than
 of ``loop_latency`` above, a little longer). Not checked in gateware (the registers are
 run-time values); the default centred sample is far from both.
 
+**M/T on the engine** (``mt_engine``, only with ``current_loop="engine"``,
+``regs_staging="bram"`` and ``mt_k_export``; docs/AREA.md §7.64, §7.82): M/T keeps its window
+logic (``MTSpeed(arith="engine")``) and hands each accepted update's operands to the loop
+engine, whose run ``mt`` (``EngineCurrentLoop(mt=True)``) does the multiply and divide; ``k``
+is ``mt_k``'s two export words, the last exported, in the engine's configuration RAM (after
+its own words; moved down over the speed loop's words when the speed loop is the Servo's).
+Three behaviour changes against M/T's own arithmetic: (1) the TC span is 27 bits
+(:data:`MT_ENGINE_TC_WIDTH`; the engine's ``DIV`` divisor is its multiplier's signed 28-bit
+operand): an edge interval of 2**27 … 2**28 clocks (4.03 … 8.05 s at 33.333 MHz) reads
+stopped, i.e. speeds below ≈ 0.00075 r/min at 20 000 counted edges per turn; (2) the result
+comes :attr:`Top.mt_latency` clocks after ``period_start`` (1 + the run's
+``EngineCurrentLoop.mt_latency``: 112 against ``MTSpeed.latency`` 38), when the engine is idle
+at ``period_start`` (the sample-point limit of "Speed loop on the engine": the sample must
+come more than ``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period
+end; an M/T request that finds a current-loop program running waits for its END, and a sample
+that arrives during the M/T run waits for the run's ``length``, 109 clocks, which
+``sample_hold`` includes); (3) with the speed loop on the engine its run starts at M/T's
+strobe, i.e. after the M/T run (the start arbitration: a current-loop sample first, then the
+M/T run, then a speed run; each requested run waits while another runs), so its i_q reference
+is ready ``mt_latency + 1 + speed_latency`` clocks after ``period_start`` (checked against half
+a period, as above). Every M/T output (speed, stopped, fresh) is otherwise
+``MTSpeedModel``'s with the 27-bit TC (tests: ``test_top_mt_engine_speed_matches_the_model``,
+``tests/test_engine_mt.py``).
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
