@@ -177,7 +177,7 @@ MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: ``Top(mt_engine=…)`` per FPGA family (only with the engine's current loop and the block-RAM
 #: staging): M/T speed's multiply and divide as the loop engine's run ``mt`` (M/T keeps its
 #: window logic; its SB_MAC16s, 60-bit division register and result logic go; the TC span 27
-#: bits, the result ≈ 74 clocks later; docs/AREA.md §7.64, §7.82). Off everywhere until the
+#: bits, the result ≈ 75 clocks later; docs/AREA.md §7.64, §7.82). Off everywhere until the
 #: iCEBreaker's combined program (current loop + speed run + M/T run: 569 words today) fits the
 #: engine's 512-word ROM; M/T's own arithmetic elsewhere (the netlists of before).
 MT_ENGINE = {"ice40": False, "ecp5": False, "xc7": False, "xc6s": False}

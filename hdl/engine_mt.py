@@ -172,7 +172,11 @@ def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False, k="slice
     A.alu(Op.ADD, r("lo"), "s.PQ", 0)               # N mod 2**16 = P1 mod 2**16
     A.mul("s.mtm", r("kh"))
     A.mac(1, r("c24"))                              # G = floor(N / 2**24)
-    A.mac(1 << 7, r("d"), neg=True)                 # G − 2**7·D
+    if k == "slices":
+        A.mac(1 << 7, r("d"), neg=True)             # G − 2**7·D
+    else:                                           # (the same, without the constant 128)
+        A.mac(1 << 6, r("d"), neg=True)
+        A.mac(1 << 6, r("d"), neg=True)
     A.post(r("sg"), 31, rnd=False)                  # < 0 iff not saturated
     A.alu(Op.ADD, None, r("sg"), 0, setf=True)     # N: not saturated
     if branches:

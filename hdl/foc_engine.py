@@ -471,13 +471,16 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.alu(Op.ADD, "r.ep_q", 0, 0)
     pool = [r for r in A._regs if r not in CURRENT_STATE]
     if speed:
+        # (mt: the speed run reads M/T's speed from the register the M/T run writes it to,
+        # ``mt_spd``, as it writes the output ``mtspd``: no special line for ``spd``)
         A.label("speed")
-        _speed_loop(_Renamed(A, pool))
+        _speed_loop(_Renamed(A, pool, subst={"s.spd": "r.mt_spd"} if mt else None))
         A.end()
     if mt:
         from .engine_mt import MT_STATE, mt_arith
         A.label("mt")
-        mt_arith(_Renamed(A, pool, prefix="", state=MT_STATE), prefix="", k="words")
+        mt_arith(_Renamed(A, pool, prefix="", state=MT_STATE + ("mt_spd",)), prefix="",
+                 k="words", dst="r.mt_spd" if speed else None)
         A.end()
     return A.assemble(fuse=fuse, schedule=schedule, fold=fold)
 
@@ -656,6 +659,8 @@ def speed_run_timing(program):
     up, dn = program.labels[prefix + "up"], program.labels[prefix + "dn"]
     outs = program.outs
     spd = program.specials.index("spd")
+    # (current_loop_program(mt=True): the run reads the M/T run's register mt_spd instead)
+    spd_reg = program.regs.get("mt_spd")
     timing = {}
     for path in _paths(program, start):
         kind = "up" if up in path else "dn" if dn in path else "none"
@@ -664,7 +669,7 @@ def speed_run_timing(program):
             ins = program.instrs[pc]
             if ins.out and outs[ins.out] in ("ref_int", "iq", "sat"):
                 at[outs[ins.out]] = k
-            if ins.asp and ins.a == spd:
+            if (ins.asp and ins.a == spd) or (not ins.asp and ins.a == spd_reg):
                 reads.append(k)
             k += _clocks(ins)
         if not at.get("sat", k) < at.get("iq", -1) or "ref_int" not in at:
@@ -1321,13 +1326,16 @@ def speed_loop_program(*, schedule=True, fold=True):
 class _Renamed:
     """A run's emitter on another program's assembler: its temporaries take that program's
     registers ``pool`` (in order, then new ones), its state registers (``state``: the speed
-    loop's :data:`SPEED_STATE`) and labels get the prefix ``prefix`` (``spd_``)."""
+    loop's :data:`SPEED_STATE`) and labels get the prefix ``prefix`` (``spd_``); ``subst``:
+    operands read in place of others (e.g. a register for a special)."""
 
-    def __init__(self, asm, pool, *, prefix="spd_", state=SPEED_STATE):
+    def __init__(self, asm, pool, *, prefix="spd_", state=SPEED_STATE, subst=None):
         self._asm, self._pool, self._map = asm, list(pool), {}
-        self._prefix, self._state = prefix, tuple(state)
+        self._prefix, self._state, self._subst = prefix, tuple(state), dict(subst or {})
 
     def _r(self, x):
+        if isinstance(x, str) and x in self._subst:
+            return self._subst[x]
         if not isinstance(x, str) or not x.startswith("r."):
             return x
         name = x[2:]

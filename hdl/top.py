@@ -111,11 +111,11 @@ Three behaviour changes against M/T's own arithmetic: (1) the TC span is 27 bits
 operand): an edge interval of 2**27 … 2**28 clocks (4.03 … 8.05 s at 33.333 MHz) reads
 stopped, i.e. speeds below ≈ 0.00075 r/min at 20 000 counted edges per turn; (2) the result
 comes :attr:`Top.mt_latency` clocks after ``period_start`` (1 + the run's
-``EngineCurrentLoop.mt_latency``: 112 against ``MTSpeed.latency`` 38), when the engine is idle
+``EngineCurrentLoop.mt_latency``: 113 against ``MTSpeed.latency`` 38), when the engine is idle
 at ``period_start`` (the sample-point limit of "Speed loop on the engine": the sample must
 come more than ``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period
 end; an M/T request that finds a current-loop program running waits for its END, and a sample
-that arrives during the M/T run waits for the run's ``length``, 109 clocks, which
+that arrives during the M/T run waits for the run's ``length``, 110 clocks, which
 ``sample_hold`` includes); (3) with the speed loop on the engine its run starts at M/T's
 strobe, i.e. after the M/T run (the start arbitration: a current-loop sample first, then the
 M/T run, then a speed run; each requested run waits while another runs), so its i_q reference
@@ -606,7 +606,7 @@ class Top(wiring.Component):
         ``mt_k_export`` and not ``mt_chunk_multipliers`` (no multiplier left in M/T).
         **Behaviour** (module docstring, "M/T on the engine"): the TC span 27 bits
         (:data:`MT_ENGINE_TC_WIDTH`: edge intervals of 2**27 … 2**28 clocks read stopped), the
-        result :attr:`mt_latency` clocks after ``period_start`` (``MTSpeed.latency`` + 74 on
+        result :attr:`mt_latency` clocks after ``period_start`` (``MTSpeed.latency`` + 75 on
         the iCEBreaker), the speed run after it. Default ``False``; the iCE40's choice once the
         combined program fits the engine's 512-word ROM (``boards.build.MT_ENGINE``).
     ram_loop_count : bool

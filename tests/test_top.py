@@ -1739,7 +1739,7 @@ def test_top_mt_engine_speed_matches_the_model():
               mt_k_export=True, mt_chunk_multipliers=False, mt_engine=True)
     mt = top._mt
     assert top.mt_engine and mt.arith == "engine" and mt.tc_width == 27
-    assert top.mt_latency == 1 + top._loop.mt_latency == 112
+    assert top.mt_latency == 1 + top._loop.mt_latency == 113
     k = top.regmap["mt_k"].reset
     plan = [(300, 0)] + [(60 + 7 * (i % 5), 1) for i in range(40)]
     plan += [(2600, 0)] + [(70 + 5 * (i % 3), -1) for i in range(30)]
