@@ -766,6 +766,21 @@ class EngineCurrentLoop(wiring.Component):
         written in the same clocks (word ``j`` = ``STATUS[j]``, 0 at power-up; a domain reset
         does not clear it, where it clears the registers), read through two synchronous
         read ports in place of those members (``status_rd``, ``status_probe``, below).
+    mt : bool
+        M/T speed's multiply and divide as the engine's run ``mt`` (needs ``config="ram"``;
+        ``current_loop_program(mt=True)``, :func:`~.engine_mt.mt_arith` with ``k="words"``;
+        docs/AREA.md §7.64, §7.82): the window's operands on ``mt_run`` (``MTSpeed(arith=
+        "engine")``'s ``run``: ``valid`` requests the run, the payload the specials ``mtm``,
+        ``mtd``, ``mts``, ``mtb``, read while it runs), ``k`` as the configuration RAM's last two
+        words (:data:`~.engine_mt.MT_CONFIG_WORDS`: the register file's export words of
+        ``mt_k``), the result on ``mt_res`` (the output register ``mtspd`` and its write
+        strobe). Start arbitration: a current-loop sample first, then the M/T run, then (with
+        ``speed``) a speed run; a request that finds the engine running waits for its END (an
+        M/T request behind a current-loop program, at most :attr:`interval` clocks; a sample
+        behind an M/T run, its ``length``, which :attr:`sample_hold` includes). With ``speed``
+        the speed run reads M/T's speed from the register the M/T run writes it to
+        (``mt_spd``), not from the ``speed`` port: the same value, since a speed run starts
+        at M/T's strobe after the M/T run that wrote it.
 
     Status RAM (``status="ram"``): two block RAMs of ``len(STATUS)`` words of ``width``
     bits, one per read port, written together at the engine's output writes (the registers'
@@ -815,6 +830,10 @@ class EngineCurrentLoop(wiring.Component):
     speed_read : int or None
         ``speed=True``: clocks from a speed run's start to the clock in which the program
         samples ``speed`` (worst case over the profile paths; :func:`speed_run_timing`).
+    mt_mode : bool
+        The ``mt`` parameter.
+    mt_timing, mt_latency : list, int or None
+        ``mt=True``: :func:`~.engine_mt.mt_run_timing` of the program and its worst latency.
     program : Program
     """
 
