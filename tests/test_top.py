@@ -1796,3 +1796,83 @@ def test_top_mt_engine_speed_matches_the_model():
     kinds = set(zip(want["stopped"].tolist(), want["fresh"].tolist()))
     assert kinds == {(1, 0), (0, 1), (0, 0)}, kinds
     assert (want["speed"] < 0).any() and (want["speed"] > 0).any()
+
+
+def _combined_program_fits():
+    """The iCEBreaker's combined program with the M/T run fits the engine's ROM (it needs the
+    NOP folding of s18-nops: 570 words of 512 without it, docs/AREA.md §7.82)."""
+    from foc_servo.hdl.foc_engine import current_loop_program
+    try:
+        current_loop_program(speed=True, refs=True, mt=True)
+    except ValueError as e:
+        if "exceed" not in str(e):
+            raise
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _combined_program_fits(),
+                    reason="current loop + speed run + M/T run exceed the engine's ROM")
+def test_top_mt_engine_with_the_speed_run_same_pins_clock_by_clock():
+    """The iCEBreaker's configuration (the speed loop on the engine, its references in the
+    engine's RAM) with ``mt_engine`` against the same top with M/T's own arithmetic, in SPEED
+    mode with the encoder turning: every output pin equal in every clock (the M/T result
+    ``Top.mt_latency`` − ``MTSpeed.latency`` clocks later, the speed run after it, its i_q
+    reference still before the centred sample), the M/T speeds and the speed run's i_q
+    references the same values in the same order (one run more after the reset, below)."""
+    from foc_servo.hdl.protect import FAULTS
+    resets = {"mode": Mode.SPEED.value, "pi_speed_lim_lo": -4000, "pi_speed_lim_hi": 7000,
+              "speed_ref": 1 << 28, "pi_speed_kp": 1 << 12,
+              "prot_mask": 1 << FAULTS.index("external")}
+    kw = dict(pwm_hz=PWM / 2, baud=BAUD, current_loop="engine", regs_staging="bram",
+              speed_loop="engine", resets=resets, mt_k_export=True)
+    tops = [Top(**kw), Top(**kw, mt_chunk_multipliers=False, mt_engine=True)]
+    assert [t.mt_engine for t in tops] == [False, True]
+    assert tops[1].mt_latency - tops[0].mt_latency == 75
+    m = Module()
+    for k, top in enumerate(tops):
+        m.submodules[f"top{k}"] = top
+    outs = [name for name, member in tops[0].signature.members.items()
+            if member.is_port and member.flow == wiring.Out]
+    seen = {"mismatch": None, "clocks": 0, "speeds": ([], []), "iq": ([], []), "gates": 0}
+
+    async def testbench(ctx):
+        states = ((0, 0), (1, 0), (1, 1), (0, 1))
+        for top in tops:
+            ctx.set(top.hall, HALL_OK)
+            ctx.set(top.fault_n, 1)
+        pos, nxt = 0, 0
+        for c in range(12 * tops[0].pwm_period):
+            if c == nxt:                # fast forward, then slowly backward
+                fast = c < 5 * tops[0].pwm_period
+                pos += 1 if fast else -1
+                nxt += 37 if fast else 240
+            a, b = states[pos % 4]
+            for top in tops:
+                ctx.set(top.enc_a, a)
+                ctx.set(top.enc_b, b)
+            got = [[ctx.get(getattr(top, n)) for n in outs] for top in tops]
+            if got[0] != got[1] and seen["mismatch"] is None:
+                seen["mismatch"] = (c, [(n, x, y) for n, x, y in zip(outs, *got) if x != y])
+            seen["gates"] += got[0][outs.index("gate_h")] != 0
+            for k, top in enumerate(tops):
+                if ctx.get(top._mt.o.valid):
+                    seen["speeds"][k].append(ctx.get(top._mt.o.payload.speed))
+                if ctx.get(top._loop.speed_o.valid):
+                    seen["iq"][k].append(ctx.get(top._loop.speed_o.payload))
+            seen["clocks"] += 1
+            await ctx.tick()
+
+    simulate(m, [testbench], name="test_top_mt_engine_speed_run")
+    assert seen["mismatch"] is None, seen["mismatch"]
+    n = min(len(seen["speeds"][0]), len(seen["speeds"][1]))
+    assert n >= 10 and seen["speeds"][0][:n] == seen["speeds"][1][:n]
+    # One speed run more after the reset: M/T's first (stopped) result falls in the register
+    # file's reset walk (which holds off the speed run) 38 clocks after the first
+    # period_start, mt_engine's 113 clocks after it, past the walk's 72: a speed run then.
+    assert tops[0].mt_latency < tops[0]._regs.reset_clocks < tops[1].mt_latency
+    iq0, iq1 = seen["iq"][0], seen["iq"][1][1:]
+    n = min(len(iq0), len(iq1))
+    assert n >= 8 and iq0[:n] == iq1[:n]
+    assert len(set(iq0)) >= 2 and seen["gates"] > 0
+    assert min(seen["speeds"][0]) < 0 < max(seen["speeds"][0])
