@@ -177,10 +177,10 @@ MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: ``Top(mt_engine=…)`` per FPGA family (only with the engine's current loop and the block-RAM
 #: staging): M/T speed's multiply and divide as the loop engine's run ``mt`` (M/T keeps its
 #: window logic; its SB_MAC16s, 60-bit division register and result logic go; the TC span 27
-#: bits, the result ≈ 75 clocks later; docs/AREA.md §7.64, §7.82). Off everywhere until the
-#: iCEBreaker's combined program (current loop + speed run + M/T run: 569 words today) fits the
-#: engine's 512-word ROM; M/T's own arithmetic elsewhere (the netlists of before).
-MT_ENGINE = {"ice40": False, "ecp5": False, "xc7": False, "xc6s": False}
+#: bits, the result ≈ 75 clocks later; docs/AREA.md §7.64, §7.82): on the iCE40 (the
+#: iCEBreaker: −200 logic cells, 3 SB_MAC16 fewer; the combined program 394 of the ROM's 512
+#: words with the NOP folding, §7.81); M/T's own arithmetic elsewhere (the netlists of before).
+MT_ENGINE = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: ``Top(ram_loop_count=…)`` per FPGA family (only with ``regs_staging="bram"``):
 #: ``st_current_loops`` counted in the register file's staging RAM on the iCE40 (−32 logic
 #: cells on the iCEBreaker, docs/AREA.md §7.78); the loop's own counter elsewhere (the Arty S7

@@ -120,7 +120,9 @@ that arrives during the M/T run waits for the run's ``length``, 110 clocks, whic
 strobe, i.e. after the M/T run (the start arbitration: a current-loop sample first, then the
 M/T run, then a speed run; each requested run waits while another runs), so its i_q reference
 is ready ``mt_latency + 1 + speed_latency`` clocks after ``period_start`` (checked against half
-a period, as above). Every M/T output (speed, stopped, fresh) is otherwise
+a period, as above); after a reset, M/T's first (stopped) result comes after the register
+file's reset walk (72 clocks on the iCEBreaker) and requests a speed run, where M/T's own
+result (38 clocks) fell in the walk, which holds the run off. Every M/T output (speed, stopped, fresh) is otherwise
 ``MTSpeedModel``'s with the 27-bit TC (tests: ``test_top_mt_engine_speed_matches_the_model``,
 ``tests/test_engine_mt.py``).
 
@@ -607,8 +609,8 @@ class Top(wiring.Component):
         **Behaviour** (module docstring, "M/T on the engine"): the TC span 27 bits
         (:data:`MT_ENGINE_TC_WIDTH`: edge intervals of 2**27 … 2**28 clocks read stopped), the
         result :attr:`mt_latency` clocks after ``period_start`` (``MTSpeed.latency`` + 75 on
-        the iCEBreaker), the speed run after it. Default ``False``; the iCE40's choice once the
-        combined program fits the engine's 512-word ROM (``boards.build.MT_ENGINE``).
+        the iCEBreaker), the speed run after it. Default ``False``; the iCE40's choice
+        (``boards.build.MT_ENGINE``).
     ram_loop_count : bool
         With ``regs_staging="bram"``: ``st_current_loops`` counted in the register file's
         staging RAM from the loop's ``done`` (:data:`RAM_LOOP_COUNTERS`; the same values, an

@@ -273,13 +273,15 @@ FAMILY_FORMS = [
     ("enc_fold_reload", ENC_FOLD_RELOAD, (True, False, False, False),
      lambda top: (top.enc_fold_reload, top._encoder.fold_reload,
                   top._encoder._filter.fold_reload)),
+    # (with mt_engine, the iCE40's, M/T has no multiplier: the chunk form stands for it)
     ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
-     lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
-    ("mt_engine", MT_ENGINE, (False, False, False, False),
+     lambda top: (top.mt_chunk_multipliers or top.mt_engine,
+                  top._mt.chunk_multipliers or top.mt_engine)),
+    ("mt_engine", MT_ENGINE, (True, False, False, False),
      lambda top: (top.mt_engine, top._mt.arith == "engine",
                   getattr(top._loop, "mt_mode", False))),
     ("mt_k_export", MT_K_EXPORT, (True, False, False, False),
-     lambda top: (top.mt_k_export, top._mt.k_steady, bool(top._mt_k_words))),
+     lambda top: (top.mt_k_export, top._mt.k_steady or top.mt_engine, bool(top._mt_k_words))),
     # (st_current_loops a counter of the staging RAM: the iCE40's; the ULX3S stages in
     # flip-flops, so none there; the Arty S7's LUT6 the other way, §7.78)
     ("ram_loop_count", RAM_LOOP_COUNT, (True, False, False, False),

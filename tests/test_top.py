@@ -1798,21 +1798,6 @@ def test_top_mt_engine_speed_matches_the_model():
     assert (want["speed"] < 0).any() and (want["speed"] > 0).any()
 
 
-def _combined_program_fits():
-    """The iCEBreaker's combined program with the M/T run fits the engine's ROM (it needs the
-    NOP folding of s18-nops: 570 words of 512 without it, docs/AREA.md §7.82)."""
-    from foc_servo.hdl.foc_engine import current_loop_program
-    try:
-        current_loop_program(speed=True, refs=True, mt=True)
-    except ValueError as e:
-        if "exceed" not in str(e):
-            raise
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _combined_program_fits(),
-                    reason="current loop + speed run + M/T run exceed the engine's ROM")
 def test_top_mt_engine_with_the_speed_run_same_pins_clock_by_clock():
     """The iCEBreaker's configuration (the speed loop on the engine, its references in the
     engine's RAM) with ``mt_engine`` against the same top with M/T's own arithmetic, in SPEED
