@@ -1861,3 +1861,22 @@ def test_top_mt_engine_with_the_speed_run_same_pins_clock_by_clock():
     assert n >= 8 and iq0[:n] == iq1[:n]
     assert len(set(iq0)) >= 2 and seen["gates"] > 0
     assert min(seen["speeds"][0]) < 0 < max(seen["speeds"][0])
+
+
+def test_top_mt_engine_parameters_and_the_speed_run_check():
+    """``mt_engine``'s needs (clear errors) and the speed-run check with its latency: half a
+    PWM period must exceed ``mt_latency + 1 + speed_latency`` (347 clocks: 47.9 kHz at
+    33.333 MHz passes, 48.5 kHz fails; without ``mt_engine`` 38 + 1 + 233)."""
+    kw = dict(clk_hz=33.333e6, current_loop="engine", regs_staging="bram", speed_loop="engine",
+              mt_k_export=True, mt_chunk_multipliers=False, mt_engine=True)
+    top = Top(pwm_hz=47.9e3, **kw)
+    assert top.mt_latency + 1 + top._loop.speed_latency == 347
+    with pytest.raises(ValueError, match=r"M/T's latency \+ the speed run \(347 clocks\)"):
+        Top(pwm_hz=48.5e3, **kw)
+    Top(pwm_hz=48.5e3, **{**kw, "mt_engine": False, "mt_chunk_multipliers": True})
+    for bad in ({"mt_k_export": False}, {"mt_chunk_multipliers": True},
+                {"current_loop": "pipelined", "speed_loop": "sequential"}):
+        with pytest.raises(ValueError, match="Top mt_engine needs current_loop='engine'"):
+            Top(pwm_hz=10e3, **{**kw, **bad})
+    with pytest.raises(TypeError, match="Top mt_engine must be a bool"):
+        Top(pwm_hz=10e3, **{**kw, "mt_engine": 1})
