@@ -191,6 +191,13 @@ MT_CHUNK_MULTIPLIERS = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": Fals
 #: docs/AREA.md §7.76; needs the block-RAM staging and one multiplier per chunk); the
 #: register file's flip-flops elsewhere. The same speeds either way.
 MT_K_EXPORT = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
+#: ``Top(mt_engine=…)`` per FPGA family (only with the engine's current loop and the block-RAM
+#: staging): M/T speed's multiply and divide as the loop engine's run ``mt`` (M/T keeps its
+#: window logic; its SB_MAC16s, 60-bit division register and result logic go; the TC span 27
+#: bits, the result ≈ 75 clocks later; docs/AREA.md §7.64, §7.82): on the iCE40 (the
+#: iCEBreaker: −200 logic cells, 3 SB_MAC16 fewer; the combined program 394 of the ROM's 512
+#: words with the NOP folding, §7.81); M/T's own arithmetic elsewhere (the netlists of before).
+MT_ENGINE = {"ice40": True, "ecp5": False, "xc7": False, "xc6s": False}
 #: ``Top(ram_loop_count=…)`` per FPGA family (only with ``regs_staging="bram"``):
 #: ``st_current_loops`` counted in the register file's staging RAM on the iCE40 (−32 logic
 #: cells on the iCEBreaker, docs/AREA.md §7.78); the loop's own counter elsewhere (the Arty S7
@@ -437,6 +444,8 @@ class BoardTop(Elaboratable):
         speed_loop = (self._board.speed_loop
                       if (current_loop, self._board.regs_staging) == ("engine", "bram")
                       else "sequential")
+        mt_engine = (MT_ENGINE[self._board.family]
+                     and (current_loop, self._board.regs_staging) == ("engine", "bram"))
         self._top = Top(clk_hz=self._pll.f_out_hz, mul_width=MUL_WIDTH[self._board.family],
                         current_loop=current_loop, scope_ram=self._board.scope_ram,
                         regs_staging=self._board.regs_staging, speed_loop=speed_loop,
@@ -449,7 +458,9 @@ class BoardTop(Elaboratable):
                         enc_fold_reload=ENC_FOLD_RELOAD[self._board.family],
                         enc_plausibility_complement=ENC_PLAUSIBILITY_COMPLEMENT[
                             self._board.family],
-                        mt_chunk_multipliers=MT_CHUNK_MULTIPLIERS[self._board.family],
+                        mt_chunk_multipliers=(MT_CHUNK_MULTIPLIERS[self._board.family]
+                                              and not mt_engine),
+                        mt_engine=mt_engine,
                         mt_k_export=MT_K_EXPORT[self._board.family],
                         ram_loop_count=RAM_LOOP_COUNT[self._board.family],
                         link_compact=LINK_COMPACT[self._board.family],

@@ -61,8 +61,8 @@ from .bus import WordWriteSignature
 from .fixed import check_param
 from .rotator import RotatorParams
 
-__all__ = ["Op", "FIELDS", "Instr", "Assembler", "Program", "Engine", "WORD", "P_WORD", "MUL_A",
-           "MUL_B",
+__all__ = ["Op", "FIELDS", "Instr", "Fetch", "Assembler", "Program", "Engine", "WORD", "P_WORD",
+           "MUL_A", "MUL_B", "MAX_BUBBLES", "TGT_LO",
            "RF_DEPTH", "PC_WIDTH", "HAZARD_P", "HAZARD_RF", "HAZARD_FOLD", "HAZARD_KD",
            "HAZARD_TABLE", "WRITE_DELAY",
            "BUILTIN_SPECIALS", "BUILTIN_CONDS", "SAT_NONE", "SAT_W", "SAT_W1",
@@ -122,12 +122,24 @@ ALU_OPS = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
 #: Width of the program counter and of branch targets (programs of up to 2**PC_WIDTH words).
 PC_WIDTH = 9
 
-#: Instruction fields, in bit order (name, width).
+#: Instruction fields, in bit order (name, width). ``nb``: the bubbles after the instruction
+#: (NOP folding: clocks in which nothing is issued, ``pc`` and the ROM held; every op but DIV,
+#: whose ``sh`` counts its repeats), then 7 spare bits (0). A BR's target (``tgt``,
+#: ``PC_WIDTH`` bits) is not a field of its own: it lies in the bits of ``sh``, ``rnd``, ``sat``
+#: and ``setf`` (:data:`TGT_LO`), which a BR does not use, so that ``nb`` is in the same bits
+#: for every op (one LUT level for the fetch's hold).
 FIELDS = (("op", 4), ("wen", 1), ("dst", 7), ("asp", 1), ("a", 7), ("bsp", 1), ("b", 7), ("sh", 5),
           ("rnd", 1), ("sat", 2), ("setf", 1), ("cond", 4), ("inv", 1), ("neg", 1), ("acc", 1),
-          ("asl", 1), ("out", 5), ("tgt", PC_WIDTH))
+          ("asl", 1), ("out", 5), ("nb", 2), ("spare", PC_WIDTH - 2))
 INSTR_LAYOUT = data.StructLayout({name: unsigned(width) for name, width in FIELDS})
 INSTR_WIDTH = sum(w for _, w in FIELDS)
+#: First bit of a BR's target (the bits of ``sh``, ``rnd``, ``sat``, ``setf``).
+TGT_LO = sum(w for name, w in FIELDS[:[n for n, _ in FIELDS].index("sh")])
+#: The fields a BR's target overlays.
+TGT_FIELDS = ("sh", "rnd", "sat", "setf")
+assert sum(dict(FIELDS)[n] for n in TGT_FIELDS) == PC_WIDTH
+#: Most bubbles one word carries (``nb``: 2 bits).
+MAX_BUBBLES = (1 << dict(FIELDS)["nb"]) - 1
 
 #: Special operands every engine has (before the user's): the product register, its low
 #: ``div_bits`` bits (the quotient after ``div_bits`` DIV steps), the table words and ``kd``.
@@ -156,17 +168,39 @@ class Instr:
     acc: int = 0
     asl: int = 0
     out: int = 0
+    nb: int = 0
     tgt: int = 0
+
+    @property
+    def extra(self):
+        """Clocks the fetch holds this word in R after its first issue: a DIV's repeats
+        (``sh``, each issued), else its bubbles (``nb``, nothing issued)."""
+        return self.sh if self.op == Op.DIV else self.nb
+
+    @property
+    def clocks(self):
+        """Clocks of the execute stage this word takes: 1 + :attr:`extra`."""
+        return 1 + self.extra
 
     def encode(self):
         word, pos = 0, 0
         for name, width in FIELDS:
-            v = int(getattr(self, name))
+            v = 0 if name == "spare" else int(getattr(self, name))
             if not 0 <= v < (1 << width):
                 raise ValueError(f"Instruction field {name} must be from 0 to {(1 << width) - 1}, "
                                  f"not {v}")
             word |= v << pos
             pos += width
+        if self.op == Op.BR:
+            if any(getattr(self, name) for name in TGT_FIELDS):
+                raise ValueError(f"Instruction: a BR's {', '.join(TGT_FIELDS)} must be 0 (its "
+                                 f"target lies in their bits)")
+            if not 0 <= int(self.tgt) < (1 << PC_WIDTH):
+                raise ValueError(f"Instruction field tgt must be from 0 to "
+                                 f"{(1 << PC_WIDTH) - 1}, not {self.tgt}")
+            word |= int(self.tgt) << TGT_LO
+        elif self.tgt:
+            raise ValueError(f"Instruction: tgt only with BR, not with {Op(self.op).name}")
         return word
 
     @classmethod
@@ -175,7 +209,50 @@ class Instr:
         for name, width in FIELDS:
             values[name] = (word >> pos) & ((1 << width) - 1)
             pos += width
+        del values["spare"]
+        if values["op"] == Op.BR:
+            values["tgt"] = (word >> TGT_LO) & ((1 << PC_WIDTH) - 1)
+            values.update({name: 0 for name in TGT_FIELDS})
         return cls(**values)
+
+
+class Fetch:
+    """The engine's F and R stages as the gateware sequences them, clock by clock: what R
+    issues into X1 and how ``pc`` and R's word move on, for the interpreter
+    (:class:`~foc_servo.sim.models.engine.EngineModel`) and the timing helpers
+    (``hdl.foc_engine._paths``). R holds a word for :attr:`Instr.extra` clocks after its
+    first issue (``pc`` and the ROM held): a DIV is issued again in each, any other word
+    leaves a bubble (nothing issued). A branch taken in X1 loads ``pc`` with its target, so
+    its delay slots are the clocks R fills meanwhile: the word behind it (with its repeats or
+    bubbles) and, if that word is not held, the next one.
+
+    Parameters
+    ----------
+    instrs : list of Instr
+    start : int
+        The first word (in R in the clock before its first X1).
+    """
+
+    def __init__(self, instrs, start):
+        self.instrs = instrs
+        self.r, self.rep, self.pc = start, 0, start + 1
+
+    def copy(self):
+        f = Fetch.__new__(Fetch)
+        f.instrs, f.r, f.rep, f.pc = self.instrs, self.r, self.rep, self.pc
+        return f
+
+    def issue(self):
+        """What R issues into X1 in the next clock: ``(address, rep, bubble)`` (``rep``: the
+        clocks R has held the word before; ``bubble``: nothing is issued)."""
+        return self.r, self.rep, bool(self.rep) and self.instrs[self.r].op != Op.DIV
+
+    def step(self, target=None):
+        """One clock; ``target``: the target of a branch taken in X1 in this clock."""
+        hold = self.rep != self.instrs[self.r].extra
+        pc = target if target is not None else (self.pc if hold else self.pc + 1)
+        self.r, self.rep = (self.r, self.rep + 1) if hold else (self.pc, 0)
+        self.pc = pc
 
 
 @dataclasses.dataclass
@@ -597,10 +674,41 @@ class Assembler:
         walk([0, 1, 2], [None] * (HAZARD_TABLE - 1))
         return sorted(set(errors))
 
-    def assemble(self, *, fuse=True, schedule=True):
+    def _fold(self):
+        """NOP folding: a NOP that every path executing the word before it executes right
+        after that word becomes a bubble of it (``nb``, at most :data:`MAX_BUBBLES`; the fetch
+        holds the word in R that many clocks, issuing nothing), so the program takes the same
+        clocks on every path in fewer words. A NOP is folded into the word before it (or into
+        that word's host, when that word is a folded NOP) unless it is a label (a branch target
+        or an entry: a path may reach it without the word before), the word before it is a
+        branch's second delay slot (the NOP is then on the fall-through path only: a bubble
+        there would be on the branch path too) or an END (after which nothing executes), or
+        the host is a DIV (its ``sh`` counts repeats) or an END, or the host has
+        :data:`MAX_BUBBLES` already (the NOP then stays, a host itself). A branch may be a host
+        (its delay-slot NOPs become its bubbles: the fetch model, :class:`Fetch`)."""
+        instrs = self._instrs
+        labels = set(self._labels.values())
+        slot2 = {i + 2 for i, (f, *_r) in enumerate(instrs) if f["op"] == Op.BR}
+        out, index = [], {}
+        for i, entry in enumerate(instrs):
+            if (entry[0]["op"] == Op.NOP and out and i not in labels and i - 1 not in slot2
+                    and instrs[i - 1][0]["op"] != Op.END):
+                hf, *rest = out[-1]
+                if hf["op"] not in (Op.DIV, Op.END) and hf.get("nb", 0) < MAX_BUBBLES:
+                    out[-1] = (dict(hf, nb=hf.get("nb", 0) + 1), *rest)
+                    continue
+            index[i] = len(out)
+            out.append(entry)
+        index[len(instrs)] = len(out)
+        self._instrs = out
+        self._labels = {k: index[v] for k, v in self._labels.items()}
+
+    def assemble(self, *, fuse=True, schedule=True, fold=True):
         """The program: posts fused into the next MUL (``fuse``), straight-line code reordered
         to fill the hazard distances (``schedule``, :meth:`_schedule`; then fused again), NOPs
-        inserted where a hazard remains, every branch path checked.
+        inserted where a hazard remains, every branch path checked, then NOPs folded into the
+        word before them as its bubbles where every path is unchanged (``fold``,
+        :meth:`_fold`: the same instructions in the same clocks, fewer words).
 
         Returns
         -------
@@ -613,6 +721,8 @@ class Assembler:
             if fuse:
                 self._fuse()
         self._insert_nops()
+        if fold:
+            self._fold()
         regs = {}
         for name in self._regs:
             regs[name] = len(regs)
@@ -1025,23 +1135,30 @@ class Engine(wiring.Component):
         # write addresses always differ).
         dl_n = Signal(2)
         m.d.sync += dl_n.eq(dl_n + 1)
-        # R's DIV decode and repeat test as kept wires (yosys ``keep``), one and two LUT levels
+        # R's DIV decode and repeat tests as kept wires (yosys ``keep``), one and two LUT levels
         # behind the ROM: without them abc mapped the decode as a chain of four LUTs shared
         # with the delay line's fields, in front of ``hold`` and ``pc`` (``foc_engine_speed``
-        # seed 3: ROM → pc 33.8 ns, 29.6 MHz; AREA.md §7.74).
+        # seed 3: ROM → pc 33.8 ns, 29.6 MHz; AREA.md §7.74). ``r_nb``: the bubbles of a word
+        # not yet all made (``rep_k`` < ``nb`` ≤ 3: two bits), one LUT level.
         r_div = Signal(attrs={"keep": 1})
         r_rep = Signal(attrs={"keep": 1})
+        r_nb = Signal(attrs={"keep": 1})
         rep_k = Signal(5)
-        m.d.comb += [r_div.eq(ir1.op == Op.DIV), r_rep.eq(rep_k != ir1.sh)]
+        m.d.comb += [r_div.eq(ir1.op == Op.DIV), r_rep.eq(rep_k != ir1.sh),
+                     r_nb.eq(rep_k[:len(ir1.nb)] != ir1.nb)]
         ir3 = _delay_line(m, "x3_delay", dl_n, 2,          # the fields of the instruction in X3
                           {"sh": ir1.sh, "acc": ir1.acc, "mul": ir1.op == Op.MUL,
                            "div": r_div, "end": ir1.op == Op.END})
         # A repeated DIV (``sh`` = repeats, :meth:`Assembler.div`): held in R (the ROM's read
         # enable low, ``pc`` held) until it has been issued ``sh + 1`` times, one per clock.
+        # Any other word with bubbles (``nb``, NOP folding: :meth:`Assembler._fold`) is held
+        # in R ``nb`` clocks after its issue likewise, issuing nothing (``r_bub``: R's word is
+        # a bubble; X1 invalid: no flag, branch, END, write back, P update or output).
         hold = Signal()
-        m.d.comb += [hold.eq(r_valid & r_div & r_rep),
+        r_bub = Signal()
+        m.d.comb += [hold.eq(r_valid & Mux(r_div, r_rep, r_nb)),
                      rom_r.en.eq(~hold)]
-        m.d.sync += rep_k.eq(Mux(hold, rep_k + 1, 0))
+        m.d.sync += [rep_k.eq(Mux(hold, rep_k + 1, 0)), r_bub.eq(hold & ~r_div)]
 
         # --- Angle register, sine table, kd, fold flags ----------------------------------------------
         aw, mb, n, ft = rot.angle_width, rot.interp_bits, rot.table_bits, rot.table_frac
@@ -1388,12 +1505,12 @@ class Engine(wiring.Component):
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & ir3.end)
         m.d.sync += [self.running.eq(Mux(self.running, ~halt, self.start)),
-                     r_valid.eq(self.running & ~halt), x_valid.eq(r_valid & ~halt)]
+                     r_valid.eq(self.running & ~halt), x_valid.eq(r_valid & ~halt & ~r_bub)]
         pc_run = Signal(PC_WIDTH)
         m.d.comb += pc_run.eq(pc)
         with m.If(self.running & ~halt):
             with m.If(execute & (ir.op == Op.BR) & c):
-                m.d.comb += pc_run.eq(ir.tgt)
+                m.d.comb += pc_run.eq(ir.as_value()[TGT_LO:TGT_LO + PC_WIDTH])
             with m.Elif(~hold):
                 m.d.comb += pc_run.eq(pc + 1)
         m.d.comb += pc_next.eq(Mux(self.start & ~self.running, self.start_pc, pc_run))

@@ -32,13 +32,15 @@ TC span must be 27 bits (:data:`MT_ENGINE_PARAMS`; the iCEBreaker top has 28 tod
 magnitude of the last output.
 """
 
-from amaranth.hdl import unsigned
+from amaranth.hdl import signed, unsigned
 
 from .engine import MUL_B, Assembler, Op
 from .foc_engine import DUTY_CLOCKS, START_CLOCKS, _clocks, _paths
 
 __all__ = ["MT_SPECIALS", "MT_SHAPES", "MT_OUTS", "MT_STATE", "MT_ENGINE_PARAMS", "MT_SAT",
-           "mt_arith", "mt_program", "mt_operands", "mt_k_slices", "mt_run_timing"]
+           "MT_RUN_SPECIALS", "MT_RUN_SHAPES", "MT_CONFIG_WORDS", "MT_K_FORMS",
+           "mt_arith", "mt_program", "mt_operands", "mt_k_slices", "mt_k_words",
+           "mt_run_timing"]
 
 #: The MTSpeed parameters the piece is written for (the iCEBreaker top's, but the TC span:
 #: 27 bits, the ``DIV`` divisor's limit).
@@ -51,6 +53,22 @@ MT_SPECIALS = ("mtm", "mtd", "mts", "mtb", "mkl", "mkh")
 MT_SHAPES = {"mtm": unsigned(MT_ENGINE_PARAMS["m_width"]),
              "mtd": unsigned(MT_ENGINE_PARAMS["tc_width"]), "mts": unsigned(1),
              "mtb": unsigned(1), "mkl": unsigned(24), "mkh": unsigned(24)}
+#: ``k`` as the piece takes it (:func:`mt_arith` ``k``): ``"slices"`` the specials ``mkl``,
+#: ``mkh`` (24 bits each, wiring); ``"words"`` the register file's two export words of the
+#: 48-bit ``mt_k`` as configuration words of the engine's RAM (:data:`MT_CONFIG_WORDS`), which
+#: the piece splits itself.
+MT_K_FORMS = ("slices", "words")
+#: ``k="words"``: the configuration words (the register file's export words of ``mt_k``,
+#: :func:`mt_k_words`): ``mtk0`` = k[0:32] (read sign-extended from 32 bits, as the
+#: engine's 32-bit configuration RAM gives it), ``mtk1`` = k[32:48].
+MT_CONFIG_WORDS = ("mtk0", "mtk1")
+#: The specials of the run on the loop engine (``EngineCurrentLoop(mt=True)``): the window's
+#: four operands (ports: one key each, 4 of the ROM's 31; ``mts`` and ``mtb`` are 1-bit lines
+#: of the special select) and ``k``'s two configuration words (the configuration key).
+MT_RUN_SPECIALS = ("mtm", "mtd", "mts", "mtb") + MT_CONFIG_WORDS
+#: Their shapes.
+MT_RUN_SHAPES = {**{n: MT_SHAPES[n] for n in MT_RUN_SPECIALS[:4]}, "mtk0": signed(32),
+                 "mtk1": unsigned(16)}
 #: Its output register: the signed speed, Q1.31 of N_M.
 MT_OUTS = {"ang": 16, "mtspd": 32}
 #: The register that holds state from one update to the next: ``|last output|``.
@@ -65,6 +83,14 @@ def mt_k_slices(k):
     if not isinstance(k, int) or isinstance(k, bool) or not 0 <= k < 1 << 48:
         raise ValueError(f"M/T k must be an integer from 0 to 2**48 − 1, not {k!r}")
     return {"mkl": k & ((1 << 24) - 1), "mkh": k >> 24}
+
+
+def mt_k_words(k):
+    """``k`` (unsigned, 48 bits) as the configuration words ``mtk0`` (k[0:32] as the engine
+    reads it: sign-extended from 32 bits) and ``mtk1`` (k[32:48])."""
+    mt_k_slices(k)                                      # (checks k)
+    lo = k & 0xFFFFFFFF
+    return {"mtk0": lo - (1 << 32) if lo >> 31 else lo, "mtk1": k >> 32}
 
 
 def mt_operands(mode, dm, dt, last):
@@ -104,22 +130,41 @@ def mt_operands(mode, dm, dt, last):
     return {"mtm": m, "mtd": d, "mts": s, "mtb": int(mode == BOUND)}
 
 
-def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False):
+def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False, k="slices"):
     """Emit the M/T piece (module docstring) without an END into the assembler ``A`` (its
     specials :data:`MT_SPECIALS`, its output ``out``): temporaries and labels carry
     ``prefix``; the state register is ``r.mt_pm``; ``dst``: a register that takes the
     speed too (for a program that goes on with it). ``branches``: the saturated case takes a
     branch around the division (shorter there, but the piece is then three straight-line
     regions); else it runs the division on 0 / 1 and selects the saturated value after it
-    (one region, which the assembler can interleave with other straight-line code)."""
+    (one region, which the assembler can interleave with other straight-line code).
+    ``k``: :data:`MT_K_FORMS` — ``"words"`` reads ``k`` as the configuration words
+    :data:`MT_CONFIG_WORDS` and forms the slices in the register file (5 instructions more,
+    no new constant: the engine's guard shift ``asl`` must be 8)::
+
+        t = floor(L / 2**24)  (L = mtk0, signed: −128 … 127; N: L < 0)
+        mkl = L − t·2**24 = k mod 2**24     (the product t·2**25 posted >> 1)
+        mkh = mtk1·2**8 + t + (256 if L < 0)"""
+    if k not in MT_K_FORMS:
+        raise ValueError(f"M/T piece k must be one of {MT_K_FORMS}, not {k!r}")
     # Five temporaries, each value in the first one free (by the written order; the
     # scheduler keeps every read before the next write of a register).
     slot = dict(kl="a", c24="a", sg="a", sv="a", kh="b", khs="b", q1="b", mm="b", c16="c",
-                c16s="c", q2="c", nm="c", d="d", ds="d", q="d", lo="e", los="e", qd="e")
+                c16s="c", q2="c", nm="c", d="d", ds="d", q="d", lo="e", los="e", qd="e",
+                t8="f", c8="g", u="h", x="c")
     r = lambda name: f"r.{prefix}{slot[name]}"                            # noqa: E731
     sat, done = prefix + "sat", prefix + "out"
-    A.alu(Op.ADD, r("kl"), "s.mkl", 0)
-    A.alu(Op.ADD, r("kh"), "s.mkh", 0)
+    if k == "slices":
+        A.alu(Op.ADD, r("kl"), "s.mkl", 0)
+        A.alu(Op.ADD, r("kh"), "s.mkh", 0)
+    else:
+        A.alu(Op.ADD, r("t8"), "s.mtk0", 0, sh=24, setf=True)    # N: L < 0 (k bit 31)
+        A.alu(Op.SEL, r("c8"), 0, 256, cond="N")
+        A.mul(r("t8"), 1 << 25)
+        A.post(r("u"), 1, rnd=False)                            # t·2**24
+        A.alu(Op.SUB, r("kl"), "s.mtk0", r("u"))
+        A.alu(Op.ADD, r("x"), "s.mtk1", r("t8"), asl=True)
+        A.alu(Op.ADD, r("kh"), r("x"), r("c8"))
     A.alu(Op.ADD, r("d"), "s.mtd", 0)
     A.mul("s.mtm", r("kl"))                         # P1 = mkl·m < 2**39
     A.post(r("c24"), 24, rnd=False)
@@ -127,7 +172,11 @@ def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False):
     A.alu(Op.ADD, r("lo"), "s.PQ", 0)               # N mod 2**16 = P1 mod 2**16
     A.mul("s.mtm", r("kh"))
     A.mac(1, r("c24"))                              # G = floor(N / 2**24)
-    A.mac(1 << 7, r("d"), neg=True)                 # G − 2**7·D
+    if k == "slices":
+        A.mac(1 << 7, r("d"), neg=True)             # G − 2**7·D
+    else:                                           # (the same, without the constant 128)
+        A.mac(1 << 6, r("d"), neg=True)
+        A.mac(1 << 6, r("d"), neg=True)
     A.post(r("sg"), 31, rnd=False)                  # < 0 iff not saturated
     A.alu(Op.ADD, None, r("sg"), 0, setf=True)     # N: not saturated
     if branches:
@@ -175,11 +224,13 @@ def mt_arith(A, *, out="mtspd", dst=None, prefix="mt_", branches=False):
     A.alu(Op.SEL, dst, r("mm"), r("nm"), cond="N", out=out)
 
 
-def mt_program(*, fuse=True, schedule=True, branches=False):
+def mt_program(*, fuse=True, schedule=True, branches=False, k="slices"):
     """The M/T piece alone as a program (:func:`mt_arith`, then END): the prototype the
-    interpreter runs (:class:`~foc_servo.sim.models.engine_mt.EngineMTModel`)."""
-    A = Assembler(specials=MT_SPECIALS, conds=(), outs=tuple(MT_OUTS))
-    mt_arith(A, branches=branches)
+    interpreter runs (:class:`~foc_servo.sim.models.engine_mt.EngineMTModel`); ``k="words"``
+    with the specials :data:`MT_RUN_SPECIALS` (the run's in ``EngineCurrentLoop(mt=True)``)."""
+    A = Assembler(specials=MT_SPECIALS if k == "slices" else MT_RUN_SPECIALS, conds=(),
+                  outs=tuple(MT_OUTS))
+    mt_arith(A, branches=branches, k=k)
     A.end()
     return A.assemble(fuse=fuse, schedule=schedule)
 

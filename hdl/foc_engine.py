@@ -27,7 +27,7 @@ from amaranth.lib.wiring import In, Out
 
 from .bus import WordWriteSignature
 from .dsp import saturate_bits
-from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Op
+from .engine import SAT_W, SAT_W1, WRITE_DELAY, Assembler, Engine, Fetch, Op
 from .fixed import Q, UQ, check_bool, check_choice, round_shift_plain
 from .foc import ADC_CHANNELS, FF_FORMAT, SPEED_WIDTH, sample_handshake
 from .rotator import RotatorParams
@@ -274,16 +274,23 @@ def _lead_lim(A, gain_limit_raw):
 
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
-                         schedule=True, speed=False, refs=False):
+                         schedule=True, fold=True, speed=False, refs=False,
+                         mt=False):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
-    straight-line code (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
+    straight-line code, ``fold`` fold NOPs into the word before them as its bubbles
+    (:meth:`Assembler.assemble`). ``speed``: the speed-loop run
     (:func:`speed_loop_program`) follows at the label ``speed`` (its entry), its temporaries in
     the current loop's registers (:data:`CURRENT_STATE` excepted), its specials, conditions
     and outputs after the current loop's (whose words are then the same but for the constants'
     addresses); the plan's step 2 (docs/ENGINE.md). ``refs`` (with ``speed``): the current
     references from the configuration words and the speed run's result
-    (:data:`REF_SPECIALS`; ``EngineCurrentLoop(refs="ram")``).
+    (:data:`REF_SPECIALS`; ``EngineCurrentLoop(refs="ram")``). ``mt``: M/T speed's arithmetic
+    (:func:`~.engine_mt.mt_arith`, ``k="words"``) as the run at the label ``mt``, after the
+    others, its temporaries in the current loop's registers (:data:`CURRENT_STATE` excepted),
+    its state ``mt_pm`` a register of its own, its specials
+    (:data:`~.engine_mt.MT_RUN_SPECIALS`) and output ``mtspd`` after the others'
+    (``EngineCurrentLoop(mt=True)``; docs/AREA.md §7.64, §7.82).
 
     Returns
     -------
@@ -295,13 +302,18 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     if refs and not speed:
         raise ValueError("engine program: refs needs speed (the i_q limits and the speed run's "
                          "i_q reference)")
+    from .engine_mt import MT_OUTS, MT_RUN_SPECIALS
+    mt_outs = tuple(o for o in MT_OUTS if o not in OUTS) if mt else ()
+    mt_specials = MT_RUN_SPECIALS if mt else ()
     if speed:
         outs = tuple(OUTS) + tuple(o for o in SPEED_OUTS if o not in OUTS)
         outs += tuple(REF_OUTS) if refs else ()
-        A = Assembler(specials=SPECIALS + SPEED_SPECIALS + (REF_SPECIALS if refs else ()),
-                      bspecials=BSPECIALS, conds=CONDS + SPEED_CONDS, outs=outs)
+        A = Assembler(specials=(SPECIALS + SPEED_SPECIALS + (REF_SPECIALS if refs else ())
+                                + mt_specials),
+                      bspecials=BSPECIALS, conds=CONDS + SPEED_CONDS, outs=outs + mt_outs)
     else:
-        A = Assembler(specials=SPECIALS, bspecials=BSPECIALS, conds=CONDS, outs=tuple(OUTS))
+        A = Assembler(specials=SPECIALS + mt_specials, bspecials=BSPECIALS, conds=CONDS,
+                      outs=tuple(OUTS) + mt_outs)
     A.guard = int_guard
     A.reg("dcg", init=1 << DCBUS_GAIN_FRAC)             # the DC-bus gain, UQ2.16: 1.0 at power-up
     # Clarke constants (sim/models/clarke.py) and SVPWM constants (svpwm.py, width w + 1).
@@ -457,45 +469,62 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     A.br("!F", "inv")
     A.alu(Op.ADD, "r.ep_d", 0, 0)                 # delay slots: nothing at inv reads these
     A.alu(Op.ADD, "r.ep_q", 0, 0)
+    pool = [r for r in A._regs if r not in CURRENT_STATE]
     if speed:
-        pool = [r for r in A._regs if r not in CURRENT_STATE]
+        # (mt: the speed run reads M/T's speed from the register the M/T run writes it to,
+        # ``mt_spd``, as it writes the output ``mtspd``: no special line for ``spd``)
         A.label("speed")
-        _speed_loop(_Renamed(A, pool))
+        _speed_loop(_Renamed(A, pool, subst={"s.spd": "r.mt_spd"} if mt else None))
         A.end()
-    return A.assemble(fuse=fuse, schedule=schedule)
+    if mt:
+        from .engine_mt import MT_STATE, mt_arith
+        A.label("mt")
+        mt_arith(_Renamed(A, pool, prefix="", state=MT_STATE + ("mt_spd",)), prefix="",
+                 k="words", dst="r.mt_spd" if speed else None)
+        A.end()
+    return A.assemble(fuse=fuse, schedule=schedule, fold=fold)
 
 
 def _paths(program, start=0):
     """Every path through ``program`` from ``start`` (it has no loops; each branch taken or
-    not, delay slots counted): the executed addresses, in order, one list per path."""
+    not, delay slots counted): the executed addresses, in order, one list per path (a word
+    once, however many clocks it takes: :func:`_clocks`). The fetch as the gateware's
+    (:class:`~.engine.Fetch`: a branch's delay slots are the clocks after it, which a word
+    with repeats or bubbles fills alone)."""
     instrs = program.instrs
     paths = []
 
-    def walk(queue, trail):
-        queue = list(queue)
-        trail = list(trail)
+    def walk(fetch, issue, trail):
         while True:
-            pc = queue.pop(0)
+            pc, rep, _ = issue
             ins = instrs[pc]
-            trail.append(pc)
-            if ins.op == Op.END:
-                paths.append(trail)
-                return
-            nxt = queue[-1] + 1
-            if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
-                always = ins.cond == 0 and ins.inv
-                walk(queue + [ins.tgt], trail)
-                if always:
+            taken = None
+            if not rep:
+                trail.append(pc)
+                if ins.op == Op.END:
+                    paths.append(trail)
                     return
-            queue.append(nxt)
+                if ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
+                    taken = fetch.copy()
+            issue = fetch.issue()
+            if taken is not None:
+                taken.step(ins.tgt)
+                walk(taken, issue, list(trail))
+                if ins.cond == 0 and ins.inv:       # always taken
+                    return
+            fetch.step()
 
-    walk([start, start + 1, start + 2], [])
+    fetch = Fetch(instrs, start)
+    issue = fetch.issue()
+    fetch.step()
+    walk(fetch, issue, [])
     return paths
 
 
 def _clocks(ins):
-    """Clocks (issues) of one instruction word: a repeated DIV ``sh + 1``, else 1."""
-    return ins.sh + 1 if ins.op == Op.DIV else 1
+    """Clocks (of the execute stage) of one instruction word: a repeated DIV ``sh + 1``, a word
+    with bubbles (folded NOPs) ``nb + 1``, else 1 (:attr:`~.engine.Instr.clocks`)."""
+    return ins.clocks
 
 
 def path_lengths(program):
@@ -516,7 +545,8 @@ def duty_lengths(program):
         writes = [k for k, pc in enumerate(path) if instrs[pc].out == dc]
         if not writes:
             raise ValueError("engine program: a path without a write of the duty dc")
-        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1] + 1]))
+        # (The writer's own issue, not its bubbles: a duty is never written by a DIV.)
+        counts.add(sum(_clocks(instrs[pc]) for pc in path[:writes[-1]]) + 1)
     return sorted(counts)
 
 
@@ -629,6 +659,8 @@ def speed_run_timing(program):
     up, dn = program.labels[prefix + "up"], program.labels[prefix + "dn"]
     outs = program.outs
     spd = program.specials.index("spd")
+    # (current_loop_program(mt=True): the run reads the M/T run's register mt_spd instead)
+    spd_reg = program.regs.get("mt_spd")
     timing = {}
     for path in _paths(program, start):
         kind = "up" if up in path else "dn" if dn in path else "none"
@@ -637,7 +669,7 @@ def speed_run_timing(program):
             ins = program.instrs[pc]
             if ins.out and outs[ins.out] in ("ref_int", "iq", "sat"):
                 at[outs[ins.out]] = k
-            if ins.asp and ins.a == spd:
+            if (ins.asp and ins.a == spd) or (not ins.asp and ins.a == spd_reg):
                 reads.append(k)
             k += _clocks(ins)
         if not at.get("sat", k) < at.get("iq", -1) or "ref_int" not in at:
@@ -734,6 +766,21 @@ class EngineCurrentLoop(wiring.Component):
         written in the same clocks (word ``j`` = ``STATUS[j]``, 0 at power-up; a domain reset
         does not clear it, where it clears the registers), read through two synchronous
         read ports in place of those members (``status_rd``, ``status_probe``, below).
+    mt : bool
+        M/T speed's multiply and divide as the engine's run ``mt`` (needs ``config="ram"``;
+        ``current_loop_program(mt=True)``, :func:`~.engine_mt.mt_arith` with ``k="words"``;
+        docs/AREA.md §7.64, §7.82): the window's operands on ``mt_run`` (``MTSpeed(arith=
+        "engine")``'s ``run``: ``valid`` requests the run, the payload the specials ``mtm``,
+        ``mtd``, ``mts``, ``mtb``, read while it runs), ``k`` as the configuration RAM's last two
+        words (:data:`~.engine_mt.MT_CONFIG_WORDS`: the register file's export words of
+        ``mt_k``), the result on ``mt_res`` (the output register ``mtspd`` and its write
+        strobe). Start arbitration: a current-loop sample first, then the M/T run, then (with
+        ``speed``) a speed run; a request that finds the engine running waits for its END (an
+        M/T request behind a current-loop program, at most :attr:`interval` clocks; a sample
+        behind an M/T run, its ``length``, which :attr:`sample_hold` includes). With ``speed``
+        the speed run reads M/T's speed from the register the M/T run writes it to
+        (``mt_spd``), not from the ``speed`` port: the same value, since a speed run starts
+        at M/T's strobe after the M/T run that wrote it.
 
     Status RAM (``status="ram"``): two block RAMs of ``len(STATUS)`` words of ``width``
     bits, one per read port, written together at the engine's output writes (the registers'
@@ -783,13 +830,18 @@ class EngineCurrentLoop(wiring.Component):
     speed_read : int or None
         ``speed=True``: clocks from a speed run's start to the clock in which the program
         samples ``speed`` (worst case over the profile paths; :func:`speed_run_timing`).
+    mt_mode : bool
+        The ``mt`` parameter.
+    mt_timing, mt_latency : list, int or None
+        ``mt=True``: :func:`~.engine_mt.mt_run_timing` of the program and its worst latency.
     program : Program
     """
 
     def __init__(self, *, width=16, adc_width=16, angle_width=16, count_width=16,
                  rotator="table", iterations_per_stage=3, clarke_gain_format=Q(18, 15),
                  kp_format=UQ(16, 8), kx_format=UQ(16, 16), int_guard=8, gain_limit=2.0,
-                 config="ports", config_init=None, status="ports", speed=False, refs="ports"):
+                 config="ports", config_init=None, status="ports", speed=False, refs="ports",
+                 mt=False):
         defaults = (("width", width, 16), ("adc_width", adc_width, 16),
                     ("angle_width", angle_width, 16), ("count_width", count_width, 16),
                     ("clarke_gain_format", clarke_gain_format, Q(18, 15)),
@@ -824,8 +876,15 @@ class EngineCurrentLoop(wiring.Component):
                              f"mode's i_q the speed run's), not config={config!r}, "
                              f"speed={speed!r}")
         self._refs = refs
+        from .engine_mt import MT_CONFIG_WORDS, mt_run_timing
+        check_bool("EngineCurrentLoop", "mt", mt)
+        if mt and config != "ram":
+            raise ValueError(f"EngineCurrentLoop mt=True needs config='ram' (M/T's k is two "
+                             f"words of its configuration RAM), not config={config!r}")
+        self._mt = mt
         n_config = (len(CONFIG) + (len(REF_CONFIG_WORDS) if refs == "ram" else 0)
-                    + (len(SPEED_CONFIG_WORDS) if speed else 0))
+                    + (len(SPEED_CONFIG_WORDS) if speed else 0)
+                    + (len(MT_CONFIG_WORDS) if mt else 0))
         if config_init is not None and config != "ram":
             raise ValueError(f"EngineCurrentLoop config_init applies only to config='ram', "
                              f"not config={config!r}")
@@ -837,14 +896,16 @@ class EngineCurrentLoop(wiring.Component):
         check_choice("EngineCurrentLoop", "status", status, STATUSES)
         self._status = status
         self._status_mems = {}                  # status="ram": made by elaborate()
+        self._engine = None                     # made by elaborate()
         self._config = config
         self._config_init = list(config_init) if config_init is not None else [0] * n_config
         self._rot = RotatorParams(width=width, angle_width=angle_width, tag_width=1)
         self._program = current_loop_program(rotator=self._rot, gain_limit_raw=limit_raw,
-                                             speed=speed, refs=refs == "ram")
+                                             speed=speed, refs=refs == "ram", mt=mt)
         #: The status RAM's words (``status="ram"``).
         self._status_words = STATUS + (REF_STATUS if refs == "ram" else ())
         self._speed_timing = speed_run_timing(self._program) if speed else None
+        self._mt_timing = mt_run_timing(self._program) if mt else None
         self._latencies = [n + DUTY_CLOCKS for n in duty_lengths(self._program)]
         self._interval = max(path_lengths(self._program)) + START_CLOCKS
         self._phase_latency = phase_latency(self._program)
@@ -855,6 +916,8 @@ class EngineCurrentLoop(wiring.Component):
         wait = self._interval - min(self._latencies)
         if speed:
             wait = max([wait] + [START_CLOCKS + t["length"] for t in self._speed_timing.values()])
+        if mt:      # ... or an M/T run (``length`` counts its START_CLOCKS)
+            wait = max([wait] + [length for _, length in self._mt_timing])
         self._sample_hold = wait + self._sample_read
         self._status_quiet = status_quiet(self._program,
                                           self._status_words if status == "ram" else STATUS)
@@ -890,6 +953,14 @@ class EngineCurrentLoop(wiring.Component):
                 "speed_o": Out(stream.Signature(sw, always_ready=True)),
                 "speed_sat": Out(1), "speed_ref_int": Out(signed(sp["speed_width"])),
             }
+        if mt:
+            from .mt_speed import RUN_LAYOUT
+            from .engine_mt import MT_ENGINE_PARAMS
+            speed_ports["mt_run"] = In(stream.Signature(
+                RUN_LAYOUT(MT_ENGINE_PARAMS["tc_width"], MT_ENGINE_PARAMS["m_width"]),
+                always_ready=True))
+            speed_ports["mt_res"] = Out(stream.Signature(
+                signed(MT_ENGINE_PARAMS["out_width"]), always_ready=True))
         if status == "ram":
             rd = ReadPort.Signature(addr_width=(len(STATUS) - 1).bit_length(), shape=sw)
             probe = ReadPort.Signature(addr_width=(len(self._status_words) - 1).bit_length(),
@@ -935,6 +1006,16 @@ class EngineCurrentLoop(wiring.Component):
     status_quiet = property(lambda self: self._status_quiet)
     status_mode = property(lambda self: self._status)
     speed_mode = property(lambda self: self._speed)
+    mt_mode = property(lambda self: self._mt)
+    #: ``mt=True``: :func:`~.engine_mt.mt_run_timing` of the program (``(latency, length)``
+    #: per path: clocks from the M/T run's start to ``mt_res.valid``'s result in place, and to
+    #: the engine's next start); else None.
+    mt_timing = property(lambda self: None if self._mt_timing is None
+                         else list(self._mt_timing))
+    #: ``mt=True``: clocks from an M/T run's start to its result in place (``mt_res.valid`` is
+    #: high in the clock before: the write), worst case; else None.
+    mt_latency = property(lambda self: None if self._mt_timing is None
+                          else max(lat for lat, _ in self._mt_timing))
     refs_mode = property(lambda self: self._refs)
     #: The status RAM's words (``status="ram"``: :data:`STATUS`, with ``refs="ram"`` then
     #: :data:`REF_STATUS`).
@@ -952,6 +1033,9 @@ class EngineCurrentLoop(wiring.Component):
                              else max(t["latency"] for t in self._speed_timing.values()))
     speed_read = property(lambda self: None if self._speed_timing is None
                           else max(t["speed_read"] for t in self._speed_timing.values()))
+    #: The :class:`~.engine.Engine` of the last elaboration, for a testbench (its trace
+    #: port); ``None`` before it.
+    engine = property(lambda self: self._engine)
     #: ``status="ram"``: the status RAM of the last elaboration (word ``j``: ``STATUS[j]``),
     #: for a testbench; ``None`` before it and with ``"ports"``.
     status_memory = property(lambda self: self._status_mems.get("status_rd"))
@@ -986,6 +1070,11 @@ class EngineCurrentLoop(wiring.Component):
             shapes.update({name: sw for name in REF_SPECIALS})
             outs.update(REF_OUTS)
             strobe_outs += tuple(REF_OUTS)
+        if self._mt:
+            from .engine_mt import MT_CONFIG_WORDS, MT_OUTS, MT_RUN_SHAPES
+            shapes.update(MT_RUN_SHAPES)
+            outs.update({k: v for k, v in MT_OUTS.items() if k not in OUTS})
+            config = config + MT_CONFIG_WORDS
         m.submodules.engine = eng = Engine(program=self._program, special_shapes=shapes,
                                            out_widths=outs, width=w, guard=8,
                                            div_bits=16, rotator=self._rot,
@@ -993,6 +1082,7 @@ class EngineCurrentLoop(wiring.Component):
                                            config_init=self._config_init if ram else None,
                                            config_slices=SPEED_SLICES if spd else None,
                                            strobe_outs=strobe_outs)
+        self._engine = eng
 
         # --- Trigger, busy, overrun, loop counter (as CurrentLoop) ------------------------------
         # The duties are valid from the program's write of the last one (``dc``); the program
@@ -1046,10 +1136,15 @@ class EngineCurrentLoop(wiring.Component):
             m.d.comb += getattr(eng, f"s_{name}").eq(sig)
         m.d.comb += [eng.c_RUN.eq(run), eng.c_OL.eq(ol), eng.c_FF.eq(ff),
                      self.dc_limited.eq(eng.o_lim)]
+        cur_go = accept | pending
+        mt_go = self._mt_run(m, eng, cur_go) if self._mt else None
         if spd:
-            self._speed_run(m, eng, accept | pending)
+            self._speed_run(m, eng, cur_go, mt_go)
+        elif mt_go is not None:
+            m.d.comb += [eng.start.eq(cur_go | mt_go),
+                         eng.start_pc.eq(Mux(mt_go, self._program.labels["mt"], 0))]
         else:
-            m.d.comb += eng.start.eq(accept | pending)
+            m.d.comb += eng.start.eq(cur_go)
 
         # --- Outputs --------------------------------------------------------------------------------
         m.d.comb += [
@@ -1067,7 +1162,25 @@ class EngineCurrentLoop(wiring.Component):
         m.d.sync += self.phase.valid.eq(eng.o_pc_we)
         return m
 
-    def _speed_run(self, m, eng, cur_go):
+    def _mt_run(self, m, eng, cur_go):
+        """``mt=True``: M/T's run (class docstring, *M/T speed*): its request, held while the
+        engine runs or a current-loop sample starts (the sample has priority, then the M/T
+        run, then a speed run), its operands (``mt_run.payload``, held by M/T from the request
+        on) and its result. Returns the run's start."""
+        req = Signal()          # a run requested, waiting for the engine
+        go = Signal()
+        run = self.mt_run
+        m.d.comb += go.eq((run.valid | req) & ~cur_go & ~eng.running)
+        with m.If(go):
+            m.d.sync += req.eq(0)
+        with m.Elif(run.valid):
+            m.d.sync += req.eq(1)
+        m.d.comb += [eng.s_mtm.eq(run.payload.m), eng.s_mtd.eq(run.payload.d),
+                     eng.s_mts.eq(run.payload.s), eng.s_mtb.eq(run.payload.b),
+                     self.mt_res.payload.eq(eng.o_mtspd), self.mt_res.valid.eq(eng.o_mtspd_we)]
+        return go
+
+    def _speed_run(self, m, eng, cur_go, mt_go=None):
         """``speed=True``: the speed run beside the current loop's samples (class docstring,
         *Speed loop*): request, decimation, start arbitration, the state the program keeps
         outside the engine (``ref_int``, ``fresh``), the abort of a run in flight at
@@ -1093,11 +1206,19 @@ class EngineCurrentLoop(wiring.Component):
         abort = Signal(2)       # aborted runs whose iq is still to come (their writes gated)
         new = Signal()
         go = Signal()
-        m.d.comb += [new.eq(self.speed_valid & (count == 0) & ~clear & ~req & ~fl),
-                     go.eq((new | req) & ~cur_go & ~eng.running & ~clear)]
-        # The current loop's sample has priority (its duties are due at the period boundary).
-        m.d.comb += [eng.start.eq(cur_go | go),
-                     eng.start_pc.eq(Mux(go, self._program.labels["speed"], 0))]
+        m.d.comb += new.eq(self.speed_valid & (count == 0) & ~clear & ~req & ~fl)
+        # The current loop's sample has priority (its duties are due at the period boundary),
+        # then (mt=True) M/T's run.
+        labels = self._program.labels
+        if mt_go is None:
+            m.d.comb += [go.eq((new | req) & ~cur_go & ~eng.running & ~clear),
+                         eng.start.eq(cur_go | go),
+                         eng.start_pc.eq(Mux(go, labels["speed"], 0))]
+        else:
+            m.d.comb += [go.eq((new | req) & ~cur_go & ~mt_go & ~eng.running & ~clear),
+                         eng.start.eq(cur_go | mt_go | go),
+                         eng.start_pc.eq(Mux(go, labels["speed"],
+                                             Mux(mt_go, labels["mt"], 0)))]
         with m.If(clear | go):
             m.d.sync += req.eq(0)
         with m.Elif(new):
@@ -1194,7 +1315,7 @@ class EngineCurrentLoop(wiring.Component):
 # --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
 
 
-def speed_loop_program(*, schedule=True):
+def speed_loop_program(*, schedule=True, fold=True):
     """Assemble a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
     the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
     reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
@@ -1203,7 +1324,7 @@ def speed_loop_program(*, schedule=True):
     file), the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three runs before
     the last), and the speed PI with the feed-forward (:func:`_speed_pi`) → the ``iq`` and
     ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
-    ``int_guard`` 16 (the top's).
+    ``int_guard`` 16 (the top's). ``schedule``, ``fold``: as for :meth:`Assembler.assemble`.
 
     In the profile every value stays within the 32-bit ``WORD``: a difference of two 32-bit
     values (33 bits) is only compared (the ALU's flags are those of its 33-bit sum) or halved;
@@ -1218,23 +1339,27 @@ def speed_loop_program(*, schedule=True):
     A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
     _speed_loop(A)
     A.end()
-    return A.assemble(schedule=schedule)
+    return A.assemble(schedule=schedule, fold=fold)
 
 
 class _Renamed:
-    """The speed loop's emitter on another program's assembler: its temporaries take that
-    program's registers ``pool`` (in order, then new ones), its state registers
-    (:data:`SPEED_STATE`) and labels get the prefix ``spd_``."""
+    """A run's emitter on another program's assembler: its temporaries take that program's
+    registers ``pool`` (in order, then new ones), its state registers (``state``: the speed
+    loop's :data:`SPEED_STATE`) and labels get the prefix ``prefix`` (``spd_``); ``subst``:
+    operands read in place of others (e.g. a register for a special)."""
 
-    def __init__(self, asm, pool):
+    def __init__(self, asm, pool, *, prefix="spd_", state=SPEED_STATE, subst=None):
         self._asm, self._pool, self._map = asm, list(pool), {}
+        self._prefix, self._state, self._subst = prefix, tuple(state), dict(subst or {})
 
     def _r(self, x):
+        if isinstance(x, str) and x in self._subst:
+            return self._subst[x]
         if not isinstance(x, str) or not x.startswith("r."):
             return x
         name = x[2:]
         if name not in self._map:
-            self._map[name] = ("spd_" + name if name in SPEED_STATE or not self._pool
+            self._map[name] = (self._prefix + name if name in self._state or not self._pool
                                else self._pool.pop(0))
         return "r." + self._map[name]
 
@@ -1250,11 +1375,14 @@ class _Renamed:
     def post(self, dst, sh=0, **kw):
         return self._asm.post(self._r(dst), sh, **kw)
 
+    def div(self, b, steps=1):
+        return self._asm.div(self._r(b), steps)
+
     def br(self, cond, label):
-        return self._asm.br(cond, "spd_" + label)
+        return self._asm.br(cond, self._prefix + label)
 
     def label(self, name):
-        return self._asm.label("spd_" + name)
+        return self._asm.label(self._prefix + name)
 
     def nop(self):
         return self._asm.nop()

@@ -44,10 +44,11 @@ from amaranth.lib import data, stream, wiring
 from amaranth.lib import enum as lib_enum
 from amaranth.lib.wiring import In, Out
 
-from .fixed import check_bool, check_param
+from .fixed import check_bool, check_choice, check_param
 from .regmap import MT_EDGES_PER_LINE
 
-__all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout"]
+__all__ = ["MTSpeed", "EDGE_LAYOUT", "EdgeMode", "WindowMode", "output_layout", "ARITHS",
+           "RUN_LAYOUT"]
 
 
 #: One counted encoder edge: ``step`` is a 1-clock strobe, ``neg`` its direction (1 = count −1).
@@ -69,6 +70,19 @@ class WindowMode(lib_enum.Enum, shape=2):
     STOPPED = 0     # no valid reference or no measurement since the last expiry: 0, stopped
     BOUND = 1       # window open, no new edge: last measurement bounded by k/elapsed
     FRESH = 2       # window closed on a new edge: k·ΔM/ΔT
+
+
+#: Values of ``MTSpeed(arith=...)``.
+ARITHS = ("gateware", "engine")
+
+#: ``arith="engine"``: the operands of one update's run on the loop engine (the specials
+#: ``mtm``, ``mtd``, ``mts``, ``mtb`` of :func:`~.engine_mt.mt_arith`, docs/AREA.md §7.64):
+#: the dividend's factor ``m`` (|ΔM| fresh, 1 bounded, 0 stopped), the divisor ``d`` (ΔT
+#: fresh, the ticks since the reference bounded; bit 0 set when ``m`` is 0), the result's sign
+#: ``s`` and ``b`` = bounded.
+def RUN_LAYOUT(tc_width, m_width):
+    """Payload layout of :attr:`MTSpeed.run` (``arith="engine"``)."""
+    return data.StructLayout({"m": unsigned(m_width), "d": unsigned(tc_width), "s": 1, "b": 1})
 
 
 def output_layout(out_width):
@@ -132,6 +146,20 @@ class MTSpeed(wiring.Component):
         file's export port, docs/AREA.md §7.76). Same outputs in the same clocks as the other
         forms for such a ``k``; a ``k`` that changes during a computation gives another
         product.
+    arith : str
+        Where the arithmetic after the snapshot runs (:data:`ARITHS`): ``"gateware"`` (default)
+        the multiplier and the restoring division here; ``"engine"`` the loop engine's run
+        ``mt`` (:func:`~.engine_mt.mt_arith`, ``EngineCurrentLoop(mt=True)``; docs/AREA.md
+        §7.64, §7.82): this block keeps the window logic only, gives each accepted update's
+        operands on :attr:`run` (``valid`` the clock after the update) and shows the engine's
+        result on ``o``: ``o.payload.speed`` is the ``res`` input (the engine's output register
+        ``mtspd``), ``o.valid`` the clock after ``res.valid`` (its write). No ``k`` port (``k``
+        is the engine's); written for :data:`~.engine_mt.MT_ENGINE_PARAMS` (``out_width`` 32,
+        ``k_width`` 48, ``m_width`` 16, ``tc_width`` at most 27: the engine's ``DIV`` divisor
+        is its multiplier's signed 28-bit operand); no ``chunk_multipliers``, ``k_steady``.
+        Same outputs as the other form for the same results, :attr:`latency` clocks after the
+        update being the run's (``None`` here: the engine's, ``EngineCurrentLoop.mt_latency``,
+        plus the wait for its start).
 
     Members
     -------
@@ -156,9 +184,17 @@ class MTSpeed(wiring.Component):
         measurement yet since reset); ``speed`` is then 0. ``fresh``: the window closed on a new
         edge this update (``speed = k·ΔM/ΔT``); 0 = bounded previous measurement or stopped.
 
+    run : Out(stream.Signature(RUN_LAYOUT(27, m_width), always_ready=True))
+        ``arith="engine"``: the run's request (``valid``, one clock, the clock after an
+        accepted update) and its operands (held until the next request).
+    res : In(stream.Signature(signed(out_width), always_ready=True))
+        ``arith="engine"``: the engine's output register ``mtspd`` (``payload``, held between
+        its writes) and its write strobe (``valid``: the register holds the run's result from
+        the next clock on).
+
     Attributes
     ----------
-    latency : int
+    latency : int or None
         Clocks from an accepted update strobe to ``o.valid`` (update high in clock ``u``,
         ``o.valid`` high in clock ``u + latency``): 1 (snapshot; the multiplier's first k
         chunk) + 1 (first partial product) + :attr:`k_chunks` (carry adds, the product's
@@ -193,7 +229,7 @@ class MTSpeed(wiring.Component):
 
     def __init__(self, *, clk_hz=50e6, tclk_hz=None, tc_width=32, out_width=32,
                  edge_mode="a_rising", k_width=None, m_width=16, chunk_multipliers=False,
-                 k_steady=False):
+                 k_steady=False, arith="gateware"):
         clk_hz = _check_hz("clk_hz", clk_hz)
         tclk_hz = clk_hz if tclk_hz is None else _check_hz("tclk_hz", tclk_hz)
         if tclk_hz > clk_hz:
@@ -213,14 +249,37 @@ class MTSpeed(wiring.Component):
         except ValueError:
             raise ValueError(f"MTSpeed edge_mode must be 'a_rising' or 'x4', not {edge_mode!r}") \
                 from None
+        self._arith = check_choice("MTSpeed", "arith", arith, ARITHS)
+        if arith == "engine":
+            from .engine_mt import MT_ENGINE_PARAMS
+            for name, value, want in (("out_width", out_width, MT_ENGINE_PARAMS["out_width"]),
+                                      ("k_width", k_width, MT_ENGINE_PARAMS["k_width"]),
+                                      ("m_width", m_width, MT_ENGINE_PARAMS["m_width"])):
+                if value != want:
+                    raise ValueError(f"MTSpeed arith='engine' needs {name} {want} (the "
+                                     f"engine's program is written for it), not {value!r}")
+            if tc_width > MT_ENGINE_PARAMS["tc_width"]:
+                raise ValueError(f"MTSpeed arith='engine' needs tc_width at most "
+                                 f"{MT_ENGINE_PARAMS['tc_width']} (the engine's DIV divisor "
+                                 f"is its multiplier's signed 28-bit operand), not {tc_width}")
+            if chunk_multipliers or k_steady:
+                raise ValueError("MTSpeed arith='engine' has no multiplier: chunk_multipliers "
+                                 "and k_steady must be False")
         self._clk_hz = clk_hz
         self._tclk_ratio = max(1, round(clk_hz / tclk_hz))
-        super().__init__({
+        members = {
             "edge": In(EDGE_LAYOUT),
             "update": In(1),
-            "k": In(unsigned(self._k_width)),
             "o": Out(stream.Signature(output_layout(self._out_width), always_ready=True)),
-        })
+        }
+        if arith == "engine":
+            # (the divisor as the engine takes it: 27 bits, this TC's zero-extended)
+            members["run"] = Out(stream.Signature(
+                RUN_LAYOUT(MT_ENGINE_PARAMS["tc_width"], self._m_width), always_ready=True))
+            members["res"] = In(stream.Signature(signed(self._out_width), always_ready=True))
+        else:
+            members["k"] = In(unsigned(self._k_width))
+        super().__init__(members)
 
     clk_hz = property(lambda self: self._clk_hz)
     tc_width = property(lambda self: self._tc_width)
@@ -229,6 +288,7 @@ class MTSpeed(wiring.Component):
     m_width = property(lambda self: self._m_width)
     chunk_multipliers = property(lambda self: self._chunk_multipliers)
     k_steady = property(lambda self: self._k_steady)
+    arith = property(lambda self: self._arith)
     edge_mode = property(lambda self: self._edge_mode.value)
     edges_per_line = property(lambda self: self._edge_mode.edges_per_line)
     tclk_ratio = property(lambda self: self._tclk_ratio)
@@ -250,6 +310,8 @@ class MTSpeed(wiring.Component):
 
     @property
     def latency(self):
+        if self._arith == "engine":
+            return None
         return 2 + self.k_chunks + self.divide_steps + 1
 
     def elaborate(self, platform):
@@ -378,6 +440,10 @@ class MTSpeed(wiring.Component):
                 m.d.sync += [mode.eq(WindowMode.BOUND), dm.eq(1), sgn.eq(p.speed[-1])]
             with m.Else():
                 m.d.sync += [mode.eq(WindowMode.STOPPED), dm.eq(0), sgn.eq(0)]
+
+        if self._arith == "engine":
+            self._engine_result(m, start, busy, mode, dm, n_dv, sgn)
+            return m
 
         # k·|ΔM| on 16-bit chunks of k, least significant first, in two stages (the multiplier
         # and the carry adder in separate clocks: ECP5 Fmax). Clock u + 1 + c (c = 0 … nk − 1):
@@ -532,3 +598,24 @@ class MTSpeed(wiring.Component):
             with m.If(~keep):
                 m.d.sync += p.speed.eq(~(nqx - sgn))
         return m
+
+    def _engine_result(self, m, start, busy, mode, dm, n_dv, sgn):
+        """``arith="engine"``: the snapshot's operands to the engine's run and its result to
+        ``o`` (class docstring, ``arith``). The snapshot registers are the ones the other form
+        computes from (``n_dv`` the divisor inverted, bit 0 cleared a clock after the update
+        when ``dm`` is 0: 0 / D reads 0 for D = 0 too), the request the clock after the
+        update, in which ``dm`` is the snapshot."""
+        run, p = self.run, self.o.payload
+        m.d.sync += run.valid.eq(start)
+        with m.If(run.valid & (dm == 0)):
+            m.d.sync += n_dv[0].eq(0)
+        m.d.comb += [run.payload.m.eq(dm), run.payload.d.eq(~n_dv), run.payload.s.eq(sgn),
+                     run.payload.b.eq(mode == WindowMode.BOUND),
+                     p.speed.eq(self.res.payload)]
+        m.d.sync += self.o.valid.eq(self.res.valid & busy)
+        with m.If(self.res.valid & busy):
+            m.d.sync += [
+                busy.eq(0),
+                p.stopped.eq(mode == WindowMode.STOPPED),
+                p.fresh.eq(mode == WindowMode.FRESH),
+            ]

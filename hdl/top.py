@@ -100,6 +100,32 @@ likewise not fall in a current-loop run, i.e. the sample must come more than
 of ``loop_latency`` above, a little longer). Not checked in gateware (the registers are
 run-time values); the default centred sample is far from both.
 
+**M/T on the engine** (``mt_engine``, only with ``current_loop="engine"``,
+``regs_staging="bram"`` and ``mt_k_export``; docs/AREA.md §7.64, §7.82): M/T keeps its window
+logic (``MTSpeed(arith="engine")``) and hands each accepted update's operands to the loop
+engine, whose run ``mt`` (``EngineCurrentLoop(mt=True)``) does the multiply and divide; ``k``
+is ``mt_k``'s two export words, the last exported, in the engine's configuration RAM (after
+its own words; moved down over the speed loop's words when the speed loop is the Servo's).
+Three behaviour changes against M/T's own arithmetic: (1) the TC span is 27 bits
+(:data:`MT_ENGINE_TC_WIDTH`; the engine's ``DIV`` divisor is its multiplier's signed 28-bit
+operand): an edge interval of 2**27 … 2**28 clocks (4.03 … 8.05 s at 33.333 MHz) reads
+stopped, i.e. speeds below ≈ 0.00075 r/min at 20 000 counted edges per turn; (2) the result
+comes :attr:`Top.mt_latency` clocks after ``period_start`` (1 + the run's
+``EngineCurrentLoop.mt_latency``: 113 against ``MTSpeed.latency`` 38), when the engine is idle
+at ``period_start`` (the sample-point limit of "Speed loop on the engine": the sample must
+come more than ``AdcInterface.latency + EngineCurrentLoop.interval`` clocks before the period
+end; an M/T request that finds a current-loop program running waits for its END, and a sample
+that arrives during the M/T run waits for the run's ``length``, 110 clocks, which
+``sample_hold`` includes); (3) with the speed loop on the engine its run starts at M/T's
+strobe, i.e. after the M/T run (the start arbitration: a current-loop sample first, then the
+M/T run, then a speed run; each requested run waits while another runs), so its i_q reference
+is ready ``mt_latency + 1 + speed_latency`` clocks after ``period_start`` (checked against half
+a period, as above); after a reset, M/T's first (stopped) result comes after the register
+file's reset walk (72 clocks on the iCEBreaker) and requests a speed run, where M/T's own
+result (38 clocks) fell in the walk, which holds the run off. Every M/T output (speed, stopped, fresh) is otherwise
+``MTSpeedModel``'s with the 27-bit TC (tests: ``test_top_mt_engine_speed_matches_the_model``,
+``tests/test_engine_mt.py``).
+
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
 the rotor turns in ``t_lead`` when the register holds ``ω_e(N_FS)·t_lead``. The new duties act
@@ -288,6 +314,10 @@ SPEED_LOOP_CONFIG = tuple({"kp": "pi_speed_kp", "kx": "pi_speed_kx", "speed_slew
 #: below ≈ 0.0004 / 0.0011 r/min at 20 000 counted edges per turn. 28 instead of MTSpeed's
 #: default 32 (129 s) saves 26 iCE40 logic cells (AREA.md §7.51).
 MT_TC_WIDTH = 28
+#: ``Top(mt_engine=True)``: the TC span, 27 bits (the engine's ``DIV`` divisor is its
+#: multiplier's signed 28-bit operand, docs/AREA.md §7.64): 4.03 s at 33.333 MHz, i.e. speeds
+#: below ≈ 0.00075 r/min at 20 000 counted edges per turn read stopped.
+MT_ENGINE_TC_WIDTH = 27
 
 #: The top's own wrapping 16-bit status counters (speed-loop runs, current-loop overruns,
 #: dropped ADC strobes), at most one count per PWM period each.
@@ -585,6 +615,17 @@ class Top(wiring.Component):
         power-up until the register file's reset walk writes ``mt_k`` (no M/T result reads
         ``k`` that early: the PWM period must exceed the walk, checked). The same speeds; the
         iCE40's choice (default ``False``: it needs the block-RAM staging).
+    mt_engine : bool
+        M/T speed's arithmetic on the loop engine (docs/AREA.md §7.64, §7.82): ``MTSpeed(arith=
+        "engine")`` keeps the window logic, the engine runs its multiply and divide as the run
+        ``mt`` (``EngineCurrentLoop(mt=True)``), ``k`` (``mt_k``'s two export words) in its
+        configuration RAM. Needs ``current_loop="engine"``, ``regs_staging="bram"``,
+        ``mt_k_export`` and not ``mt_chunk_multipliers`` (no multiplier left in M/T).
+        **Behaviour** (module docstring, "M/T on the engine"): the TC span 27 bits
+        (:data:`MT_ENGINE_TC_WIDTH`: edge intervals of 2**27 … 2**28 clocks read stopped), the
+        result :attr:`mt_latency` clocks after ``period_start`` (``MTSpeed.latency`` + 75 on
+        the iCEBreaker), the speed run after it. Default ``False``; the iCE40's choice
+        (``boards.build.MT_ENGINE``).
     ram_loop_count : bool
         With ``regs_staging="bram"``: ``st_current_loops`` counted in the register file's
         staging RAM from the loop's ``done`` (:data:`RAM_LOOP_COUNTERS`; the same values, an
@@ -649,8 +690,13 @@ class Top(wiring.Component):
         The parameters.
     link_compact, enc_fold_reload, enc_plausibility_complement : bool
         The parameters.
-    mt_chunk_multipliers, mt_k_export : bool
+    mt_chunk_multipliers, mt_k_export, mt_engine : bool
         The parameters.
+    mt_latency : int
+        Clocks from ``period_start`` (M/T's update) to M/T's ``o.valid``: ``MTSpeed.latency``,
+        or (``mt_engine``) the run's request, a clock after the update, + the run's
+        ``EngineCurrentLoop.mt_latency`` (the engine idle at ``period_start``: module
+        docstring, "M/T on the engine").
     ram_loop_count : bool
         ``st_current_loops`` is a counter of the staging RAM (the parameter with
         ``regs_staging="bram"``, else ``False``).
@@ -678,7 +724,7 @@ class Top(wiring.Component):
                  mt_chunk_multipliers=True, mt_k_export=False, ram_loop_count=True,
                  link_compact=False, gates_dead_n=True, timer_sample_split=True,
                  timer_one_adder=True, gates_wrap=True,
-                 dtc_one_count=True, adc_marker=True, gates_prev_pwm=True):
+                 dtc_one_count=True, adc_marker=True, gates_prev_pwm=True, mt_engine=False):
         mul_width = check_mul_width("Top", mul_width)
         check_bool("Top", "ram_loop_count", ram_loop_count)
         for name, value in (("clk_hz", clk_hz), ("pwm_hz", pwm_hz), ("baud", baud),
@@ -736,6 +782,14 @@ class Top(wiring.Component):
                              f"regs_staging={regs_staging!r}")
         if check_bool("Top", "mt_k_export", mt_k_export) and regs_staging != "bram":
             raise ValueError(f"Top mt_k_export needs regs_staging='bram', not {regs_staging!r}")
+        if check_bool("Top", "mt_engine", mt_engine) and (
+                (current_loop, regs_staging, mt_k_export, mt_chunk_multipliers)
+                != ("engine", "bram", True, False)):
+            raise ValueError(f"Top mt_engine needs current_loop='engine', regs_staging='bram', "
+                             f"mt_k_export=True and mt_chunk_multipliers=False (k is two words "
+                             f"of the engine's configuration RAM; M/T keeps no multiplier), "
+                             f"not {current_loop!r}, {regs_staging!r}, {mt_k_export!r}, "
+                             f"{mt_chunk_multipliers!r}")
         check_choice("Top", "speed_loop", speed_loop, SPEED_LOOPS)
         if speed_loop == "engine" and (current_loop, regs_staging) != ("engine", "bram"):
             raise ValueError(f"Top speed_loop='engine' needs current_loop='engine' and "
@@ -833,15 +887,19 @@ class Top(wiring.Component):
         self._adc = AdcInterface(clk_hz=clk_hz, sclk_hz=sclk_hz, held=(), marker=adc_marker)
         self._mul_width = mul_width
         self._current_loop = current_loop
+        # mt_engine: mt_k's two words (the last exported) follow the engine's own in its RAM.
+        self._mt_k_words = [i for i, (_, r, _) in enumerate(self._regs.export_words)
+                            if r.name == "mt_k"]
+        n_cfg = len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
+                                      if speed_loop == "engine" else 0)
+        self._n_cfg = n_cfg
+        mt_init = ([self._regs.export_init[i] for i in self._mt_k_words] if mt_engine else [])
         self._loop = (CurrentLoop(count_width=COUNT_WIDTH, mul_width=mul_width)
                       if current_loop == "pipelined" else
                       EngineCurrentLoop(count_width=COUNT_WIDTH, config="ram",
-                                        config_init=self._regs.export_init[
-                                            :len(ENGINE_CONFIG)
-                                            + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
-                                               if speed_loop == "engine" else 0)],
+                                        config_init=self._regs.export_init[:n_cfg] + mt_init,
                                         status="ram", speed=speed_loop == "engine",
-                                        refs="ram" if refs else "ports")
+                                        refs="ram" if refs else "ports", mt=mt_engine)
                       if cfg_ram else
                       EngineCurrentLoop(count_width=COUNT_WIDTH))
         self._dtc = DeadTimeComp(width=self._loop.width, count_width=COUNT_WIDTH,
@@ -854,14 +912,20 @@ class Top(wiring.Component):
                                         z_offset_init=regmap["enc_z_offset"].reset,
                                         fold_reload=enc_fold_reload,
                                         plausibility_complement=enc_plausibility_complement)
-        self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
-                           chunk_multipliers=mt_chunk_multipliers,
-                           k_steady=mt_k_export)
-        # mt_k from the export port: its words' indices; the PWM period outlasts the reset
-        # walk (before it the registers hold 0; M/T's first result after a reset is a stopped
-        # one, whose product is 0 whatever k, and the next comes a period later).
-        self._mt_k_words = [i for i, (_, r, _) in enumerate(self._regs.export_words)
-                            if r.name == "mt_k"]
+        if mt_engine:
+            self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_ENGINE_TC_WIDTH,
+                               arith="engine")
+            # The run's request a clock after period_start; the engine is idle then (the
+            # sample-point limit, module docstring): its result mt_latency after it.
+            self._mt_latency = 1 + self._loop.mt_latency
+        else:
+            self._mt = MTSpeed(clk_hz=clk_hz, edge_mode=mt_edges, tc_width=MT_TC_WIDTH,
+                               chunk_multipliers=mt_chunk_multipliers,
+                               k_steady=mt_k_export)
+            self._mt_latency = self._mt.latency
+        # mt_k from the export port: its words' indices (above); the PWM period outlasts the
+        # reset walk (before it the registers hold 0; M/T's first result after a reset is a
+        # stopped one, whose product is 0 whatever k, and the next comes a period later).
         if mt_k_export and not 2 * n > self._regs.reset_clocks + 2:
             raise ValueError(f"Top mt_k_export needs a PWM period longer than the register "
                              f"file's reset walk ({self._regs.reset_clocks + 2} clocks), not "
@@ -877,7 +941,7 @@ class Top(wiring.Component):
             # The speed run starts at M/T's strobe (≈ MTSpeed.latency after period_start);
             # a centred sample must come after its i_q reference (module docstring,
             # "Speed loop on the engine").
-            due = self._mt.latency + 1 + self._loop.speed_latency
+            due = self._mt_latency + 1 + self._loop.speed_latency
             if self._timer.period // 2 <= due:
                 raise ValueError(f"Top speed_loop='engine' needs half a PWM period longer "
                                  f"than M/T's latency + the speed run ({due} clocks), not "
@@ -961,7 +1025,9 @@ class Top(wiring.Component):
     enc_fold_reload = property(lambda self: self._encoder.fold_reload)
     enc_plausibility_complement = property(lambda self: self._encoder.plausibility_complement)
     mt_chunk_multipliers = property(lambda self: self._mt.chunk_multipliers)
-    mt_k_export = property(lambda self: self._mt.k_steady)
+    mt_k_export = property(lambda self: bool(self._mt_k_words))
+    mt_engine = property(lambda self: self._mt.arith == "engine")
+    mt_latency = property(lambda self: self._mt_latency)
     link_compact = property(lambda self: self._link.compact)
     commit_clocks = property(lambda self: self._regs.commit_clocks)
 
@@ -1018,6 +1084,9 @@ class Top(wiring.Component):
 
         # --- data path ----------------------------------------------------------------------
         wiring.connect(m, link=link.bus, regs=regs.bus)
+        if self.mt_engine:                  # M/T's arithmetic on the engine (mt_engine)
+            wiring.connect(m, mt_speed=mt.run, current_loop=cl.mt_run)
+            wiring.connect(m, current_loop=cl.mt_res, mt_speed=mt.res)
         wiring.connect(m, adc=adc.o, current_loop=cl.i)
         # Dead-time compensation between the duties and the timer's shadow register (no added
         # latency); its currents (Clarke) must be ready before this sample's duties.
@@ -1142,11 +1211,22 @@ class Top(wiring.Component):
         if hasattr(cl, "config"):
             # The export port's first words (indices 0 … len(ENGINE_CONFIG) − 1; with the
             # engine's speed run the speed loop's words after them too: all of them).
-            n_cfg = len(ENGINE_CONFIG) + (len(ENGINE_REFS) + len(SPEED_LOOP_CONFIG)
-                                          if self._speed_loop == "engine" else 0)
+            n_cfg = self._n_cfg
             # (`index < n_cfg` against the constant as logic, fixed.at_least: no carry chain)
-            m.d.comb += [cl.config.valid.eq(exp.valid & ~at_least(exp.index, n_cfg)),
-                         cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
+            if self.mt_engine:
+                # (mt_k's words, the last exported, after the engine's: contiguous with the
+                # speed loop on the engine, else moved down over the speed loop's words)
+                lo = self._mt_k_words[0]
+                mt_words = at_least(exp.index, lo)
+                in_cfg = ~at_least(exp.index, n_cfg)
+                m.d.comb += [cl.config.valid.eq(exp.valid & (in_cfg | mt_words)),
+                             cl.config.index.eq(exp.index if lo == n_cfg else
+                                                Mux(mt_words, exp.index - (lo - n_cfg),
+                                                    exp.index)),
+                             cl.config.data.eq(exp.data)]
+            else:
+                m.d.comb += [cl.config.valid.eq(exp.valid & ~at_least(exp.index, n_cfg)),
+                             cl.config.index.eq(exp.index), cl.config.data.eq(exp.data)]
         else:
             m.d.comb += [
                 cl.kp_d.eq(regs.pi_d_kp), cl.kx_d.eq(regs.pi_d_kx),
@@ -1200,7 +1280,8 @@ class Top(wiring.Component):
             sl.speed_rate_div.eq(operand("speed_div")),
             sl.speed_ref_delay.eq(regs.speed_ref_delay),
             sl.speed_int_hold.eq(regs.speed_int_hold),
-            mt.k.eq(self._mt_k(m, exp) if self._mt_k_words else regs.mt_k),
+            *([] if self.mt_engine else [mt.k.eq(self._mt_k(m, exp) if self._mt_k_words
+                                                 else regs.mt_k)]),
 
             enc.lines.eq(regs.enc_lines),
             enc.pole_pairs.eq(regs.enc_pole_pairs),

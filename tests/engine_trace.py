@@ -6,16 +6,22 @@ async def follow_trace(ctx, dut, trace, *, limit=400):
     """Clock ``dut`` (its ``start`` already pulsed) until its trace port has given
     ``len(trace)`` entries. Returns ``(error, clocks)``: ``error`` is ``None`` when every entry
     matched (pc, P, write enable, and destination and value on writes), else ``("no END",)``
-    after ``limit`` clocks or ``(index, want, got)`` for the first entry that differs."""
+    after ``limit`` clocks or ``(index, want, got)`` for the first entry that differs. From the
+    first entry on, one entry per clock: a bubble (a folded NOP, ``trace[i]["bubble"]``) must
+    find ``trace_valid`` low in its clock, every other entry high."""
     i = cyc = 0
     while i < len(trace):
         await ctx.tick()
         cyc += 1
         if cyc > limit:
             return ("no END",), cyc
-        if not ctx.get(dut.trace_valid):
-            continue
         e = trace[i]
+        valid = ctx.get(dut.trace_valid)
+        if i and bool(e.get("bubble")) == bool(valid):
+            return (i, {"bubble": e.get("bubble")}, {"trace_valid": valid}), cyc
+        if not valid:
+            i += bool(i)                # a bubble, or the clocks before the first entry
+            continue
         got = {"pc": ctx.get(dut.trace_pc), "p": ctx.get(dut.trace_p),
                "wen": ctx.get(dut.trace_wen)}
         if e["wen"]:

@@ -30,8 +30,8 @@ from amaranth.lib import wiring
 from foc_servo.boards.build import (ADC_MARKER, CLOCK_RANGE_HZ, DTC_ONE_COUNT, ENC_FOLD_RELOAD,
                                     ENC_PLAUSIBILITY_COMPLEMENT, GATES_DEAD_N, GATES_PREV_PWM,
                                     GATES_WRAP, LINK_COMPACT, LINK_READ_HOLD, MT_CHUNK_MULTIPLIERS,
-                                    MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS, RAM_LOOP_COUNT,
-                                    SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
+                                    MT_ENGINE, MT_K_EXPORT, MUL_WIDTH, NAME, PROT_LIMITS,
+                                    RAM_LOOP_COUNT, SCOPE_DOWN_COUNTS, TIMER_CLAMP, TIMER_ONE_ADDER,
                                     TIMER_SAMPLE_SPLIT, TRIP_REGISTER, BoardTop, build, pll_config,
                                     prepare, synthesis_verilog, _tool)
 from foc_servo.boards.platforms import BOARDS, MOTOR_PORTS, get_board, pin_map
@@ -274,13 +274,21 @@ FAMILY_FORMS = [
     ("enc_fold_reload", ENC_FOLD_RELOAD, (True, False, False, False),
      lambda top: (top.enc_fold_reload, top._encoder.fold_reload,
                   top._encoder._filter.fold_reload)),
+<<<<<<< HEAD
     ("enc_plausibility_complement", ENC_PLAUSIBILITY_COMPLEMENT, (True, False, False, False),
      lambda top: (top.enc_plausibility_complement, top._encoder.plausibility_complement,
                   top._encoder._plausibility.complement)),
+=======
+    # (with mt_engine, the iCE40's, M/T has no multiplier: the chunk form stands for it)
+>>>>>>> s18-mt
     ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
-     lambda top: (top.mt_chunk_multipliers, top._mt.chunk_multipliers)),
+     lambda top: (top.mt_chunk_multipliers or top.mt_engine,
+                  top._mt.chunk_multipliers or top.mt_engine)),
+    ("mt_engine", MT_ENGINE, (True, False, False, False),
+     lambda top: (top.mt_engine, top._mt.arith == "engine",
+                  getattr(top._loop, "mt_mode", False))),
     ("mt_k_export", MT_K_EXPORT, (True, False, False, False),
-     lambda top: (top.mt_k_export, top._mt.k_steady, bool(top._mt_k_words))),
+     lambda top: (top.mt_k_export, top._mt.k_steady or top.mt_engine, bool(top._mt_k_words))),
     # (st_current_loops a counter of the staging RAM: the iCE40's; the ULX3S stages in
     # flip-flops, so none there; the Arty S7's LUT6 the other way, §7.78)
     ("ram_loop_count", RAM_LOOP_COUNT, (True, False, False, False),

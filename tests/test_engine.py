@@ -13,7 +13,7 @@ from amaranth.hdl import Elaboratable, Module, UnusedElaboratable, signed, unsig
 from foc_servo.hdl.engine import (HAZARD_P, HAZARD_RF, P_WORD, SAT_NONE, SAT_W, SAT_W1, WORD,
                                   Assembler, Engine, Op)
 from foc_servo.hdl.foc import CurrentLoop
-from foc_servo.hdl.foc_engine import (DUTY_CLOCKS, OUTS, SPECIALS, EngineCurrentLoop,
+from foc_servo.hdl.foc_engine import (DUTY_CLOCKS, OUTS, SPECIALS, EngineCurrentLoop, _paths,
                                       current_loop_program, duty_lengths, path_lengths)
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.engine import (EngineLoopModel, EngineModel, lead_angle,
@@ -221,12 +221,12 @@ def test_program_park_against_float_rotation():
 
 # --- ISA details on small programs ------------------------------------------------------------
 
-def _small(build):
+def _small(build, fold=True):
     A = Assembler(specials=("x", "y"), bspecials=("y",), conds=(), outs=("ang", "r"))
     A.guard = 8
     build(A)
     A.end()
-    prog = A.assemble()
+    prog = A.assemble(fold=fold)
     return prog, EngineModel(prog, out_widths={"ang": 16, "r": WORD})
 
 
@@ -314,7 +314,7 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
     def build(A):
         A.alu(Op.ADD, "r.x", "s.x", 0)
         A.alu(Op.ADD, None, "r.x", 1, out="r")                # reads x at once: a NOP between
-    prog, em = _small(build)
+    prog, em = _small(build, fold=False)        # (folded: the ADD carries the NOPs as bubbles)
     assert HAZARD_RF == 4
     assert [Op(i.op) for i in prog.instrs] == [Op.ADD] + [Op.NOP] * 3 + [Op.ADD, Op.END]
     em.run({"x": 5, "y": 0}, {})
@@ -324,7 +324,7 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
         A.alu(Op.ADD, "r.x", "s.x", 0)
         A.alu(Op.ADD, "r.y", "s.y", 0)
         A.alu(Op.ADD, "r.z", "r.x", "r.y", out="r")           # x: two NOPs, y: three
-    prog, em = _small(build2)
+    prog, em = _small(build2, fold=False)
     assert [Op(i.op) for i in prog.instrs] == [Op.ADD, Op.ADD] + [Op.NOP] * 3 + [Op.ADD, Op.END]
     em.run({"x": 5, "y": 7}, {})
     assert em.outs["r"] == 12
@@ -334,7 +334,7 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
         A.mul("s.x", "b.y")
         A.mac("s.x", 1)
         A.post(None, 0, rnd=False, out="r")
-    prog, em = _small(build_p)
+    prog, em = _small(build_p, fold=False)
     assert HAZARD_P == 2
     assert [Op(i.op) for i in prog.instrs] == [Op.MUL, Op.MUL, Op.NOP, Op.ADD, Op.END]
     em.run({"x": 5, "y": 7}, {})
@@ -346,7 +346,7 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
         A.alu(Op.ADD, None, "r.x", 1, out="r")                # delay slot: reads x
         A.nop()
         A.label("l")
-    prog, em = _small(build_slot)
+    prog, em = _small(build_slot, fold=False)
     assert [Op(i.op) for i in prog.instrs][:5] == [Op.ADD, Op.NOP, Op.NOP, Op.BR, Op.ADD]
     em.run({"x": 5, "y": 7}, {})
     assert em.outs["r"] == 6
@@ -362,7 +362,7 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
         A.alu(Op.ADD, "r.w", "s.y", 1)
         A.label("l")
         A.alu(Op.ADD, None, "r.x", 0, out="r")
-    prog, em = _small(build3)
+    prog, em = _small(build3, fold=False)
     target = prog.labels["l"]
     assert Op(prog.instrs[target].op) == Op.NOP
     em.run({"x": 5, "y": 7}, {})
@@ -375,6 +375,212 @@ def test_assembler_inserts_nops_and_rejects_slot_hazards():
     A.end()
     with pytest.raises(ValueError, match=r"^Assembler: hazard in a branch delay slot at 2"):
         A.assemble()
+
+
+# --- NOP folding ---------------------------------------------------------------------------------
+
+def _clock_trails(program, start=0):
+    """Every path through ``program`` clock by clock (:func:`_paths`, each word expanded to
+    its clocks): the instruction issued (``nb`` and ``tgt`` cleared: the addresses differ
+    between the folded and the unfolded form) or ``None`` (a NOP or a bubble)."""
+    trails, instrs = [], program.instrs
+    for path in _paths(program, start):
+        seq = []
+        for pc in path:
+            ins = instrs[pc]
+            issued = None if ins.op == Op.NOP else dataclasses.replace(ins, nb=0, tgt=0)
+            seq += [issued] * (ins.sh + 1 if ins.op == Op.DIV else 1) + [None] * ins.nb
+        trails.append(seq)
+    return trails
+
+
+def _same_trace(folded, t_folded, unfolded, t_unfolded):
+    """The interpreter's traces of one run of the folded and the unfolded form of a program:
+    the same entry (write enable, destination, value, P) in every clock, a bubble or a NOP
+    where the unfolded form executes a NOP, the same instruction elsewhere."""
+    fi_, ui_ = folded.instrs, unfolded.instrs
+    assert len(t_folded) == len(t_unfolded)
+    for k, (f, u) in enumerate(zip(t_folded, t_unfolded)):
+        fi, ui = fi_[f["pc"]], ui_[u["pc"]]
+        if ui.op == Op.NOP:
+            assert f["bubble"] or fi.op == Op.NOP, k
+        else:
+            assert not f["bubble"] and not u["bubble"], k
+            assert dataclasses.replace(fi, nb=0, tgt=0) == dataclasses.replace(ui, tgt=0), k
+        assert {n: f[n] for n in ("wen", "dst", "y", "p")} == \
+            {n: u[n] for n in ("wen", "dst", "y", "p")}, k
+
+
+def _mt(branches, fold):
+    """:func:`~foc_servo.hdl.engine_mt.mt_program`, folded or not."""
+    from foc_servo.hdl.engine_mt import MT_OUTS, MT_SPECIALS, mt_arith
+    A = Assembler(specials=MT_SPECIALS, conds=(), outs=tuple(MT_OUTS))
+    mt_arith(A, branches=branches)
+    A.end()
+    return A.assemble(fold=fold)
+
+
+def test_folded_programs_take_the_same_clocks():
+    """NOP folding (``Assembler.assemble(fold=True)``, the default) on the current-loop, speed,
+    combined and M/T programs: every path issues the same instructions in the same clocks as
+    the unfolded form (a bubble where it has a NOP), so every timing figure is the same; the
+    words before and after (docs/ENGINE.md, AREA.md §7.81)."""
+    from foc_servo.hdl.engine_mt import mt_run_timing
+    from foc_servo.hdl.foc_engine import (REF_STATUS, STATUS, phase_latency, sample_read,
+                                          speed_loop_program, speed_run_timing, status_quiet)
+    progs = {
+        "current": lambda fold: current_loop_program(fold=fold),
+        "speed": lambda fold: speed_loop_program(fold=fold),
+        "combined": lambda fold: current_loop_program(speed=True, fold=fold),
+        "refs": lambda fold: current_loop_program(speed=True, refs=True, fold=fold),
+        "mt": lambda fold: _mt(False, fold), "mt_branches": lambda fold: _mt(True, fold)}
+    words = {}
+    for name, make in progs.items():
+        new, old = make(True), make(False)
+        words[name] = (len(old.words), len(new.words), sum(i.op == Op.NOP for i in new.instrs))
+        assert sum(i.op == Op.NOP for i in old.instrs) == \
+            sum(i.nb for i in new.instrs) + sum(i.op == Op.NOP for i in new.instrs)
+        assert all(i.nb == 0 for i in old.instrs)
+        for label in ("", *old.labels):
+            start = old.labels.get(label, 0)
+            assert _clock_trails(new, new.labels.get(label, 0)) == \
+                _clock_trails(old, start), (name, label)
+        assert path_lengths(new) == path_lengths(old)
+        if name in ("current", "combined", "refs"):
+            assert duty_lengths(new) == duty_lengths(old)
+            assert phase_latency(new) == phase_latency(old)
+            assert sample_read(new) == sample_read(old)
+            names = STATUS + REF_STATUS if name == "refs" else STATUS
+            assert status_quiet(new, names) == status_quiet(old, names)
+        if name in ("speed", "combined", "refs"):
+            assert speed_run_timing(new) == speed_run_timing(old)
+        if name.startswith("mt"):
+            assert mt_run_timing(new) == mt_run_timing(old)
+    assert words == {"current": (256, 184, 0), "speed": (244, 161, 0),
+                     "combined": (500, 345, 0), "refs": (500, 350, 0),
+                     "mt": (59, 38, 1), "mt_branches": (58, 36, 2)}
+
+
+def test_folded_current_loop_runs_the_same_trace():
+    """The current-loop and combined programs, folded and unfolded, on the interpreter: the
+    same trace clock by clock (current-loop samples over every path; speed runs)."""
+    vec = _engine_vec(verify_foc.stimulus(40, seed=12))
+    for speed in (False, True):
+        new = EngineLoopModel(program=current_loop_program(speed=speed))
+        old = EngineLoopModel(program=current_loop_program(speed=speed, fold=False))
+        a, b = new.run(**vec), old.run(**vec)
+        for k in OUTPUT_FIELDS:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        for tn, to in zip(new.traces, old.traces):
+            _same_trace(new.program, tn, old.program, to)
+        assert {len(t) for t in new.traces} <= set(path_lengths(new.program))
+    from foc_servo.sim.models.engine import EngineSpeedModel
+    new = EngineSpeedModel(program=new.program, engine=new.engine)
+    old = EngineSpeedModel(program=old.program, engine=old.engine)
+    rng = np.random.default_rng(12)
+    for _ in range(20):
+        args = dict(speed=int(rng.integers(-(1 << 31), 1 << 31)),
+                    speed_ref=int(rng.integers(-(1 << 31), 1 << 31)),
+                    speed_slew=int(rng.choice([0, 1, 1 << 20, (1 << 32) - 1])),
+                    iq_ff=int(rng.integers(-(1 << 15), 1 << 15)), lim_lo=-20000, lim_hi=20000,
+                    ref_delay=int(rng.integers(0, 32)), int_hold=int(rng.random() < 0.3),
+                    kp=int(rng.integers(1 << 24)), kx=int(rng.integers(1 << 24)))
+        assert new.run(**args) == old.run(**args)
+        _same_trace(new.program, new.trace, old.program, old.trace)
+
+
+def _fold_program(fold):
+    """A small program with NOP runs of 1 … 5 after ALU, MUL, MAC and post words, around two
+    branches (NOPs in both delay slots; a real first slot and a NOP in the second; NOPs after
+    the second slot, on the fall-through path only; NOPs at a branch target) and after a DIV
+    (neither folded)."""
+    A = Assembler(specials=("x", "y"), bspecials=("y",), conds=("c1", "c2"),
+                  outs=("ang", "r", "s", "t"))
+    A.alu(Op.ADD, "r.a", "s.x", 0)
+    A.nop()                                                   # ALU + 1
+    A.alu(Op.ADD, "r.b", "s.y", 3)
+    A.nop(), A.nop()                                          # ALU + 2
+    A.mul("s.x", "b.y")
+    A.nop(), A.nop(), A.nop()                                 # MUL + 3
+    A.mac("s.x", 5, neg=True)
+    A.nop()                                                   # MAC + 1
+    A.post("r.c", 2)
+    A.nop(), A.nop()                                          # post + 2
+    A.alu(Op.ADD, "r.d", "r.a", "r.b", out="r")
+    for _ in range(5):
+        A.nop()                                               # ALU + 3, NOP + 1
+    A.br("c1", "l1")
+    A.nop(), A.nop()                                          # both slots: the BR + 2
+    A.nop()                                                   # fall-through only
+    A.alu(Op.ADD, "r.a", "r.a", 1)
+    A.label("l1")
+    A.nop()                                                   # a branch target
+    A.nop()                                                   # + 1
+    A.br("!c2", "l2")
+    A.alu(Op.SUB, "r.e", "r.c", "r.d", setf=True)             # first slot + 1
+    A.nop()
+    A.nop(), A.nop()                                          # fall-through only
+    A.alu(Op.ADD, "r.b", "r.b", 7, out="t")
+    A.label("l2")
+    A.alu(Op.SEL, "r.f", "r.a", "r.b", cond="N", out="s")
+    A.nop(), A.nop(), A.nop()
+    A.mul("r.f", 3)
+    A.div("k.3", 2)
+    A.nop(), A.nop()                                          # after a DIV: NOP + 1
+    A.post("r.g", 1, rnd=True, out="r")
+    A.nop()
+    A.end()
+    return A.assemble(schedule=False, fold=fold)
+
+
+def test_fold_rules_and_the_engine_cycle_by_cycle():
+    """NOP folding where it is exact and only there (:func:`_fold_program`): the hosts and
+    their bubbles, the NOPs kept; the same clocks on every path as the unfolded form; the
+    gateware ``Engine`` against the interpreter cycle by cycle (a bubble: ``trace_valid``
+    low in its clock) for both forms over every branch combination."""
+    new, old = _fold_program(True), _fold_program(False)
+    hosts = [(Op(i.op).name, i.nb) for i in new.instrs if i.nb]
+    assert hosts == [("ADD", 1), ("ADD", 2), ("MUL", 3), ("MUL", 1), ("ADD", 2), ("ADD", 3),
+                     ("NOP", 1), ("BR", 2), ("NOP", 1), ("SUB", 1), ("NOP", 1), ("ADD", 3),
+                     ("SEL", 3), ("NOP", 1), ("ADD", 1)], hosts
+    # Kept: the fourth NOP of a run of five (a host), the NOPs after the second delay slots
+    # (one a host), the branch target's (a host), the NOP after the DIV (a host).
+    assert [k for k, i in enumerate(new.instrs) if i.op == Op.NOP] == [6, 8, 10, 13, 18]
+    assert len(new.words) == 21 and len(old.words) == 47
+    assert Op(new.instrs[new.labels["l1"]].op) == Op.NOP
+    assert _clock_trails(new) == _clock_trails(old)
+    widths = {"ang": 16, "r": WORD, "s": WORD, "t": WORD}
+    shapes = {"x": signed(10), "y": signed(10)}
+    rng = np.random.default_rng(18)
+    runs = [({"x": int(rng.integers(-512, 512)), "y": int(rng.integers(-512, 512))},
+             {"c1": c1, "c2": c2}) for c1 in (0, 1) for c2 in (0, 1) for _ in range(3)]
+    for prog in (new, old):
+        dut = Engine(program=prog, special_shapes=shapes, out_widths=widths)
+        model = EngineModel(prog, out_widths=widths)
+        errors = []
+
+        async def testbench(ctx):
+            for k, (spec, conds) in enumerate(runs):
+                for name, val in spec.items():
+                    ctx.set(getattr(dut, f"s_{name}"), val)
+                for name, val in conds.items():
+                    ctx.set(getattr(dut, f"c_{name}"), val)
+                trace = model.run(spec, conds)
+                error, _ = await start_and_follow(ctx, dut, trace)
+                if error is not None:
+                    errors.append((k, *error))
+                    return
+                await ctx.tick()
+                for name in widths:
+                    if ctx.get(getattr(dut, f"o_{name}")) != model.outs[name] % (1 << widths[name]):
+                        errors.append((k, name))
+
+        simulate(dut, [testbench], name="engine_fold")
+        assert errors == []
+    a, b = EngineModel(new, out_widths=widths), EngineModel(old, out_widths=widths)
+    for spec, conds in runs:
+        _same_trace(new, a.run(spec, conds), old, b.run(spec, conds))
+        assert a.outs == b.outs and a.rf == b.rf and a.p == b.p
 
 
 # --- gateware against the interpreter, cycle by cycle ------------------------------------------

@@ -9,7 +9,7 @@ import pytest
 
 from foc_servo.hdl.engine import MUL_B, Assembler, Op
 from foc_servo.hdl.engine_mt import (MT_ENGINE_PARAMS, MT_SAT, MT_SPECIALS, mt_k_slices,
-                                     mt_operands, mt_program, mt_run_timing)
+                                     mt_k_words, mt_operands, mt_program, mt_run_timing)
 from foc_servo.hdl.foc_engine import _clocks, _paths
 from foc_servo.sim.models.engine import EngineModel
 from foc_servo.sim.models.engine_mt import EngineMTModel
@@ -191,7 +191,9 @@ def test_engine_mt_program_size():
         ins = prog.instrs
         sizes[name] = (len(ins), sum(i.op == Op.NOP for i in ins),
                        sorted(sum(_clocks(ins[pc]) for pc in p) for p in _paths(prog)))
-    assert sizes == {"straight": (59, 22, [96]), "branches": (58, 24, [35, 94])}
+    # (Unfolded, §7.64: 59 words with 22 NOPs, 58 with 24; NOP folding, §7.81, the clocks
+    # unchanged.)
+    assert sizes == {"straight": (38, 1, [96]), "branches": (36, 2, [35, 94])}
     assert set(PROGRAMS["straight"].specials) >= set(MT_SPECIALS)
     assert mt_run_timing(PROGRAMS["straight"]) == [(101, 99)]
     assert mt_run_timing(PROGRAMS["branches"]) == [(40, 38), (99, 97)]
@@ -242,3 +244,162 @@ def test_engine_mt_on_the_gateware_engine_cycle_by_cycle():
     hdl_simulate(dut, [testbench], name="engine_mt")
     assert errors == []
     assert done[0] == len(jobs)
+
+
+def test_engine_mt_run_in_the_current_loop_engine_cycle_by_cycle():
+    """The run ``mt`` of ``EngineCurrentLoop(mt=True)`` (the current loop's program with the
+    M/T piece at the label ``mt``, ``k`` as the two configuration words ``mtk0``, ``mtk1``
+    written through the ``config`` port as the register file's export port writes ``mt_k``)
+    against :class:`EngineMTModel` on the same program: every executed instruction's write
+    back (pc, P, destination, value) in the same clock, ``mt_res`` (the output ``mtspd``
+    and its write strobe) after each run; updates in sequence (``mt_pm`` kept), ``k`` with bit
+    31 set (``mtk0`` negative as the engine reads it), saturated, bounded and stopped."""
+    from foc_servo.hdl.engine_mt import MT_CONFIG_WORDS
+    from foc_servo.hdl.foc_engine import CONFIG, OUTS, EngineCurrentLoop
+    from foc_servo.sim.harness import simulate as hdl_simulate
+
+    from engine_trace import follow_trace
+
+    cl = EngineCurrentLoop(config="ram", mt=True)
+    prog = cl.program
+    assert prog.labels["mt"] > 0 and cl.mt_timing == mt_run_timing(prog)
+    model = EngineMTModel(program=prog, out_widths={**OUTS, "mtspd": 32})
+    jobs = [(K_MAX, FRESH, -M_MAX, 1), (K_MAX, FRESH, 3, D_MAX), ((1 << 31) | 5, FRESH, 7, 999),
+            (1, FRESH, 1, D_MAX), (0, FRESH, 5, 0), (1 << 40, FRESH, -3, 1 << 20),
+            (1 << 40, BOUND, 1, 1 << 18), (1 << 40, BOUND, 1, 1 << 22), (1 << 40, STOPPED, 0, 0),
+            (1 << 40, BOUND, 1, 7), ((1 << 48) - (1 << 31), FRESH, 2, 3)]
+    jobs += [(k, FRESH, dm, dt) for k, dm, dt in _random(11, 20)]
+    errors, done, last = [], [0], [0]
+    cfg = {name: len(CONFIG) + j for j, name in enumerate(MT_CONFIG_WORDS)}
+
+    async def testbench(ctx):
+        eng = cl.engine
+        for n, (k, mode, dm, dt) in enumerate(jobs):
+            for name, v in mt_k_words(k).items():
+                ctx.set(cl.config.valid, 1)
+                ctx.set(cl.config.index, cfg[name])
+                ctx.set(cl.config.data, v % (1 << 32))
+                await ctx.tick()
+            ctx.set(cl.config.valid, 0)
+            want = model.update(k, mode, dm, dt)
+            op = mt_operands(mode, dm, dt, last[0])
+            last[0] = want
+            ctx.set(cl.mt_run.payload, {"m": op["mtm"], "d": op["mtd"], "s": op["mts"],
+                                        "b": op["mtb"]})
+            ctx.set(cl.mt_run.valid, 1)
+            await ctx.tick()
+            ctx.set(cl.mt_run.valid, 0)
+            error, _ = await follow_trace(ctx, eng, model.trace)
+            if error is not None:
+                errors.append((n, *error))
+                return
+            for _ in range(8):
+                await ctx.tick()
+            if (strobes[0], ctx.get(cl.mt_res.payload)) != (n + 1, want):
+                errors.append((n, "mt_res", strobes[0], ctx.get(cl.mt_res.payload), want))
+            done[0] += 1
+
+    strobes = [0]
+
+    async def count(ctx):
+        async for *_, valid in ctx.tick().sample(cl.mt_res.valid):
+            strobes[0] += valid
+
+    hdl_simulate(cl, [testbench], [count], name="engine_mt_run")
+    assert errors == []
+    assert done[0] == len(jobs)
+
+
+def test_engine_mt_run_start_arbitration():
+    """``EngineCurrentLoop(mt=True)``: a current-loop sample and an M/T request in the same
+    clock (the sample's program first, the M/T run at its END), an M/T request while the
+    current loop runs (it waits for the END), a sample while the M/T run runs (latched, its
+    program at the M/T run's END). The duties equal those of the same loop without the M/T run
+    fed the same samples (alone, undelayed), every M/T result the interpreter's."""
+    from amaranth.hdl import Module
+
+    from foc_servo.hdl.foc_engine import CONFIG, OUTS, EngineCurrentLoop
+    from foc_servo.sim.harness import simulate as hdl_simulate
+
+    rng = np.random.default_rng(5)
+    init = [int(rng.integers(0, 1 << 14)) for _ in CONFIG]
+    k = (1 << 40) + 12345
+    kw = mt_k_words(k)
+    cl = EngineCurrentLoop(config="ram", mt=True,
+                           config_init=init + [kw["mtk0"] % (1 << 32), kw["mtk1"]])
+    ref = EngineCurrentLoop(config="ram", config_init=init)
+    m = Module()
+    m.submodules.cl, m.submodules.ref = cl, ref
+    model = EngineMTModel(program=cl.program, out_widths={**OUTS, "mtspd": 32})
+    mt_at = cl.program.labels["mt"]
+    # (clock offsets: sample, M/T request) per scenario
+    plan = [(0, 0), (0, 50), (30, 0)]
+    starts, ends, duties, ref_duties, results, want = [], [], [], [], [], []
+
+    async def record(ctx):
+        eng = cl.engine
+        clock, after = 0, 0
+        async for _, _, go, run, pc, v, p, rv, rp, mv, mp, end in ctx.tick().sample(
+                eng.start, eng.running, eng.start_pc, cl.o.valid, cl.o.payload, ref.o.valid,
+                ref.o.payload, cl.mt_res.valid, cl.mt_res.payload, eng.end):
+            if end:
+                ends.append(clock)
+            if go and not run:
+                starts.append((clock, pc))
+            if v:
+                duties.append(p.as_value().value)
+            if rv:
+                ref_duties.append(rp.as_value().value)
+            if after:                   # (the register holds the result the clock after
+                results.append(mp)      # its write strobe)
+            after = mv
+            clock += 1
+
+    async def testbench(ctx):
+        for dut in (cl, ref):
+            ctx.set(dut.o.ready, 1)
+        last = 0
+        for n, (t_sample, t_mt) in enumerate(plan):
+            sample, values = _sample(rng)
+            op = mt_operands(FRESH, 3 + n, 1000 + n, last)
+            last = model.update(k, FRESH, 3 + n, 1000 + n)
+            want.append(last)
+            for c in range(max(t_sample, t_mt) + 1):
+                if c == t_sample:
+                    for dut in (cl, ref):
+                        ctx.set(dut.i.payload, sample)
+                        for name, v in values.items():
+                            ctx.set(getattr(dut, name), v)
+                        ctx.set(dut.i.valid, 1)
+                if c == t_mt:
+                    ctx.set(cl.mt_run.payload, {"m": op["mtm"], "d": op["mtd"],
+                                                "s": op["mts"], "b": op["mtb"]})
+                    ctx.set(cl.mt_run.valid, 1)
+                await ctx.tick()
+                for dut in (cl, ref):
+                    ctx.set(dut.i.valid, 0)
+                ctx.set(cl.mt_run.valid, 0)
+            for _ in range(800):
+                await ctx.tick()
+
+    hdl_simulate(m, [testbench], [record], name="engine_mt_arbitration")
+    assert results == want and len(want) == 3
+    assert duties == ref_duties and len(duties) == 3
+    pcs = [pc for _, pc in starts]
+    assert pcs == [0, mt_at, 0, mt_at, mt_at, 0], starts
+    # The waits: each second start in its scenario comes right after the first run's END
+    # (the engine takes the next start a clock before its end strobe, as back to back samples
+    # do), the M/T run's at its length.
+    for i in (0, 2, 4):
+        end = min(e for e in ends if e > starts[i][0])
+        assert starts[i + 1][0] == end - 1, (i, starts, ends)
+    assert starts[5][0] - starts[4][0] == max(length for _, length in cl.mt_timing)
+
+
+def _sample(rng):
+    sample = {"ia": int(rng.integers(-2000, 2000)), "ib": int(rng.integers(-2000, 2000)),
+              "udc": int(rng.integers(10000, 30000)), "aux": 0}
+    values = {"theta": int(rng.integers(1 << 16)), "enable": 1, "ol_enable": 0,
+              "ff_enable": 1, "speed": int(rng.integers(-(1 << 30), 1 << 30)),
+              "id_ref": 100, "iq_ref": -300, "scale": 1000}
+    return sample, values

@@ -251,7 +251,8 @@ def test_engine_refs_program_timing_unchanged():
     """``current_loop_program(speed=True, refs=True)``: its five instructions fill NOP slots of
     the straight-line start, so every output the outside sees is written in the same clock of
     every path as without ``refs`` (the duties, the status values, ``o.valid`` and ``done``:
-    the top's ports, the scope's samples), the speed run too, in the same 500 words; the two
+    the top's ports, the scope's samples), the speed run too, in the same 500 words unfolded
+    (folded: the five words where five bubbles were, 345 → 350); the two
     new status words are written before the last duty and leave the scope's quiet clocks."""
     def writes(program, start=0):
         seen = []
@@ -266,7 +267,9 @@ def test_engine_refs_program_timing_unchanged():
         return seen
     old = current_loop_program(speed=True)
     new = current_loop_program(speed=True, refs=True)
-    assert len(new.words) == len(old.words) == 500
+    assert len(current_loop_program(speed=True, refs=True, fold=False).words) == \
+        len(current_loop_program(speed=True, fold=False).words) == 500
+    assert (len(old.words), len(new.words)) == (345, 350)
     assert writes(new) == writes(old)
     assert writes(new, new.labels["speed"]) == writes(old, old.labels["speed"])
     assert duty_lengths(new) == duty_lengths(old) and path_lengths(new) == path_lengths(old)

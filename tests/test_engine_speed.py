@@ -176,11 +176,11 @@ def test_combined_program_runs_both_loops_unchanged():
     temporaries in the current loop's registers, on one register file: current-loop samples
     and speed runs interleaved give exactly what each program gives alone (the current loop's
     outputs and DC-bus gain sample by sample; the speed loop's i_q, sat, ref_int, integrator,
-    E[n−1] run by run), so neither clobbers the other's state. 500 words (ROM 512), 124 RF
-    words (of 128)."""
+    E[n−1] run by run), so neither clobbers the other's state. 345 words (500 unfolded; ROM
+    512), 124 RF words (of 128)."""
     from foc_servo.sim.verify import foc as verify_foc
     combined = current_loop_program(speed=True)
-    assert len(combined.words) <= 512 and combined.labels["speed"] == 256
+    assert len(combined.words) == 345 and combined.labels["speed"] == 184
     vec = verify_foc.stimulus(60, seed=5)
     vec = {k: np.asarray(v) for k, v in vec.items() if k != "theta_lead"} | {
         "lead_k": np.asarray(vec["theta_lead"]) % (1 << 16)}

@@ -1,5 +1,6 @@
 # amaranth: UnusedElaboratable=no
 # Ref: SPEC.md §2.3 (paper Fig. 6): M/T speed, n = ΔM·60·f_TCLK/(P_n·ΔT), D_n = k·ΔM/ΔT
+import dataclasses
 import math
 import re
 from fractions import Fraction
@@ -759,3 +760,105 @@ def test_mt_k_steady_against_the_default_form(k_width):
 
     simulate(m, [testbench], clock_hz=50e6, name="mt_k_steady")
     assert seen["fresh"] > 10 and seen["bound"] > 2 and seen["unsaturated"] > 5, seen
+
+
+# --- arith="engine": the window logic here, the arithmetic on the loop engine ------------------
+
+def _engine_pair(k, **kwargs):
+    """``MTSpeed(arith="engine", **kwargs)`` with its run on an ``EngineCurrentLoop(mt=True)``
+    (``k`` in the engine's configuration RAM as the register file's two export words), as one
+    component with MTSpeed's ``edge``, ``update``, ``k`` (unused: k is the RAM's) and ``o``,
+    and the model's parameters (the latency: the request a clock after the update, the run's
+    ``mt_latency`` after it, when the engine is idle)."""
+    from amaranth.lib import stream, wiring
+    from amaranth.lib.wiring import In, Out
+
+    from foc_servo.hdl.engine_mt import mt_k_words
+    from foc_servo.hdl.foc_engine import CONFIG, EngineCurrentLoop
+    from foc_servo.hdl.mt_speed import EDGE_LAYOUT, output_layout
+
+    mt = MTSpeed(arith="engine", **kwargs)
+    words = mt_k_words(k)
+    cl = EngineCurrentLoop(config="ram", mt=True,
+                           config_init=[0] * len(CONFIG) + [words["mtk0"] % (1 << 32),
+                                                            words["mtk1"]])
+
+    class Pair(wiring.Component):
+        def __init__(self):
+            super().__init__({"edge": In(EDGE_LAYOUT), "update": In(1), "k": In(48),
+                              "o": Out(stream.Signature(output_layout(32), always_ready=True))})
+            self.clk_hz, self.out_width, self.mt, self.cl = mt.clk_hz, 32, mt, cl
+
+        def elaborate(self, platform):
+            from amaranth.hdl import Module
+            m = Module()
+            m.submodules.mt, m.submodules.cl = mt, cl
+            m.d.comb += [mt.edge.eq(self.edge), mt.update.eq(self.update)]
+            wiring.connect(m, mt.run, cl.mt_run)
+            wiring.connect(m, cl.mt_res, mt.res)
+            wiring.connect(m, mt.o, wiring.flipped(self.o))
+            return m
+
+    @dataclasses.dataclass(frozen=True)
+    class Params(model.MTParams):
+        run_latency: int = 0
+
+        @property
+        def latency(self):
+            return self.run_latency
+
+    params = Params(mt.tclk_ratio, mt.tc_width, 32, 48, 16, run_latency=1 + cl.mt_latency)
+    return Pair(), params
+
+
+def _both_engine(k, edges, neg, ups, *, end_cycle, **kwargs):
+    dut, params = _engine_pair(k, **kwargs)
+    got = verify.run_gateware(dut, edges, neg, ups, k=k, end_cycle=end_cycle, name="mt_engine")
+    want = model.simulate(edges, neg, ups, k=k, params=params, end_cycle=end_cycle)
+    assert got["received"] == len(want["cycle"])
+    for f in FIELDS:
+        np.testing.assert_array_equal(got[f], want[f], err_msg=f)
+    return want
+
+
+def test_mt_engine_form_validation():
+    for kwargs, msg in (({"tc_width": 28}, "tc_width at most 27"),
+                        ({"out_width": 16}, "needs out_width 32"),
+                        ({"k_width": 40}, "needs k_width 48"),
+                        ({"m_width": 8}, "needs m_width 16"),
+                        ({"chunk_multipliers": True}, "has no multiplier"),
+                        ({"arith": "dsp"}, "arith")):
+        with pytest.raises((ValueError, TypeError), match=msg):
+            MTSpeed(**{"arith": "engine", "tc_width": 27, **kwargs})
+    dut = MTSpeed(arith="engine", tc_width=27)
+    assert dut.latency is None and "k" not in dut.signature.members
+    assert MTSpeed().arith == "gateware"
+
+
+@pytest.mark.parametrize("k", [3 * 2 ** 40 + 12345, 2 ** 48 - 1, (1 << 31) + 98_765, 1])
+def test_mt_engine_form_matches_the_model(k):
+    """The window logic with its run on the engine's program (``EngineCurrentLoop(mt=True)``,
+    the piece reading ``k`` as two configuration words) against ``MTSpeedModel`` with the
+    run's latency: every output (fresh, bounded, stopped: the TC span 1 024 clocks), its clock
+    and flags; random windows both ways (ΔM 1 … 40, saturated quotients), stops beyond the span
+    and restarts."""
+    rng = np.random.default_rng(k % 1000)
+    edges, neg, ups = [], [], []
+    c, u = 5, 2
+    for _ in range(30):
+        n = int(rng.integers(1, 41))
+        gap = int(rng.choice([0, 1, 2, 7, 30, 200])) // max(n, 1) + 1
+        direction = bool(rng.integers(0, 2))
+        for _ in range(n):
+            c += gap
+            edges.append(c)
+            neg.append(direction if rng.random() < 0.85 else not direction)
+        if rng.random() < 0.2:
+            c += int(rng.integers(900, 2500))              # a stop (or near one)
+        c += int(rng.integers(1, 150))
+    while u < c + 1500:
+        ups.append(u)
+        u += int(rng.integers(113, 400))
+    out = _both_engine(k, edges, neg, ups, end_cycle=u + 200, clk_hz=50e6, tc_width=10)
+    kinds = set(zip(out["stopped"].tolist(), out["fresh"].tolist()))
+    assert kinds == {(1, 0), (0, 1), (0, 0)}, kinds

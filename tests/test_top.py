@@ -5,6 +5,7 @@ fault path latency, one current-loop pass from the ADC model.
 The simulations run at 100 kHz PWM (500 clocks per period at 50 MHz) and a UART at clk_hz / 8
 (80 clocks per byte) to keep pysim cheap (~1.5 k clocks/s for the whole top)."""
 
+import dataclasses
 import itertools
 import math
 import re
@@ -1721,3 +1722,161 @@ def test_top_link_compact_form_same_ports_clock_by_clock():
     simulate(m, [bench], clock_hz=CLK, name="test_top_link_compact")
     assert mismatches == []
     assert seen["tx"] > 1000                    # the replies went out
+
+
+def test_top_mt_engine_speed_matches_the_model():
+    """``Top(mt_engine=True)``: M/T's window logic (``MTSpeed(arith="engine")``, 27-bit TC)
+    with its multiply and divide as the engine's run ``mt`` (``k`` the reset value's two words
+    in the engine's configuration RAM), beside the current loop's samples: the edge strobes
+    from the encoder pins (forward, a pause of more than two periods, backward, fast forward)
+    and the top's update strobes into ``MTSpeedModel`` with the 27-bit TC give every output
+    (fresh, bounded, stopped), in the clock ``Top.mt_latency`` after its update (the engine
+    idle at ``period_start``)."""
+    from foc_servo.hdl.engine_mt import MT_ENGINE_PARAMS
+    from foc_servo.sim.models import mt_speed as model
+
+    top = Top(pwm_hz=50e3, baud=BAUD, current_loop="engine", regs_staging="bram",
+              mt_k_export=True, mt_chunk_multipliers=False, mt_engine=True)
+    mt = top._mt
+    assert top.mt_engine and mt.arith == "engine" and mt.tc_width == 27
+    assert top.mt_latency == 1 + top._loop.mt_latency == 113
+    k = top.regmap["mt_k"].reset
+    plan = [(300, 0)] + [(60 + 7 * (i % 5), 1) for i in range(40)]
+    plan += [(2600, 0)] + [(70 + 5 * (i % 3), -1) for i in range(30)]
+    plan += [(21 + (i % 4), 1) for i in range(40)]
+    clock, pos, at = 0, 0, {}
+    for dwell, step in plan:
+        clock += dwell
+        if step:
+            pos += step
+            at[clock] = pos
+    end = clock + 2000
+    ab = ((0, 0), (1, 0), (1, 1), (0, 1))
+    rec = {key: [] for key in ("step", "neg", "update", "valid", "speed", "stopped", "fresh",
+                               "cl_start")}
+
+    async def testbench(ctx):
+        ctx.set(top.hall, HALL_OK)
+        pos = 0
+        for c in range(end):
+            pos = at.get(c, pos)
+            a, b = ab[pos % 4]
+            ctx.set(top.enc_a, a)
+            ctx.set(top.enc_b, b)
+            p = ctx.get(mt.o.payload)
+            for key, v in (("step", mt.edge.step), ("neg", mt.edge.neg), ("update", mt.update),
+                           ("valid", mt.o.valid), ("cl_start", top._loop.done)):
+                rec[key].append(ctx.get(v))
+            rec["speed"].append(p.speed)
+            rec["stopped"].append(p.stopped)
+            rec["fresh"].append(p.fresh)
+            await ctx.tick()
+
+    simulate(top, [testbench], name="test_top_mt_engine")
+    r = {key: np.array(v, dtype=np.int64) for key, v in rec.items()}
+    assert r["cl_start"].sum() >= 10                    # the current loop ran beside it
+    edges = np.flatnonzero(r["step"])
+    ups = np.flatnonzero(r["update"])
+    assert len(edges) == 110 and 0 < r["neg"][edges].sum() < len(edges)
+
+    @dataclasses.dataclass(frozen=True)
+    class Params(model.MTParams):
+        @property
+        def latency(self):
+            return top.mt_latency
+
+    params = Params(1, MT_ENGINE_PARAMS["tc_width"], 32, 48, 16)
+    want = model.simulate(edges, r["neg"][edges].astype(bool), ups, k=k, params=params,
+                          end_cycle=end)
+    got_v = np.flatnonzero(r["valid"])
+    np.testing.assert_array_equal(got_v, want["cycle"])
+    np.testing.assert_array_equal(got_v - want["update"], top.mt_latency)
+    for f in ("speed", "stopped", "fresh"):
+        np.testing.assert_array_equal(r[f][got_v], want[f], err_msg=f)
+    kinds = set(zip(want["stopped"].tolist(), want["fresh"].tolist()))
+    assert kinds == {(1, 0), (0, 1), (0, 0)}, kinds
+    assert (want["speed"] < 0).any() and (want["speed"] > 0).any()
+
+
+def test_top_mt_engine_with_the_speed_run_same_pins_clock_by_clock():
+    """The iCEBreaker's configuration (the speed loop on the engine, its references in the
+    engine's RAM) with ``mt_engine`` against the same top with M/T's own arithmetic, in SPEED
+    mode with the encoder turning: every output pin equal in every clock (the M/T result
+    ``Top.mt_latency`` − ``MTSpeed.latency`` clocks later, the speed run after it, its i_q
+    reference still before the centred sample), the M/T speeds and the speed run's i_q
+    references the same values in the same order (one run more after the reset, below)."""
+    from foc_servo.hdl.protect import FAULTS
+    resets = {"mode": Mode.SPEED.value, "pi_speed_lim_lo": -4000, "pi_speed_lim_hi": 7000,
+              "speed_ref": 1 << 28, "pi_speed_kp": 1 << 12,
+              "prot_mask": 1 << FAULTS.index("external")}
+    kw = dict(pwm_hz=PWM / 2, baud=BAUD, current_loop="engine", regs_staging="bram",
+              speed_loop="engine", resets=resets, mt_k_export=True)
+    tops = [Top(**kw), Top(**kw, mt_chunk_multipliers=False, mt_engine=True)]
+    assert [t.mt_engine for t in tops] == [False, True]
+    assert tops[1].mt_latency - tops[0].mt_latency == 75
+    m = Module()
+    for k, top in enumerate(tops):
+        m.submodules[f"top{k}"] = top
+    outs = [name for name, member in tops[0].signature.members.items()
+            if member.is_port and member.flow == wiring.Out]
+    seen = {"mismatch": None, "clocks": 0, "speeds": ([], []), "iq": ([], []), "gates": 0}
+
+    async def testbench(ctx):
+        states = ((0, 0), (1, 0), (1, 1), (0, 1))
+        for top in tops:
+            ctx.set(top.hall, HALL_OK)
+            ctx.set(top.fault_n, 1)
+        pos, nxt = 0, 0
+        for c in range(12 * tops[0].pwm_period):
+            if c == nxt:                # fast forward, then slowly backward
+                fast = c < 5 * tops[0].pwm_period
+                pos += 1 if fast else -1
+                nxt += 37 if fast else 240
+            a, b = states[pos % 4]
+            for top in tops:
+                ctx.set(top.enc_a, a)
+                ctx.set(top.enc_b, b)
+            got = [[ctx.get(getattr(top, n)) for n in outs] for top in tops]
+            if got[0] != got[1] and seen["mismatch"] is None:
+                seen["mismatch"] = (c, [(n, x, y) for n, x, y in zip(outs, *got) if x != y])
+            seen["gates"] += got[0][outs.index("gate_h")] != 0
+            for k, top in enumerate(tops):
+                if ctx.get(top._mt.o.valid):
+                    seen["speeds"][k].append(ctx.get(top._mt.o.payload.speed))
+                if ctx.get(top._loop.speed_o.valid):
+                    seen["iq"][k].append(ctx.get(top._loop.speed_o.payload))
+            seen["clocks"] += 1
+            await ctx.tick()
+
+    simulate(m, [testbench], name="test_top_mt_engine_speed_run")
+    assert seen["mismatch"] is None, seen["mismatch"]
+    n = min(len(seen["speeds"][0]), len(seen["speeds"][1]))
+    assert n >= 10 and seen["speeds"][0][:n] == seen["speeds"][1][:n]
+    # One speed run more after the reset: M/T's first (stopped) result falls in the register
+    # file's reset walk (which holds off the speed run) 38 clocks after the first
+    # period_start, mt_engine's 113 clocks after it, past the walk's 72: a speed run then.
+    assert tops[0].mt_latency < tops[0]._regs.reset_clocks < tops[1].mt_latency
+    iq0, iq1 = seen["iq"][0], seen["iq"][1][1:]
+    n = min(len(iq0), len(iq1))
+    assert n >= 8 and iq0[:n] == iq1[:n]
+    assert len(set(iq0)) >= 2 and seen["gates"] > 0
+    assert min(seen["speeds"][0]) < 0 < max(seen["speeds"][0])
+
+
+def test_top_mt_engine_parameters_and_the_speed_run_check():
+    """``mt_engine``'s needs (clear errors) and the speed-run check with its latency: half a
+    PWM period must exceed ``mt_latency + 1 + speed_latency`` (347 clocks: 47.9 kHz at
+    33.333 MHz passes, 48.5 kHz fails; without ``mt_engine`` 38 + 1 + 233)."""
+    kw = dict(clk_hz=33.333e6, current_loop="engine", regs_staging="bram", speed_loop="engine",
+              mt_k_export=True, mt_chunk_multipliers=False, mt_engine=True)
+    top = Top(pwm_hz=47.9e3, **kw)
+    assert top.mt_latency + 1 + top._loop.speed_latency == 347
+    with pytest.raises(ValueError, match=r"M/T's latency \+ the speed run \(347 clocks\)"):
+        Top(pwm_hz=48.5e3, **kw)
+    Top(pwm_hz=48.5e3, **{**kw, "mt_engine": False, "mt_chunk_multipliers": True})
+    for bad in ({"mt_k_export": False}, {"mt_chunk_multipliers": True},
+                {"current_loop": "pipelined", "speed_loop": "sequential"}):
+        with pytest.raises(ValueError, match="Top mt_engine needs current_loop='engine'"):
+            Top(pwm_hz=10e3, **{**kw, **bad})
+    with pytest.raises(TypeError, match="Top mt_engine must be a bool"):
+        Top(pwm_hz=10e3, **{**kw, "mt_engine": 1})

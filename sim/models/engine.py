@@ -1,6 +1,8 @@
 # Ref: docs/ENGINE.md; hdl/engine.py (ISA); AREA.md §4 stage 2
 """Bit-true interpreter of :class:`foc_servo.hdl.engine.Engine`: runs the same ROM words clock by
-clock (one instruction per clock, two branch delay slots; a DIV word ``sh + 1`` times) with the gateware's timing where a
+clock (one instruction per clock, two branch delay slots; a DIV word ``sh + 1`` times, a word
+with bubbles (``nb``, folded NOPs) followed by ``nb`` clocks in which nothing is issued; the
+fetch as the gateware's, :class:`~foc_servo.hdl.engine.Fetch`) with the gateware's timing where a
 program can see it: register and output writes land ``WRITE_DELAY`` (3) instructions late (the
 X4 stage), the fold flags follow the angle register at once, ``KD`` a clock later, the table
 words two (the special operands are registered in the R stage); flags are sequential; P is
@@ -16,13 +18,15 @@ would overflow raises :exc:`OverflowError` here instead of wrapping there.
 import collections
 
 from ...hdl.engine import (BUILTIN_CONDS, BUILTIN_SPECIALS, MUL_A, MUL_B, SAT_W, SAT_W1, WORD,
-                           P_WORD, WRITE_DELAY, Op, check_flag_outputs)
+                           P_WORD, WRITE_DELAY, Fetch, Instr, Op, check_flag_outputs)
 from ...hdl.rotator import RotatorParams
 
 __all__ = ["EngineModel", "EngineLoopModel", "EngineSpeedModel", "engine_fields",
            "lead_angle", "loop_model_inputs"]
 
 ALU = (Op.ADD, Op.SUB, Op.RSUB, Op.MIN, Op.MAX, Op.SEL)
+#: What X1 executes in a bubble (a folded NOP): nothing.
+_BUBBLE = Instr()
 
 
 def _fits(value, bits, what):
@@ -109,22 +113,25 @@ class EngineModel:
         list of dict
             One entry per executed instruction (= per clock of the execute stage): ``pc``,
             ``wen``, ``dst``, ``y`` (the post-processed result), ``p`` (P as the instruction's
-            post reads it in X2); ``outs`` holds the output registers afterwards.
+            post reads it in X2), ``bubble`` (1: a clock in which nothing was issued, a
+            folded NOP: ``pc`` is the word whose bubble it is, the gateware's ``trace_valid``
+            is low; the trace of a program equals that of its unfolded form but for this and
+            the addresses); ``outs`` holds the output registers afterwards.
         """
         prog = self.program
         q = self.div_bits
         trace = []
-        queue = collections.deque([start, start + 1, start + 2])
-        fetch = start + 3
+        fetch = Fetch(self.instrs, start)   # F and R as the gateware sequences them
+        issue = fetch.issue()               # into X1 in the first clock
+        fetch.step()
         pending = collections.deque()     # writes in flight (X2, X3), the oldest first
-        rep = 0                           # repeats of the DIV in R so far
         p_lag = self.p      # P as the next instruction's post reads it (X2: HAZARD_P)
         ang = self.outs["ang"]                      # steady state after the idle clocks
         self.tbl = self._table_word(ang)
         self.sreg = self.tbl + (self._fold(ang)[1],)
         while True:
-            pc = queue.popleft()
-            ins = self.instrs[pc]
+            pc, _, bubble = issue
+            ins = _BUBBLE if bubble else self.instrs[pc]
             ang = self.outs["ang"]
             _, kd_now, swap, negc, negs = self._fold(ang)
             ts, tc, kd = self.sreg                  # selected and registered in R
@@ -159,7 +166,8 @@ class EngineModel:
             if ins.sat in (SAT_W, SAT_W1):
                 sw = self.width + (ins.sat == SAT_W1)
                 y = min(max(y, -(1 << (sw - 1))), (1 << (sw - 1)) - 1)
-            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": p_x2}
+            entry = {"pc": pc, "wen": 0, "dst": ins.dst, "y": None, "p": p_x2,
+                     "bubble": int(bubble)}
             writes = []                 # applied WRITE_DELAY instructions later (X4)
             taken = False
             if op in ALU:
@@ -212,15 +220,9 @@ class EngineModel:
                 while pending:
                     self._write(pending.popleft())
                 break
-            if op == Op.DIV and rep < ins.sh:         # a repeated DIV: issued again
-                rep += 1
-                queue.appendleft(pc)
-                continue
-            rep = 0
-            if taken:
-                fetch = ins.tgt
-            queue.append(fetch)
-            fetch += 1
+            # R issues into X1 in the next clock; a branch taken here loads pc.
+            issue = fetch.issue()
+            fetch.step(ins.tgt if taken else None)
         return trace
 
 

@@ -6,7 +6,7 @@ per M/T update, fed with the operands the gateware's window logic would give it
 
 import numpy as np
 
-from ...hdl.engine_mt import MT_OUTS, mt_k_slices, mt_operands, mt_program
+from ...hdl.engine_mt import MT_OUTS, mt_k_slices, mt_k_words, mt_operands, mt_program
 from .engine import EngineModel, _complete, _signed
 
 __all__ = ["EngineMTModel"]
@@ -26,9 +26,12 @@ class EngineMTModel:
         :meth:`EngineModel.run`'s trace of the last update.
     """
 
-    def __init__(self, *, program=None):
+    def __init__(self, *, program=None, out_widths=MT_OUTS):
         self.program = program if program is not None else mt_program()
-        self.engine = EngineModel(self.program, out_widths=MT_OUTS)
+        # k as the program reads it: the slices mkl, mkh or the words mtk0, mtk1
+        # (mt_arith's k); a combined program (its run at the label ``mt``) with every output.
+        self.k_words = "mtk0" in self.program.specials
+        self.engine = EngineModel(self.program, out_widths=out_widths)
         self.start = self.program.labels.get("mt", 0)
         self.trace = []
 
@@ -40,7 +43,8 @@ class EngineMTModel:
         """One update: ``mode`` (``STOPPED``, ``BOUND``, ``FRESH`` of
         :mod:`~foc_servo.sim.models.mt_speed`) with ``simulate``'s operands ``dm``, ``dt`` →
         the signed speed."""
-        spec = {**mt_k_slices(int(k)), **mt_operands(mode, dm, dt, self.speed)}
+        kspec = mt_k_words(int(k)) if self.k_words else mt_k_slices(int(k))
+        spec = {**kspec, **mt_operands(mode, dm, dt, self.speed)}
         self.trace = self.engine.run(*_complete(self.program, spec, {}), start=self.start)
         return self.speed
 
