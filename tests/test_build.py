@@ -274,13 +274,10 @@ FAMILY_FORMS = [
     ("enc_fold_reload", ENC_FOLD_RELOAD, (True, False, False, False),
      lambda top: (top.enc_fold_reload, top._encoder.fold_reload,
                   top._encoder._filter.fold_reload)),
-<<<<<<< HEAD
     ("enc_plausibility_complement", ENC_PLAUSIBILITY_COMPLEMENT, (True, False, False, False),
      lambda top: (top.enc_plausibility_complement, top._encoder.plausibility_complement,
                   top._encoder._plausibility.complement)),
-=======
     # (with mt_engine, the iCE40's, M/T has no multiplier: the chunk form stands for it)
->>>>>>> s18-mt
     ("mt_chunk_multipliers", MT_CHUNK_MULTIPLIERS, (True, False, False, False),
      lambda top: (top.mt_chunk_multipliers or top.mt_engine,
                   top._mt.chunk_multipliers or top.mt_engine)),
