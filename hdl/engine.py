@@ -27,6 +27,9 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
          sh + 1 times (one step per clock: the word is held in R, the fetch stalls)
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
+    nb   (every op but DIV) nb = 0 … 3 bubbles after the instruction: clocks in which nothing is
+         issued (the fetch holds the word in R, as a DIV's repeats): folded NOPs
+         (:meth:`Assembler._fold`; the delay slots of a branch are the two clocks after it)
 
 Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``; beside each
 instruction the key of its special operand), R (operand RF read; the special operand selected,
@@ -942,8 +945,9 @@ class Engine(wiring.Component):
         (its ``_we`` high) takes, its low ``width`` bits.
     trace_* : Out
         Per-clock view of the instruction in X4 (write back), for the tests:
-        ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
-        written back), ``trace_p`` (P as this instruction read it in X2, before its update).
+        ``trace_valid`` (low in a bubble), ``trace_pc``, ``trace_wen``, ``trace_dst``,
+        ``trace_y`` (the value written back), ``trace_p`` (P as this instruction read it in X2,
+        before its update).
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
@@ -1500,8 +1504,9 @@ class Engine(wiring.Component):
         # ``start`` (late: the wrapper's arbitration) enters each next state in its last LUT
         # only: ``running`` = running ? ¬halt : start, ``pc_next`` = the start address or the
         # running program's next pc. R and X1 are valid only while running (``r_valid`` =
-        # running and not halted a clock before, ``x_valid`` behind it): no start term (a
-        # start finds both clear) and no ``running`` term in ``execute`` and ``hold``.
+        # running and not halted a clock before, ``x_valid`` behind it, low for a bubble,
+        # ``r_bub``): no start term (a start finds both clear) and no ``running`` term in
+        # ``execute`` and ``hold``.
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & ir3.end)
         m.d.sync += [self.running.eq(Mux(self.running, ~halt, self.start)),
