@@ -1071,6 +1071,18 @@ class Engine(wiring.Component):
         none, ``k + 1`` for the k-th (special, asl) pair)."""
         return INSTR_WIDTH + max(1, len(self._keys).bit_length())
 
+    @property
+    def rom_words(self):
+        """The program ROM's words: the instruction and, above it, its special key. ``asl`` is
+        part of the key (its (special, asl) pair) and read nowhere else: its lane is written 0,
+        so that yosys drops it with the spare bits (const-0 lanes): 56 bits, a 512-word ROM in 7
+        block RAMs of 512 × 8 on the iCE40 instead of 8 (AREA.md §7.81)."""
+        prog, keys = self._program, self._keys
+        asl_lo = sum(w for _, w in FIELDS[:[n for n, _ in FIELDS].index("asl")])
+        return [(word & ~(1 << asl_lo))
+                | ((keys.index(self._key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
+                   << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+
     program = property(lambda self: self._program)
     rotator = property(lambda self: self._rot)
     config = property(lambda self: self._config)
@@ -1093,15 +1105,9 @@ class Engine(wiring.Component):
                   if name in prog.specials}
         cfg_of.update({prog.specials.index(name): self._config.index(spec[0])
                        for name, spec in self._config_slices.items()})
-        key_of, keys = self._key_of, self._keys
+        keys = self._keys
         key_w = self.rom_width - INSTR_WIDTH
-        # ``asl`` is part of the key (its (special, asl) pair) and read nowhere else: its lane
-        # is written 0, so that yosys drops it with the spare bits (const-0 lanes): 56 bits, a
-        # 512-word ROM in 7 block RAMs of 512 × 8 on the iCE40 instead of 8 (AREA.md §7.81).
-        asl_lo = sum(w for _, w in FIELDS[:[n for n, _ in FIELDS].index("asl")])
-        rom_words = [(word & ~(1 << asl_lo))
-                     | ((keys.index(key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
-                        << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+        rom_words = self.rom_words
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
                                         depth=max(len(prog.words), 2), init=rom_words)
         # The register file's read ports: asynchronous ports with their data registered here
