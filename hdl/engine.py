@@ -27,6 +27,9 @@ docs/ENGINE.md has the rationale; the semantics of one instruction (``A``, ``B``
          sh + 1 times (one step per clock: the word is held in R, the fetch stalls)
     BR   if c: jump to tgt after the two delay-slot instructions
     END  o.valid, halt
+    nb   (every op but DIV) nb = 0 … 3 bubbles after the instruction: clocks in which nothing is
+         issued (the fetch holds the word in R, as a DIV's repeats): folded NOPs
+         (:meth:`Assembler._fold`; the delay slots of a branch are the two clocks after it)
 
 Pipeline (one instruction per clock, no stalls): F (program ROM addressed by ``pc``; beside each
 instruction the key of its special operand), R (operand RF read; the special operand selected,
@@ -942,8 +945,9 @@ class Engine(wiring.Component):
         (its ``_we`` high) takes, its low ``width`` bits.
     trace_* : Out
         Per-clock view of the instruction in X4 (write back), for the tests:
-        ``trace_valid``, ``trace_pc``, ``trace_wen``, ``trace_dst``, ``trace_y`` (the value
-        written back), ``trace_p`` (P as this instruction read it in X2, before its update).
+        ``trace_valid`` (low in a bubble), ``trace_pc``, ``trace_wen``, ``trace_dst``,
+        ``trace_y`` (the value written back), ``trace_p`` (P as this instruction read it in X2,
+        before its update).
     """
 
     def __init__(self, *, program, special_shapes, out_widths, width=16, guard=8, div_bits=16,
@@ -1067,6 +1071,18 @@ class Engine(wiring.Component):
         none, ``k + 1`` for the k-th (special, asl) pair)."""
         return INSTR_WIDTH + max(1, len(self._keys).bit_length())
 
+    @property
+    def rom_words(self):
+        """The program ROM's words: the instruction and, above it, its special key. ``asl`` is
+        part of the key (its (special, asl) pair) and read nowhere else: its lane is written 0,
+        so that yosys drops it with the spare bits (const-0 lanes): 56 bits, a 512-word ROM in 7
+        block RAMs of 512 × 8 on the iCE40 instead of 8 (AREA.md §7.81)."""
+        prog, keys = self._program, self._keys
+        asl_lo = sum(w for _, w in FIELDS[:[n for n, _ in FIELDS].index("asl")])
+        return [(word & ~(1 << asl_lo))
+                | ((keys.index(self._key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
+                   << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+
     program = property(lambda self: self._program)
     rotator = property(lambda self: self._rot)
     config = property(lambda self: self._config)
@@ -1089,10 +1105,9 @@ class Engine(wiring.Component):
                   if name in prog.specials}
         cfg_of.update({prog.specials.index(name): self._config.index(spec[0])
                        for name, spec in self._config_slices.items()})
-        key_of, keys = self._key_of, self._keys
+        keys = self._keys
         key_w = self.rom_width - INSTR_WIDTH
-        rom_words = [word | ((keys.index(key_of(ins)) + 1 if ins.asp and ins.a >= 2 else 0)
-                             << INSTR_WIDTH) for word, ins in zip(prog.words, prog.instrs)]
+        rom_words = self.rom_words
         m.submodules.rom = rom = Memory(shape=INSTR_WIDTH + key_w,
                                         depth=max(len(prog.words), 2), init=rom_words)
         # The register file's read ports: asynchronous ports with their data registered here
@@ -1500,8 +1515,9 @@ class Engine(wiring.Component):
         # ``start`` (late: the wrapper's arbitration) enters each next state in its last LUT
         # only: ``running`` = running ? ¬halt : start, ``pc_next`` = the start address or the
         # running program's next pc. R and X1 are valid only while running (``r_valid`` =
-        # running and not halted a clock before, ``x_valid`` behind it): no start term (a
-        # start finds both clear) and no ``running`` term in ``execute`` and ``hold``.
+        # running and not halted a clock before, ``x_valid`` behind it, low for a bubble,
+        # ``r_bub``): no start term (a start finds both clear) and no ``running`` term in
+        # ``execute`` and ``hold``.
         halt = execute & (ir.op == Op.END)
         m.d.comb += self.end.eq(x3_valid & ir3.end)
         m.d.sync += [self.running.eq(Mux(self.running, ~halt, self.start)),

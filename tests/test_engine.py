@@ -539,6 +539,7 @@ def test_fold_rules_and_the_engine_cycle_by_cycle():
     gateware ``Engine`` against the interpreter cycle by cycle (a bubble: ``trace_valid``
     low in its clock) for both forms over every branch combination."""
     new, old = _fold_program(True), _fold_program(False)
+    assert _clock_trails(new) == _clock_trails(old)
     hosts = [(Op(i.op).name, i.nb) for i in new.instrs if i.nb]
     assert hosts == [("ADD", 1), ("ADD", 2), ("MUL", 3), ("MUL", 1), ("ADD", 2), ("ADD", 3),
                      ("NOP", 1), ("BR", 2), ("NOP", 1), ("SUB", 1), ("NOP", 1), ("ADD", 3),
@@ -548,7 +549,6 @@ def test_fold_rules_and_the_engine_cycle_by_cycle():
     assert [k for k, i in enumerate(new.instrs) if i.op == Op.NOP] == [6, 8, 10, 13, 18]
     assert len(new.words) == 21 and len(old.words) == 47
     assert Op(new.instrs[new.labels["l1"]].op) == Op.NOP
-    assert _clock_trails(new) == _clock_trails(old)
     widths = {"ang": 16, "r": WORD, "s": WORD, "t": WORD}
     shapes = {"x": signed(10), "y": signed(10)}
     rng = np.random.default_rng(18)

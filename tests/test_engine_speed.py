@@ -282,7 +282,8 @@ def test_combined_program_on_the_engine_matches_the_interpreter_cycle_by_cycle()
 
 def test_combined_program_rom_is_64_bits_wide():
     """The combined ROM's word (instruction + special key) with the configuration RAM as the
-    iCEBreaker top has it: 64 bits (500 × 64: 8 block RAMs); the speed flags as conditions or
+    iCEBreaker top has it: 64 bits (500 × 64: 8 block RAMs; 56 of them used since session 18,
+    345 × 56: 7); the speed flags as conditions or
     three 1-bit ``ref_delay`` flags would make 32 keys, 65 bits (9 BRAM)."""
     import gc
     import warnings
@@ -301,6 +302,14 @@ def test_combined_program_rom_is_64_bits_wide():
         base = Engine(program=current_loop_program(), special_shapes={n: s_(20) for n in SPECIALS},
                       out_widths=OUTS, config=CONFIG)
         widths = dut.rom_width, base.rom_width
+        words = dut.rom_words
         del dut, base
         gc.collect()                    # (built for their attributes only: no warning)
     assert widths == (64, 63)
+    # Bits that are 0 in every word, which yosys drops: the 7 spare bits and asl (in the key):
+    # 56 bits used, 7 block RAMs of 512 × 8 (session 18, AREA.md §7.81).
+    used = 0
+    for w in words:
+        used |= w
+    assert bin(used).count("1") == 56 and used >> 52 & 0x7F == 0
+    assert any(i.asl for i in prog.instrs)
