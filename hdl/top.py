@@ -122,9 +122,9 @@ M/T run, then a speed run; each requested run waits while another runs), so its 
 is ready ``mt_latency + 1 + speed_latency`` clocks after ``period_start`` (checked against half
 a period, as above); after a reset, M/T's first (stopped) result comes after the register
 file's reset walk (72 clocks on the iCEBreaker) and requests a speed run, where M/T's own
-result (38 clocks) fell in the walk, which holds the run off. Every M/T output (speed, stopped, fresh) is otherwise
-``MTSpeedModel``'s with the 27-bit TC (tests: ``test_top_mt_engine_speed_matches_the_model``,
-``tests/test_engine_mt.py``).
+result (38 clocks) fell in the walk, which holds the run off. Every M/T output (speed,
+stopped, fresh) is otherwise ``MTSpeedModel``'s with the 27-bit TC (tests:
+``test_top_mt_engine_speed_matches_the_model``, ``tests/test_engine_mt.py``).
 
 **Delay compensation.** The current loop's Park rotation uses θ_e at the sample; its inverse
 Park uses ``θ_e + θ_lead``, ``θ_lead = speed/N_FS · theta_lead`` (:class:`LeadAngle`), the angle
