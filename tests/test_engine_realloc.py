@@ -194,3 +194,34 @@ def test_realloc_pipeline_boundaries():
         acc.append(eng.rf[p.regs["acc"]])
     assert acc == [4, 9, 15]
 
+
+
+def _div_repeats(realloc):
+    """A DIV's divisor ``d`` is read in each of its repeats (R holds the word): ``e``, issued
+    in the clock before the DIV's first issue (4), lands (7) in the R clock of its last repeat
+    (issued in 8), so ``d`` and ``e`` must not share a word."""
+    A = Assembler(specials=("s",), conds=(), outs=("ang", "o", "q"))
+    A.alu(Op.ADD, "r.d", "s.s", 5)                  # issued in 0, written back in 3
+    A.nop(), A.nop(), A.nop()
+    A.alu(Op.ADD, "r.e", "s.s", 7)                  # issued in 4, written back in 7
+    A.div("r.d", 4)                                 # issued in 5, 6, 7, 8 (reads in 4 … 7)
+    A.nop(), A.nop(), A.nop()
+    A.post(None, 0, rnd=False, out="q")
+    A.alu(Op.ADD, None, "r.e", 0, out="o")
+    A.end()
+    return A.assemble(schedule=False, fold=False, realloc=realloc)
+
+
+def test_realloc_div_repeats_read_the_divisor():
+    """The divisor's live range runs to the last repeat of its DIV (a shorter one lets ``e``
+    share ``d``'s word and the last steps divide by 7 + s)."""
+    p = _div_repeats(True)
+    assert p.regs["d"] != p.regs["e"]
+    for s in (3, 100):
+        res = []
+        for prog in (p, _div_repeats(False)):
+            eng = EngineModel(prog, out_widths={"ang": 16, "o": 16, "q": 16})
+            eng.p = 1000 << 8
+            trace = eng.run({"s": s}, {})
+            res.append(([(e["y"], e["p"]) for e in trace], dict(eng.outs)))
+        assert res[0] == res[1]
