@@ -11,7 +11,7 @@ import functools
 
 import numpy as np
 
-from foc_servo.hdl.engine import Assembler, Op
+from foc_servo.hdl.engine import BUILTIN_CONDS, BUILTIN_SPECIALS, Assembler, Op
 from foc_servo.hdl.engine_mt import mt_program
 from foc_servo.hdl.foc_engine import current_loop_program, speed_loop_program
 from foc_servo.sim.models.engine import EngineLoopModel, EngineModel, EngineSpeedModel
@@ -225,3 +225,47 @@ def test_realloc_div_repeats_read_the_divisor():
             trace = eng.run({"s": s}, {})
             res.append(([(e["y"], e["p"]) for e in trace], dict(eng.outs)))
         assert res[0] == res[1]
+
+
+def test_realloc_combined_program_random_runs_same_trace():
+    """The iCEBreaker's combined program (speed, refs, M/T) with both allocations on the
+    interpreter: 300 runs from its three entries (0, ``speed``, ``mt``) in a random order with
+    random specials (16-bit; ``udc``, ``ia``, ``ib`` and M/T's in plausible ranges) and random
+    conditions, the state carried from run to run: every run's trace (but for ``dst``) and
+    outputs equal, or both runs raise the same error (a value that does not fit its word: the
+    over-modulation's DIV on random references; both engines then start afresh)."""
+    from foc_servo.hdl.engine_mt import MT_OUTS, MT_RUN_SPECIALS
+    from foc_servo.hdl.foc_engine import OUTS, REF_OUTS, SPEED_OUTS
+    progs = [current_loop_program(speed=True, refs=True, mt=True, realloc=r)
+             for r in (False, True)]
+    widths = {**OUTS, **SPEED_OUTS, **REF_OUTS, **MT_OUTS}
+    engs = [EngineModel(p, out_widths={n: widths[n] for n in p.outs[1:]}) for p in progs]
+    prog = progs[0]
+    user = prog.specials[len(BUILTIN_SPECIALS):]
+    conds = prog.conds[len(BUILTIN_CONDS):]
+    entries = [0, prog.labels["speed"], prog.labels["mt"]]
+    assert entries == [0, progs[1].labels["speed"], progs[1].labels["mt"]]
+    rng = np.random.default_rng(87)
+    errors = 0
+    for _ in range(300):
+        start = int(rng.choice(entries))
+        spec = {n: int(rng.integers(1, 1 << 11)) if n in MT_RUN_SPECIALS
+                else int(rng.integers(10000, 30000)) if n == "udc"
+                else int(rng.integers(-2000, 2000)) if n in ("ia", "ib")
+                else int(rng.integers(-(1 << 15), 1 << 15)) for n in user}
+        cond = {n: bool(rng.random() < 0.5) for n in conds}
+        res = []
+        for eng in engs:
+            try:
+                res.append((eng.run(spec, cond, start=start), dict(eng.outs)))
+            except (ValueError, OverflowError) as e:
+                res.append((str(e), None))
+        if res[0][1] is None:
+            errors += 1
+            assert res[1][1] is None and res[0][0] == res[1][0]
+            for eng, p in zip(engs, progs):         # start afresh after an error
+                eng.__init__(p, out_widths=eng.out_widths)
+            continue
+        _same_trace(res[0][0], res[1][0])
+        assert res[0][1] == res[1][1]
+    assert errors < 100                     # (44 of 300: the DIV of the over-modulation)
