@@ -706,12 +706,129 @@ class Assembler:
         self._instrs = out
         self._labels = {k: index[v] for k, v in self._labels.items()}
 
-    def assemble(self, *, fuse=True, schedule=True, fold=True):
+    # --- register reuse on the final instruction order --------------------------------------------
+    def _entries(self):
+        """Addresses a run may start at: 0 and every label no branch targets."""
+        targets = {self._labels[e[4]] for e in self._instrs if e[0]["op"] == Op.BR}
+        return sorted({0} | {v for v in self._labels.values() if v not in targets})
+
+    def _issue_paths(self, start):
+        """Every path from ``start`` to its END (or the last word) on the final instruction
+        order, as the fetch (:class:`Fetch`) sequences it: one list per path of ``(clock,
+        address)`` for each clock in which R issues an instruction into X1 (a DIV once per
+        repeat; bubbles issue nothing but take their clock). Each branch taken or not (no
+        loops)."""
+        instrs = [Instr(**dict(f, a=0, b=0, dst=0, nb=f.get("nb", 0),
+                               tgt=self._labels[tgt] if tgt is not None else 0))
+                  for f, _a, _b, _d, tgt in self._instrs]
+        paths = []
+        stack = [(Fetch(instrs, start), 0, [])]
+        while stack:
+            fetch, t, trail = stack.pop()
+            while True:
+                pc, rep, bubble = fetch.issue()
+                ins = instrs[pc]
+                if not bubble:
+                    trail.append((t, pc))
+                if not rep and ins.op == Op.END:
+                    paths.append(trail)
+                    break
+                if not rep and ins.op == Op.BR and not (ins.cond == 0 and not ins.inv):
+                    taken = fetch.copy()
+                    taken.step(ins.tgt)
+                    stack.append((taken, t + 1, list(trail)))
+                    if ins.cond == 0 and ins.inv:           # always taken
+                        break
+                fetch.step()
+                t += 1
+                if fetch.r >= len(instrs):              # no END: the path ends there
+                    paths.append(trail)
+                    break
+        return paths
+
+    def _realloc(self, keep=()):
+        """Register reuse after scheduling, NOP insertion and folding (the order is final: no
+        instruction moves). Over every path from every entry (:meth:`_entries`,
+        :meth:`_issue_paths`), with the pipeline's clocks: an instruction issued into X1 in
+        clock t reads its register operands in R, clock t − 1 (the value written back in that
+        clock bypassed), and writes back in X4, clock t + :data:`WRITE_DELAY`. A read sees the
+        latest write back at or before its clock on the path; a register read on some path
+        before any write on it (the state kept between runs), one with an initial value and
+        one in ``keep`` keeps a word of its own; every other one (a temporary) is live, after
+        each write back W, in the clocks (W, R] up to the last read R that sees it. Two
+        temporaries interfere if one is written back in a clock where the other is live, on
+        some path; they are coloured greedily (first use first, lowest word first) after the
+        kept words. Returns name → word."""
+        paths = [p for e in self._entries() for p in self._issue_paths(e)]
+        instrs = self._instrs
+        acc = []
+        for f, a_ref, b_ref, dst, _ in instrs:
+            op = f["op"]
+            writer = op in ALU_OPS or op == Op.MUL
+            reads = {r[1] for r, sp, use in ((a_ref, f["asp"], writer),
+                                             (b_ref, f["bsp"], writer or op == Op.DIV))
+                     if use and not sp and r[0] == "r"}
+            acc.append((reads, dst[1] if (writer and f["wen"] and dst) else None))
+        pinned = set(self._reg_init) | set(keep)
+        unknown = set(keep) - set(self._regs)
+        if unknown:
+            raise ValueError(f"Assembler: keep names no register: {sorted(unknown)}")
+        edges = {name: set() for name in self._regs}
+        for path in paths:
+            events = []
+            for t, pc in path:
+                reads, w = acc[pc]
+                if w is not None:
+                    events.append((t + WRITE_DELAY, 0, w))
+                for r in reads:
+                    events.append((t - 1, 1, r))
+            events.sort()
+            live = {}                   # name → [W, last R] of its latest write back
+            spans = []
+            writes = []
+            for clock, kind, name in events:
+                if kind == 0:
+                    if name in live:
+                        spans.append((name, *live[name]))
+                    live[name] = [clock, clock]
+                    writes.append((clock, name))
+                elif name in live:
+                    live[name][1] = clock
+                else:
+                    pinned.add(name)            # read before written: state
+            spans.extend((name, w, r) for name, (w, r) in live.items())
+            for clock, y in writes:
+                for x, w, r in spans:
+                    if w < clock <= r and x != y:
+                        edges[x].add(y)
+                        edges[y].add(x)
+        regs = {}
+        for name in self._regs:
+            if name in pinned:
+                regs[name] = len(regs)
+        base = len(regs)
+        colour = {}
+        for name in self._regs:
+            if name not in pinned:
+                taken = {colour[n] for n in edges[name] if n in colour}
+                c = 0
+                while c in taken:
+                    c += 1
+                colour[name] = c
+                regs[name] = base + c
+        return regs
+
+    def assemble(self, *, fuse=True, schedule=True, fold=True, realloc=False, keep=()):
         """The program: posts fused into the next MUL (``fuse``), straight-line code reordered
         to fill the hazard distances (``schedule``, :meth:`_schedule`; then fused again), NOPs
         inserted where a hazard remains, every branch path checked, then NOPs folded into the
         word before them as its bubbles where every path is unchanged (``fold``,
-        :meth:`_fold`: the same instructions in the same clocks, fewer words).
+        :meth:`_fold`: the same instructions in the same clocks, fewer words), then, with
+        ``realloc``, the temporaries given register-file words by interference colouring on
+        the final instruction order (:meth:`_realloc`: no instruction moves, every path keeps
+        its clocks; the state, the registers with an initial value and those named in ``keep``
+        (read from outside the program, e.g. by a model after a run) keep words of their own);
+        without it, every register has a word of its own (allocated on first use).
 
         Returns
         -------
@@ -726,12 +843,16 @@ class Assembler:
         self._insert_nops()
         if fold:
             self._fold()
-        regs = {}
-        for name in self._regs:
-            regs[name] = len(regs)
+        if realloc:
+            regs = self._realloc(keep)
+        else:
+            regs = {}
+            for name in self._regs:
+                regs[name] = len(regs)
         consts = sorted(self._consts)
-        if len(regs) + len(consts) > RF_DEPTH:
-            raise ValueError(f"Assembler: {len(regs)} registers and {len(consts)} constants "
+        used = len(set(regs.values()))
+        if used + len(consts) > RF_DEPTH:
+            raise ValueError(f"Assembler: {used} register words and {len(consts)} constants "
                              f"exceed the {RF_DEPTH}-word register file")
         kaddr = {v: RF_DEPTH - 1 - i for i, v in enumerate(consts)}
         rf_init = [0] * RF_DEPTH

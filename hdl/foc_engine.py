@@ -275,7 +275,7 @@ def _lead_lim(A, gain_limit_raw):
 def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16, int_guard=8,
                          count_width=16, gain_limit_raw=2 << 16, rotator=None, fuse=True,
                          schedule=True, fold=True, speed=False, refs=False,
-                         mt=False):
+                         mt=False, realloc=True):
     """Assemble the current-loop program (the configuration of :class:`EngineCurrentLoop`);
     ``fuse`` lets the assembler fuse posts into the following MUL, ``schedule`` reorder the
     straight-line code, ``fold`` fold NOPs into the word before them as its bubbles
@@ -290,7 +290,9 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
     others, its temporaries in the current loop's registers (:data:`CURRENT_STATE` excepted),
     its state ``mt_pm`` a register of its own, its specials
     (:data:`~.engine_mt.MT_RUN_SPECIALS`) and output ``mtspd`` after the others'
-    (``EngineCurrentLoop(mt=True)``; docs/AREA.md §7.64, §7.82).
+    (``EngineCurrentLoop(mt=True)``; docs/AREA.md §7.64, §7.82). ``realloc``: the temporaries
+    share register-file words after scheduling (:meth:`Assembler._realloc`; docs/AREA.md §7.87;
+    ``False``: a word per register name, for comparison).
 
     Returns
     -------
@@ -482,7 +484,7 @@ def current_loop_program(*, width=16, clarke_gain_frac=15, kp_frac=8, kx_frac=16
         mt_arith(_Renamed(A, pool, prefix="", state=MT_STATE + ("mt_spd",)), prefix="",
                  k="words", dst="r.mt_spd" if speed else None)
         A.end()
-    return A.assemble(fuse=fuse, schedule=schedule, fold=fold)
+    return A.assemble(fuse=fuse, schedule=schedule, fold=fold, realloc=realloc)
 
 
 def _paths(program, start=0):
@@ -1315,7 +1317,7 @@ class EngineCurrentLoop(wiring.Component):
 # --- The speed loop as an engine program (docs/ENGINE.md "Speed loop as a program") --------------
 
 
-def speed_loop_program(*, schedule=True, fold=True):
+def speed_loop_program(*, schedule=True, fold=True, realloc=True):
     """Assemble a speed-loop run (:class:`~.servo.SpeedLoop`'s equations with
     the iCEBreaker top's widths: ``speed_width`` 32, ``width`` 24, ``delay_width`` 5): the
     reference profile (``R[n]`` → the ``ref_int`` output), the feed-forward ``ff``, the
@@ -1324,7 +1326,9 @@ def speed_loop_program(*, schedule=True, fold=True):
     file), the reference history (``r.h0 … r.h2``: ``to_pi`` of ``R`` one to three runs before
     the last), and the speed PI with the feed-forward (:func:`_speed_pi`) → the ``iq`` and
     ``sat`` outputs. Written for ``kp_format`` UQ(24, 12), ``kx_format`` UQ(24, 20) and
-    ``int_guard`` 16 (the top's). ``schedule``, ``fold``: as for :meth:`Assembler.assemble`.
+    ``int_guard`` 16 (the top's). ``schedule``, ``fold``, ``realloc``: as for
+    :meth:`Assembler.assemble` (the registers left in the register file above and the PI's
+    ``r.ih``, ``r.il``, ``r.ep`` kept in words of their own: a model reads them after a run).
 
     In the profile every value stays within the 32-bit ``WORD``: a difference of two 32-bit
     values (33 bits) is only compared (the ALU's flags are those of its 33-bit sum) or halved;
@@ -1339,7 +1343,8 @@ def speed_loop_program(*, schedule=True, fold=True):
     A = Assembler(specials=SPEED_SPECIALS, conds=SPEED_CONDS, outs=tuple(SPEED_OUTS))
     _speed_loop(A)
     A.end()
-    return A.assemble(schedule=schedule, fold=fold)
+    return A.assemble(schedule=schedule, fold=fold, realloc=realloc,
+                      keep=("plan", "ff", "hold", "ref", "fb", "e", "ih", "il", "ep"))
 
 
 class _Renamed:
