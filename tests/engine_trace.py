@@ -40,3 +40,14 @@ async def start_and_follow(ctx, dut, trace, *, limit=400):
     await ctx.tick()
     ctx.set(dut.start, 0)
     return await follow_trace(ctx, dut, trace, limit=limit)
+
+
+def random_speed_args(rng):
+    """Random inputs of one speed-loop run (:class:`~foc_servo.sim.models.engine.EngineSpeedModel`
+    ``run``'s keywords): full-range speeds, slews at their corners, random gains and hold."""
+    return dict(speed=int(rng.integers(-(1 << 31), 1 << 31)),
+                speed_ref=int(rng.integers(-(1 << 31), 1 << 31)),
+                speed_slew=int(rng.choice([0, 1, 1 << 20, (1 << 32) - 1])),
+                iq_ff=int(rng.integers(-(1 << 15), 1 << 15)), lim_lo=-20000, lim_hi=20000,
+                ref_delay=int(rng.integers(0, 32)), int_hold=int(rng.random() < 0.3),
+                kp=int(rng.integers(1 << 24)), kx=int(rng.integers(1 << 24)))

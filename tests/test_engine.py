@@ -23,7 +23,7 @@ from foc_servo.sim.models.rotator import rotate_ideal
 from foc_servo.sim.models.svpwm import dcbus_gain
 from foc_servo.sim.verify import foc as verify_foc
 
-from engine_trace import start_and_follow
+from engine_trace import random_speed_args, start_and_follow
 
 
 def _engine_vec(vec):
@@ -479,12 +479,7 @@ def test_folded_current_loop_runs_the_same_trace():
     old = EngineSpeedModel(program=old.program, engine=old.engine)
     rng = np.random.default_rng(12)
     for _ in range(20):
-        args = dict(speed=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_ref=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_slew=int(rng.choice([0, 1, 1 << 20, (1 << 32) - 1])),
-                    iq_ff=int(rng.integers(-(1 << 15), 1 << 15)), lim_lo=-20000, lim_hi=20000,
-                    ref_delay=int(rng.integers(0, 32)), int_hold=int(rng.random() < 0.3),
-                    kp=int(rng.integers(1 << 24)), kx=int(rng.integers(1 << 24)))
+        args = random_speed_args(rng)
         assert new.run(**args) == old.run(**args)
         _same_trace(new.program, new.trace, old.program, old.trace)
 

@@ -17,6 +17,7 @@ from foc_servo.hdl.foc_engine import current_loop_program, speed_loop_program
 from foc_servo.sim.models.engine import EngineLoopModel, EngineModel, EngineSpeedModel
 from foc_servo.sim.models.foc import OUTPUT_FIELDS
 from foc_servo.sim.verify import foc as verify_foc
+from engine_trace import random_speed_args
 
 
 @contextlib.contextmanager
@@ -112,12 +113,7 @@ def test_realloc_current_loop_same_trace():
     new = EngineSpeedModel(program=new.program, engine=new.engine)
     rng = np.random.default_rng(12)
     for _ in range(30):
-        args = dict(speed=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_ref=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_slew=int(rng.choice([0, 1, 1 << 20, (1 << 32) - 1])),
-                    iq_ff=int(rng.integers(-(1 << 15), 1 << 15)), lim_lo=-20000, lim_hi=20000,
-                    ref_delay=int(rng.integers(0, 32)), int_hold=int(rng.random() < 0.3),
-                    kp=int(rng.integers(1 << 24)), kx=int(rng.integers(1 << 24)))
+        args = random_speed_args(rng)
         assert old.run(**args) == new.run(**args)
         _same_trace(old.trace, new.trace)
 
@@ -129,12 +125,7 @@ def test_realloc_speed_program_same_trace():
     new = EngineSpeedModel(program=speed_loop_program())
     rng = np.random.default_rng(5)
     for _ in range(60):
-        args = dict(speed=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_ref=int(rng.integers(-(1 << 31), 1 << 31)),
-                    speed_slew=int(rng.choice([0, 1, 1 << 20, (1 << 32) - 1])),
-                    iq_ff=int(rng.integers(-(1 << 15), 1 << 15)), lim_lo=-20000, lim_hi=20000,
-                    ref_delay=int(rng.integers(0, 32)), int_hold=int(rng.random() < 0.3),
-                    kp=int(rng.integers(1 << 24)), kx=int(rng.integers(1 << 24)))
+        args = random_speed_args(rng)
         assert old.run(**args) == new.run(**args)
         _same_trace(old.trace, new.trace)
 
