@@ -15,6 +15,7 @@ from foc_servo.hdl.mt_speed import MTSpeed
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models import divider as divider_model
 from foc_servo.sim.models import mt_speed as model
+from mt_pins import AB, record_top_mt
 
 FIELDS = ("cycle", "speed", "stopped", "fresh")
 
@@ -484,34 +485,12 @@ def test_mt_through_top_wiring_matches_model(mt_edges):
                             k_width=mt.k_width)
     changes, end = _top_pin_schedule(np.random.default_rng(11))
     at = dict(changes)
-    ab = ((0, 0), (1, 0), (1, 1), (0, 1))
-    rec = {"step": [], "neg": [], "update": [], "valid": [], "speed": [], "stopped": [],
-           "fresh": []}
-
-    async def testbench(ctx):
-        ctx.set(top.hall, 0b101)
-        pos = 0
-        for c in range(end):
-            pos = at.get(c, pos)
-            a, b = ab[pos % 4]
-            ctx.set(top.enc_a, a)
-            ctx.set(top.enc_b, b)
-            p = ctx.get(mt.o.payload)
-            for key, v in (("step", mt.edge.step), ("neg", mt.edge.neg), ("update", mt.update),
-                           ("valid", mt.o.valid)):
-                rec[key].append(ctx.get(v))
-            rec["speed"].append(p.speed)
-            rec["stopped"].append(p.stopped)
-            rec["fresh"].append(p.fresh)
-            await ctx.tick()
-
-    simulate(top, [testbench], name=f"mt_top_{mt_edges}")
-    r = {key: np.array(v, dtype=np.int64) for key, v in rec.items()}
+    r = record_top_mt(top, at, end, hall=0b101, name=f"mt_top_{mt_edges}")
     # The counted edges, from the pin schedule alone.
     delay = EncoderFrontEnd.latency + top.regmap["enc_filter"].reset - 1
     want_c, want_neg, prev = [], [], 0
     for c, pos in changes:
-        a_rise = ab[pos % 4][0] == 1 and ab[prev % 4][0] == 0
+        a_rise = AB[pos % 4][0] == 1 and AB[prev % 4][0] == 0
         if mt_edges == "x4" or a_rise:
             want_c.append(c + delay)
             want_neg.append(int(pos < prev))

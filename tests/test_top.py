@@ -27,6 +27,7 @@ from foc_servo.host.protocol import (Command, ReplyStatus, cobs_decode, cobs_enc
 from foc_servo.sim.adc_part import AdcPartModel
 from foc_servo.sim.harness import simulate
 from foc_servo.sim.models.clarke import clarke
+from mt_pins import record_top_mt
 
 CLK = 50e6
 BAUD = CLK / 8
@@ -1751,29 +1752,8 @@ def test_top_mt_engine_speed_matches_the_model():
             pos += step
             at[clock] = pos
     end = clock + 2000
-    ab = ((0, 0), (1, 0), (1, 1), (0, 1))
-    rec = {key: [] for key in ("step", "neg", "update", "valid", "speed", "stopped", "fresh",
-                               "cl_start")}
-
-    async def testbench(ctx):
-        ctx.set(top.hall, HALL_OK)
-        pos = 0
-        for c in range(end):
-            pos = at.get(c, pos)
-            a, b = ab[pos % 4]
-            ctx.set(top.enc_a, a)
-            ctx.set(top.enc_b, b)
-            p = ctx.get(mt.o.payload)
-            for key, v in (("step", mt.edge.step), ("neg", mt.edge.neg), ("update", mt.update),
-                           ("valid", mt.o.valid), ("cl_start", top._loop.done)):
-                rec[key].append(ctx.get(v))
-            rec["speed"].append(p.speed)
-            rec["stopped"].append(p.stopped)
-            rec["fresh"].append(p.fresh)
-            await ctx.tick()
-
-    simulate(top, [testbench], name="test_top_mt_engine")
-    r = {key: np.array(v, dtype=np.int64) for key, v in rec.items()}
+    r = record_top_mt(top, at, end, hall=HALL_OK, name="test_top_mt_engine",
+                      extra=(("cl_start", top._loop.done),))
     assert r["cl_start"].sum() >= 10                    # the current loop ran beside it
     edges = np.flatnonzero(r["step"])
     ups = np.flatnonzero(r["update"])
